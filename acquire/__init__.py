@@ -1,0 +1,1 @@
+"""Camera control, capture sessions, manifests, scheduling and the ``hdrcap`` command line."""

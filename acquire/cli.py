@@ -1,0 +1,89 @@
+"""The ``hdrcap`` command line: a thin layer over the Python API.
+
+Commands live in :mod:`acquire.commands` (one module each, discovered at start-up). Errors
+the user can fix (:class:`pipeline.errors.HdrcapError`) are printed as one line
+``hdrcap: error: ...`` with a non-zero exit status; an unexpected exception is reported in
+one line too, with its traceback only when ``HDRCAP_DEBUG=1``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import pkgutil
+import sys
+
+import click
+
+from pipeline import __version__
+from pipeline.errors import HdrcapError
+
+__all__ = ["cli", "main"]
+
+
+class _Group(click.Group):
+    def list_commands(self, ctx):
+        return sorted(super().list_commands(ctx))
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="hdrcap")
+def cli() -> None:
+    """hdrcap: calibrated HDR capture with per-photosite uncertainty.
+
+    Plans exposures for a target SNR, drives a camera (libgphoto2 or the built-in
+    simulator), calibrates the sensor and merges raw brackets into the maximum-likelihood
+    irradiance (electrons per second per photosite) and its standard deviation
+    (Granados et al., "Optimal HDR Reconstruction with Linear Digital Cameras").
+    Run `hdrcap COMMAND --help` for each command.
+    """
+
+
+def _register() -> None:
+    import acquire.commands as pkg
+
+    for mod in pkgutil.iter_modules(pkg.__path__):
+        if mod.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"acquire.commands.{mod.name}")
+        cmd = getattr(module, "command", None)
+        if isinstance(cmd, click.Command):
+            cli.add_command(cmd)
+
+
+_register()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``hdrcap`` console script; returns the exit status."""
+    try:
+        cli.main(args=argv, prog_name="hdrcap", standalone_mode=False)
+        return 0
+    except HdrcapError as err:
+        click.echo(f"hdrcap: error: {err}", err=True)
+        return err.exit_code
+    except click.exceptions.Exit as err:
+        return err.exit_code
+    except click.ClickException as err:
+        err.show()
+        return err.exit_code
+    except click.Abort:
+        click.echo("hdrcap: aborted", err=True)
+        return 130
+    except KeyboardInterrupt:
+        click.echo("hdrcap: interrupted", err=True)
+        return 130
+    except BrokenPipeError:
+        return 1
+    except Exception as err:  # never a traceback for the user, unless asked for
+        if os.environ.get("HDRCAP_DEBUG"):
+            raise
+        click.echo(
+            f"hdrcap: internal error: {type(err).__name__}: {err} (set HDRCAP_DEBUG=1 for a traceback)",
+            err=True,
+        )
+        return 70
+
+
+if __name__ == "__main__":  # python -m acquire.cli
+    sys.exit(main())

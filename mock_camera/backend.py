@@ -1,0 +1,88 @@
+"""The simulated camera: a :class:`~mock_camera.sensor.SimulatedSensor` looking at a scene,
+writing each capture as a DNG file the way a real camera writes raw files.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+
+from .dng import exposure_rational, write_dng
+from .sensor import SensorSpec, SimulatedSensor
+
+__all__ = ["SimulatedCamera"]
+
+
+class SimulatedCamera:
+    """A simulated raw camera.
+
+    Parameters
+    ----------
+    spec : SensorSpec
+        The sensor physics (see :mod:`mock_camera.sensor`).
+    scene : numpy.ndarray
+        Irradiance map, e-/s per photosite; its shape is the mosaic's.
+    seed : int
+        Seeds the fixed patterns and the temporal noise.
+    temperature : float, optional
+        Sensor temperature, degrees C (dark current doubles every
+        ``spec.doubling_temperature``).
+    serial : str
+        Serial number written into the files.
+    """
+
+    def __init__(self, spec: SensorSpec, scene: np.ndarray, seed: int = 0, temperature: float | None = None,
+                 serial: str | None = None):
+        self.spec = spec
+        self.scene = np.asarray(scene, dtype=np.float64)
+        self.sensor = SimulatedSensor(spec, self.scene.shape, seed=seed)
+        self.temperature = temperature
+        self.serial = serial or f"SIM{seed:06d}"
+        self._clock = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
+
+    @staticmethod
+    def actual_time(t: float) -> float:
+        """The exposure time the camera really uses: the rational written in the file."""
+        num, den = exposure_rational(t)
+        return float(Fraction(num, den))
+
+    def capture_array(self, t: float, dark: bool = False) -> np.ndarray:
+        """Expose for ``t`` seconds (light blocked when ``dark``) and return the uint16 mosaic."""
+        return self.sensor.expose(self.scene, self.actual_time(t), dark=dark, temperature=self.temperature)
+
+    def capture_to(self, path, t: float, dark: bool = False, overwrite: bool = False) -> Path:
+        """Capture one frame and write it as a DNG to ``path`` (written atomically; an existing
+        file is never replaced unless ``overwrite``)."""
+        path = Path(path)
+        mosaic = self.capture_array(t, dark=dark)
+        self._clock += _dt.timedelta(seconds=max(1, int(np.ceil(t))))
+        tmp = path.with_name(f".{path.name}.partial")
+        with open(tmp, "wb") as f:
+            write_dng(
+                f,
+                mosaic,
+                exposure_time=t,
+                iso=self.spec.iso,
+                black_level=self.spec.mu_R,
+                white_level=self.spec.white_level,
+                cfa=self.spec.cfa,
+                make=self.spec.make,
+                model=self.spec.model,
+                serial=self.serial,
+                timestamp=self._clock,
+                description="dark frame" if dark else "",
+            )
+            f.flush()
+            os.fsync(f.fileno())
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)
+            finally:
+                tmp.unlink()
+        return path

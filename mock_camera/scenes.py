@@ -1,0 +1,100 @@
+"""Synthetic scenes: irradiance maps in electrons per second per photosite.
+
+Every scene spans ``decades`` orders of magnitude below ``x_max`` (e-/s). Names:
+
+``gradient``  a horizontal logarithmic ramp from x_max 10^-decades to x_max;
+``patches``   a grid of constant patches, log-spaced over the range (good for statistics);
+``edges``     step edges and a disk of strong contrast on a darker background;
+``hdr``       a composite: gradient band, patch band and edge band (the default);
+``flat``      a uniform field at x_max (for flat fields and statistics).
+
+:func:`load_scene_exr` reads any single-channel EXR (channel ``irradiance``, or ``Y``/``R``)
+as a scene.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["SCENES", "make_scene", "load_scene_exr"]
+
+SCENES = ("hdr", "gradient", "patches", "edges", "flat")
+
+
+def _gradient(h, w, lo, hi):
+    ramp = np.logspace(np.log10(lo), np.log10(hi), w)
+    return np.broadcast_to(ramp, (h, w)).copy()
+
+
+def _patches(h, w, lo, hi, n=(4, 8)):
+    rows, cols = n
+    levels = np.logspace(np.log10(lo), np.log10(hi), rows * cols).reshape(rows, cols)
+    yi = np.minimum((np.arange(h) * rows) // h, rows - 1)
+    xi = np.minimum((np.arange(w) * cols) // w, cols - 1)
+    return levels[yi[:, None], xi[None, :]].astype(np.float64)
+
+
+def _edges(h, w, lo, hi):
+    out = np.full((h, w), np.sqrt(lo * hi) / 10.0)
+    out[:, w // 2 :] = np.sqrt(lo * hi)
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = min(h, w) / 5.0
+    out[(yy - h / 2) ** 2 + (xx - w / 4) ** 2 < r**2] = hi
+    out[(yy - h / 2) ** 2 + (xx - 3 * w / 4) ** 2 < r**2] = lo
+    out[: h // 8, :] = lo * 3.0
+    return np.clip(out, lo, hi)
+
+
+def make_scene(name: str = "hdr", shape=(768, 1024), decades: float = 4.0, x_max: float = 2e5) -> np.ndarray:
+    """Return the irradiance map of scene ``name`` (float64, e-/s per photosite).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`SCENES`.
+    shape : (int, int)
+        Height and width in photosites.
+    decades : float
+        Dynamic range of the scene, orders of magnitude (> 0).
+    x_max : float
+        Brightest irradiance, e-/s (> 0).
+    """
+    h, w = (int(s) for s in shape)
+    if h < 2 or w < 2:
+        raise ValueError(f"scene shape must be at least 2x2, got {shape!r}")
+    if not decades > 0 or not x_max > 0:
+        raise ValueError("decades and x_max must be > 0")
+    lo, hi = x_max * 10.0 ** (-decades), x_max
+    if name == "gradient":
+        return _gradient(h, w, lo, hi)
+    if name == "patches":
+        return _patches(h, w, lo, hi)
+    if name == "edges":
+        return _edges(h, w, lo, hi)
+    if name == "flat":
+        return np.full((h, w), hi)
+    if name == "hdr":
+        out = np.empty((h, w))
+        a, b = h // 3, 2 * h // 3
+        out[:a] = _gradient(a, w, lo, hi)
+        out[a:b] = _patches(b - a, w, lo, hi, n=(2, 8))
+        out[b:] = _edges(h - b, w, lo, hi)
+        return out
+    raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)} or an .exr file")
+
+
+def load_scene_exr(path) -> np.ndarray:
+    """Load an irradiance map (e-/s) from an EXR file as a scene (float64)."""
+    import OpenEXR  # the simulator reads scenes itself: it imports nothing of pipeline's I/O
+
+    with OpenEXR.File(str(path)) as exr:
+        channels = {name: ch.pixels for name, ch in exr.channels().items()}
+    for name in ("irradiance", "Y", "R", "G"):
+        if name in channels:
+            data = np.asarray(channels[name], dtype=np.float64)
+            break
+    else:
+        raise ValueError(f"{path}: no irradiance, Y or R channel in this EXR")
+    if not np.all(np.isfinite(data)) or np.any(data < 0):
+        raise ValueError(f"{path}: scene irradiance must be finite and >= 0")
+    return data

@@ -1,0 +1,471 @@
+"""File I/O at the edge of the numerical core: raw frames, 16-bit images, EMVA 1288
+descriptors and EXR files, with atomic, no-clobber writes.
+
+Raw frames are returned as the CFA mosaic the sensor wrote (rawpy's ``raw_image_visible``),
+never demosaiced. Every problem with an input file raises :class:`~pipeline.errors.InputError`
+with a one-line message naming the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from .errors import InputError, OutputExistsError
+
+__all__ = [
+    "RawFrame",
+    "read_raw",
+    "read_image16",
+    "read_frame",
+    "check_frames",
+    "sha256_file",
+    "EmvaStep",
+    "EmvaDataset",
+    "read_emva_descriptor",
+    "HdrImage",
+    "write_exr",
+    "read_exr",
+    "atomic_output",
+    "RAW_EXTENSIONS",
+    "IMAGE_EXTENSIONS",
+]
+
+RAW_EXTENSIONS = {".dng", ".nef", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
+IMAGE_EXTENSIONS = {".png", ".tif", ".tiff"}
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """One raw exposure: the CFA mosaic and what the file says about it.
+
+    Attributes
+    ----------
+    data : numpy.ndarray
+        uint16 mosaic, DN, shape (height, width).
+    exposure_time : float
+        Seconds.
+    iso : float or None
+        ISO speed from EXIF.
+    black_level : float or None
+        Black level written in the file, DN (None for plain images).
+    white_level : float or None
+        White level written in the file, DN.
+    cfa_pattern : str or None
+        2x2 Bayer tile, e.g. ``"RGGB"``; None for monochrome.
+    path : str or None
+        Source file.
+    camera : str or None
+        Make and model.
+    timestamp : str or None
+        Capture time (EXIF DateTimeOriginal or LibRaw's timestamp, ISO 8601).
+    """
+
+    data: np.ndarray
+    exposure_time: float
+    iso: float | None = None
+    black_level: float | None = None
+    white_level: float | None = None
+    cfa_pattern: str | None = None
+    path: str | None = None
+    camera: str | None = None
+    timestamp: str | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape
+
+
+def _check_readable(path: Path) -> None:
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a frame")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: empty file")
+
+
+def _check_time(path, t) -> float:
+    try:
+        t = float(t)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: exposure time {t!r} is not a number") from None
+    if not (np.isfinite(t) and t > 0):
+        raise InputError(f"{path}: exposure time must be a positive number of seconds, got {t!r}")
+    return t
+
+
+def _tiff_exif(path: Path) -> dict[str, Any]:
+    """Exact ExposureTime, ISO, timestamp and camera from IFD0 or the EXIF IFD of a
+    TIFF-based raw file (DNG, NEF, ...); empty for other formats."""
+    import tifffile
+
+    out: dict[str, Any] = {}
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tags = tif.pages[0].tags
+            exif = tags["ExifTag"].value if "ExifTag" in tags else {}
+            for key, code in (("ExposureTime", 33434), ("ISOSpeedRatings", 34855), ("DateTimeOriginal", 36867)):
+                val = exif.get(key)
+                if val is None and code in tags:
+                    val = tags[code].value
+                out[key] = val
+            out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
+    except Exception:  # not a TIFF container (CR3, RAF, ...): LibRaw's values are used
+        return {}
+    t = out.get("ExposureTime")
+    if isinstance(t, tuple) and len(t) == 2:
+        out["ExposureTime"] = float(Fraction(int(t[0]), int(t[1]))) if t[1] else None
+    elif t is not None:
+        out["ExposureTime"] = float(t)
+    iso = out.get("ISOSpeedRatings")
+    if isinstance(iso, (tuple, list)):
+        out["ISOSpeedRatings"] = iso[0] if iso else None
+    return out
+
+
+def read_raw(path, exposure_time: float | None = None) -> RawFrame:
+    """Read a camera raw file (DNG, NEF, CR2, ...) with rawpy (LibRaw).
+
+    Returns the visible CFA mosaic as uint16, the black and white levels, the CFA pattern, and
+    the exposure time and ISO from EXIF (IFD0 or the EXIF IFD). An explicit ``exposure_time``
+    (seconds) overrides the file's.
+    """
+    import rawpy
+
+    path = Path(path)
+    _check_readable(path)
+    exif = _tiff_exif(path)
+    try:
+        with rawpy.imread(str(path)) as raw:
+            data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+            other = raw.other
+            desc = raw.color_desc.decode("ascii", "replace")
+            pattern = raw.raw_pattern
+            if raw.num_colors >= 3 and pattern is not None and pattern.shape == (2, 2):
+                cfa = "".join(desc[int(i)] for i in pattern.ravel())
+            else:
+                cfa = None
+            black = float(np.mean(raw.black_level_per_channel))
+            white = float(raw.white_level)
+            shutter = float(other.shutter_speed) if other.shutter_speed else None
+            iso = float(other.iso_speed) if other.iso_speed else None
+            ts = other.timestamp.isoformat() if other.timestamp else None
+    except rawpy.LibRawFileUnsupportedError:
+        raise InputError(f"{path}: not a raw file LibRaw can read") from None
+    except rawpy.LibRawIOError:
+        raise InputError(f"{path}: truncated or unreadable raw file") from None
+    except rawpy.LibRawError as err:
+        raise InputError(f"{path}: cannot decode raw data ({type(err).__name__})") from None
+    t = exposure_time if exposure_time is not None else (exif.get("ExposureTime") or shutter)
+    if t is None:
+        raise InputError(f"{path}: no exposure time in EXIF; give it explicitly (--times)")
+    return RawFrame(
+        data=data,
+        exposure_time=_check_time(path, t),
+        iso=float(exif["ISOSpeedRatings"]) if exif.get("ISOSpeedRatings") else iso,
+        black_level=black,
+        white_level=white,
+        cfa_pattern=cfa,
+        path=str(path),
+        camera=exif.get("camera"),
+        timestamp=exif.get("DateTimeOriginal") or ts,
+    )
+
+
+def read_image16(path, exposure_time: float) -> RawFrame:
+    """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time."""
+    path = Path(path)
+    _check_readable(path)
+    if exposure_time is None:
+        raise InputError(f"{path}: a PNG/TIFF frame needs an explicit exposure time (--times)")
+    t = _check_time(path, exposure_time)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            data = tifffile.imread(path)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                im.load()
+                data = np.array(im)
+    except Exception as err:  # PIL/tifffile raise many types for bad files
+        raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
+    if data.ndim != 2:
+        raise InputError(f"{path}: expected a single-channel (raw mosaic) image, got shape {data.shape}")
+    if data.dtype not in (np.uint8, np.uint16):
+        if np.issubdtype(data.dtype, np.integer) and data.min() >= 0 and data.max() < 65536:
+            data = data.astype(np.uint16)
+        else:
+            raise InputError(f"{path}: expected 8- or 16-bit unsigned integer pixels, got {data.dtype}")
+    return RawFrame(data=data.astype(np.uint16, copy=False), exposure_time=t, path=str(path))
+
+
+def read_frame(path, exposure_time: float | None = None) -> RawFrame:
+    """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type."""
+    path = Path(path)
+    _check_readable(path)
+    if path.suffix.lower() in IMAGE_EXTENSIONS:
+        return read_image16(path, exposure_time)
+    return read_raw(path, exposure_time)
+
+
+def sha256_file(path, chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_frames(frames: Iterable[RawFrame], what: str = "frame") -> list[RawFrame]:
+    """Check a set of frames can be merged together: same size, no duplicates.
+
+    Duplicates are the same file given twice or two files with identical pixel data.
+    """
+    frames = list(frames)
+    if not frames:
+        raise InputError(f"no {what}s given")
+    shape = frames[0].shape
+    seen_paths: dict[str, str] = {}
+    seen_data: dict[str, str] = {}
+    for fr in frames:
+        name = fr.path or "<array>"
+        if fr.shape != shape:
+            raise InputError(
+                f"{name}: size {fr.shape[1]}x{fr.shape[0]} differs from {frames[0].path or 'the first ' + what} "
+                f"({shape[1]}x{shape[0]})"
+            )
+        if fr.path is not None:
+            real = os.path.realpath(fr.path)
+            if real in seen_paths:
+                raise InputError(f"{name}: the same file is given twice")
+            seen_paths[real] = name
+        digest = hashlib.sha256(np.ascontiguousarray(fr.data).tobytes()).hexdigest()
+        if digest in seen_data:
+            raise InputError(f"{name}: duplicate {what}, its pixels are identical to {seen_data[digest]}")
+        seen_data[digest] = name
+    return frames
+
+
+# --------------------------------------------------------------------------- EMVA 1288
+
+
+@dataclass(frozen=True)
+class EmvaStep:
+    """One step of an EMVA 1288 descriptor: bright (``b``) or dark (``d``) images."""
+
+    kind: str  # "b" or "d"
+    exposure_time: float  # seconds
+    photons: float | None  # mean photons per pixel (bright steps)
+    images: tuple[Path, ...]
+
+
+@dataclass(frozen=True)
+class EmvaDataset:
+    """An EMVA 1288 descriptor file (Release 3.0 format) and its image list."""
+
+    path: Path
+    bits: int
+    width: int
+    height: int
+    steps: tuple[EmvaStep, ...]
+    version: str | None = None
+
+    def bright(self) -> list[EmvaStep]:
+        return [s for s in self.steps if s.kind == "b"]
+
+    def dark(self) -> list[EmvaStep]:
+        return [s for s in self.steps if s.kind == "d"]
+
+
+def read_emva_descriptor(path) -> EmvaDataset:
+    """Parse an EMVA 1288 descriptor (``EMVA1288_Data.txt``).
+
+    Lines: ``v`` version, ``n bits width height``, ``b <t ns> <photons>`` and ``d <t ns>`` open
+    a bright or dark step, ``i <relative path>`` lists its images (Windows separators allowed).
+    """
+    path = Path(path)
+    _check_readable(path)
+    base = path.parent
+    bits = width = height = None
+    version = None
+    steps: list[EmvaStep] = []
+    current: dict[str, Any] | None = None
+
+    def close():
+        if current is not None:
+            steps.append(EmvaStep(current["kind"], current["t"], current["photons"], tuple(current["images"])))
+
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for lineno, line in enumerate(f, 1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            parts = line.split(None, 1)
+            key, rest = parts[0], (parts[1] if len(parts) > 1 else "")
+            try:
+                if key == "v":
+                    version = rest.strip()
+                elif key == "n":
+                    bits, width, height = (int(x) for x in rest.split()[:3])
+                elif key in ("b", "d"):
+                    close()
+                    vals = rest.split()
+                    t = float(vals[0]) * 1e-9
+                    photons = float(vals[1]) if key == "b" and len(vals) > 1 else None
+                    current = {"kind": key, "t": t, "photons": photons, "images": []}
+                elif key == "i":
+                    if current is None:
+                        raise ValueError("image line before any b/d step")
+                    rel = rest.strip().replace("\\", "/")
+                    current["images"].append(base / rel)
+                else:
+                    raise ValueError(f"unknown line type {key!r}")
+            except (ValueError, IndexError) as err:
+                raise InputError(f"{path}:{lineno}: bad EMVA 1288 descriptor line ({err})") from None
+    close()
+    if bits is None:
+        raise InputError(f"{path}: no 'n bits width height' line; not an EMVA 1288 descriptor")
+    if not steps:
+        raise InputError(f"{path}: no b/d steps")
+    return EmvaDataset(path=path, bits=bits, width=width, height=height, steps=tuple(steps), version=version)
+
+
+# --------------------------------------------------------------------------- atomic output
+
+
+@contextlib.contextmanager
+def atomic_output(path, force: bool = False, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success move it into place atomically.
+
+    Without ``force`` an existing ``path`` is never replaced (checked up front and again at
+    the final step, which uses a hard link so that a file created meanwhile is not clobbered).
+    On error the temporary file is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    if path.exists() and not force:
+        raise OutputExistsError(f"{path}: exists; use --force to overwrite")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"{path}: output folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"{path}: output folder {parent} is not writable")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        if force:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise OutputExistsError(f"{path}: appeared while writing; use --force to overwrite") from None
+            except OSError:
+                # file systems without hard links: fall back to a checked rename
+                if path.exists():
+                    raise OutputExistsError(f"{path}: exists; use --force to overwrite") from None
+                os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+# --------------------------------------------------------------------------- EXR
+
+
+@dataclass
+class HdrImage:
+    """An HDR result as stored in EXR: float32 channels and metadata.
+
+    ``channels`` maps names (``irradiance``, ``sigma``, ``nexp``, ...) to 2-D float32 arrays;
+    ``attrs`` holds JSON-serialisable metadata (unit, CFA pattern, exposure times, calibration
+    identity, hdrcap version, model and options).
+    """
+
+    channels: dict[str, np.ndarray]
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return next(iter(self.channels.values())).shape
+
+
+_META_KEY = "hdrcap"
+
+
+def write_exr(path, image: HdrImage, force: bool = False) -> Path:
+    """Write ``image`` to ``path`` as a ZIP-compressed scanline EXR, atomically.
+
+    Channels are stored as FLOAT (float32). The metadata goes into one string attribute
+    ``hdrcap`` (JSON, full precision), and the scalar string/number entries are also written
+    as plain header attributes so that any EXR viewer shows them.
+    """
+    import OpenEXR
+
+    if not image.channels:
+        raise ValueError("an EXR needs at least one channel")
+    shape = image.shape
+    chans = {}
+    for name, arr in image.channels.items():
+        arr = np.ascontiguousarray(arr, dtype=np.float32)
+        if arr.shape != shape:
+            raise ValueError(f"channel {name!r} has shape {arr.shape}, expected {shape}")
+        chans[name] = arr
+    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header[_META_KEY] = json.dumps(image.attrs, sort_keys=True, default=_json_default)
+    for key, val in image.attrs.items():
+        if isinstance(val, str):
+            header[f"{_META_KEY}:{key}"] = val
+    path = Path(path)
+    with atomic_output(path, force=force, suffix=".exr") as tmp:
+        with OpenEXR.File(header, chans) as exr:
+            exr.write(str(tmp))
+    return path
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot store {type(obj).__name__} in the EXR header")
+
+
+def read_exr(path) -> HdrImage:
+    """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`."""
+    import OpenEXR
+
+    path = Path(path)
+    _check_readable(path)
+    try:
+        with OpenEXR.File(str(path)) as exr:
+            header = exr.header()
+            channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+    except Exception as err:
+        raise InputError(f"{path}: not a readable EXR file ({err})") from None
+    attrs: dict[str, Any] = {}
+    if _META_KEY in header:
+        try:
+            attrs = json.loads(header[_META_KEY])
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: corrupt hdrcap metadata in the EXR header") from None
+    return HdrImage(channels=channels, attrs=attrs)

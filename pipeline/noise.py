@@ -1,0 +1,153 @@
+"""The camera noise model: the variance of one exposure's irradiance estimate.
+
+This module is the single place where the variance of x_i (Eq. 6) is written. The merge,
+the planner and the evaluation all call :func:`exposure_variance` (or its inverse,
+:func:`exposure_weight`); nobody writes the formula again.
+
+Dark strategies (how the dark level b_i of exposure i is obtained):
+
+``matched``
+    one dark frame taken at the same exposure time (the paper): Var(B) = g^2 t D + s_R^2 (Eq. 5).
+``master``
+    a master dark averaged from ``n_dark`` frames: Var(B) = (g^2 t D + s_R^2) / n_dark.
+``model``
+    no dark frame: bias level mu_R plus calibrated dark current t*g*D are subtracted;
+    Var(B) = 0 (the calibration's own error is systematic, not per-sample noise).
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+import numpy as np
+
+__all__ = [
+    "DarkStrategy",
+    "exposure_variance",
+    "exposure_weight",
+    "merged_variance",
+    "snr",
+    "snr_db",
+    "fisher_information",
+    "cramer_rao_bound",
+]
+
+
+class DarkStrategy(str, Enum):
+    """How the dark level is obtained for an exposure (see module docstring)."""
+
+    MATCHED = "matched"
+    MASTER = "master"
+    MODEL = "model"
+
+
+def _dark_factor(dark: DarkStrategy | str, n_dark: float) -> float:
+    dark = DarkStrategy(dark)
+    if dark is DarkStrategy.MATCHED:
+        return 1.0
+    if dark is DarkStrategy.MASTER:
+        if not n_dark >= 1:
+            raise ValueError(f"a master dark needs n_dark >= 1, got {n_dark!r}")
+        return 1.0 / float(n_dark)
+    return 0.0
+
+
+def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
+    """Variance of the single-exposure estimate x_i, (e-/s)^2 (Eq. 3, 5, 6, 13).
+
+    Var(x_i) = [g^2 t (a mu + D) + s_R^2 + k (g^2 t D + s_R^2)] / (t g a)^2, with k = 1 for a
+    matched dark frame, 1/N for a master dark of N frames and 0 for the model strategy.
+    With k = 1 this is the inverse of the paper's optimal weight, Eq. 13.
+
+    Parameters
+    ----------
+    mu : array_like
+        Current irradiance estimate, e-/s; negative values are treated as 0 (the model's
+        variance cannot be below that of a dark pixel), the estimate itself is never clipped.
+    t : array_like
+        Exposure time, s (> 0).
+    g : float
+        Camera gain, DN/e-.
+    sigma2_R : array_like
+        Readout variance including quantisation, DN^2.
+    D : array_like
+        Dark current, e-/s.
+    a : array_like
+        Per-photosite PRNU gain (mean 1).
+    dark : {"matched", "master", "model"}
+        Dark strategy.
+    n_dark : float
+        Number of frames averaged in the master dark (``dark="master"`` only).
+
+    Returns
+    -------
+    numpy.ndarray
+        Variance in (e-/s)^2, float64, broadcast over the inputs.
+    """
+    k = _dark_factor(dark, n_dark)
+    mu = np.maximum(np.asarray(mu, dtype=np.float64), 0.0)
+    t = np.asarray(t, dtype=np.float64)
+    a = np.asarray(a, dtype=np.float64)
+    D = np.asarray(D, dtype=np.float64)
+    g2t = g * g * t
+    var_v = g2t * (a * mu + D) + sigma2_R
+    var_b = k * (g2t * D + sigma2_R)
+    return (var_v + var_b) / (t * g * a) ** 2
+
+
+def exposure_weight(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
+    """Optimal weight w_i = 1 / Var(x_i) (Eq. 13), (e-/s)^-2. Same parameters as
+    :func:`exposure_variance`."""
+    return 1.0 / exposure_variance(mu, t, g, sigma2_R, D, a, dark, n_dark)
+
+
+def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1, usable=None):
+    """Variance of the ML estimate, 1 / sum_i w_i over the usable exposures (Eq. 12).
+
+    ``times`` has the exposures along its first axis; ``usable`` (same shape as the broadcast
+    of ``times`` and ``mu``) marks the unsaturated samples. Returns ``inf`` where no exposure
+    is usable.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    mu = np.asarray(mu, dtype=np.float64)
+    t = times.reshape(times.shape + (1,) * mu.ndim)
+    w = exposure_weight(mu[None, ...], t, g, sigma2_R, D, a, dark, n_dark)
+    if usable is not None:
+        w = np.where(usable, w, 0.0)
+    total = w.sum(axis=0)
+    with np.errstate(divide="ignore"):
+        return np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), np.inf)
+
+
+def snr(mu, times, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1, usable=None):
+    """SNR(X) = X sqrt(sum_i w_i(X)) (DESIGN.md, Sec. 8), linear ratio."""
+    var = merged_variance(mu, times, g, sigma2_R, D, a, dark, n_dark, usable)
+    mu = np.asarray(mu, dtype=np.float64)
+    return np.where(np.isfinite(var), mu / np.sqrt(var), 0.0)
+
+
+def snr_db(*args, **kwargs):
+    """SNR in decibels, 20 log10(SNR); -inf where the SNR is 0."""
+    s = snr(*args, **kwargs)
+    with np.errstate(divide="ignore"):
+        return 20.0 * np.log10(s)
+
+
+def fisher_information(X, t, g, sigma2_R, D=0.0, a=1.0):
+    """Fisher information of one unsaturated exposure about X (DESIGN.md).
+
+    With s^2 = g^2 t (a X + D) + s_R^2 (dark level known exactly):
+    I(X) = (g t a)^2 / s^2 + 1/2 (g^2 t a)^2 / s^4.
+    """
+    X = np.maximum(np.asarray(X, dtype=np.float64), 0.0)
+    t = np.asarray(t, dtype=np.float64)
+    s2 = g * g * t * (a * X + D) + sigma2_R
+    return (g * t * a) ** 2 / s2 + 0.5 * (g * g * t * a) ** 2 / s2**2
+
+
+def cramer_rao_bound(X, times, g, sigma2_R, D=0.0, a=1.0):
+    """Cramér-Rao lower bound 1 / sum_i I_i(X) on Var(X_hat) for unsaturated exposures."""
+    times = np.asarray(times, dtype=np.float64)
+    X = np.asarray(X, dtype=np.float64)
+    t = times.reshape(times.shape + (1,) * X.ndim)
+    return 1.0 / fisher_information(X[None, ...], t, g, sigma2_R, D, a).sum(axis=0)

@@ -1,0 +1,101 @@
+"""Shared parameter types: the calibrated camera model the estimator assumes.
+
+Both ``pipeline`` (the estimator) and ``mock_camera`` (the physics) read these types; the
+simulator adds its own physical details (full well, hot pixels, temperature) on top.
+Units follow DESIGN.md: X in electrons per second per photosite, t in seconds, raw values
+in DN, g in DN per electron, sigma2_R in DN^2 (quantisation included), D in electrons per
+second.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SensorParams", "Calibration"]
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """Scalar camera noise model of the paper (Eq. 2-5, Table 2).
+
+    Attributes
+    ----------
+    g : float
+        Overall camera gain, DN per electron.
+    mu_R : float
+        Mean of the readout noise (bias level), DN.
+    sigma2_R : float
+        Variance of the readout noise including quantisation, DN^2.
+    v_sat : float
+        Saturation limit, DN: samples at or above ``v_sat`` are treated as saturated.
+    white_level : float
+        Largest value the ADC can write, DN (``2**bits - 1``).
+    dark_current : float
+        Mean dark current D, electrons per second per photosite.
+    name : str
+        Free-text identity (camera model, preset name).
+    """
+
+    g: float
+    mu_R: float
+    sigma2_R: float
+    v_sat: float
+    white_level: float
+    dark_current: float = 0.0
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        for fname in ("g", "sigma2_R", "v_sat", "white_level"):
+            value = getattr(self, fname)
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"SensorParams.{fname} must be finite and > 0, got {value!r}")
+        if not np.isfinite(self.mu_R) or self.mu_R < 0:
+            raise ValueError(f"SensorParams.mu_R must be finite and >= 0, got {self.mu_R!r}")
+        if not np.isfinite(self.dark_current) or self.dark_current < 0:
+            raise ValueError(
+                f"SensorParams.dark_current must be finite and >= 0, got {self.dark_current!r}"
+            )
+
+    def replace(self, **changes: Any) -> "SensorParams":
+        """Return a copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Everything the merge needs to know about a camera: scalars, maps and provenance.
+
+    Attributes
+    ----------
+    params : SensorParams
+        The scalar model.
+    prnu : numpy.ndarray or None
+        Per-photosite gain a_j (Eq. 14), mean 1, float32, shape of the raw mosaic.
+        ``None`` means a_j = 1 everywhere.
+    bias_map : numpy.ndarray or None
+        Per-photosite mean bias (offset) in DN, float32; ``None`` means ``params.mu_R``.
+    dark_current_map : numpy.ndarray or None
+        Per-photosite dark current in electrons per second, float32; ``None`` means
+        ``params.dark_current``.
+    stderr : dict
+        Standard error of each scalar estimate, keyed by field name, same unit as the field.
+    provenance : dict
+        Camera model and serial, ISO, temperature, frame counts, dates, hdrcap version.
+    """
+
+    params: SensorParams
+    prnu: np.ndarray | None = None
+    bias_map: np.ndarray | None = None
+    dark_current_map: np.ndarray | None = None
+    stderr: dict[str, float] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def replace(self, **changes: Any) -> "Calibration":
+        return dataclasses.replace(self, **changes)

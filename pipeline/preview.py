@@ -1,0 +1,52 @@
+"""Tone-mapped previews of HDR mosaics (for looking at, never for measuring)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .io import atomic_output
+
+__all__ = ["mosaic_to_rgb", "tonemap_log", "write_preview_png"]
+
+
+def mosaic_to_rgb(mosaic: np.ndarray, cfa: str | None) -> np.ndarray:
+    """Half-resolution RGB from a Bayer mosaic by 2x2 binning (greens averaged).
+
+    Without a CFA pattern the single channel is repeated into grey.
+    """
+    m = np.asarray(mosaic, dtype=np.float64)
+    if not cfa or len(cfa) != 4:
+        return np.repeat(m[..., None], 3, axis=2)
+    h, w = (m.shape[0] // 2) * 2, (m.shape[1] // 2) * 2
+    tiles = [m[0:h:2, 0:w:2], m[0:h:2, 1:w:2], m[1:h:2, 0:w:2], m[1:h:2, 1:w:2]]
+    rgb = np.zeros((h // 2, w // 2, 3))
+    count = np.zeros(3)
+    for letter, tile in zip(cfa, tiles):
+        c = "RGB".index(letter)
+        rgb[..., c] += tile
+        count[c] += 1
+    return rgb / np.maximum(count, 1)
+
+
+def tonemap_log(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> np.ndarray:
+    """Logarithmic tone map to 8 bit between two percentiles of the positive values."""
+    lum = rgb.mean(axis=-1)
+    pos = lum[lum > 0]
+    if pos.size == 0:
+        return np.zeros(rgb.shape, dtype=np.uint8)
+    lo, hi = np.percentile(pos, [lo_pct, hi_pct])
+    lo = max(lo, hi * 1e-8)
+    val = (np.log10(np.clip(rgb, lo, hi)) - np.log10(lo)) / max(np.log10(hi) - np.log10(lo), 1e-12)
+    return np.round(255 * np.clip(val, 0, 1) ** (1 / 1.2)).astype(np.uint8)
+
+
+def write_preview_png(path, irradiance: np.ndarray, cfa: str | None, force: bool = False) -> Path:
+    """Write a log tone-mapped PNG preview of an irradiance mosaic."""
+    from PIL import Image
+
+    img = tonemap_log(mosaic_to_rgb(irradiance, cfa))
+    with atomic_output(path, force=force, suffix=".png") as tmp:
+        Image.fromarray(img, "RGB").save(tmp, format="PNG")
+    return Path(path)
