@@ -13,6 +13,8 @@ import pytest
 
 from acquire.cli import main
 from pipeline.denoise import (
+    CONTROL_SCENES,
+    EVAL_SCENES,
     DenoiseSettings,
     _simulate_scene,
     bilateral_adaptive,
@@ -138,10 +140,12 @@ def test_step_edge_keeps_position_and_height():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_adaptive_beats_every_constant_bandwidth(tmp_path, seed):
-    """Fig. 8d on two camera-B scenes with edges and smooth regions."""
+    """Fig. 8d on three camera-B scenes with edges and smooth regions."""
     rep = evaluate_denoising(tmp_path, seed=seed, quick=True)
-    assert set(rep["scenes"]) >= {"edges", "hdr"}
-    for name, sc in rep["scenes"].items():
+    assert set(rep["scenes"]) == set(EVAL_SCENES) | set(CONTROL_SCENES)
+    assert len(EVAL_SCENES) >= 2 and "gradient" in CONTROL_SCENES
+    for name in EVAL_SCENES:
+        sc = rep["scenes"][name]
         const = np.array(sc["nmse_constant"])
         assert len(const) >= 15
         # the sweep brackets the best constant bandwidth (its optimum is inside, not at an end)
