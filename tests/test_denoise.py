@@ -266,3 +266,14 @@ def test_cli_bad_input_one_line_error(tmp_path, capsys, case, message):
     assert err.startswith("hdrcap: error:") and message in err and err.count("\n") == 1, err
     assert "Traceback" not in err
     assert not (tmp_path / "out.exr").exists()
+
+
+def test_cli_subprocess_entry_point(tmp_path, cli):
+    """The real `hdrcap` entry point: the command is discovered and errors stay one line."""
+    src = tmp_path / "in.exr"
+    _merged_exr(src)
+    proc = cli("denoise", src, "-o", tmp_path / "out.exr", "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["settings"]["method"] == "adaptive"
+    proc = cli("denoise", tmp_path / "missing.exr", "-o", tmp_path / "x.exr")
+    assert proc.returncode == 2 and proc.stderr.startswith("hdrcap: error:") and "Traceback" not in proc.stderr
