@@ -56,7 +56,9 @@ It states the random (noise) part of the error only. It ignores (1) the bias the
 introduces where the irradiance varies within the support (smoothing of gradients and
 texture below the range bandwidth) and (2) that the weights themselves depend on the noisy
 data. It is therefore a lower bound on the RMS error of the filtered value, not a full
-uncertainty; the EXR header says so. Neighbouring filtered values are correlated (they share
+uncertainty; the EXR header says so. Measured: on a flat field with known noise the actual
+spread is about 1.18 times the stated sigma at K = 3 (2.3 times at K = 1); on the simulated
+scenes of :func:`evaluate_denoising` std((filtered - truth) / sigma) is 1.16 to 1.34. Neighbouring filtered values are correlated (they share
 inputs), which the per-photosite sigma cannot express.
 
 Implementation: a numba kernel, parallel over rows (``prange``), reading float32 and
