@@ -397,12 +397,13 @@ def estimate_readout(frames: Iterable, clip: float | None = DEFAULT_CLIP, white_
     levels = np.array([m for m, _, _ in means])
     spread = float(np.median([s for _, s, _ in means]))
     if n >= 2:
-        med = float(np.median(levels))
+        low = float(np.min(levels))
         for m, s, name in means:
-            # a bias frame's mean moves by ~sigma/sqrt(P) between frames; allow for drift
-            if abs(m - med) > max(2.0, 0.5 * spread):
-                raise InputError(f"{name}: bias frame with signal? its mean {m:.2f} DN differs from the "
-                                 f"other bias frames ({med:.2f} DN)")
+            # light or a long exposure only adds signal: compare with the darkest bias frame;
+            # a bias frame's mean moves by ~sigma/sqrt(P) between frames, allow for drift
+            if m - low > max(2.0, 0.5 * spread):
+                raise InputError(f"{name}: bias frame with signal? its mean {m:.2f} DN lies above the "
+                                 f"darkest bias frame ({low:.2f} DN)")
     mean_map, _, _ = stack.result(clip)
     P = mean_map.size
     if pairs:
