@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from acquire.cliutil import echo_json, many_values
-from pipeline.errors import InputError
+from pipeline.errors import InputError, OutputExistsError
 
 
 class _LazyFrames:
@@ -149,7 +149,7 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
         if val is not None:
             prov[key] = val
     if output.exists() and not force:
-        raise InputError(f"{output}: exists; use --force to overwrite")
+        raise OutputExistsError(f"{output}: exists; use --force to overwrite")
     emva_res = None
     if emva is not None:
         if bias or saturation or flat or dark:
