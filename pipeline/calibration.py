@@ -35,6 +35,7 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
+from . import _calib_kernels as _k
 from .errors import InputError
 from .params import Calibration, SensorParams
 
@@ -114,20 +115,25 @@ def robust_mean_std(x: np.ndarray, clip: float | None = DEFAULT_CLIP, mask: np.n
     if clip is None:
         keep = np.ones(x.shape, dtype=bool) if mask is None else mask.copy()
     else:
-        sub = _subsample(x if mask is None else x[mask])
-        sub = sub.astype(np.float64)
-        med = float(np.median(sub))
-        scale = _MAD_TO_SIGMA * float(np.median(np.abs(sub - med)))
-        if scale == 0.0:
-            scale = float(np.std(sub))
-        lo, hi = med - clip * scale, med + clip * scale
+        lo, hi = _clip_bounds(_subsample(x if mask is None else x[mask]), clip)
         keep = (x >= lo) & (x <= hi)
         if mask is not None:
             keep &= mask
-    vals = x[keep].astype(np.float64)
-    if vals.size < 2:
+    shift = float(x.flat[0])
+    n, mean, m2 = _k.masked_moments(x, keep, shift)
+    if n < 2:
         raise ValueError("fewer than two photosites survive clipping")
-    return float(vals.mean()), float(vals.std(ddof=1)), keep
+    return float(mean), float(np.sqrt(max(m2, 0.0) / (n - 1))), keep
+
+
+def _clip_bounds(sub: np.ndarray, clip: float) -> tuple[float, float]:
+    """median +- clip robust sigmas (1.4826 MAD; the standard deviation when the MAD is 0)."""
+    sub = sub.astype(np.float64)
+    med = float(np.median(sub))
+    scale = _MAD_TO_SIGMA * float(np.median(np.abs(sub - med)))
+    if scale == 0.0:
+        scale = float(np.std(sub))
+    return med - clip * scale, med + clip * scale
 
 
 @dataclass(frozen=True)
@@ -173,29 +179,21 @@ def pair_statistics(a: np.ndarray, b: np.ndarray, clip: float | None = DEFAULT_C
     """
     a = np.asarray(a)
     b = np.asarray(b)
-    d = a.astype(np.float64)
-    d -= b
+    if a.shape != b.shape:
+        raise ValueError(f"pair of frames with different shapes {a.shape} and {b.shape}")
     if clip is None:
-        keep = np.ones(d.shape, dtype=bool)
+        keep = np.ones(a.shape, dtype=bool)
     else:
-        _, _, keep = robust_mean_std(d, clip)
-        _, _, ka = robust_mean_std(a, clip)
-        _, _, kb = robust_mean_std(b, clip)
-        keep &= ka & kb
-    n = int(keep.sum())
+        sa, sb = _subsample(a).astype(np.float64), _subsample(b).astype(np.float64)
+        keep = _k.pair_keep(a, b, *_clip_bounds(sa, clip), *_clip_bounds(sb, clip), *_clip_bounds(sa - sb, clip))
+    # (1/2n) sum d^2 - 1/2 (mu_A - mu_B)^2 == 1/2 mean of (d - (mu_A - mu_B))^2 over the kept photosites
+    n, mu_a, mu_b, s2, m4 = _k.pair_moments(a, b, keep)
     if n < 16:
         raise ValueError("fewer than 16 photosites survive clipping")
-    dk = d[keep]
-    mu_a = float(a[keep].astype(np.float64).mean())
-    mu_b = float(b[keep].astype(np.float64).mean())
-    m2 = float(np.mean(dk * dk))
-    var = 0.5 * m2 - 0.5 * (mu_a - mu_b) ** 2
-    c = dk - (mu_a - mu_b)
-    c2 = c * c
-    m4 = float(np.mean(c2 * c2))
-    s2 = float(np.mean(c2))
+    var = 0.5 * s2
     var_stderr = 0.5 * np.sqrt(max(m4 - s2 * s2, 0.0) / n)
-    return PairStats(mu_a, mu_b, var, float(var_stderr), n, int(d.size - n), float(exposure_time))
+    d = a.size
+    return PairStats(float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time))
 
 
 # --------------------------------------------------------------------------- per-photosite stacks
@@ -237,72 +235,83 @@ class PixelStack:
             raise ValueError(f"frame shape {values.shape} differs from the stack's {self.shape}")
         if self._ref is None:
             self._ref = np.array(values, dtype=np.float32, copy=True)
-        d = values.astype(np.float64)
-        d -= self._ref
         w = float(weight)
-        upd = d > self._max
-        self._max[upd] = d[upd]
-        self._wmax[upd] = w
-        upd = d < self._min
-        self._min[upd] = d[upd]
-        self._wmin[upd] = w
-        d *= w
-        self._s += d
-        d *= d
-        d /= w
-        self._q += d
+        _k.stack_add(np.ascontiguousarray(values), self._ref, w, self._s, self._q, self._max, self._min,
+                     self._wmax, self._wmin)
         self.n += 1
         self.sw += w
 
-    def result(self, clip: float | None = DEFAULT_CLIP):
+    def result(self, clip: float | None = DEFAULT_CLIP, block_rows: int = 256):
         """Clipped weighted mean map and its standard error map.
+
+        Computed in blocks of ``block_rows`` rows so that the memory stays a few maps.
 
         Returns
         -------
         mean : numpy.ndarray (float64)
-        stderr : numpy.ndarray (float64)
+        stderr : numpy.ndarray (float32) or None
             Standard error of ``mean`` from the photosite's scatter (floored by the median
-            scatter); None when fewer than two frames.
+            scatter over the frame); None with a single frame.
         n_rejected : int
             Samples rejected over the whole stack.
         """
         if self.n == 0:
             raise ValueError("empty stack")
-        ref = self._ref.astype(np.float64)
         if self.n == 1:
-            return ref.copy(), None, 0
-        s, q, sw = self._s.copy(), self._q.copy(), np.full(self.shape, self.sw)
-        cnt = np.full(self.shape, float(self.n))
+            return self._ref.astype(np.float64), None, 0
+        do_max = clip is not None and self.n >= 3
+        do_min = clip is not None and self.n >= 4
+        # the floors (median scatter) come from a regular subsample of photosites
+        idx = np.arange(0, self._s.size, max(1, self._s.size // 200_003))
+        sub = self._block(idx, None, clip, do_max, do_min, None)
+        floors = sub[3]
+        mean = np.empty(self.shape, np.float64)
+        err = np.empty(self.shape, np.float32)
         rejected = 0
-        if clip is not None and self.n >= 3:
-            mx, mn = self._max.astype(np.float64), self._min.astype(np.float64)
-            wx, wn = self._wmax.astype(np.float64), self._wmin.astype(np.float64)
-            rej_max = self._reject(s, q, sw, cnt, mx, wx, clip, +1)
-            rej_min = self._reject(s, q, sw, cnt, mn, wn, clip, -1) if self.n >= 4 else np.zeros(self.shape, bool)
-            both = rej_max & rej_min
-            for rej, v, w in ((rej_max, mx, wx), (rej_min, mn, wn)):
-                s[rej] -= w[rej] * v[rej]
-                q[rej] -= w[rej] * v[rej] ** 2
-                sw[rej] -= w[rej]
-                cnt[rej] -= 1
-            rejected = int(rej_max.sum() + rej_min.sum())
-            del both
+        for r0 in range(0, self.shape[0], block_rows):
+            rows = slice(r0, min(r0 + block_rows, self.shape[0]))
+            m, e, nrej, _ = self._block(None, rows, clip, do_max, do_min, floors)
+            mean[rows] = m
+            err[rows] = e
+            rejected += nrej
+        return mean, err, rejected
+
+    def _block(self, idx, rows, clip, do_max, do_min, floors):
+        """Statistics of a subsample (flat indices ``idx``) or of a block of ``rows``."""
+
+        def get(a):
+            return a.ravel()[idx].astype(np.float64) if idx is not None else a[rows].astype(np.float64)
+
+        s, q = get(self._s), get(self._q)
+        sw = np.full(s.shape, self.sw)
+        cnt = np.full(s.shape, float(self.n))
+        new_floors = {}
+        nrej = 0
+        for key, on, sign, va, wa in (("max", do_max, +1, self._max, self._wmax),
+                                       ("min", do_min, -1, self._min, self._wmin)):
+            if not on:
+                continue
+            v, w = get(va), get(wa)
+            s_o = s - w * v
+            sw_o = sw - w
+            mean_o = s_o / sw_o
+            var_o = np.maximum(q - w * v * v - sw_o * mean_o**2, 0.0) / np.maximum(cnt - 2, 1)
+            floor = float(np.median(var_o)) if floors is None else floors[key]
+            new_floors[key] = floor
+            dev = sign * (v - mean_o)
+            rej = dev * dev * w > clip * clip * np.maximum(var_o, floor) * (1.0 + w / sw_o)
+            s[rej] -= (w * v)[rej]
+            q[rej] -= (w * v * v)[rej]
+            sw[rej] -= w[rej]
+            cnt[rej] -= 1
+            nrej += int(rej.sum())
         mean_rel = s / sw
         var1 = np.maximum(q - sw * mean_rel**2, 0.0) / np.maximum(cnt - 1, 1)  # per unit weight
-        floor = float(np.median(_subsample(var1)))
+        floor = float(np.median(var1)) if floors is None else floors["var"]
+        new_floors["var"] = floor
         err = np.sqrt(np.maximum(var1, floor) / sw)
-        return mean_rel + ref, err, rejected
-
-    @staticmethod
-    def _reject(s, q, sw, cnt, v, w, clip, sign):
-        s_o = s - w * v
-        sw_o = sw - w
-        mean_o = s_o / sw_o
-        var_o = np.maximum(q - w * v * v - sw_o * mean_o**2, 0.0) / np.maximum(cnt - 2, 1)
-        floor = float(np.median(_subsample(var_o)))
-        var_o = np.maximum(var_o, floor)
-        dev = sign * (v - mean_o)
-        return dev * dev * w > clip * clip * var_o * (1.0 + w / sw_o)
+        ref = get(self._ref)
+        return mean_rel + ref, err, nrej, new_floors
 
 
 # --------------------------------------------------------------------------- readout noise
