@@ -696,7 +696,7 @@ def estimate_flats(frames: Iterable, dark_reference, v_sat: float, sigma2_R: flo
         if sat_frac > 1e-3:
             raise InputError(f"{name}: flat field is saturated ({100 * sat_frac:.1f} % of photosites at or above "
                              f"v_sat = {v_sat:.1f} DN); lower the exposure")
-        corr = data.astype(np.float64)
+        corr = data.astype(np.float32)  # an image (float32); the stack accumulates in float64
         corr -= dark_reference
         if dark_rate_map is not None and t > 0:
             corr -= dark_rate_map * t
@@ -721,17 +721,20 @@ def estimate_flats(frames: Iterable, dark_reference, v_sat: float, sigma2_R: flo
     if stack.n == 0:
         raise InputError(f"every flat field is above {prnu_max_fraction:.0%} of saturation; none can give the PRNU map")
     mean_map, err_map, rejected = stack.result(clip)
+    n_prnu = stack.n
+    del stack  # free the sums before building the maps
     norm = float(mean_map.mean())
-    prnu = mean_map / norm
+    mean_map /= norm
+    prnu = mean_map.astype(np.float32)
+    del mean_map
     if err_map is not None:
-        err_map = err_map / norm
-        spatial = float(np.var(prnu))
-        noise = float(np.mean(err_map**2))
+        err_map /= np.float32(norm)
+        spatial = float(np.var(prnu, dtype=np.float64))
+        noise = float(np.mean(np.square(err_map, dtype=np.float64)))
         prnu_std = float(np.sqrt(max(spatial - noise, 0.0)))
     else:
-        prnu_std = float(np.std(prnu))
-    return FlatResult(prnu.astype(np.float32), None if err_map is None else err_map.astype(np.float32),
-                      prnu_std, pairs, levels, n, stack.n, rejected, float(np.mean(prnu_levels)))
+        prnu_std = float(np.std(prnu, dtype=np.float64))
+    return FlatResult(prnu, err_map, prnu_std, pairs, levels, n, n_prnu, rejected, float(np.mean(prnu_levels)))
 
 
 # --------------------------------------------------------------------------- the whole calibration
@@ -881,8 +884,9 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     prnu_stderr = fl.prnu_stderr
     if prnu_stderr is not None and ro.bias_map is not None:
         # the offset map's own noise (sigma2_R / n_bias) is common to every flat: add it
-        prnu_stderr = np.sqrt(prnu_stderr.astype(np.float64) ** 2
-                              + ro.sigma2_R / ro.n_frames / fl.mean_level**2).astype(np.float32)
+        prnu_stderr = np.square(prnu_stderr)
+        prnu_stderr += np.float32(ro.sigma2_R / ro.n_frames / fl.mean_level**2)
+        np.sqrt(prnu_stderr, out=prnu_stderr)
     if not fl.pairs:
         raise InputError("the gain needs at least two flat fields at the same exposure time (a pair, Eq. 16)")
     sigma2_a = fl.prnu_std**2
