@@ -29,7 +29,7 @@ from __future__ import annotations
 import datetime as _dt
 import io as _io
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 

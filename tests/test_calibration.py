@@ -329,3 +329,50 @@ def test_dark_library(tmp_path):
     assert lib.find(camera="cam", iso=400, exposure_time=2.0, temperature=25.0) is None
     assert lib.find(camera="cam", iso=400, exposure_time=4.0) is None
     assert len(DarkLibrary(tmp_path / "lib").entries()) == 3
+
+
+def test_emva_stage_on_a_simulated_descriptor(tmp_path):
+    """parse -> data -> results on an EMVA 1288 data set written from the simulator (runs
+    everywhere; the real reference set is tested in test_calibrate_cli.py)."""
+    from PIL import Image
+
+    from pipeline.emva import emva_calibration, emva_data, emva_results
+    from pipeline.io import read_emva_descriptor
+
+    spec = PRESETS["camera-A"].replace(dark_current=50.0)
+    sensor = SimulatedSensor(spec, (96, 96), seed=6)
+    rng = np.random.default_rng(6)
+    X = 3500 / spec.g / 0.02  # reaches the ADC/full well beyond t = 0.02 s
+    (tmp_path / "images").mkdir()
+    lines = ["v 3.0", f"n {spec.bits} 96 96"]
+    k = 0
+
+    def put(data):
+        nonlocal k
+        name = f"images/img_{k:04d}.png"
+        Image.fromarray(data).save(tmp_path / name)
+        lines.append("i " + name.replace("/", "\\"))
+        k += 1
+
+    for t in np.linspace(0.0005, 0.024, 16):
+        lines.append(f"b {t * 1e9:.1f} {X * t:.1f}")
+        for _ in range(2):
+            put(sensor.expose(X, t, rng=rng))
+        lines.append(f"d {t * 1e9:.1f}")
+        for _ in range(2):
+            put(sensor.expose(0, t, dark=True, rng=rng))
+    for kind in ("b", "d"):
+        lines.append(f"{kind} {0.01 * 1e9:.1f}" + (f" {X * 0.01:.1f}" if kind == "b" else ""))
+        for _ in range(16):
+            put(sensor.expose(X if kind == "b" else 0, 0.01, dark=kind == "d", rng=rng))
+    (tmp_path / "EMVA1288_Data.txt").write_text("\n".join(lines) + "\n")
+    data = emva_data(read_emva_descriptor(tmp_path / "EMVA1288_Data.txt"))
+    res = emva_results(data)
+    assert res.K == pytest.approx(spec.g, rel=0.03)
+    assert res.sigma_y_dark**2 == pytest.approx(spec.sigma2_R, rel=0.1)
+    assert res.PRNU1288 == pytest.approx(100 * spec.prnu, rel=0.15)
+    assert res.u_I_mean == pytest.approx(float(sensor.dark_current_map().mean()), rel=0.2)
+    assert res.QE == pytest.approx(100.0, rel=0.05)  # the simulator's photons are electrons
+    cal = emva_calibration(data, res)
+    a_true = sensor.prnu / sensor.prnu.mean()
+    assert np.sqrt(np.mean((cal.prnu - a_true) ** 2)) < 1.5 * np.sqrt(np.mean(cal.prnu_stderr.astype(float) ** 2))
