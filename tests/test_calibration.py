@@ -376,3 +376,24 @@ def test_emva_stage_on_a_simulated_descriptor(tmp_path):
     cal = emva_calibration(data, res)
     a_true = sensor.prnu / sensor.prnu.mean()
     assert np.sqrt(np.mean((cal.prnu - a_true) ** 2)) < 1.5 * np.sqrt(np.mean(cal.prnu_stderr.astype(float) ** 2))
+
+
+def test_hot_pixels_do_not_bias_dark_current_but_stay_in_the_map():
+    spec = PRESETS["camera-B"].replace(dark_current=5.0, dcnu=0.1, hot_pixel_fraction=0.003, hot_pixel_factor=100.0)
+    sensor = SimulatedSensor(spec, (128, 128), seed=8)
+    rng = np.random.default_rng(8)
+    X = 600 / spec.g / 0.01
+
+    def darks():
+        for t in (0.05, 0.1, 0.2, 0.4, 0.7, 1.0):  # hot pixels (500 e-/s) stay below the ADC limit
+            yield from shots(sensor, 0, t, 4, rng, f"dark{t}", dark=True)
+
+    cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"),
+                    shots(sensor, X, 0.01, 4, rng, "flat"), darks(), white_level=spec.white_level)
+    true_map = sensor.dark_current_map()
+    hot = true_map > 50
+    assert 20 < hot.sum() < 100
+    D_cold = float(true_map[~hot].mean())
+    assert float(true_map.mean()) > 1.25 * D_cold  # averaging hot pixels in would be a gross error
+    assert cal.params.dark_current == pytest.approx(D_cold, rel=0.05)
+    np.testing.assert_allclose(cal.dark_current_map[hot], true_map[hot], rtol=0.1)
