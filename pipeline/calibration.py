@@ -538,13 +538,20 @@ class PhotonTransferFit:
     saturation: float
 
 
-def photon_transfer_gain(means, variances, saturation: float, fit_fraction: float = 0.7) -> PhotonTransferFit:
+def photon_transfer_gain(means, variances, saturation: float, fit_fraction: float = 0.7,
+                         variance_stderr=None, common_stderr: float = 0.0) -> PhotonTransferFit:
     """System gain K by the EMVA 1288 photon-transfer method.
 
     Least-squares slope through the origin of sigma^2_y - sigma^2_y.dark against
     mu_y - mu_y.dark over the levels with mu_y - mu_y.dark <= ``fit_fraction`` * saturation
     (EMVA 1288: 0-70 % of saturation). The pair variance of each level is
     (1/2NM) sum (y_A - y_B)^2 - 1/2 (mu_A - mu_B)^2 (:func:`pair_statistics`).
+
+    The standard error is the larger of the one from the fit residuals and the propagated one:
+    sqrt(sum x_k^2 s_k^2) / sum x_k^2 from the per-level ``variance_stderr`` s_k (the variance
+    error grows with the level, so residuals alone understate it), plus the error
+    ``common_stderr`` of a dark variance subtracted from every level (it shifts all points
+    together: sum x_k / sum x_k^2 times it).
     """
     x = np.asarray(means, float)
     y = np.asarray(variances, float)
@@ -556,6 +563,10 @@ def photon_transfer_gain(means, variances, saturation: float, fit_fraction: floa
     g = float(np.sum(xu * yu) / sxx)
     resid = yu - g * xu
     se = float(np.sqrt(np.sum(resid**2) / (xu.size - 1) / sxx))
+    if variance_stderr is not None:
+        sk = np.asarray(variance_stderr, float)[used]
+        model = np.hypot(np.sqrt(np.sum(xu**2 * sk**2)) / sxx, common_stderr * np.sum(xu) / sxx)
+        se = max(se, float(model))
     return PhotonTransferFit(g, se, x, y, used, float(saturation))
 
 
@@ -675,7 +686,7 @@ def estimate_flats(frames: Iterable, dark_reference, v_sat: float, sigma2_R: flo
     ------
     InputError
         Mixed sizes, a flat that is dark (level below 3 sigma_R above the bias) or saturated
-        (more than 0.1 % of photosites at or above v_sat), or no usable flat.
+        (more than 1 % of photosites at or above v_sat), or no usable flat.
     """
     shape = first = None
     stack = None
@@ -693,7 +704,7 @@ def estimate_flats(frames: Iterable, dark_reference, v_sat: float, sigma2_R: flo
             stack = PixelStack(shape)
         t = float(getattr(fr, "exposure_time", 0.0) or 0.0)
         sat_frac = float(np.count_nonzero(data >= v_sat)) / data.size
-        if sat_frac > 1e-3:
+        if sat_frac > 1e-2:
             raise InputError(f"{name}: flat field is saturated ({100 * sat_frac:.1f} % of photosites at or above "
                              f"v_sat = {v_sat:.1f} DN); lower the exposure")
         corr = data.astype(np.float32)  # an image (float32); the stack accumulates in float64
@@ -894,7 +905,7 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     k = 1.0 + sigma2_a
     g_pairs, g_pairs_se, per_pair = None, None, []
     sat_span = v_sat - ro.mu_R
-    ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.9 * sat_span]
+    ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.8 * sat_span]
     if ok_pairs:
         g_pairs, g_pairs_se, per_pair = gain_from_pairs(ok_pairs, ro.mu_R, ro.sigma2_R, k, ro.sigma2_R_stderr)
     ptc = None
@@ -904,18 +915,19 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
         x = x - np.array([dark_fit.slope * p.exposure_time for p in fl.pairs])
     n_levels = int(np.unique(np.round(x[(x > 0) & (x <= fit_fraction * sat_span)], 6)).size)
     if n_levels >= 3:
-        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction)
+        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, [p.variance_stderr for p in fl.pairs],
+                                   ro.sigma2_R_stderr)
     if gain_method == "ptc" and ptc is None:
         raise InputError(f"the photon-transfer regression needs flat pairs at >= 3 levels within "
                          f"{fit_fraction:.0%} of saturation; got {n_levels}")
     if gain_method == "pairs" and g_pairs is None:
-        raise InputError("no flat pair below 90 % of saturation for Eq. 16")
+        raise InputError("no flat pair below 80 % of saturation for Eq. 16")
     use_ptc = gain_method == "ptc" or (gain_method == "auto" and ptc is not None)
     if use_ptc:
         g, g_se, g_method = ptc.g, ptc.g_stderr, "EMVA 1288 photon-transfer regression (0-70 % of saturation)"
     else:
         if g_pairs is None:
-            raise InputError("no flat pair below 90 % of saturation for the gain (Eq. 16)")
+            raise InputError("no flat pair below 80 % of saturation for the gain (Eq. 16)")
         g, g_se, g_method = g_pairs, g_pairs_se, f"flat pairs, Eq. 16-17 (k = {k:.6f}), {len(ok_pairs)} pairs"
     if not (np.isfinite(g) and g > 0):
         raise InputError(f"gain estimate {g!r} is not positive: are the flats really flat and unsaturated?")

@@ -47,6 +47,8 @@ class EmvaData:
         Mean (DN) and pair temporal variance (DN^2) of the bright pair.
     u_ydark, s2_ydark : numpy.ndarray
         Same for the dark pair at the same exposure time.
+    s2_y_stderr, s2_ydark_stderr : numpy.ndarray
+        Standard errors of the pair variances (fourth moment), DN^2.
     spatial : dict
         ``L``, ``L_dark``, ``texp``, ``mean`` / ``mean_dark`` (spatial means of the averaged
         stacks, DN), ``s2_measured`` / ``s2_measured_dark`` (spatial variance of the averaged
@@ -64,6 +66,8 @@ class EmvaData:
     s2_y: np.ndarray
     u_ydark: np.ndarray
     s2_ydark: np.ndarray
+    s2_y_stderr: np.ndarray
+    s2_ydark_stderr: np.ndarray
     spatial: dict = field(default_factory=dict)
     dark_slope_map: np.ndarray | None = None
     bits: int = 12
@@ -172,6 +176,7 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
     return EmvaData(
         texp=np.array(times), photons=np.array([temporal[t].get("photons", np.nan) for t in times], float),
         u_y=arr("b", "mean"), s2_y=arr("b", "variance"), u_ydark=arr("d", "mean"), s2_ydark=arr("d", "variance"),
+        s2_y_stderr=arr("b", "variance_stderr"), s2_ydark_stderr=arr("d", "variance_stderr"),
         spatial=sp, dark_slope_map=dark_slope, bits=dataset.bits, width=dataset.width, height=dataset.height,
         n_images=n_img,
     )
@@ -241,7 +246,8 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
     isat = int(np.argmax(data.s2_y))
     sat = float(x[isat])
     # include index 0 even if tiny: the fit range is 0 .. fit_fraction of saturation
-    ptc = photon_transfer_gain(np.where(x > 0, x, 1e-12), y, sat, fit_fraction)
+    ptc = photon_transfer_gain(np.where(x > 0, x, 1e-12), y, sat, fit_fraction,
+                               np.hypot(data.s2_y_stderr, data.s2_ydark_stderr))
     K = ptc.g
     # dark noise: extrapolate the dark variance to t = 0 when several times exist
     if np.unique(data.texp).size >= 3:

@@ -397,3 +397,33 @@ def test_hot_pixels_do_not_bias_dark_current_but_stay_in_the_map():
     assert float(true_map.mean()) > 1.25 * D_cold  # averaging hot pixels in would be a gross error
     assert cal.params.dark_current == pytest.approx(D_cold, rel=0.05)
     np.testing.assert_allclose(cal.dark_current_map[hot], true_map[hot], rtol=0.1)
+
+
+def test_ptc_gain_and_dark_current_stderr_match_seed_spread():
+    spec = PRESETS["camera-B"].replace(dark_current=20.0)
+    sensor = SimulatedSensor(spec, (96, 96), seed=0)
+    X = (spec.nominal_params().v_sat - spec.mu_R) / spec.g / 0.01
+    est = {"g": [], "dark_current": []}
+    se = {k: [] for k in est}
+    for seed in range(8):
+        rng = np.random.default_rng([seed, 11])
+
+        def flats():
+            for f in np.linspace(0.05, 0.85, 12):
+                yield from shots(sensor, X, 0.01 * f, 2, rng, f"ptc{f:.2f}")
+
+        def darks():
+            for t in (0.5, 1, 2, 4, 8, 16):
+                yield from shots(sensor, 0, t, 2, rng, f"dark{t}", dark=True)
+
+        cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"),
+                        flats(), darks(), white_level=spec.white_level)
+        assert "photon-transfer" in cal.provenance["calibration"]["gain_method"]
+        for k in est:
+            est[k].append(getattr(cal.params, k))
+            se[k].append(cal.stderr[k])
+    truth = {"g": spec.g, "dark_current": float(sensor.dark_current_map().mean())}
+    for k in est:
+        spread, stated = float(np.std(est[k], ddof=1)), float(np.mean(se[k]))
+        assert 0.4 * stated < spread < 2.2 * stated, (k, spread, stated)
+        assert abs(np.mean(est[k]) - truth[k]) < 4 * stated / np.sqrt(8)

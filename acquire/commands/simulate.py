@@ -107,14 +107,14 @@ DEFAULT_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
 #: What ``--calibration-set`` writes (see docs/calibration.md): 2 bias frames at 1/10000 s,
 #: 1 saturation frame, 36 flats at 75 % of saturation (18 pairs, Eq. 16), a photon-transfer
-#: series of 12 pairs from 3 % to 90 % of saturation, and 2 dark frames at each of 6 times.
+#: series of 12 pairs from 3 % to 85 % of saturation, and 2 dark frames at each of 6 times.
 CALIBRATION_SET = {
     "bias_time": 1e-4,
     "n_bias": 2,
     "flat_time": 0.01,
     "flat_fraction": 0.75,
     "n_flats": 36,
-    "ptc_fractions": tuple(round(0.03 + i * (0.90 - 0.03) / 11, 4) for i in range(12)),
+    "ptc_fractions": tuple(round(0.03 + i * (0.85 - 0.03) / 11, 4) for i in range(12)),
     "saturation_factor": 10.0,
     "dark_times": (0.5, 1.0, 2.0, 4.0, 8.0, 16.0),
     "n_darks": 2,
