@@ -446,11 +446,16 @@ def estimate_saturation(frames: Iterable, clip: float | None = DEFAULT_CLIP, n_s
     """Saturation limit v_sat = mean - 3 std of saturation frames (Sec. 6), DN.
 
     With several frames the clipped spatial means and variances are pooled. Returns
-    ``(v_sat, stderr, mean, std, n_frames)``; the standard error combines the errors of the
-    mean (std/sqrt(P)) and of the standard deviation (std/sqrt(2P)).
+    ``(v_sat, stderr, mean, std, n_frames, saturation_map)``; the standard error combines the
+    errors of the mean (std/sqrt(P)) and of the standard deviation (std/sqrt(2P)). When the
+    data allow (>= 3 frames) ``saturation_map`` is the per-photosite limit, the photosite's
+    clipped mean minus 3 temporal standard deviations (pooled from the frame-pair differences,
+    float32, DN); else None.
     """
     ms, vs, ns = [], [], []
     shape = first = None
+    stack = None
+    pending, pair_vars = None, []
     for i, fr in enumerate(frames):
         data = _data(fr)
         name = _name(fr, "saturation", i)
@@ -461,15 +466,28 @@ def estimate_saturation(frames: Iterable, clip: float | None = DEFAULT_CLIP, n_s
         ms.append(m)
         vs.append(s * s)
         ns.append(int(keep.sum()))
+        if stack is None:
+            stack = PixelStack(shape)
+        stack.add(data)
+        if pending is None:
+            pending = data
+        else:
+            pair_vars.append(pair_statistics(pending, data, clip).variance)
+            pending = None
     if not ms:
         raise InputError("no saturation frame given")
+    sat_map = None
+    if stack.n >= 3:
+        mean_map, _, _ = stack.result(clip)
+        sat_map = (mean_map - n_sigma * np.sqrt(max(float(np.mean(pair_vars)), 0.0))).astype(np.float32)
+    del stack
     ns_a = np.array(ns, float)
     mean = float(np.sum(ns_a * ms) / ns_a.sum())
     var = float(np.sum(ns_a * (np.array(vs) + (np.array(ms) - mean) ** 2)) / ns_a.sum())
     std = float(np.sqrt(var))
     P = float(ns_a.sum())
     se = std * np.sqrt(1.0 / P + n_sigma**2 / (2.0 * P))
-    return mean - n_sigma * std, float(max(se, 1e-12)), mean, std, len(ms)
+    return mean - n_sigma * std, float(max(se, 1e-12)), mean, std, len(ms), sat_map
 
 
 # --------------------------------------------------------------------------- gain
@@ -872,8 +890,9 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
             del sy, sty
 
     # saturation
+    sat_map = None
     if saturation is not None:
-        v_sat, v_sat_se, sat_mean, sat_std, n_sat = estimate_saturation(saturation, clip)
+        v_sat, v_sat_se, sat_mean, sat_std, n_sat, sat_map = estimate_saturation(saturation, clip)
         counts["saturation"] = n_sat
         info["saturation_frame"] = {"mean": sat_mean, "std": sat_std}
         stderr["v_sat"] = v_sat_se
@@ -901,8 +920,10 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     if not fl.pairs:
         raise InputError("the gain needs at least two flat fields at the same exposure time (a pair, Eq. 16)")
     sigma2_a = fl.prnu_std**2
-    # Eq. 17 with mu_D / mu_X from the dark fit when known
-    k = 1.0 + sigma2_a
+    # Eq. 17 with the dark signal / light signal ratio of the flats (from the dark fit when known)
+    t_flat = float(np.mean([p.exposure_time for p in fl.pairs]))
+    dark_dn = dark_fit.slope * t_flat if dark_fit is not None else 0.0
+    k = prnu_correction_factor(fl.mean_level, sigma2_a, max(dark_dn, 0.0))
     g_pairs, g_pairs_se, per_pair = None, None, []
     sat_span = v_sat - ro.mu_R
     ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.8 * sat_span]
@@ -965,7 +986,7 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     prov["calibration"] = info
     return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map, dark_current_map=dmap,
                        stderr={k_: float(v) for k_, v in stderr.items()}, provenance=prov,
-                       prnu_stderr=prnu_stderr)
+                       prnu_stderr=prnu_stderr, saturation_map=sat_map)
 
 
 def calibration_summary(calib: Calibration) -> dict:
@@ -990,7 +1011,7 @@ def calibration_summary(calib: Calibration) -> dict:
 
 # --------------------------------------------------------------------------- file I/O
 
-_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "dark_current_map")
+_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "dark_current_map", "saturation_map")
 
 
 def _jsonable(obj):
@@ -1102,5 +1123,6 @@ def load_calibration(path) -> Calibration:
         stderr={k: float(v) for k, v in (meta.get("stderr") or {}).items() if v is not None},
         provenance=dict(meta.get("provenance") or {}),
         prnu_stderr=maps.get("prnu_stderr"),
+        saturation_map=maps.get("saturation_map"),
         dark_library=meta.get("dark_library"),
     )

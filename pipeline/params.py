@@ -93,6 +93,9 @@ class Calibration:
     dark_library : str or None
         Folder of a dark library (master darks with their frame count N, see
         ``pipeline.darklibrary``) that belongs to this calibration; ``None`` if none.
+    saturation_map : numpy.ndarray or None
+        Per-photosite saturation limit, DN, float32 (from >= 3 saturation frames); ``None``
+        means ``params.v_sat`` everywhere.
     """
 
     params: SensorParams
@@ -103,6 +106,7 @@ class Calibration:
     provenance: dict[str, Any] = field(default_factory=dict)
     prnu_stderr: np.ndarray | None = None
     dark_library: str | None = None
+    saturation_map: np.ndarray | None = None
 
     def replace(self, **changes: Any) -> "Calibration":
         return dataclasses.replace(self, **changes)

@@ -427,3 +427,20 @@ def test_ptc_gain_and_dark_current_stderr_match_seed_spread():
         spread, stated = float(np.std(est[k], ddof=1)), float(np.mean(se[k]))
         assert 0.4 * stated < spread < 2.2 * stated, (k, spread, stated)
         assert abs(np.mean(est[k]) - truth[k]) < 4 * stated / np.sqrt(8)
+
+
+def test_per_photosite_saturation_map_when_data_allow():
+    spec = PRESETS["camera-A"].replace(offset_fpn=6.0)
+    sensor = SimulatedSensor(spec, (96, 96), seed=12)
+    rng = np.random.default_rng(12)
+    X = 0.6 * (spec.nominal_params().v_sat - spec.mu_R) / spec.g / 0.01
+    run = dict(flats=shots(sensor, X, 0.01, 4, rng, "flat"), white_level=spec.white_level)
+    one = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"), **run)
+    assert one.saturation_map is None  # one frame cannot give a per-photosite limit
+    run["flats"] = shots(sensor, X, 0.01, 4, rng, "flat")
+    cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 6, rng, "sat"), **run)
+    truth = spec.mu_R + spec.g * spec.full_well + sensor.offset - 3 * np.sqrt(spec.sigma2_R)
+    err = cal.saturation_map - truth
+    assert abs(float(err.mean())) < 0.5
+    assert float(np.sqrt(np.mean(err**2))) < 2.0 < float(np.std(sensor.offset))  # resolves the 6 DN pattern
+    assert cal.params.v_sat < float(np.mean(truth))  # the scalar limit also covers the offset spread
