@@ -8,7 +8,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["stack_add", "masked_moments", "pair_keep", "pair_moments"]
+__all__ = ["stack_add", "stack_add_equal", "masked_moments", "pair_keep", "pair_moments"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -27,6 +27,22 @@ def stack_add(values, ref, w, s, q, mx, mn, wmx, wmn):  # pragma: no cover - com
         if d < mn_[i]:
             mn_[i] = d
             wn_[i] = w
+
+
+@numba.njit(cache=True, nogil=True)
+def stack_add_equal(values, ref, w, s, q, mx, mn):  # pragma: no cover - compiled
+    """:func:`stack_add` when every frame has the same weight (no weight maps needed)."""
+    v = values.ravel()
+    r = ref.ravel()
+    s_, q_, mx_, mn_ = s.ravel(), q.ravel(), mx.ravel(), mn.ravel()
+    for i in range(v.size):
+        d = np.float64(v[i]) - np.float64(r[i])
+        s_[i] += w * d
+        q_[i] += w * d * d
+        if d > mx_[i]:
+            mx_[i] = d
+        if d < mn_[i]:
+            mn_[i] = d
 
 
 @numba.njit(cache=True, nogil=True)

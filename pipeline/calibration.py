@@ -225,8 +225,10 @@ class PixelStack:
         self._q = np.zeros(self.shape, np.float64)
         self._max = np.full(self.shape, -np.inf, np.float32)
         self._min = np.full(self.shape, np.inf, np.float32)
-        self._wmax = np.zeros(self.shape, np.float32)
-        self._wmin = np.zeros(self.shape, np.float32)
+        # weights of the extreme samples: allocated only once the weights differ
+        self._w0: float | None = None
+        self._wmax: np.ndarray | None = None
+        self._wmin: np.ndarray | None = None
 
     def add(self, values: np.ndarray, weight: float = 1.0) -> None:
         """Add one frame (any real dtype) with a scalar weight (inverse relative variance)."""
@@ -235,9 +237,16 @@ class PixelStack:
             raise ValueError(f"frame shape {values.shape} differs from the stack's {self.shape}")
         if self._ref is None:
             self._ref = np.array(values, dtype=np.float32, copy=True)
+            self._w0 = float(weight)
         w = float(weight)
-        _k.stack_add(np.ascontiguousarray(values), self._ref, w, self._s, self._q, self._max, self._min,
-                     self._wmax, self._wmin)
+        values = np.ascontiguousarray(values)
+        if self._wmax is None and w != self._w0:
+            self._wmax = np.full(self.shape, self._w0, np.float32)
+            self._wmin = np.full(self.shape, self._w0, np.float32)
+        if self._wmax is None:
+            _k.stack_add_equal(values, self._ref, w, self._s, self._q, self._max, self._min)
+        else:
+            _k.stack_add(values, self._ref, w, self._s, self._q, self._max, self._min, self._wmax, self._wmin)
         self.n += 1
         self.sw += w
 
@@ -248,7 +257,7 @@ class PixelStack:
 
         Returns
         -------
-        mean : numpy.ndarray (float64)
+        mean : numpy.ndarray (float32)
         stderr : numpy.ndarray (float32) or None
             Standard error of ``mean`` from the photosite's scatter (floored by the median
             scatter over the frame); None with a single frame.
@@ -258,14 +267,14 @@ class PixelStack:
         if self.n == 0:
             raise ValueError("empty stack")
         if self.n == 1:
-            return self._ref.astype(np.float64), None, 0
+            return self._ref.copy(), None, 0
         do_max = clip is not None and self.n >= 3
         do_min = clip is not None and self.n >= 4
         # the floors (median scatter) come from a regular subsample of photosites
         idx = np.arange(0, self._s.size, max(1, self._s.size // 200_003))
         sub = self._block(idx, None, clip, do_max, do_min, None)
         floors = sub[3]
-        mean = np.empty(self.shape, np.float64)
+        mean = np.empty(self.shape, np.float32)
         err = np.empty(self.shape, np.float32)
         rejected = 0
         for r0 in range(0, self.shape[0], block_rows):
@@ -280,6 +289,8 @@ class PixelStack:
         """Statistics of a subsample (flat indices ``idx``) or of a block of ``rows``."""
 
         def get(a):
+            if a is None:  # all weights equal
+                a = np.broadcast_to(np.float32(self._w0), self.shape)
             return a.ravel()[idx].astype(np.float64) if idx is not None else a[rows].astype(np.float64)
 
         s, q = get(self._s), get(self._q)
@@ -737,7 +748,9 @@ def estimate_flats(frames: Iterable, dark_reference, v_sat: float, sigma2_R: flo
         if level <= prnu_max_fraction * sat_span:
             prnu_levels.append(level)
             corr /= level
-            stack.add(corr, weight=level)
+            # weight ~ level (inverse relative shot-noise variance), quantised to 1/16 octave
+            # so that flats at one level share one weight (no per-photosite weight maps)
+            stack.add(corr, weight=float(2.0 ** (np.round(np.log2(level) * 16) / 16)))
         del corr
         if pending is not None and np.isclose(pending[1], t, rtol=1e-6, atol=1e-9):
             pairs.append(pair_statistics(pending[0], data, clip, t))
@@ -753,9 +766,8 @@ def estimate_flats(frames: Iterable, dark_reference, v_sat: float, sigma2_R: flo
     n_prnu = stack.n
     del stack  # free the sums before building the maps
     norm = float(mean_map.mean())
-    mean_map /= norm
-    prnu = mean_map.astype(np.float32)
-    del mean_map
+    mean_map /= np.float32(norm)
+    prnu = mean_map
     if err_map is not None:
         err_map /= np.float32(norm)
         spatial = float(np.var(prnu, dtype=np.float64))
