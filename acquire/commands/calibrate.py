@@ -63,6 +63,10 @@ def run_frames(bias, saturation, flat, dark, times, clip, gain_method, white_lev
     for what, paths in groups.items():
         split[what] = tl[i:i + len(paths)] if tl else None
         i += len(paths)
+    if split["dark"]:  # darks are streamed one exposure time after the other
+        order = sorted(range(len(groups["dark"])), key=lambda k: split["dark"][k])
+        groups["dark"] = [groups["dark"][k] for k in order]
+        split["dark"] = [split["dark"][k] for k in order]
     meta: dict = {}
     lazy = {w: _LazyFrames(groups[w], split[w], meta) if groups[w] else None for w in groups}
     sink = None
