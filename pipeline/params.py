@@ -88,6 +88,14 @@ class Calibration:
         Standard error of each scalar estimate, keyed by field name, same unit as the field.
     provenance : dict
         Camera model and serial, ISO, temperature, frame counts, dates, hdrcap version.
+    prnu_stderr : numpy.ndarray or None
+        Estimated standard error of each a_j (dimensionless), float32; ``None`` if unknown.
+    dark_library : str or None
+        Folder of a dark library (master darks with their frame count N, see
+        ``pipeline.darklibrary``) that belongs to this calibration; ``None`` if none.
+    saturation_map : numpy.ndarray or None
+        Per-photosite saturation limit, DN, float32 (from >= 3 saturation frames); ``None``
+        means ``params.v_sat`` everywhere.
     """
 
     params: SensorParams
@@ -96,6 +104,9 @@ class Calibration:
     dark_current_map: np.ndarray | None = None
     stderr: dict[str, float] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    prnu_stderr: np.ndarray | None = None
+    dark_library: str | None = None
+    saturation_map: np.ndarray | None = None
 
     def replace(self, **changes: Any) -> "Calibration":
         return dataclasses.replace(self, **changes)

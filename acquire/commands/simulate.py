@@ -105,6 +105,67 @@ def simulate_bracket(camera_name: str, scene: str, times, out: Path, darks: bool
 
 DEFAULT_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
+#: What ``--calibration-set`` writes (see docs/calibration.md): 2 bias frames at 1/10000 s,
+#: 1 saturation frame, 36 flats at 75 % of saturation (18 pairs, Eq. 16), a photon-transfer
+#: series of 12 pairs from 3 % to 85 % of saturation, and 2 dark frames at each of 6 times.
+CALIBRATION_SET = {
+    "bias_time": 1e-4,
+    "n_bias": 2,
+    "flat_time": 0.01,
+    "flat_fraction": 0.75,
+    "n_flats": 36,
+    "ptc_fractions": tuple(round(0.03 + i * (0.85 - 0.03) / 11, 4) for i in range(12)),
+    "saturation_factor": 10.0,
+    "dark_times": (0.5, 1.0, 2.0, 4.0, 8.0, 16.0),
+    "n_darks": 2,
+}
+
+
+def simulate_calibration_set(camera_name: str, out: Path, shape, seed: int, temperature, force: bool,
+                             progress: bool = True, plan: dict | None = None) -> dict:
+    """Write a full calibration series of the simulated camera into ``out`` (DNG files) and
+    ``calibration_set.json`` (file lists per kind and the true parameters)."""
+    from tqdm import tqdm
+
+    from mock_camera import PRESETS
+    from mock_camera.backend import SimulatedCamera
+    from pipeline.io import atomic_output
+
+    if camera_name not in PRESETS:
+        raise InputError(f"unknown camera preset {camera_name!r}; choose from {', '.join(PRESETS)}")
+    cfg = dict(CALIBRATION_SET, **(plan or {}))
+    spec = PRESETS[camera_name]
+    nominal = spec.nominal_params(temperature)
+    span = nominal.v_sat - spec.mu_R
+    X = cfg["flat_fraction"] * span / spec.g / cfg["flat_time"]  # e-/s giving the flat level
+    shots = [("bias", cfg["bias_time"], True) for _ in range(cfg["n_bias"])]  # light blocked
+    shots += [("saturation", cfg["flat_time"] * cfg["saturation_factor"], False)]
+    shots += [("flat", cfg["flat_time"], False) for _ in range(cfg["n_flats"])]
+    for f in cfg["ptc_fractions"]:
+        t = cfg["flat_time"] * f / cfg["flat_fraction"]
+        shots += [("ptc", t, False), ("ptc", t, False)]
+    for t in cfg["dark_times"]:
+        shots += [("dark", t, True) for _ in range(cfg["n_darks"])]
+    names = [out / f"{kind}_{i:03d}_{t:.6g}s.dng" for i, (kind, t, _) in enumerate(shots)]
+    manifest = out / "calibration_set.json"
+    clash = [p for p in names + [manifest] if p.exists()]
+    if clash and not force:
+        raise HdrcapError(f"{clash[0]}: exists; use --force to overwrite (or choose another --out)")
+    out.mkdir(parents=True, exist_ok=True)
+    cam = SimulatedCamera(spec, np.full(shape, X), seed=seed, temperature=temperature)
+    files: dict[str, list[str]] = {"bias": [], "saturation": [], "flat": [], "dark": []}
+    for (kind, t, dark), path in tqdm(list(zip(shots, names)), desc="calibration set", unit="frame",
+                                      disable=not progress):
+        cam.capture_to(path, t, dark=dark, overwrite=force)
+        files["flat" if kind == "ptc" else kind].append(str(path))
+    desc = {"camera": camera_name, "seed": seed, "shape": list(shape), "temperature": temperature,
+            "irradiance": X, "true_params": nominal.to_dict(), "plan": {k: list(v) if isinstance(v, tuple) else v
+                                                                          for k, v in cfg.items()},
+            "files": files, "n_frames": len(shots)}
+    with atomic_output(out / "calibration_set.json", force=force) as tmp:
+        tmp.write_text(json.dumps(desc, indent=2))
+    return desc
+
 
 @many_values("--times")
 @click.command("simulate")
@@ -122,12 +183,24 @@ DEFAULT_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 @click.option("--temperature", default=None, type=float, help="Sensor temperature, degrees C (dark current doubles every 6.3 C).")
 @click.option("--force", is_flag=True, help="Overwrite existing files in the output folder.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-def command(camera_name, scene, times, darks, out, size, decades, x_max, seed, temperature, force, as_json):
+@click.option("--calibration-set", is_flag=True, help="Instead of a bracket, write a calibration series (bias, saturation, 36 flats, a photon-transfer series, darks at 6 times) and calibration_set.json, for `hdrcap calibrate`.")
+def command(camera_name, scene, times, darks, out, size, decades, x_max, seed, temperature, force, as_json,
+            calibration_set):
     """Simulate a bracket: DNG frames (and dark frames) plus truth.exr and simulation.json.
 
     The DNGs hold the CFA mosaic with BlackLevel, WhiteLevel, ExposureTime and ISO (IFD0 and
     EXIF IFD), camera model and timestamp; they open in rawpy/LibRaw tools such as HDRMerge.
     """
+    if calibration_set:
+        desc = simulate_calibration_set(camera_name, out, parse_size(size), seed, temperature, force,
+                                        progress=not as_json)
+        if as_json:
+            echo_json({"camera": camera_name, "seed": seed, "shape": desc["shape"], "out": str(out),
+                       "n_frames": desc["n_frames"], "manifest": str(out / "calibration_set.json")}
+                      | {f"n_{k}": len(v) for k, v in desc["files"].items()})
+        else:
+            click.echo(f"wrote a calibration set of {desc['n_frames']} frames and calibration_set.json to {out}")
+        return
     desc = simulate_bracket(camera_name, scene, list(times) or list(DEFAULT_TIMES), out, darks,
                             parse_size(size), decades, x_max, seed, temperature, force, progress=not as_json)
     if as_json:
