@@ -38,6 +38,8 @@ __all__ = [
     "parse_exposure_label",
     "format_exposure",
     "nearest_allowed",
+    "dark_level",
+    "frame_is_dark",
 ]
 
 #: Failure kinds a session knows how to handle, see :func:`fault_kind`.
@@ -240,3 +242,29 @@ def nearest_allowed(t: float, allowed: Sequence[float]) -> float:
     if not allowed:
         raise ValueError("no allowed exposure times")
     return min(allowed, key=lambda a: (abs(math.log(a / t)), a))
+
+
+def dark_level(path) -> float:
+    """How much light a frame saw: its median above black as a fraction of the range
+    (raw files via :func:`pipeline.io.read_frame`, JPEG/PNG previews via Pillow)."""
+    import numpy as np
+
+    path = Path(path)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        from PIL import Image
+
+        with Image.open(path) as im:
+            data = np.asarray(im.convert("L"), dtype=np.float64)
+        return float(np.median(data) / 255.0)
+    from pipeline.io import read_frame
+
+    fr = read_frame(path)
+    black = fr.black_level or 0.0
+    white = fr.white_level or float(np.iinfo(np.uint16).max)
+    return float((np.median(fr.data) - black) / max(white - black, 1.0))
+
+
+def frame_is_dark(path, threshold: float = 0.05) -> bool:
+    """Cover detection: True when the frame's median is below ``threshold`` of the range,
+    i.e. the light was blocked (a frame of a scene lit for the exposure is far above it)."""
+    return dark_level(path) < threshold
