@@ -274,12 +274,16 @@ class StreamingMerge:
         k = round(t, 12)
         if k not in self._dark_sum:
             raise SessionError(f"no dark frame for exposure {t:g} s before its light frame")
-        return self._dark_sum[k] / self._dark_n[k]
+        n = self._dark_n[k]
+        return self._dark_sum[k] if n == 1 else self._dark_sum[k] / n
 
     def add_dark(self, values: np.ndarray, t: float) -> None:
         k = round(t, 12)
-        self._dark_sum[k] = self._dark_sum.get(k, 0.0) + values.astype(np.float64)
-        self._dark_n[k] = self._dark_n.get(k, 0) + 1
+        if k in self._dark_sum:  # a master dark: sum in float64
+            self._dark_sum[k] = self._dark_sum[k] + values.astype(np.float64)
+            self._dark_n[k] += 1
+        else:
+            self._dark_sum[k], self._dark_n[k] = values, 1
 
     def add_light(self, values: np.ndarray, t: float) -> None:
         dark = self._dark_for(t)
@@ -359,11 +363,14 @@ class CaptureSession:
         tqdm progress bar; None shows it when stderr is a terminal.
     meta : dict
         Extra fields for the manifest's run record (job file, seed, ...).
+    check_dark : float
+        A dark frame whose median lies above this fraction of the raw range stops the session
+        (the light was not blocked); 0 disables the check.
     """
 
     def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
                  retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
-                 meta: dict | None = None, sleep: Callable[[float], None] = time.sleep):
+                 meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05):
         self.camera = camera
         self.run_dir = Path(run_dir)
         self.plan = plan
@@ -374,6 +381,7 @@ class CaptureSession:
         self.progress = progress
         self.meta = meta or {}
         self.sleep = sleep
+        self.check_dark = check_dark
         self.retries: dict[str, int] = {}
         self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
 
@@ -586,6 +594,13 @@ class CaptureSession:
             self.shape = frame.shape
         if frame.shape != self.shape:
             raise CorruptFrameError(f"{path.name}: size {frame.shape} differs from the camera's {self.shape}")
+        if spec.dark and self.check_dark:
+            black = frame.black_level or 0.0
+            white = frame.white_level or 65535.0
+            level = float((np.median(frame.data) - black) / max(white - black, 1.0))
+            if level > self.check_dark:
+                raise SessionError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
+                                   f"range); check the light blocking ({self.light.method}) and run again with --resume")
         if not math.isclose(frame.exposure_time, applied, rel_tol=1e-3):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
                                     f"camera reported {applied:g} s")

@@ -199,3 +199,12 @@ def test_soak_faults_kill_and_resume(tmp_path):
     assert files == sorted(Path(r["file"]).name for r in frames.values())
     assert all(sha256_file(run / r["file"]) == r["sha256"] for r in frames.values())
     assert not (run / ".partial").exists()
+
+
+def test_dark_frame_with_light_stops_the_session(tmp_path):
+    cam = _camera()
+    cam.cover = lambda: None  # someone forgot the lens cap
+    with pytest.raises(SessionError, match="light is not blocked"):
+        CaptureSession(cam, tmp_path / "run", CapturePlan.bracket([1.0]), light=LightBlocker("none"),
+                       retry=FAST, progress=False).run()
+    assert Manifest(tmp_path / "run").frames() == {}
