@@ -397,6 +397,11 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
             exr_path = run_dir / job["output"]["exr"]
         if png_path is None and job["output"]["png"]:
             png_path = run_dir / job["output"]["png"]
+        if not resume and Manifest(run_dir).exists():
+            from acquire.session import SessionError
+
+            raise SessionError(f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it "
+                               "or choose another run folder")
         for p in (exr_path, png_path):
             if p is not None and p.exists() and not force:
                 raise JobError(f"{p}: exists; use --force to overwrite (or another run folder)")
