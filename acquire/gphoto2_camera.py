@@ -234,8 +234,8 @@ class Gphoto2Camera:
         self._read_exposures()
 
     def reconnect(self) -> None:
-        """Exit the camera and open a new ``gp.Camera`` on the same port (a fresh object; a
-        hung owner thread is abandoned and a new one started)."""
+        """Exit the camera, reset the port and open a new ``gp.Camera`` on it (a fresh object,
+        never the old one re-initialised; a hung owner thread is abandoned for a new one)."""
         self.reconnects += 1
         old, self._cam = self._cam, None
         owner_alive = True
@@ -248,6 +248,11 @@ class Gphoto2Camera:
         if not owner_alive:
             self._owner = _Owner("gphoto2-owner")
         self.want_port = self.identity.port
+        try:
+            self._owner.call(lambda: _reset_port(self.identity.port), 10.0)
+            self.events.append(("port_reset", self.identity.port))
+        except Exception as err:  # best effort: a port that cannot be reset may still reopen
+            self.events.append(("port_reset_failed", f"{type(err).__name__}: {err}"))
         model, port = self._choose()
         self._open(model, port)
         for name, value in self.applied.items():
@@ -565,6 +570,20 @@ class Gphoto2Camera:
         else:
             self.events.append(("other", str(data)))
         return "other"
+
+
+def _reset_port(path: str) -> None:
+    """Open the port, reset it (USB reset) and close it, as after a hang or a disconnect."""
+    gp = _gp()
+    ports = gp.PortInfoList()
+    ports.load()
+    port = gp.GPPort()
+    port.set_info(ports[ports.lookup_path(path)])
+    port.open()
+    try:
+        port.reset()
+    finally:
+        port.close()
 
 
 def _raise_code(code: int):

@@ -198,15 +198,22 @@ def test_reconnect_builds_a_new_camera_object(tmp_path):
             cam.capture(OUT / "b.dng")
         except CameraDisconnectedError as e:
             RESULT["kind"] = fault_kind(e)
+        try:   # a call that hangs: the caller gets a timeout, not a hung program
+            cam._run(lambda: time.sleep(1.0), "hang test", timeout=0.2)
+        except Exception as e:
+            RESULT["hang"] = [type(e).__name__, fault_kind(e)]
         cam.reconnect()
         RESULT["new_object"] = id(cam._cam) != first
         RESULT["t_after"] = cam.applied["shutterspeed"]
         RESULT["ok"] = cam.capture(OUT / "c.dng").path.exists()
         RESULT["reconnects"] = cam.reconnects
+        RESULT["events"] = cam.events
         cam.close()
     """)
     assert r["kind"] == "reconnect" and r["new_object"] and r["ok"] and r["reconnects"] == 1
     assert r["t_after"] == "0.0500s"  # settings re-applied on the new connection
+    assert ["port_reset", "usb:001,001"] in r["events"]
+    assert r["hang"] == ["CameraTimeoutError", "reconnect"]
 
 
 @pytest.mark.parametrize("shade, dark", [(0, True), (200, False)])
