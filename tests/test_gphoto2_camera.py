@@ -225,3 +225,25 @@ def test_cover_detection(tmp_path, shade, dark):
         cam.close()
     """, _vcam_dir(tmp_path, shade))
     assert r["dark"] is dark
+
+
+def test_job_check_against_the_virtual_camera(tmp_path, cli):
+    vdir = _vcam_dir(tmp_path)
+    job = tmp_path / "job.toml"
+    text = (
+        '[camera]\nbackend = "gphoto2"\nmodel = "D750"\n\n'
+        '[exposure]\ntimes = [0.01, 0.1, 1.0]\n\n'
+        '[darks]\nstrategy = "matched"\nblock_light = "command"\ncover_command = "true"\nuncover_command = "true"\n\n'
+        '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n'
+    )
+    env = {"VCAMERADIR": str(vdir), "XDG_CONFIG_HOME": str(tmp_path / "xdg")}
+    job.write_text(text)
+    ok = cli("run", job, "--check", env=env)
+    assert ok.returncode == 0 and "ok" in ok.stdout, ok.stderr
+    job.write_text(text.replace("1.0]", "1.0, 30.0]"))
+    bad = cli("run", job, "--check", env=env)
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr
+    assert f"{job}:6: exposure.times: exposure 30 s is outside the camera's range 0.0001 .. 1 s" in bad.stderr
+    job.write_text(text.replace('model = "D750"', 'model = "EOS R5"'))
+    gone = cli("run", job, "--check", env=env)
+    assert gone.returncode != 0 and "no camera model 'EOS R5'" in gone.stderr and "Traceback" not in gone.stderr
