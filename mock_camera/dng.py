@@ -18,9 +18,12 @@ from fractions import Fraction
 
 import numpy as np
 
-__all__ = ["write_dng", "exposure_rational", "CFA_CODES"]
+__all__ = ["write_dng", "exposure_rational", "CFA_CODES", "MIN_SIDE"]
 
 CFA_CODES = {"R": 0, "G": 1, "B": 2}
+
+#: LibRaw (rawpy, HDRMerge) rejects raw images smaller than this on either side.
+MIN_SIDE = 22
 
 # TIFF field types
 _BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED, _SRATIONAL = 1, 2, 3, 4, 5, 7, 10
@@ -134,6 +137,8 @@ def write_dng(
     if mosaic.ndim != 2 or mosaic.dtype != np.uint16:
         raise ValueError("the mosaic must be a 2-D uint16 array")
     h, w = mosaic.shape
+    if h < MIN_SIDE or w < MIN_SIDE:
+        raise ValueError(f"LibRaw reads no raw image under {MIN_SIDE} photosites a side, got {w}x{h}")
     ts = (timestamp or _dt.datetime.now(_dt.timezone.utc)).strftime("%Y:%m:%d %H:%M:%S")
     exp = exposure_rational(exposure_time)
     fnum = _rational(f_number, 100)

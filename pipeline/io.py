@@ -14,6 +14,7 @@ import json
 import os
 import re
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -121,6 +122,9 @@ def _tiff_exif(path: Path) -> dict[str, Any]:
                     val = tags[code].value
                 out[key] = val
             out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
+            size = path.stat().st_size
+            ends = [o + n for o, n in zip(tif.pages[0].dataoffsets, tif.pages[0].databytecounts)]
+            out["truncated"] = bool(ends) and max(ends) > size
     except Exception:  # not a TIFF container (CR3, RAF, ...): LibRaw's values are used
         return {}
     t = out.get("ExposureTime")
@@ -132,6 +136,27 @@ def _tiff_exif(path: Path) -> dict[str, Any]:
     if isinstance(iso, (tuple, list)):
         out["ISOSpeedRatings"] = iso[0] if iso else None
     return out
+
+
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """Silence LibRaw's own C-level messages on file descriptor 2 (our error says it all)."""
+    with _STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no stderr at all
+            yield
+            return
+        try:
+            with open(os.devnull, "wb") as null:
+                os.dup2(null.fileno(), 2)
+                yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
 
 
 def read_raw(path, exposure_time: float | None = None) -> RawFrame:
@@ -146,8 +171,10 @@ def read_raw(path, exposure_time: float | None = None) -> RawFrame:
     path = Path(path)
     _check_readable(path)
     exif = _tiff_exif(path)
+    if exif.get("truncated"):
+        raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
     try:
-        with rawpy.imread(str(path)) as raw:
+        with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
             other = raw.other
             desc = raw.color_desc.decode("ascii", "replace")
@@ -458,14 +485,15 @@ def read_exr(path) -> HdrImage:
     _check_readable(path)
     try:
         with OpenEXR.File(str(path)) as exr:
-            header = exr.header()
+            # read everything inside the context: the header is released when the file closes
+            meta = exr.header().get(_META_KEY)
             channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
     attrs: dict[str, Any] = {}
-    if _META_KEY in header:
+    if meta is not None:
         try:
-            attrs = json.loads(header[_META_KEY])
+            attrs = json.loads(meta)
         except (TypeError, ValueError):
             raise InputError(f"{path}: corrupt hdrcap metadata in the EXR header") from None
     return HdrImage(channels=channels, attrs=attrs)

@@ -25,7 +25,7 @@ def read_frames(paths, times=None, what="frame", progress=False):
     else:
         times = [None] * len(paths)
     return [read_frame(p, t) for p, t in tqdm(list(zip(paths, times)), desc=f"read {what}s", unit="file",
-                                               disable=not progress, leave=False)]
+                                               disable=None if progress else True, leave=False)]
 
 
 def build_hdr_image(result, frames, calibration, extra=None):

@@ -20,8 +20,8 @@ def parse_size(text: str | None, default=(768, 1024)) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise InputError(f"--size must look like 1024x768, got {text!r}") from None
-    if w < 2 or h < 2 or w % 2 or h % 2:
-        raise InputError(f"--size needs even width and height >= 2 (a whole Bayer tile), got {text!r}")
+    if w < 22 or h < 22 or w % 2 or h % 2:
+        raise InputError(f"--size needs even width and height >= 22 (whole Bayer tiles; LibRaw reads nothing smaller), got {text!r}")
     return h, w
 
 
@@ -74,7 +74,7 @@ def simulate_bracket(camera_name: str, scene: str, times, out: Path, darks: bool
     if clash and not force:
         raise HdrcapError(f"{clash[0]}: exists; use --force to overwrite (or choose another --out)")
     written = {"frames": [], "darks": []}
-    for (i, t, d), path in tqdm(list(zip(plan, targets)), desc="simulate", unit="frame", disable=not progress):
+    for (i, t, d), path in tqdm(list(zip(plan, targets)), desc="simulate", unit="frame", disable=None if progress else True):
         cam.capture_to(path, t, dark=d, overwrite=force)
         written["darks" if d else "frames"].append(str(path))
     params = spec.nominal_params(temperature)

@@ -1,0 +1,159 @@
+"""Raw and EXR I/O: DNG round trip through rawpy, EXIF, EXR channels and attributes,
+EMVA descriptor parsing, atomic no-clobber writes."""
+
+import datetime as dt
+import json
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from mock_camera.dng import exposure_rational, write_dng
+from pipeline.errors import InputError, OutputExistsError
+from pipeline.io import (
+    HdrImage,
+    atomic_output,
+    check_frames,
+    read_emva_descriptor,
+    read_exr,
+    read_frame,
+    read_raw,
+    write_exr,
+)
+
+
+def _dng(path, data, t=1 / 250, iso=400, cfa="RGGB", black=128, white=4095):
+    with open(path, "wb") as f:
+        write_dng(f, data, exposure_time=t, iso=iso, black_level=black, white_level=white, cfa=cfa,
+                  make="Acme", model="Sim 1", serial="42", timestamp=dt.datetime(2026, 1, 2, 3, 4, 5))
+    return path
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_dng_round_trip_bit_exact(tmp_path, cfa):
+    rng = np.random.default_rng(1)
+    data = rng.integers(0, 65536, (34, 52), dtype=np.uint16)
+    fr = read_raw(_dng(tmp_path / "a.dng", data, cfa=cfa))
+    assert fr.data.dtype == np.uint16 and np.array_equal(fr.data, data)
+    assert fr.cfa_pattern == cfa
+    assert fr.black_level == 128 and fr.white_level == 4095
+    assert fr.camera == "Acme Sim 1"
+    assert fr.timestamp.startswith("2026:01:02")
+
+
+@pytest.mark.parametrize("t", [1e-6, 1 / 8000, 1 / 3, 0.1, 1.0, 2.5, 30.0, 1000.0])
+def test_exif_exposure_time_and_iso(tmp_path, t):
+    data = np.zeros((64, 64), np.uint16)
+    fr = read_raw(_dng(tmp_path / "t.dng", data, t=t, iso=1600))
+    num, den = exposure_rational(t)
+    assert fr.exposure_time == float(Fraction(num, den))
+    assert fr.exposure_time == pytest.approx(t, rel=1e-6)
+    assert fr.iso == 1600
+    # rawpy/LibRaw reads the same EXIF (it is what HDRMerge uses)
+    import rawpy
+
+    with rawpy.imread(str(tmp_path / "t.dng")) as raw:
+        assert raw.other.shutter_speed == pytest.approx(t, rel=1e-6)
+        assert raw.other.iso_speed == 1600
+
+
+def test_explicit_exposure_time_overrides(tmp_path):
+    fr = read_raw(_dng(tmp_path / "a.dng", np.ones((64, 64), np.uint16)), exposure_time=0.5)
+    assert fr.exposure_time == 0.5
+
+
+def test_png_and_tiff_frames_need_times(tmp_path):
+    import tifffile
+    from PIL import Image
+
+    data = (np.arange(64, dtype=np.uint16) * 1000).reshape(8, 8)
+    Image.fromarray(data).save(tmp_path / "a.png")
+    tifffile.imwrite(tmp_path / "b.tif", data)
+    for name in ("a.png", "b.tif"):
+        fr = read_frame(tmp_path / name, 0.01)
+        assert np.array_equal(fr.data, data) and fr.exposure_time == 0.01
+        with pytest.raises(InputError, match="explicit exposure time"):
+            read_frame(tmp_path / name)
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        read_frame(tmp_path / "missing.dng")
+    (tmp_path / "notraw.dng").write_text("hello, I am not a raw file\n" * 10)
+    with pytest.raises(InputError, match="notraw.dng"):
+        read_frame(tmp_path / "notraw.dng")
+    good = _dng(tmp_path / "good.dng", np.ones((64, 64), np.uint16))
+    blob = good.read_bytes()
+    (tmp_path / "trunc.dng").write_bytes(blob[: len(blob) // 2])
+    with pytest.raises(InputError, match="trunc.dng"):
+        read_frame(tmp_path / "trunc.dng")
+    (tmp_path / "empty.dng").write_bytes(b"")
+    with pytest.raises(InputError, match="empty"):
+        read_frame(tmp_path / "empty.dng")
+    with pytest.raises(InputError, match="exposure time"):
+        read_frame(good, exposure_time=-1)
+
+
+def test_check_frames_sizes_and_duplicates(tmp_path):
+    a = read_raw(_dng(tmp_path / "a.dng", np.ones((64, 64), np.uint16)))
+    b = read_raw(_dng(tmp_path / "b.dng", np.ones((64, 66), np.uint16)))
+    c = read_raw(_dng(tmp_path / "c.dng", np.ones((64, 64), np.uint16)))
+    with pytest.raises(InputError, match="differs"):
+        check_frames([a, b])
+    with pytest.raises(InputError, match="duplicate"):
+        check_frames([a, c])
+    with pytest.raises(InputError, match="twice"):
+        check_frames([a, a])
+
+
+def test_exr_round_trip_all_channels_and_attributes(tmp_path):
+    rng = np.random.default_rng(2)
+    ch = {
+        "irradiance": rng.lognormal(5, 3, (20, 30)).astype(np.float32),
+        "sigma": rng.random((20, 30)).astype(np.float32),
+        "nexp": rng.integers(0, 7, (20, 30)).astype(np.float32),
+    }
+    attrs = {"unit": "electrons per second per photosite", "cfa_pattern": "RGGB",
+             "exposure_times": [1 / 3, 0.001, 1000.0], "calibration": {"g": 0.23, "name": "x"},
+             "hdrcap_version": "0.1.0", "merge": {"iterations": 3, "saturation": "threshold"}}
+    path = write_exr(tmp_path / "o.exr", HdrImage(ch, attrs))
+    back = read_exr(path)
+    assert set(back.channels) == set(ch)
+    for k in ch:
+        assert back.channels[k].dtype == np.float32 and np.array_equal(back.channels[k], ch[k])
+    assert back.attrs == json.loads(json.dumps(attrs))  # full float64 precision kept
+    with pytest.raises(OutputExistsError):
+        write_exr(path, HdrImage(ch, attrs))
+    write_exr(path, HdrImage({"irradiance": ch["sigma"]}, {}), force=True)
+    assert set(read_exr(path).channels) == {"irradiance"}
+
+
+def test_atomic_output_leaves_nothing_on_error(tmp_path):
+    target = tmp_path / "x.txt"
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as tmp:
+            tmp.write_text("partial")
+            raise RuntimeError("boom")
+    assert not target.exists() and list(tmp_path.iterdir()) == []
+    with pytest.raises(InputError, match="does not exist"):
+        with atomic_output(tmp_path / "nofolder" / "x.txt"):
+            pass
+
+
+def test_emva_descriptor(emva_dir):
+    ds = read_emva_descriptor(emva_dir / "EMVA1288_Data.txt")
+    assert (ds.bits, ds.width, ds.height) == (12, 640, 480)
+    assert len(ds.bright()) == 51 and len(ds.dark()) == 51
+    first = ds.bright()[0]
+    assert first.exposure_time == pytest.approx(40e-6) and first.photons == 120.0
+    assert all(p.is_file() for s in ds.steps for p in s.images)  # Windows separators handled
+    assert sum(len(s.images) for s in ds.steps) == 300
+    fr = read_frame(first.images[0], first.exposure_time)
+    assert fr.shape == (480, 640) and fr.data.max() < 4096
+
+
+def test_emva_descriptor_errors(tmp_path):
+    p = tmp_path / "d.txt"
+    p.write_text("v 3.0\nb 100 1\ni a.png\nx nonsense\n")
+    with pytest.raises(InputError, match=r"d.txt:4"):
+        read_emva_descriptor(p)
