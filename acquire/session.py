@@ -662,7 +662,9 @@ def _temp(camera) -> float | None:
 def _lock_key(ident: dict) -> str:
     import re
 
-    key = f"{ident['backend']}-{ident['model']}-{ident['serial'] or ident['port']}"
+    # a real camera is one device whatever port it is on (serial); a simulated one is one object (port)
+    who = ident["serial"] if ident["serial"] and ident["backend"] != "mock" else ident["port"]
+    key = f"{ident['backend']}-{ident['model']}-{who}"
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)
 
 

@@ -181,7 +181,8 @@ class MockCamera:
         self.downloads = 0
         self.reconnects = 0
         self.fault_log: list[str] = []
-        self.identity = MockIdentity("mock", spec.model, self.sim.serial, f"mock:{spec.name}")
+        # the port names this object: two simulated cameras are never the same device
+        self.identity = MockIdentity("mock", spec.model, self.sim.serial, f"mock:{spec.name}:{os.getpid()}.{id(self):x}")
 
     # --- settings -------------------------------------------------------------------
     def allowed_exposure_times(self) -> list[float]:
