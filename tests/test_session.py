@@ -208,3 +208,23 @@ def test_dark_frame_with_light_stops_the_session(tmp_path):
         CaptureSession(cam, tmp_path / "run", CapturePlan.bracket([1.0]), light=LightBlocker("none"),
                        retry=FAST, progress=False).run()
     assert Manifest(tmp_path / "run").frames() == {}
+
+
+def test_calibration_series_prompt_blocking_and_temperature(tmp_path):
+    asked = []
+    series = [{"kind": "bias", "times": [1 / 8000], "count": 3}, {"kind": "darkseries", "times": [0.5, 2.0], "count": 2},
+              {"kind": "flat", "times": [1 / 60], "count": 2}]
+    plan = CapturePlan.bracket([1 / 250], None, "master", n_dark=2, series=series)
+    cam = MockCamera("camera-B", np.full((32, 32), 2e4), seed=4, temperature=30.0)
+    res = CaptureSession(cam, tmp_path / "run", plan, light=LightBlocker("prompt", prompt=asked.append), retry=FAST,
+                         progress=False).run()
+    frames = _check_run(tmp_path / "run", plan)
+    kinds = sorted(r["kind"] for r in frames.values())
+    assert kinds == sorted(["dark"] * 2 + ["light"] + ["bias"] * 3 + ["darkseries"] * 4 + ["flat"] * 2)
+    assert len(asked) == 2 and "Block the light" in asked[0] and "Unblock" in asked[1]  # blocked once
+    # every frame that needed the light blocked is dark, every other one is lit
+    for r in frames.values():
+        level = np.median(read_frame(tmp_path / "run" / r["file"]).data) - 32
+        assert (level < 10) == r["dark"], (r["key"], level)
+        assert r["temperature_c"] == 30.0 and r["camera"]["backend"] == "mock"
+    assert res.captured == len(plan.frames) == 12
