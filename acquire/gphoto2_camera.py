@@ -189,7 +189,7 @@ class Gphoto2Camera:
         self._bulb_time: float | None = None
         self._t: float | None = None
         self._labels: dict[float, str] = {}
-        self._has_bulb = False
+        self._bulb_label: str | None = None
         model_name, port_name = self._choose()
         self._open(model_name, port_name)
         self.identity = CameraIdentity("gphoto2", model_name, self._serial(), port_name)
@@ -302,9 +302,6 @@ class Gphoto2Camera:
                 raise mapped from None
         raise AssertionError("unreachable")
 
-    def _config(self):
-        return self._run(lambda: self._cam.get_config(), "get_config")
-
     @staticmethod
     def _find(config, name: str):
         for cand in ALIASES.get(name, ()) + (name,):
@@ -314,17 +311,25 @@ class Gphoto2Camera:
                 continue
         return None
 
-    def _choices(self, widget) -> list[str]:
-        try:
-            return [widget.get_choice(i) for i in range(widget.count_choices())]
-        except Exception:
-            return []
+    def _describe(self, name: str) -> dict | None:
+        """A setting as plain data (name, type, value, choices), read on the owner thread."""
+        def go():
+            w = self._find(self._cam.get_config(), name)
+            if w is None:
+                return None
+            try:
+                choices = [w.get_choice(i) for i in range(w.count_choices())]
+            except Exception:
+                choices = []
+            return {"name": w.get_name(), "type": w.get_type(), "value": w.get_value(), "choices": choices}
+
+        return self._run(go, f"get {name}")
 
     # ------------------------------------------------------------------ settings
     def get_setting(self, name: str) -> str | None:
         """Current value of a setting (generic name or the camera's), None if absent."""
-        w = self._find(self._config(), name)
-        return None if w is None else str(w.get_value())
+        d = self._describe(name)
+        return None if d is None else str(d["value"])
 
     def set_setting(self, name: str, value: Any) -> str:
         """Set a setting, read it back and return (and record) the applied value.
@@ -332,46 +337,44 @@ class Gphoto2Camera:
         For a choice setting whose value is not offered, the nearest numeric choice is used
         (the camera would do it silently); a value that matches nothing raises InputError.
         """
-        config = self._config()
-        w = self._find(config, name)
-        if w is None:
-            raise InputError(f"camera {self.identity.model if hasattr(self, 'identity') else ''} has no setting {name!r}")
-        real = w.get_name()
-        choices = self._choices(w)
+        d = self._describe(name)
+        if d is None:
+            model = self.identity.model if hasattr(self, "identity") else "camera"
+            raise InputError(f"camera {model} has no setting {name!r}")
+        real, choices = d["name"], d["choices"]
         val = value
         if choices and str(value) not in choices:
             val = _nearest_choice(value, choices)
             if val is None:
                 raise InputError(f"setting {name!r}: {value!r} is not one of {', '.join(choices[:12])}")
         gp = _gp()
-        if w.get_type() == gp.GP_WIDGET_TOGGLE:
+        if d["type"] == gp.GP_WIDGET_TOGGLE:
             val = int(val)
-        elif w.get_type() == gp.GP_WIDGET_RANGE:
+        elif d["type"] == gp.GP_WIDGET_RANGE:
             val = float(val)
         else:
             val = str(val)
 
         def apply():
-            w.set_value(val)
+            config = self._cam.get_config()
+            self._find(config, real).set_value(val)
             self._cam.set_config(config)
 
         self._run(apply, f"set {real}")
-        applied = self.get_setting(real)
+        applied = self.get_setting(real)  # read back: the camera may have chosen another value
         self.applied[name] = applied
         return applied
 
     def _read_exposures(self) -> None:
-        w = self._find(self._config(), "shutterspeed")
-        self._labels, self._has_bulb = {}, False
-        if w is None:
-            return
-        for label in self._choices(w):
+        d = self._describe("shutterspeed")
+        self._labels, self._bulb_label = {}, None
+        for label in d["choices"] if d else []:
             try:
                 t = parse_exposure_label(label)
             except ValueError:
                 continue
             if t is None:
-                self._has_bulb = True
+                self._bulb_label = label
             else:
                 self._labels.setdefault(t, label)
 
@@ -379,9 +382,9 @@ class Gphoto2Camera:
         return sorted(self._labels)
 
     def iso_values(self) -> list[int]:
-        w = self._find(self._config(), "iso")
+        d = self._describe("iso")
         out = []
-        for c in self._choices(w) if w is not None else []:
+        for c in d["choices"] if d else []:
             try:
                 out.append(int(float(c)))
             except ValueError:
@@ -400,8 +403,8 @@ class Gphoto2Camera:
             raise InputError(f"camera {self.identity.model} exposes no shutter-speed setting")
         longest = max(self._labels)
         self._t = t
-        if self._has_bulb and t > longest * 1.2:
-            self.set_setting("shutterspeed", "Bulb" if "Bulb" in self._choices(self._find(self._config(), "shutterspeed")) else "bulb")
+        if self._bulb_label and t > longest * 1.2:
+            self.set_setting("shutterspeed", self._bulb_label)
             self._bulb_time = t
             return t
         self._bulb_time = None
@@ -440,15 +443,18 @@ class Gphoto2Camera:
             return ""
 
     def storage_free_images(self) -> int | None:
-        """Free images reported by the first storage, None when unknown."""
+        """Free images reported by the first storage, None when unknown (only meaningful when
+        the camera captures to its card: capturing to internal RAM needs no card space)."""
+        def go():
+            return [getattr(x, "freeimages", None) for x in self._cam.get_storageinfo()]
+
         try:
-            infos = self._run(lambda: self._cam.get_storageinfo(), "storageinfo")
+            free = self._run(go, "storageinfo")
         except (CameraBusyError, CameraDisconnectedError, CameraTimeoutError, CameraGoneError):
             raise
         except CameraError:  # storage information not supported
             return None
-        for s in infos:
-            n = getattr(s, "freeimages", None)
+        for n in free:
             if n is not None and n >= 0:
                 return int(n)
         return None
@@ -461,7 +467,8 @@ class Gphoto2Camera:
         dest = Path(dest)
         t = self._bulb_time or self._t or 0.0
         wait = (timeout or (t + self.call_timeout_s))
-        if self.storage_free_images() == 0:
+        target = (self.get_setting("capturetarget") or "").lower()
+        if "ram" not in target and "sdram" not in target and self.storage_free_images() == 0:
             raise StorageFullError("camera storage is full (0 free images); free the card and resume")
         if self._bulb_time is not None:
             files = self._capture_bulb(self._bulb_time, wait)
@@ -469,8 +476,11 @@ class Gphoto2Camera:
             self._run(lambda: self._cam.trigger_capture(), "capture (trigger)")
             files = self._wait_files(wait)
         else:
-            p = self._run(lambda: self._cam.capture(gp.GP_CAPTURE_IMAGE), "capture", timeout=wait)
-            files = [(p.folder, p.name)] + self._drain_files(self.pair_wait_s)
+            def shoot():
+                p = self._cam.capture(gp.GP_CAPTURE_IMAGE)
+                return (p.folder, p.name)
+
+            files = [self._run(shoot, "capture", timeout=wait)] + self._drain_files(self.pair_wait_s)
         if not files:
             raise CameraTimeoutError(f"no file from the camera within {wait:.0f} s")
         folder, name = _prefer_raw(files)
@@ -556,19 +566,26 @@ class Gphoto2Camera:
 
     def _next_event(self, ms: int):
         gp = _gp()
-        typ, data = self._run(lambda: self._cam.wait_for_event(ms), "wait_for_event", timeout=ms / 1000 + 10)
+
+        def wait():
+            typ, data = self._cam.wait_for_event(ms)
+            if typ in (gp.GP_EVENT_FILE_ADDED, gp.GP_EVENT_FOLDER_ADDED):
+                return typ, (data.folder, data.name)
+            return typ, str(data)
+
+        typ, data = self._run(wait, "wait_for_event", timeout=ms / 1000 + 10)
         if typ == gp.GP_EVENT_FILE_ADDED:
-            self.events.append(("file_added", f"{data.folder}/{data.name}"))
-            return (data.folder, data.name)
+            self.events.append(("file_added", f"{data[0]}/{data[1]}"))
+            return data
         if typ == gp.GP_EVENT_CAPTURE_COMPLETE:
             self.events.append(("capture_complete", ""))
             return "complete"
         if typ == gp.GP_EVENT_TIMEOUT:
             return "timeout"
         if typ == gp.GP_EVENT_FOLDER_ADDED:
-            self.events.append(("folder_added", f"{data.folder}/{data.name}"))
+            self.events.append(("folder_added", f"{data[0]}/{data[1]}"))
         else:
-            self.events.append(("other", str(data)))
+            self.events.append(("other", data))
         return "other"
 
 

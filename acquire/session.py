@@ -495,6 +495,10 @@ class CaptureSession:
         except SessionError as err:
             log.emit("stop", reason=str(err))
             raise
+        except OSError as err:  # our side: disk full, permissions
+            log.emit("stop", reason=f"{type(err).__name__}: {err}")
+            raise SessionError(f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
+                               "permissions, then run again with --resume") from None
         except BaseException as err:
             log.emit("stop", reason=f"{type(err).__name__}: {err}")
             raise
@@ -584,8 +588,11 @@ class CaptureSession:
 
     def _verify(self, path: Path, spec: FrameSpec, applied: float, res) -> tuple[dict, np.ndarray]:
         """Open the file and check its size and exposure time (CorruptFrameError if not)."""
-        from pipeline.io import read_frame
+        from pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
+        if path.suffix.lower() not in RAW_EXTENSIONS | IMAGE_EXTENSIONS:
+            raise SessionError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
+                               "image format to RAW (job: [camera] settings = {{ imageformat = \"RAW\" }})")
         try:
             frame = read_frame(path)
         except (InputError, OSError, ValueError) as err:

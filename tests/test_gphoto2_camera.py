@@ -247,3 +247,19 @@ def test_job_check_against_the_virtual_camera(tmp_path, cli):
     job.write_text(text.replace('model = "D750"', 'model = "EOS R5"'))
     gone = cli("run", job, "--check", env=env)
     assert gone.returncode != 0 and "no camera model 'EOS R5'" in gone.stderr and "Traceback" not in gone.stderr
+
+
+def test_session_on_the_virtual_camera_refuses_jpeg(tmp_path, cli):
+    """The whole chain (job -> Gphoto2Camera -> session) on the virtual camera, which only
+    delivers JPEG: the session stops at once with a clear message instead of merging JPEGs."""
+    job = tmp_path / "job.toml"
+    job.write_text('[camera]\nbackend = "gphoto2"\n\n[exposure]\ntimes = [0.01]\n\n'
+                   '[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
+                   '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
+    env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
+           "HDRCAP_LOCK_DIR": str(tmp_path / "locks")}
+    proc = cli("run", job, "--no-progress", env=env)
+    assert proc.returncode == 4 and "Traceback" not in proc.stderr, proc.stderr
+    assert "delivers .jpg files, not raw" in proc.stderr and "imageformat" in proc.stderr
+    events = [json.loads(l) for l in (tmp_path / "runs" / "x" / "events.jsonl").read_text().splitlines()]
+    assert events[0]["camera"]["model"] == "Nikon DSC D750" and events[-1]["event"] == "stop"
