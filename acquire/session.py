@@ -420,6 +420,8 @@ class CaptureSession:
     def _run_locked(self, ident: dict, t0: float) -> SessionResult:
         from tqdm import tqdm
 
+        from pipeline.io import read_frame
+
         manifest = Manifest(self.run_dir)
         log = EventLog(self.run_dir)
         frames_dir = self.run_dir / "frames"
@@ -471,7 +473,9 @@ class CaptureSession:
                 adopted += 1
                 log.emit("adopt", key=spec.key, file=rec["file"])
         if self.calibration is not None:
-            merger = self._new_merger(done)
+            for rec in sorted(done.values(), key=lambda r: r["index"]):  # frames from before a resume
+                if rec["kind"] in ("light", "dark"):
+                    merger = self._feed(merger, rec, read_frame(self.run_dir / rec["file"]).data)
 
         todo = [(i, s) for i, s in order if s.key not in done]
         show = self.progress if self.progress is not None else sys.stderr.isatty()
@@ -484,8 +488,8 @@ class CaptureSession:
                 rec, values = self._capture_one(i, spec, ident, manifest, log, partial_dir, frames_dir)
                 done[spec.key] = rec
                 captured += 1
-                if merger is not None:
-                    self._feed(merger, rec, values)
+                if self.calibration is not None:
+                    merger = self._feed(merger, rec, values)
                 bar.update(1)
             if self.light.covered:
                 self.light.set(self.camera, False, log)
@@ -514,23 +518,17 @@ class CaptureSession:
                  elapsed_s=round(result.elapsed_s, 3))
         return result
 
-    def _new_merger(self, done: dict[str, dict]) -> StreamingMerge:
-        from pipeline.io import read_frame
-
-        shape = self.shape
-        recs = sorted(done.values(), key=lambda r: r["index"])
-        if shape is None and recs:
-            shape = tuple(recs[0]["shape"])
-        merger = StreamingMerge(self.calibration, shape or (0, 0), self.plan.dark_strategy, self.plan.n_dark)
-        for rec in recs:  # frames from before a resume, in plan order (darks first)
-            self._feed(merger, rec, read_frame(self.run_dir / rec["file"]).data)
-        return merger
-
-    def _feed(self, merger: StreamingMerge, rec: dict, values: np.ndarray) -> None:
+    def _feed(self, merger: StreamingMerge | None, rec: dict, values: np.ndarray) -> StreamingMerge | None:
+        """Hand a verified frame to the merge (created with the first frame: its size)."""
+        if rec["kind"] not in ("light", "dark"):
+            return merger
+        if merger is None:
+            merger = StreamingMerge(self.calibration, values.shape, self.plan.dark_strategy, self.plan.n_dark)
         if rec["kind"] == "dark":
             merger.add_dark(values, rec["file_exposure_s"])
-        elif rec["kind"] == "light":
+        else:
             merger.add_light(values, rec["file_exposure_s"])
+        return merger
 
     def _capture_one(self, i: int, spec: FrameSpec, ident: dict, manifest: Manifest, log: EventLog,
                      partial_dir: Path, frames_dir: Path):

@@ -228,3 +228,26 @@ def test_calibration_series_prompt_blocking_and_temperature(tmp_path):
         assert (level < 10) == r["dark"], (r["key"], level)
         assert r["temperature_c"] == 30.0 and r["camera"]["backend"] == "mock"
     assert res.captured == len(plan.frames) == 12
+
+
+class _NoShape:
+    """A camera that, like a real one, does not announce its mosaic size."""
+
+    def __init__(self, cam):
+        self._cam = cam
+        self.identity = cam.identity
+
+    def __getattr__(self, name):
+        if name == "shape":
+            raise AttributeError(name)
+        return getattr(self._cam, name)
+
+
+def test_session_learns_the_size_from_the_first_frame(tmp_path):
+    from acquire.cliutil import resolve_calibration
+
+    plan = CapturePlan.bracket(TIMES[:3], None, "matched")
+    res = CaptureSession(_NoShape(_camera()), tmp_path / "run", plan, calibration=resolve_calibration(None, "camera-B"),
+                         retry=FAST, progress=False).run()
+    assert res.merge.irradiance.shape == (32, 32)
+    _check_run(tmp_path / "run", plan)

@@ -17,8 +17,9 @@ from acquire.cliutil import echo_json, many_values
 @click.option("--port", default=None, help="gphoto2 port of the camera (usb:001,004).")
 @click.option("--times", multiple=True, type=float, help="Exposure times, s (a fixed bracket; several after one flag).")
 @click.option("--target-snr", type=float, default=None, help="Plan the exposures for this SNR, dB (meter + planner).")
-@click.option("--darks", "dark_strategy", type=click.Choice(["matched", "master", "model"]), default="matched",
-              show_default=True, help="Dark frames: one per exposure, N averaged per exposure, or none (model).")
+@click.option("--darks", "dark_strategy", type=click.Choice(["matched", "master", "model"]), default=None,
+              help="Dark frames: one per exposure, N averaged per exposure, or none (model).  "
+                   "[default: matched; with --target-snr the planner's choice]")
 @click.option("--dark-count", type=click.IntRange(min=1), default=1, show_default=True,
               help="Dark frames per exposure time for --darks master.")
 @click.option("--block-light", type=click.Choice(["mock", "prompt", "command", "none"]), default=None,
@@ -58,8 +59,9 @@ def command(camera, port, times, target_snr, dark_strategy, dark_count, block_li
     exposure = {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}
     if times:
         exposure["times"] = list(times)
-    darks = {"strategy": dark_strategy, "count": dark_count,
-             "block_light": block_light or ("mock" if backend == "mock" else "prompt")}
+    darks = {"count": dark_count, "block_light": block_light or ("mock" if backend == "mock" else "prompt")}
+    if dark_strategy:
+        darks["strategy"] = dark_strategy
     if cover_command:
         darks["cover_command"] = cover_command
     if uncover_command:
