@@ -19,6 +19,8 @@ from typing import Any, Callable
 
 from pipeline.errors import InputError
 
+from .camera import nearest_allowed
+
 __all__ = ["Job", "JobError", "SCHEMA", "load_job", "job_from_dict", "open_camera", "run_job", "run_schedule",
            "check_job_against_camera"]
 
@@ -43,7 +45,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     },
     "darks": {"strategy": (str,), "count": (int,), "block_light": (str,), "cover_command": (str,),
               "uncover_command": (str,), "check": ((int, float),)},
-    "calibration": {"file": (str,), "preset": (str,), "series": (list,)},
+    "calibration": {"file": (str,), "preset": (str,), "series": (list,), "dark_library": (str,)},
     "output": {"folder": (str,), "exr": (str,), "png": (str,), "force": (bool,)},
     "schedule": {"repeat": (int,), "every_s": ((int, float),)},
     "session": {"max_attempts": (int,), "backoff_s": ((int, float),), "max_backoff_s": ((int, float),),
@@ -221,6 +223,9 @@ def _check_values(job: Job) -> None:
     elif "preset" not in cal and cam["backend"] != "mock":
         raise job.error("calibration", None, "a real camera needs a calibration: file = \"calib...\" "
                                              "(from `hdrcap calibrate`)")
+    if "dark_library" in cal and not _resolve(job, cal["dark_library"]).is_dir():
+        raise job.error("calibration", "dark_library", f"dark library folder {_resolve(job, cal['dark_library'])} "
+                                                       "does not exist")
     for i, s in enumerate(cal["series"]):
         if not isinstance(s, dict) or set(s) - {"kind", "times", "count"} or "kind" not in s or "times" not in s:
             raise job.error("calibration", "series", f"series {i + 1}: needs kind, times (and count), nothing else")
@@ -353,9 +358,53 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
             info.update(planner=False, fallback=f"planner not available ({err}); fixed bracket")
             echo(f"hdrcap: planner not available ({type(err).__name__}); using a fixed bracket of "
                  f"{len(times)} exposures: {', '.join(f'{t:g}' for t in times)} s")
+    root = _library_root(job, calibration)
+    masters = library_masters(root, camera, [nearest_allowed(t, allowed) for t in times]) \
+        if strategy == "master" else {}
+    if masters:
+        info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
+        echo(f"dark library: master darks for {len(masters)} of {len(set(times))} exposure times")
     plan = CapturePlan.bracket(times, allowed, strategy, n_dark=darks["count"], repeats=exp["repeats"],
-                               series=job["calibration"]["series"])
+                               series=job["calibration"]["series"], library_times=list(masters))
     return plan, info
+
+
+def _library_root(job: Job, calibration) -> str | None:
+    if "dark_library" in job["calibration"]:
+        return str(_resolve(job, job["calibration"]["dark_library"]))
+    return getattr(calibration, "dark_library", None)
+
+
+def library_masters(root, camera, times) -> dict[float, tuple]:
+    """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N).
+
+    Matched by camera model, ISO (when both are known), exposure time (0.1 %) and temperature
+    (within 1 degree C when both are known); the one with most frames wins. Empty when the
+    there is no dark library (or ``pipeline.darklibrary`` is not there)."""
+    if not root:
+        return {}
+    try:
+        from pipeline.darklibrary import DarkLibrary
+    except ImportError:
+        return {}
+    lib = DarkLibrary(root)
+    model = str(getattr(getattr(camera, "identity", None), "model", ""))
+    temp = camera.temperature() if hasattr(camera, "temperature") else None
+    out = {}
+    for t in sorted(set(times)):
+        best = None
+        for e in lib.entries():
+            if model and model not in e.camera and e.camera not in model:
+                continue
+            if not math.isclose(e.exposure_time, t, rel_tol=1e-3):
+                continue
+            if temp is not None and e.temperature is not None and abs(e.temperature - temp) > 1.0:
+                continue
+            if best is None or e.n_frames > best.n_frames:
+                best = e
+        if best is not None:
+            out[t] = lib.load(best)
+    return out
 
 
 def _meter_fn(camera, run_dir: Path):
@@ -406,23 +455,25 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
             if p is not None and p.exists() and not force:
                 raise JobError(f"{p}: exists; use --force to overwrite (or another run folder)")
         head = Manifest(run_dir).header() if resume else None
+        masters = None
         if head is not None:  # resume: the plan recorded at the start, not a new one
             pd = head["plan"]
-            from acquire.session import FrameSpec
-
-            plan = CapturePlan(tuple(FrameSpec(**f) for f in pd["frames"]), pd["dark_strategy"], pd["n_dark"])
+            plan = CapturePlan.from_dict(pd)
             info = head.get("planning", {})
         else:
             if resume and Manifest(run_dir).exists() is False and run_dir.exists():
                 echo(f"hdrcap: {run_dir}: nothing to resume; starting the run")
             plan, info = plan_for(job, camera, calibration, run_dir, echo)
+        if plan.library_times:
+            masters = library_masters(_library_root(job, calibration), camera, plan.library_times)
         d = job["darks"]
         light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
         retry = RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
         meta = {"job": str(job.path) if job.path else None, "job_name": job.name, "repetition": n,
                 "planning": info, "calibration": calibration.provenance}
         session = CaptureSession(camera, run_dir, plan, calibration=calibration, light=light, retry=retry,
-                                 resume=resume, progress=progress, meta=meta, check_dark=d["check"])
+                                 resume=resume, progress=progress, meta=meta, check_dark=d["check"],
+                                 master_darks=masters)
         result = session.run()
         outputs = _write_outputs(job, run_dir, result, calibration, camera, exr_path, png_path, force)
     finally:

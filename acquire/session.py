@@ -107,14 +107,17 @@ class CapturePlan:
     frames: tuple[FrameSpec, ...]
     dark_strategy: str = "matched"
     n_dark: int = 1
+    library_times: tuple[float, ...] = ()
 
     @classmethod
     def bracket(cls, times: Sequence[float], allowed: Sequence[float] | None = None, dark_strategy: str = "matched",
-                n_dark: int = 1, repeats: int = 1, series: Sequence[dict] = ()) -> "CapturePlan":
+                n_dark: int = 1, repeats: int = 1, series: Sequence[dict] = (),
+                library_times: Sequence[float] = ()) -> "CapturePlan":
         """A bracket of ``times`` (each snapped to the nearest ``allowed`` time), ``repeats``
         frames per time, dark frames per ``dark_strategy`` and calibration ``series``
         (dicts with ``kind``, ``times``, ``count``). Frames needing the light blocked come
-        first, so the light is blocked once."""
+        first, so the light is blocked once. ``library_times``: exposure times whose master
+        dark comes from the dark library (no dark frames are captured for them)."""
         if dark_strategy not in ("matched", "master", "model"):
             raise InputError(f"dark strategy must be matched, master or model, got {dark_strategy!r}")
         snap = (lambda t: nearest_allowed(t, allowed)) if allowed else float
@@ -122,7 +125,10 @@ class CapturePlan:
         uniq = sorted(set(times))
         dark_frames, light_frames = [], []
         nd = {"matched": 1, "master": max(1, int(n_dark)), "model": 0}[dark_strategy]
+        lib = {round(float(t), 12) for t in library_times} if dark_strategy == "master" else set()
         for t in uniq:
+            if round(t, 12) in lib:
+                continue
             for j in range(nd):
                 dark_frames.append(("dark", t, j))
         for j in range(max(1, int(repeats))):
@@ -141,14 +147,22 @@ class CapturePlan:
             n = seen.get(base, 0)
             seen[base] = n + 1
             frames.append(FrameSpec(key=f"{base}-{n}", kind=kind, exposure_s=t))
-        return cls(frames=tuple(frames), dark_strategy=dark_strategy, n_dark=nd or 1)
+        return cls(frames=tuple(frames), dark_strategy=dark_strategy, n_dark=nd or 1,
+                   library_times=tuple(sorted(t for t in uniq if round(t, 12) in lib)))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CapturePlan":
+        """The plan recorded in a manifest (:meth:`to_dict`)."""
+        return cls(tuple(FrameSpec(**f) for f in d["frames"]), d["dark_strategy"], d["n_dark"],
+                   tuple(d.get("library_times", ())))
 
     def fingerprint(self) -> str:
-        blob = json.dumps([[f.key, f.kind, f.exposure_s] for f in self.frames] + [self.dark_strategy, self.n_dark])
+        blob = json.dumps([[f.key, f.kind, f.exposure_s] for f in self.frames] + [self.dark_strategy, self.n_dark]
+                          + ([list(self.library_times)] if self.library_times else []))
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def to_dict(self) -> dict:
-        return {"dark_strategy": self.dark_strategy, "n_dark": self.n_dark,
+        return {"dark_strategy": self.dark_strategy, "n_dark": self.n_dark, "library_times": list(self.library_times),
                 "frames": [asdict(f) for f in self.frames], "fingerprint": self.fingerprint()}
 
 
@@ -285,6 +299,11 @@ class StreamingMerge:
         else:
             self._dark_sum[k], self._dark_n[k] = values, 1
 
+    def add_master(self, values: np.ndarray, t: float) -> None:
+        """A master dark for exposure ``t`` from the dark library (already averaged)."""
+        k = round(t, 12)
+        self._dark_sum[k], self._dark_n[k] = np.asarray(values, np.float64), 1
+
     def add_light(self, values: np.ndarray, t: float) -> None:
         dark = self._dark_for(t)
         if self._acc is not None:
@@ -363,6 +382,9 @@ class CaptureSession:
         tqdm progress bar; None shows it when stderr is a terminal.
     meta : dict
         Extra fields for the manifest's run record (job file, seed, ...).
+    master_darks : dict, optional
+        Exposure time (s) -> (master dark array in DN, its frame count N) from the dark
+        library, for the plan's ``library_times``.
     check_dark : float
         A dark frame whose median lies above this fraction of the raw range stops the session
         (the light was not blocked); 0 disables the check.
@@ -370,7 +392,8 @@ class CaptureSession:
 
     def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
                  retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
-                 meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05):
+                 meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05,
+                 master_darks: dict | None = None):
         self.camera = camera
         self.run_dir = Path(run_dir)
         self.plan = plan
@@ -382,6 +405,10 @@ class CaptureSession:
         self.meta = meta or {}
         self.sleep = sleep
         self.check_dark = check_dark
+        self.master_darks = {round(float(t), 12): v for t, v in (master_darks or {}).items()}
+        missing = [t for t in plan.library_times if round(t, 12) not in self.master_darks]
+        if missing:
+            raise SessionError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
         self.retries: dict[str, int] = {}
         self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
 
@@ -523,7 +550,10 @@ class CaptureSession:
         if rec["kind"] not in ("light", "dark"):
             return merger
         if merger is None:
-            merger = StreamingMerge(self.calibration, values.shape, self.plan.dark_strategy, self.plan.n_dark)
+            n_dark = min([self.plan.n_dark] + [n for _d, n in self.master_darks.values()])
+            merger = StreamingMerge(self.calibration, values.shape, self.plan.dark_strategy, n_dark)
+            for t, (data, _n) in self.master_darks.items():
+                merger.add_master(data, t)
         if rec["kind"] == "dark":
             merger.add_dark(values, rec["file_exposure_s"])
         else:

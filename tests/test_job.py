@@ -169,3 +169,28 @@ def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
     assert proc.returncode == 0
     out = json.loads(proc.stdout)
     assert {m["preset"] for m in out["mock"]} == {"camera-A", "camera-B"}
+
+
+def test_master_darks_come_from_the_dark_library(tmp_path, cli):
+    darklibrary = pytest.importorskip("pipeline.darklibrary")
+    from mock_camera.camera import MockCamera
+    from mock_camera.scenes import make_scene
+    from pipeline.io import read_frame
+
+    lib = darklibrary.DarkLibrary(tmp_path / "darks")
+    cam = MockCamera("camera-B", make_scene("hdr", (48, 64), decades=3.0, x_max=2e4), seed=3)
+    cam.cover()
+    for t in (0.001, 0.004):
+        cam.set_exposure(t)
+        stack = [read_frame(cam.capture(tmp_path / f"d{t:g}_{k}.dng").path).data for k in range(6)]
+        lib.add(np.mean(stack, axis=0), 6, camera=cam.identity.model, iso=None, exposure_time=t)
+    text = GOOD.replace('strategy = "matched"', 'strategy = "master"\ncount = 2').replace(
+        "[output]", '[calibration]\npreset = "camera-B"\ndark_library = "darks"\n\n[output]')
+    p = _write(tmp_path, text)
+    proc = cli("run", p, "--json", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    recs = [json.loads(l) for l in (Path(res["run_dir"]) / "manifest.jsonl").read_text().splitlines()]
+    dark_times = sorted({r["file_exposure_s"] for r in recs if r.get("kind") == "dark"})
+    assert 0.001 not in dark_times and 0.004 not in dark_times and len(dark_times) == 4
+    assert recs[0]["plan"]["library_times"] == [0.001, 0.004]

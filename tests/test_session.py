@@ -251,3 +251,28 @@ def test_session_learns_the_size_from_the_first_frame(tmp_path):
                          retry=FAST, progress=False).run()
     assert res.merge.irradiance.shape == (32, 32)
     _check_run(tmp_path / "run", plan)
+
+
+def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
+    from acquire.cliutil import resolve_calibration
+
+    # the library's masters: 8 dark frames per time averaged, taken earlier with the same sensor
+    lib_cam = _camera()
+    lib_cam.cover()
+    masters = {}
+    for t in TIMES[:2]:
+        lib_cam.set_exposure(t)
+        stack = [read_frame(lib_cam.capture(tmp_path / f"lib_{t:g}_{k}.dng").path).data.astype(float) for k in range(8)]
+        masters[t] = (np.mean(stack, axis=0), 8)
+    plan = CapturePlan.bracket(TIMES[:3], None, "master", n_dark=2, library_times=TIMES[:2])
+    assert [f.kind for f in plan.frames].count("dark") == 2  # only the time without a library master
+    cam = _camera()
+    res = CaptureSession(cam, tmp_path / "run", plan, calibration=resolve_calibration(None, "camera-B"),
+                         retry=FAST, progress=False, master_darks=masters).run()
+    _check_run(tmp_path / "run", plan)
+    m = res.merge
+    ok = m.nexp > 0
+    z = (m.irradiance[ok] - cam.sim.scene[ok]) / m.sigma[ok]
+    assert 0.7 < 1.4826 * np.median(np.abs(z - np.median(z))) < 1.3
+    with pytest.raises(SessionError, match="no master dark"):
+        CaptureSession(_camera(), tmp_path / "run2", plan, progress=False, master_darks={TIMES[0]: masters[TIMES[0]]})
