@@ -1,45 +1,62 @@
-"""``hdrcap demo``: the main job on the built-in simulated camera, no hardware needed."""
+"""``hdrcap demo``: the main job on the built-in simulated camera through the same capture
+session as a real camera (MockCamera -> CaptureSession -> streamed merge), no hardware needed."""
 
 from __future__ import annotations
 
-import json
+import shutil
 from pathlib import Path
 
 import click
 
 from acquire.cliutil import echo_json
 
+DEMO_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
-def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bool, progress: bool = True) -> dict:
-    from acquire.commands.merge import build_hdr_image, read_frames
-    from acquire.commands.simulate import DEFAULT_TIMES, parse_size, simulate_bracket
-    from acquire.cliutil import resolve_calibration
-    from pipeline.evaluation import error_against_truth
+
+def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bool, progress: bool = True,
+             target_snr: float | None = None) -> dict:
+    from acquire.job import job_from_dict, run_job
+    from acquire.manifest import Manifest
     from pipeline.errors import OutputExistsError
-    from pipeline.io import atomic_output, read_exr, write_exr
-    from pipeline.merge import merge_frames
-    from pipeline.preview import write_preview_png
+    from pipeline.io import atomic_output
 
     out = Path(out)
     for name in ("demo.exr", "demo.png", "summary.txt"):
         if (out / name).exists() and not force:
             raise OutputExistsError(f"{out / name}: exists; use --force to overwrite")
-    raw_dir = out / "raw"
-    desc = simulate_bracket(camera, scene, list(DEFAULT_TIMES), raw_dir, True, parse_size(size), 4.0, 2e5,
-                            seed, None, force, progress=progress)
-    calib = resolve_calibration(None, camera)
-    frames = read_frames(desc["frames"], what="frame", progress=progress)
-    darks = read_frames(desc["darks"], what="dark frame", progress=progress)
-    result = merge_frames(frames, calib, darks)
-    write_exr(out / "demo.exr", build_hdr_image(result, frames, calib, {"demo": True}), force=force)
-    write_preview_png(out / "demo.png", result.irradiance, frames[0].cfa_pattern, force=force)
-    truth = read_exr(desc["truth"]).channels["irradiance"]
-    err = error_against_truth(result.irradiance, result.sigma, result.nexp, truth)
+    run_dir = out / "demo-run"
+    if run_dir.exists():
+        head = Manifest(run_dir).header()
+        if head is not None and head.get("job_name") == "demo" and force:
+            shutil.rmtree(run_dir)  # the previous demo's capture, replaced as --force says
+        elif head is not None or any(run_dir.iterdir()):
+            raise OutputExistsError(f"{run_dir}: holds an earlier capture; use --force to replace it")
+    out.mkdir(parents=True, exist_ok=True)
+    exposure = {"mode": "bracket", "times": list(DEMO_TIMES)}
+    if target_snr is not None:
+        exposure = {"mode": "snr", "target_snr_db": target_snr, "times": list(DEMO_TIMES)}
+    job = job_from_dict({
+        "job": {"name": "demo"},
+        "camera": {"backend": "mock", "preset": camera, "size": size, "seed": seed},
+        "scene": {"name": scene, "decades": 4.0, "x_max": 2e5},
+        "exposure": exposure,
+        "darks": {"strategy": "matched", "block_light": "mock"},
+        "output": {"folder": str(run_dir)},
+    })
+    res, session = run_job(job, run_dir=run_dir, progress=progress, force=force, exr_path=out / "demo.exr",
+                           png_path=out / "demo.png", return_result=True, echo=lambda s: click.echo(s, err=True))
+    err = res["error_vs_truth"]
+    m = session.merge
+    times = sorted({r["file_exposure_s"] for r in session.frames.values() if r["kind"] == "light"})
+    n_dark = sum(r["kind"] == "dark" for r in session.frames.values())
     lines = [
-        "hdrcap demo: simulated camera -> bracket with dark frames -> merge",
-        f"camera: {camera}; scene: {scene} ({size}), 4 decades; seed {seed}",
-        f"exposures (s): {', '.join(f'{t:g}' for t in desc['exposure_times'])} (+ {len(darks)} dark frames)",
-        f"merge: {result.info['method']}, dark strategy {result.info['dark_strategy']}",
+        "hdrcap demo: simulated camera -> capture session (bracket + dark frames) -> merge",
+        f"camera: {camera} (MockCamera); scene: {scene} ({size}), 4 decades; seed {seed}",
+        f"exposures (s): {', '.join(f'{t:g}' for t in times)} (+ {n_dark} dark frames)",
+        f"capture: {res['frames']} frames verified and hashed in {run_dir / 'manifest.jsonl'} "
+        f"({res['elapsed_s']:.1f} s)",
+        f"merge: {m.info.get('method', 'ML')}, dark strategy {m.info.get('dark_strategy', 'matched')}, "
+        f"{'streamed as frames landed' if res['streamed_merge'] else 'merged after the last frame'}",
         f"output: {out / 'demo.exr'} (irradiance, sigma, nexp), preview {out / 'demo.png'}",
         "error against the simulator's ground truth (photosites with an unsaturated exposure):",
         f"  median |relative error|   {err['median_abs_relative_error']:.4%}",
@@ -50,22 +67,26 @@ def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bo
     text = "\n".join(lines) + "\n"
     with atomic_output(out / "summary.txt", force=force) as tmp:
         tmp.write_text(text)
-    return {"text": text, "error": err, "exr": str(out / "demo.exr"), "png": str(out / "demo.png")}
+    return {"text": text, "error": err, "exr": str(out / "demo.exr"), "png": str(out / "demo.png"),
+            "run_dir": str(run_dir)}
 
 
 @click.command("demo")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out"), show_default=True,
-              help="Output folder (raw/ holds the simulated DNGs).")
+              help="Output folder (demo-run/ holds the captured DNGs, manifest and event log).")
 @click.option("--camera", default="camera-B", show_default=True, help="Simulator preset: camera-A or camera-B.")
 @click.option("--scene", default="hdr", show_default=True, help="Synthetic scene name or an EXR file.")
 @click.option("--size", default="1024x768", show_default=True, help="Mosaic size WIDTHxHEIGHT.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
-@click.option("--force", is_flag=True, help="Overwrite the outputs of an earlier demo.")
+@click.option("--target-snr", type=float, default=None,
+              help="Plan the exposures for this SNR (dB) with the planner instead of the fixed bracket.")
+@click.option("--force", is_flag=True, help="Overwrite the outputs (and the capture) of an earlier demo.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary instead of the text.")
-def command(out, camera, scene, size, seed, force, as_json):
-    """Simulate a bracket with dark frames, merge it, write out/demo.exr, a tone-mapped
-    out/demo.png and out/summary.txt with the error against the simulator's ground truth."""
-    res = run_demo(out, camera, scene, size, seed, force, progress=not as_json)
+def command(out, camera, scene, size, seed, target_snr, force, as_json):
+    """Capture a bracket with dark frames from the simulated camera through the capture session,
+    merge it, write out/demo.exr, a tone-mapped out/demo.png and out/summary.txt with the error
+    against the simulator's ground truth."""
+    res = run_demo(out, camera, scene, size, seed, force, progress=not as_json, target_snr=target_snr)
     if as_json:
         echo_json({"exr": res["exr"], "png": res["png"], **res["error"]})
     else:

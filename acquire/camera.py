@@ -1,0 +1,270 @@
+"""The camera protocol every acquisition backend implements, camera errors, and the parsing
+of the cameras' own exposure-time labels.
+
+A backend (:class:`acquire.gphoto2_camera.Gphoto2Camera`, :class:`mock_camera.camera.MockCamera`)
+is any object with the methods of :class:`Camera`. Capture sessions
+(:mod:`acquire.session`) drive it and decide what to do on a failure from the failure's
+*kind* (:func:`fault_kind`): ``"busy"`` (wait and retry), ``"reconnect"`` (the connection is
+gone or hung: reconnect, then retry), ``"recapture"`` (the file is bad: take it again) or
+``"fatal"`` (card full, camera gone: stop with a clear message). Errors carry their kind in
+the attribute ``camera_fault`` so that backends outside :mod:`acquire` (the simulator may not
+import acquire) can take part without sharing classes.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Any, Protocol, Sequence, runtime_checkable
+
+from pipeline.errors import HdrcapError
+
+__all__ = [
+    "Camera",
+    "CameraIdentity",
+    "CaptureResult",
+    "CameraError",
+    "CameraBusyError",
+    "CameraDisconnectedError",
+    "CameraTimeoutError",
+    "CorruptFrameError",
+    "StorageFullError",
+    "CameraGoneError",
+    "FAULT_KINDS",
+    "fault_kind",
+    "parse_exposure_label",
+    "format_exposure",
+    "nearest_allowed",
+    "dark_level",
+    "frame_is_dark",
+]
+
+#: Failure kinds a session knows how to handle, see :func:`fault_kind`.
+FAULT_KINDS = ("busy", "reconnect", "recapture", "fatal")
+
+
+@dataclass(frozen=True)
+class CameraIdentity:
+    """Who the camera is: recorded with every frame.
+
+    Attributes
+    ----------
+    backend : str
+        ``"gphoto2"`` or ``"mock"``.
+    model : str
+        Camera model as the camera reports it.
+    serial : str
+        Serial number ("" when the camera does not report one).
+    port : str
+        Where it is connected (``usb:001,004``; ``mock:`` for the simulator).
+    """
+
+    backend: str
+    model: str
+    serial: str = ""
+    port: str = ""
+
+    def to_dict(self) -> dict[str, str]:
+        return {"backend": self.backend, "model": self.model, "serial": self.serial, "port": self.port}
+
+
+@dataclass
+class CaptureResult:
+    """One downloaded frame.
+
+    Attributes
+    ----------
+    path : Path
+        Where the file was written on this computer.
+    requested_exposure_s : float
+        Exposure time asked for, s.
+    applied_exposure_s : float
+        Exposure time the camera reported after setting it (read back), s.
+    dark : bool
+        Whether the light was blocked.
+    settings : dict
+        Every setting read back from the camera at capture (name -> applied value).
+    camera_file : str
+        Name of the file on the camera ("" for the simulator).
+    temperature_c : float or None
+        Sensor temperature when the camera reports it, degrees C.
+    """
+
+    path: Path
+    requested_exposure_s: float
+    applied_exposure_s: float
+    dark: bool = False
+    settings: dict[str, Any] = field(default_factory=dict)
+    camera_file: str = ""
+    temperature_c: float | None = None
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """What a capture session needs from a camera."""
+
+    identity: CameraIdentity
+
+    def allowed_exposure_times(self) -> list[float]:
+        """Exposure times the camera accepts, s, ascending (bulb excluded)."""
+
+    def iso_values(self) -> list[int]:
+        """ISO speeds the camera accepts (empty when it has none)."""
+
+    def set_iso(self, iso: int) -> int:
+        """Set the ISO speed and return the value read back."""
+
+    def set_exposure(self, t: float) -> float:
+        """Set the exposure time (s) and return the value read back from the camera, s."""
+
+    def capture(self, dest: Path, *, dark: bool = False, timeout: float | None = None) -> CaptureResult:
+        """Expose with the current settings, download the file to ``dest`` (a new file) and
+        delete it from the camera when the backend was asked to."""
+
+    def cover(self) -> None:
+        """Block the light (dark frames) when the camera can do it itself; else a no-op."""
+
+    def uncover(self) -> None:
+        """Unblock the light."""
+
+    def temperature(self) -> float | None:
+        """Sensor temperature, degrees C, or None when unknown."""
+
+    def reconnect(self) -> None:
+        """Drop the connection and open a new one (a fresh camera object)."""
+
+    def close(self) -> None:
+        """Release the camera."""
+
+
+class CameraError(HdrcapError):
+    """A camera failure; ``camera_fault`` says how a session handles it."""
+
+    camera_fault = "fatal"
+    exit_code = 4
+
+
+class CameraBusyError(CameraError):
+    """The camera is busy (libgphoto2 -110, PTP Device Busy): wait and retry."""
+
+    camera_fault = "busy"
+
+
+class CameraDisconnectedError(CameraError):
+    """The connection broke (I/O error, USB claim failure, mid-download loss): reconnect."""
+
+    camera_fault = "reconnect"
+
+
+class CameraTimeoutError(CameraError):
+    """The camera did not answer in time (hang): reconnect."""
+
+    camera_fault = "reconnect"
+
+
+class CorruptFrameError(CameraError):
+    """The downloaded file is truncated or unreadable, or its size or exposure is wrong."""
+
+    camera_fault = "recapture"
+
+
+class StorageFullError(CameraError):
+    """The camera's card (or memory) is full: the session stops."""
+
+    camera_fault = "fatal"
+
+
+class CameraGoneError(CameraError):
+    """The camera cannot be found any more (unplugged, switched off): the session stops."""
+
+    camera_fault = "fatal"
+
+
+def fault_kind(err: BaseException) -> str | None:
+    """How a session should treat ``err``: one of :data:`FAULT_KINDS`, or None when ``err``
+    is not a camera failure (a bug or a user error, which propagates)."""
+    kind = getattr(err, "camera_fault", None)
+    return kind if kind in FAULT_KINDS else None
+
+
+_NUM = r"(?:\d+(?:\.\d*)?|\.\d+)"
+
+
+def parse_exposure_label(label: str | float | int) -> float | None:
+    """Parse a camera's exposure-time label into seconds.
+
+    Understands ``1/250``, ``1/250s``, ``0.1000s`` (the virtual PTP camera), ``30``, ``30s``,
+    ``2.5``, Canon's ``30"`` and ``0"3`` (0.3 s, ``1"6`` = 1.6 s) and ``1/4000 s``.
+    ``bulb``, ``time`` and ``auto`` are not timed: None.
+
+    Raises
+    ------
+    ValueError
+        For a label that is none of these (the message names the label).
+    """
+    if isinstance(label, (int, float)) and not isinstance(label, bool):
+        t = float(label)
+    else:
+        text = str(label).strip().lower().replace(",", ".")
+        if text in ("bulb", "b", "time", "t", "auto", "bulb/time"):
+            return None
+        text = re.sub(r"\s*(?:sec|secs|seconds|s)$", "", text).strip()
+        if m := re.fullmatch(rf"({_NUM})\s*/\s*({_NUM})", text):
+            den = float(m.group(2))
+            if den == 0:
+                raise ValueError(f"exposure label {label!r}: zero denominator")
+            t = float(Fraction(m.group(1)) / Fraction(m.group(2)))
+        elif m := re.fullmatch(r"(\d+)\"(\d*)", text):
+            t = float(m.group(1) + "." + (m.group(2) or "0"))
+        elif re.fullmatch(_NUM, text):
+            t = float(text)
+        else:
+            raise ValueError(f"exposure label {label!r} is not an exposure time")
+    if not (t > 0 and math.isfinite(t)):
+        raise ValueError(f"exposure label {label!r} is not a positive time")
+    return t
+
+
+def format_exposure(t: float) -> str:
+    """A readable label: ``1/250 s`` below 0.3 s when the reciprocal is round, else ``0.4 s``."""
+    if t < 0.3:
+        inv = 1.0 / t
+        if abs(inv - round(inv)) < 1e-6 * inv:
+            return f"1/{round(inv)} s"
+    return f"{t:.6g} s"
+
+
+def nearest_allowed(t: float, allowed: Sequence[float]) -> float:
+    """The allowed exposure time closest to ``t`` on a logarithmic scale (as cameras round)."""
+    if not allowed:
+        raise ValueError("no allowed exposure times")
+    return min(allowed, key=lambda a: (abs(math.log(a / t)), a))
+
+
+def dark_level(path) -> float:
+    """How much light a frame saw: its median above black as a fraction of the range
+    (raw files via :func:`pipeline.io.read_frame`, JPEG/PNG previews via Pillow)."""
+    import numpy as np
+
+    path = Path(path)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        from PIL import Image
+
+        with Image.open(path) as im:
+            data = np.asarray(im.convert("L"), dtype=np.float64)
+        return float(np.median(data) / 255.0)
+    from pipeline.io import read_frame
+
+    fr = read_frame(path)
+    black = fr.black_level or 0.0
+    white = fr.white_level or float(np.iinfo(np.uint16).max)
+    return float((np.median(fr.data) - black) / max(white - black, 1.0))
+
+
+def frame_is_dark(path, threshold: float = 0.05) -> bool:
+    """Cover detection: True when the frame's median is below ``threshold`` of the range,
+    i.e. the light was blocked (a frame of a scene lit for the exposure is far above it)."""
+    return dark_level(path) < threshold

@@ -1,0 +1,33 @@
+"""``hdrcap cameras``: list the cameras libgphoto2 detects (and the simulator presets)."""
+
+from __future__ import annotations
+
+import click
+
+from acquire.cliutil import echo_json
+
+
+@click.command("cameras")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON on stdout.")
+def command(as_json):
+    """List detected cameras (model and port, via libgphoto2) and the simulated camera presets
+    usable as backend = "mock"."""
+    from mock_camera import PRESETS
+
+    try:
+        from acquire.gphoto2_camera import list_cameras
+
+        found = list_cameras()
+        problem = None
+    except Exception as err:  # libgphoto2 missing or failing: still list the presets
+        found, problem = [], f"{type(err).__name__}: {err}"
+    mock = [{"preset": k, "model": v.model} for k, v in PRESETS.items()]
+    if as_json:
+        echo_json({"gphoto2": [{"model": m, "port": p} for m, p in found], "mock": mock, "problem": problem})
+        return
+    if found:
+        for m, p in found:
+            click.echo(f"{m:40s} {p}")
+    else:
+        click.echo("no camera detected by libgphoto2" + (f" ({problem})" if problem else ""))
+    click.echo("simulated cameras (backend = \"mock\"): " + ", ".join(x["preset"] for x in mock))

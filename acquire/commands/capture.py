@@ -1,0 +1,80 @@
+"""``hdrcap capture``: capture one plan (a fixed bracket or a target SNR) into a run folder,
+with dark frames, verification, manifest and resume; the job-file-free form of ``hdrcap run``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from acquire.cliutil import echo_json, many_values
+
+
+@many_values("--times")
+@click.command("capture")
+@click.option("--camera", default="mock:camera-B", show_default=True,
+              help="mock:PRESET (simulator) or gphoto2[:MODEL] (a real camera; see `hdrcap cameras`).")
+@click.option("--port", default=None, help="gphoto2 port of the camera (usb:001,004).")
+@click.option("--times", multiple=True, type=float, help="Exposure times, s (a fixed bracket; several after one flag).")
+@click.option("--target-snr", type=float, default=None, help="Plan the exposures for this SNR, dB (meter + planner).")
+@click.option("--darks", "dark_strategy", type=click.Choice(["matched", "master", "model"]), default=None,
+              help="Dark frames: one per exposure, N averaged per exposure, or none (model).  "
+                   "[default: matched; with --target-snr the planner's choice]")
+@click.option("--dark-count", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Dark frames per exposure time for --darks master.")
+@click.option("--block-light", type=click.Choice(["mock", "prompt", "command", "none"]), default=None,
+              help="How the light is blocked for dark frames (default: mock for the simulator, prompt otherwise).")
+@click.option("--cover-command", default=None, help="Shell command that blocks the light (--block-light command).")
+@click.option("--uncover-command", default=None, help="Shell command that unblocks the light.")
+@click.option("--calibration", default=None, help="Calibration file (from `hdrcap calibrate`).")
+@click.option("--scene", default="hdr", show_default=True, help="Simulator scene (mock camera).")
+@click.option("--size", default="256x192", show_default=True, help="Simulator mosaic WIDTHxHEIGHT (mock camera).")
+@click.option("--seed", default=0, show_default=True, type=int, help="Simulator seed (mock camera).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True, help="Run folder.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted capture in --out.")
+@click.option("--force", is_flag=True, help="Overwrite hdr.exr / preview.png in --out.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
+@click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary.")
+def command(camera, port, times, target_snr, dark_strategy, dark_count, block_light, cover_command, uncover_command,
+            calibration, scene, size, seed, out, resume, force, progress, as_json):
+    """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
+    hash every frame into manifest.jsonl, and merge it to --out/hdr.exr."""
+    from acquire.commands.run import _describe
+    from acquire.job import job_from_dict, run_job
+    from pipeline.errors import InputError
+
+    backend, _, name = camera.partition(":")
+    if backend not in ("mock", "gphoto2"):
+        raise InputError(f"--camera must be mock:PRESET or gphoto2[:MODEL], got {camera!r}")
+    cam: dict = {"backend": backend}
+    if backend == "mock":
+        cam.update(preset=name or "camera-B", size=size, seed=seed)
+    else:
+        if name:
+            cam["model"] = name
+        if port:
+            cam["port"] = port
+    if not times and target_snr is None:
+        raise InputError("give --times (a fixed bracket) or --target-snr")
+    exposure = {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}
+    if times:
+        exposure["times"] = list(times)
+    darks = {"count": dark_count, "block_light": block_light or ("mock" if backend == "mock" else "prompt")}
+    if dark_strategy:
+        darks["strategy"] = dark_strategy
+    if cover_command:
+        darks["cover_command"] = cover_command
+    if uncover_command:
+        darks["uncover_command"] = uncover_command
+    data = {"job": {"name": "capture"}, "camera": cam, "exposure": exposure, "darks": darks,
+            "output": {"folder": str(out)}}
+    if backend == "mock":
+        data["scene"] = {"name": scene}
+    if calibration:
+        data["calibration"] = {"file": calibration}
+    job = job_from_dict(data)
+    res = run_job(job, resume=resume, run_dir=out, progress=progress, force=force)
+    if as_json:
+        echo_json(res)
+    else:
+        click.echo(_describe(res))

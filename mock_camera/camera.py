@@ -1,0 +1,299 @@
+"""``MockCamera``: the acquisition :class:`acquire.camera.Camera` protocol on the simulated
+sensor, with injectable faults.
+
+It behaves like a tethered raw camera: a list of allowed exposure times (1/3-stop series),
+``set_exposure`` coerces to the nearest allowed value and reports what it applied, ``capture``
+writes a DNG (:class:`mock_camera.backend.SimulatedCamera`) and hands it over. Faults
+(:class:`MockFaults`) reproduce what real cameras do: busy, disconnect in the middle of a
+download (a partial file is left behind), hang until the timeout, a corrupted or truncated file
+reported as a success, a full card, and an abrupt process kill.
+
+This module must not import :mod:`acquire` (imports point down); its errors carry the
+attribute ``camera_fault`` (``busy``/``reconnect``/``fatal``) that sessions act on, and its
+results have the attributes of :class:`acquire.camera.CaptureResult`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .backend import SimulatedCamera
+from .sensor import PRESETS, SensorSpec
+
+__all__ = [
+    "MockCamera",
+    "MockFaults",
+    "MockIdentity",
+    "MockCapture",
+    "MockCameraError",
+    "MockBusyError",
+    "MockDisconnectedError",
+    "MockTimeoutError",
+    "MockStorageFullError",
+    "STANDARD_TIMES",
+]
+
+_THIRD_STOPS = (
+    [30, 25, 20, 15, 13, 10, 8, 6, 5, 4, 3.2, 2.5, 2, 1.6, 1.3, 1, 0.8, 0.6, 0.5, 0.4, 0.3]
+    + [1 / d for d in (4, 5, 6, 8, 10, 13, 15, 20, 25, 30, 40, 50, 60, 80, 100, 125, 160, 200, 250, 320,
+                       400, 500, 640, 800, 1000, 1250, 1600, 2000, 2500, 3200, 4000, 5000, 6400, 8000)]
+)
+#: The usual 1/3-stop shutter speeds of a DSLR, 1/8000 s .. 30 s, ascending.
+STANDARD_TIMES: tuple[float, ...] = tuple(sorted(float(t) for t in _THIRD_STOPS))
+
+
+class MockCameraError(Exception):
+    """A simulated camera failure; ``camera_fault`` tells a session how to react."""
+
+    camera_fault = "fatal"
+
+
+class MockBusyError(MockCameraError):
+    camera_fault = "busy"
+
+
+class MockDisconnectedError(MockCameraError):
+    camera_fault = "reconnect"
+
+
+class MockTimeoutError(MockCameraError):
+    camera_fault = "reconnect"
+
+
+class MockStorageFullError(MockCameraError):
+    camera_fault = "fatal"
+
+
+@dataclass(frozen=True)
+class MockFaults:
+    """Faults to inject, each drawn per capture from its own seeded generator.
+
+    Attributes
+    ----------
+    seed : int
+        Seeds the fault draws (independent of the sensor noise).
+    busy_first : int
+        The first this-many capture calls fail as busy.
+    busy_rate, disconnect_rate, hang_rate, corrupt_rate, truncate_rate : float
+        Probability per capture call of: busy; a disconnect in the middle of the download
+        (a partial file is left at the destination; every call fails until ``reconnect``);
+        a hang (sleeps ``hang_s`` or the caller's timeout, then fails as a timeout and needs
+        a reconnect); a corrupted file (its header overwritten with noise, reported as a
+        success); a truncated file (reported as a success).
+    card_full_after : int or None
+        Captures that succeed before the card is full (every later capture fails).
+    kill_after : int or None
+        Kill the process (``os._exit(137)``) during the download of this capture number
+        (1-based, counting successful downloads), after the file is written and before the
+        call returns: the crash a resume must survive.
+    hang_s : float
+        Longest simulated hang, s.
+    """
+
+    seed: int = 0
+    busy_first: int = 0
+    busy_rate: float = 0.0
+    disconnect_rate: float = 0.0
+    hang_rate: float = 0.0
+    corrupt_rate: float = 0.0
+    truncate_rate: float = 0.0
+    card_full_after: int | None = None
+    kill_after: int | None = None
+    hang_s: float = 0.05
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "MockFaults":
+        known = set(cls.__dataclass_fields__)
+        bad = set(d) - known
+        if bad:
+            raise ValueError(f"unknown fault {sorted(bad)[0]!r}; known: {', '.join(sorted(known))}")
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class MockIdentity:
+    backend: str
+    model: str
+    serial: str = ""
+    port: str = ""
+
+    def to_dict(self) -> dict[str, str]:
+        return {"backend": self.backend, "model": self.model, "serial": self.serial, "port": self.port}
+
+
+@dataclass
+class MockCapture:
+    path: Path
+    requested_exposure_s: float
+    applied_exposure_s: float
+    dark: bool = False
+    settings: dict[str, Any] = field(default_factory=dict)
+    camera_file: str = ""
+    temperature_c: float | None = None
+
+
+class MockCamera:
+    """A simulated tethered camera implementing :class:`acquire.camera.Camera`.
+
+    Parameters
+    ----------
+    spec : SensorSpec or str
+        Sensor physics or a preset name (``camera-A``, ``camera-B``).
+    scene : numpy.ndarray
+        Irradiance map, e-/s per photosite; its shape is the mosaic's.
+    seed : int
+        Seeds fixed patterns and temporal noise.
+    allowed_times : sequence of float, optional
+        Exposure times the camera accepts, s (default :data:`STANDARD_TIMES`).
+    faults : MockFaults, optional
+        Faults to inject (none by default).
+    temperature : float, optional
+        Sensor temperature, degrees C (reported by :meth:`temperature`).
+    """
+
+    backend = "mock"
+
+    def __init__(self, spec: SensorSpec | str, scene: np.ndarray, seed: int = 0, allowed_times=None,
+                 faults: MockFaults | None = None, temperature: float | None = None):
+        if isinstance(spec, str):
+            if spec not in PRESETS:
+                raise ValueError(f"unknown camera preset {spec!r}; choose from {', '.join(PRESETS)}")
+            spec = PRESETS[spec]
+        self.spec = spec
+        self.sim = SimulatedCamera(spec, scene, seed=seed, temperature=temperature)
+        self.shape = self.sim.scene.shape
+        self._allowed = sorted(float(t) for t in (allowed_times or STANDARD_TIMES))
+        self.faults = faults or MockFaults()
+        self._frng = np.random.default_rng([self.faults.seed, 7])
+        self._t = self._allowed[len(self._allowed) // 2]
+        self._iso = spec.iso
+        self._covered = False
+        self._connected = True
+        self._card_full = False
+        self.calls = 0
+        self.downloads = 0
+        self.reconnects = 0
+        self.fault_log: list[str] = []
+        # the port names this object: two simulated cameras are never the same device
+        self.identity = MockIdentity("mock", spec.model, self.sim.serial, f"mock:{spec.name}:{os.getpid()}.{id(self):x}")
+
+    # --- settings -------------------------------------------------------------------
+    def allowed_exposure_times(self) -> list[float]:
+        return list(self._allowed)
+
+    def iso_values(self) -> list[int]:
+        return [self.spec.iso]
+
+    def set_iso(self, iso: int) -> int:
+        self._check_connected()
+        self._iso = self.spec.iso  # the simulated sensor has one ISO: coerced
+        return self._iso
+
+    def set_exposure(self, t: float) -> float:
+        """Coerce ``t`` to the nearest allowed time (log scale) and return what was applied."""
+        self._check_connected()
+        if not (t > 0 and math.isfinite(t)):
+            raise ValueError(f"exposure time must be positive, got {t!r}")
+        self._t = min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
+        return self._t
+
+    def get_exposure(self) -> float:
+        return self._t
+
+    # --- light, temperature, connection -------------------------------------------------
+    def cover(self) -> None:
+        self._covered = True
+
+    def uncover(self) -> None:
+        self._covered = False
+
+    @property
+    def covered(self) -> bool:
+        return self._covered
+
+    def temperature(self) -> float | None:
+        return self.sim.temperature
+
+    def reconnect(self) -> None:
+        self.reconnects += 1
+        self._connected = True
+
+    def close(self) -> None:
+        self._connected = False
+
+    def _check_connected(self) -> None:
+        if not self._connected:
+            raise MockDisconnectedError("mock camera: not connected (reconnect first)")
+
+    # --- capture --------------------------------------------------------------------------
+    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> MockCapture:
+        """Expose for the applied time (light blocked when covered) and write a DNG at ``dest``.
+
+        ``dark`` is what the caller intends; the light is blocked only by :meth:`cover`, as on
+        a real camera. ``dest`` must not exist.
+        """
+        dest = Path(dest)
+        f = self.faults
+        self.calls += 1
+        self._check_connected()
+        if self._card_full:
+            raise MockStorageFullError("mock camera: card full")
+        u = self._frng.random(6)
+        if self.calls <= f.busy_first or u[0] < f.busy_rate:
+            self.fault_log.append("busy")
+            raise MockBusyError("mock camera: busy [-110]")
+        if u[1] < f.hang_rate:
+            self.fault_log.append("hang")
+            time.sleep(min(f.hang_s, timeout) if timeout else f.hang_s)
+            self._connected = False
+            raise MockTimeoutError("mock camera: no answer (timeout)")
+        if f.card_full_after is not None and self.downloads >= f.card_full_after:
+            self._card_full = True
+            self.fault_log.append("card_full")
+            raise MockStorageFullError("mock camera: card full")
+        if dest.exists():
+            raise FileExistsError(f"{dest}: exists")
+        self.sim.capture_to(dest, self._t, dark=self._covered)
+        if u[2] < f.disconnect_rate:
+            self.fault_log.append("disconnect")
+            size = dest.stat().st_size
+            with open(dest, "r+b") as fh:  # the download stopped half-way
+                fh.truncate(size // 2)
+            self._connected = False
+            raise MockDisconnectedError("mock camera: disconnected during download [-7 I/O]")
+        if u[3] < f.corrupt_rate:
+            self.fault_log.append("corrupt")
+            _corrupt(dest, self._frng)
+        elif u[4] < f.truncate_rate:
+            self.fault_log.append("truncate")
+            size = dest.stat().st_size
+            with open(dest, "r+b") as fh:
+                fh.truncate(int(size * 0.6))
+        self.downloads += 1
+        if f.kill_after is not None and self.downloads == f.kill_after:
+            os._exit(137)
+        return MockCapture(
+            path=dest,
+            requested_exposure_s=self._t,
+            applied_exposure_s=self._t,
+            dark=self._covered,
+            settings={"shutterspeed": self._t, "iso": self._iso, "covered": self._covered},
+            camera_file="",
+            temperature_c=self.sim.temperature,
+        )
+
+
+def _corrupt(path: Path, rng: np.random.Generator) -> None:
+    """Overwrite the first bytes of the file (its header) with noise, as a bad transfer would."""
+    size = path.stat().st_size
+    n = min(size, 512)
+    with open(path, "r+b") as fh:
+        fh.seek(0)
+        fh.write(rng.integers(0, 256, n, dtype=np.uint8).tobytes())

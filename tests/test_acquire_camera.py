@@ -1,0 +1,140 @@
+"""Camera protocol: exposure labels, nearest allowed time, fault kinds; MockCamera faults."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from acquire.camera import (
+    Camera,
+    CameraBusyError,
+    StorageFullError,
+    fault_kind,
+    format_exposure,
+    nearest_allowed,
+    parse_exposure_label,
+)
+from mock_camera.camera import STANDARD_TIMES, MockCamera, MockFaults
+
+
+@pytest.mark.parametrize(
+    "label, seconds",
+    [
+        ("1/250", 0.004),
+        ("1/250s", 0.004),
+        ("1/4000 s", 0.00025),
+        ("0.1000s", 0.1),
+        ("0.0012s", 0.0012),
+        ("30", 30.0),
+        ("30s", 30.0),
+        ('30"', 30.0),
+        ('0"3', 0.3),
+        ('1"6', 1.6),
+        ("2.5", 2.5),
+        ("1/3", 1 / 3),
+        (0.5, 0.5),
+    ],
+)
+def test_parse_exposure_label(label, seconds):
+    assert parse_exposure_label(label) == pytest.approx(seconds, rel=1e-12)
+
+
+@pytest.mark.parametrize("label", ["bulb", "Bulb", "BULB", "time", "auto"])
+def test_bulb_is_not_a_time(label):
+    assert parse_exposure_label(label) is None
+
+
+@pytest.mark.parametrize("label", ["", "fast", "1/0", "-1/250", "0", "1/250x", "f/2.8"])
+def test_bad_labels_raise(label):
+    with pytest.raises(ValueError):
+        parse_exposure_label(label)
+
+
+def test_format_and_nearest():
+    assert format_exposure(0.004) == "1/250 s"
+    assert format_exposure(2.5) == "2.5 s"
+    allowed = [1 / 250, 1 / 125, 1 / 60, 1 / 30]
+    assert nearest_allowed(0.0105, allowed) == 1 / 125  # log-nearest: 0.0105 is closer to 1/125 than 1/60
+    assert nearest_allowed(1.0, allowed) == 1 / 30
+    assert nearest_allowed(1e-6, allowed) == 1 / 250
+
+
+def test_fault_kinds():
+    assert fault_kind(CameraBusyError("x")) == "busy"
+    assert fault_kind(StorageFullError("x")) == "fatal"
+    assert fault_kind(ValueError("x")) is None
+
+
+def _scene(shape=(24, 24)):
+    return np.full(shape, 1000.0)
+
+
+def test_mock_camera_protocol_and_coercion(tmp_path):
+    cam = MockCamera("camera-B", _scene(), seed=1)
+    assert isinstance(cam, Camera)
+    times = cam.allowed_exposure_times()
+    assert times == sorted(times) and times[0] == pytest.approx(1 / 8000) and times[-1] == 30
+    # 0.011 s is not allowed: the camera applies the log-nearest standard speed, 1/100 s
+    assert cam.set_exposure(0.011) == pytest.approx(1 / 100)
+    res = cam.capture(tmp_path / "a.dng")
+    from pipeline.io import read_frame
+
+    fr = read_frame(res.path)
+    assert fr.exposure_time == pytest.approx(1 / 100, rel=1e-9)
+    assert res.applied_exposure_s == pytest.approx(1 / 100)
+    # light frame of 1000 e-/s for 10 ms at g=0.92: ~9.2 DN above the bias level 32
+    assert np.mean(fr.data) - 32 == pytest.approx(0.92 * 1000 * 0.01, abs=1.5)
+    cam.cover()
+    cam.set_exposure(1.0)
+    dark = read_frame(cam.capture(tmp_path / "d.dng").path)
+    assert np.mean(dark.data) - 32 < 3  # dark current 1 e-/s * 1 s * 0.92
+
+
+def test_mock_camera_faults(tmp_path):
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(busy_first=2, card_full_after=3))
+    for k in range(2):
+        with pytest.raises(Exception) as e:
+            cam.capture(tmp_path / f"b{k}.dng")
+        assert fault_kind(e.value) == "busy"
+    for k in range(3):
+        cam.capture(tmp_path / f"ok{k}.dng")
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "full.dng")
+    assert fault_kind(e.value) == "fatal"
+
+
+def test_mock_camera_disconnect_leaves_partial_and_needs_reconnect(tmp_path):
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(disconnect_rate=1.0))
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "a.dng")
+    assert fault_kind(e.value) == "reconnect"
+    assert (tmp_path / "a.dng").exists()  # half a file was left behind
+    with pytest.raises(Exception) as e:
+        cam.set_exposure(0.01)
+    assert fault_kind(e.value) == "reconnect"
+    cam.reconnect()
+    assert cam.set_exposure(0.01) == pytest.approx(0.01)
+
+
+def test_mock_camera_hang_respects_timeout(tmp_path):
+    import time
+
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(hang_rate=1.0, hang_s=5.0))
+    t0 = time.monotonic()
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "a.dng", timeout=0.05)
+    assert time.monotonic() - t0 < 1.0
+    assert fault_kind(e.value) == "reconnect"
+
+
+@pytest.mark.parametrize("fault", ["corrupt_rate", "truncate_rate"])
+def test_mock_camera_bad_files_do_not_open(tmp_path, fault):
+    from pipeline.errors import InputError
+    from pipeline.io import read_frame
+
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(**{fault: 1.0}))
+    res = cam.capture(tmp_path / "a.dng")  # reported as a success, as real transfers do
+    with pytest.raises(InputError):
+        read_frame(res.path)

@@ -1,0 +1,196 @@
+"""Jobs: validation before any frame (with the job file's line), `hdrcap run` end to end on the
+mock camera (accuracy against the simulator's truth), resume after a kill, repeats, capture."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquire.job import load_job
+from pipeline.errors import InputError
+
+GOOD = """\
+[job]
+name = "t"
+
+[camera]
+backend = "mock"
+preset = "camera-B"
+size = "64x48"
+seed = 3
+
+[scene]
+name = "hdr"
+decades = 3.0
+x_max = 2e4
+
+[exposure]
+mode = "bracket"
+times = [0.001, 0.004, 0.016, 0.064, 0.25, 1.0]
+
+[darks]
+strategy = "matched"
+block_light = "mock"
+
+[output]
+folder = "runs/{job}-{date}"
+"""
+
+
+def _write(tmp_path, text, name="job.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_good_job_loads_with_defaults(tmp_path):
+    job = load_job(_write(tmp_path, GOOD))
+    assert job["camera"]["seed"] == 3 and job["session"]["max_attempts"] == 12
+    assert job.where("exposure", "times") == f"{tmp_path / 'job.toml'}:17"
+
+
+@pytest.mark.parametrize(
+    "change, line, words",
+    [
+        (("seed = 3", "seed = 3\nshutter = 5"), 9, "unknown key"),
+        (("[darks]", "[dark]"), 19, "unknown section"),
+        (('strategy = "matched"', 'strategy = "best"'), 20, "matched, master or model"),
+        (('size = "64x48"', "size = 64"), 7, "expected a string"),
+        (("block_light = \"mock\"", "block_light = \"command\""), 19, "cover_command"),
+        (('[output]', '[calibration]\nfile = "nope.json"\n\n[output]'), 24, "does not exist"),
+        (('folder = "runs/{job}-{date}"', 'folder = "afile/runs"'), 24, "not a writable folder"),
+        (("mode = \"bracket\"", "mode = \"snr\""), 15, "target_snr_db"),
+    ],
+)
+def test_bad_jobs_name_the_line(tmp_path, change, line, words):
+    (tmp_path / "afile").write_text("x")
+    p = _write(tmp_path, GOOD.replace(*change))
+    with pytest.raises(InputError) as e:
+        load_job(p)
+    msg = str(e.value)
+    assert words in msg and msg.startswith(f"{p}:"), msg
+    if line:
+        assert f"{p}:{line}:" in msg, msg
+
+
+def test_toml_syntax_error_names_the_line(tmp_path):
+    p = _write(tmp_path, GOOD.replace('preset = "camera-B"', 'preset = camera-B'))
+    with pytest.raises(InputError, match=r"line 6"):
+        load_job(p)
+
+
+def test_exposure_outside_camera_range_rejected_before_any_frame(tmp_path, cli):
+    p = _write(tmp_path, GOOD.replace("1.0]", "1.0, 120.0]"))
+    proc = cli("run", p)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert f"{p}:17: exposure.times: exposure 120 s is outside the camera's range" in proc.stderr
+    assert not (tmp_path / "runs").exists()  # no frame, not even a run folder
+
+
+def test_run_job_merge_within_stated_uncertainty(tmp_path, cli):
+    from mock_camera.scenes import make_scene
+    from pipeline.io import read_exr
+
+    p = _write(tmp_path, GOOD)
+    proc = cli("run", p, "--json", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert res["frames"] == 12 and res["captured"] == 12
+    img = read_exr(res["exr"])
+    truth = make_scene("hdr", (48, 64), decades=3.0, x_max=2e4)  # the simulator's scene, rebuilt independently
+    irr, sig, nexp = (img.channels[k].astype(np.float64) for k in ("irradiance", "sigma", "nexp"))
+    ok = nexp > 0
+    assert ok.mean() > 0.99
+    z = (irr[ok] - truth[ok]) / sig[ok]
+    spread = 1.4826 * np.median(np.abs(z - np.median(z)))  # robust: the merge's tails do not dominate
+    assert 0.8 < spread < 1.25, spread
+    assert abs(np.median(z)) < 0.15
+    assert np.isfinite(irr).all() and np.isfinite(sig).all()
+    manifest = Path(res["run_dir"]) / "manifest.jsonl"
+    recs = [json.loads(l) for l in manifest.read_text().splitlines()]
+    assert recs[0]["type"] == "run" and recs[0]["job_name"] == "t"
+    assert sum(r["type"] == "frame" for r in recs) == 12
+
+
+def test_run_killed_then_resumed_completes(tmp_path, cli):
+    fast = "\n[session]\nbackoff_s = 0.001\n"
+    text = GOOD.replace("seed = 3", "seed = 3\nfaults = { kill_after = 7, busy_rate = 0.2, seed = 1 }") + fast
+    p = _write(tmp_path, text)
+    first = cli("run", p, "--no-progress")
+    assert first.returncode == 137 and "Traceback" not in first.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert not (run_dir / "hdr.exr").exists()
+    _write(tmp_path, GOOD.replace("seed = 3", "seed = 3\nfaults = { busy_rate = 0.2, seed = 2 }") + fast)
+    second = cli("run", p, "--resume", "--json", "--no-progress")
+    assert second.returncode == 0, second.stderr
+    res = json.loads(second.stdout.strip().splitlines()[-1])
+    assert res["run_dir"] == str(run_dir)
+    assert res["resumed"] == 6 and res["captured"] == 6 and res["frames"] == 12
+    recs = [json.loads(l) for l in (run_dir / "manifest.jsonl").read_text().splitlines()]
+    keys = [r["key"] for r in recs if r["type"] == "frame"]
+    assert len(keys) == len(set(keys)) == 12
+    assert (run_dir / "hdr.exr").exists()
+
+
+def test_repeat_every_makes_separate_runs(tmp_path, cli):
+    p = _write(tmp_path, GOOD.replace('folder = "runs/{job}-{date}"', 'folder = "runs/{job}-{n:02d}"')
+               .replace("[0.001, 0.004, 0.016, 0.064, 0.25, 1.0]", "[0.004, 0.064]"))
+    proc = cli("run", p, "--repeat", "2", "--every", "0.5", "--json", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    runs = [json.loads(l) for l in proc.stdout.strip().splitlines()]
+    assert [Path(r["run_dir"]).name for r in runs] == ["t-00", "t-01"]
+    # the two repetitions are independent captures (different noise)
+    a, b = (json.loads((Path(r["run_dir"]) / "manifest.jsonl").read_text().splitlines()[-1])["sha256"] for r in runs)
+    assert a != b
+    again = cli("run", p, "--no-progress")
+    assert again.returncode != 0 and "--resume" in again.stderr and "Traceback" not in again.stderr
+
+
+def test_capture_command_and_planner_fallback(tmp_path, cli):
+    proc = cli("capture", "--camera", "mock:camera-A", "--size", "48x32", "--target-snr", "20", "--times", "0.01",
+               "0.1", "--out", tmp_path / "cap", "--no-progress", "--json")
+    assert proc.returncode == 0, proc.stderr
+    if importlib.util.find_spec("planner") is None:
+        assert "planner not available" in proc.stderr
+    else:
+        assert "plan:" in proc.stderr
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert Path(res["exr"]).exists() and res["frames"] >= 2
+
+
+def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
+    proc = cli("capture", "--camera", "nikon", "--times", "0.01", "--out", tmp_path / "x")
+    assert proc.returncode != 0 and "hdrcap: error: --camera must be" in proc.stderr
+    proc = cli("cameras", "--json")
+    assert proc.returncode == 0
+    out = json.loads(proc.stdout)
+    assert {m["preset"] for m in out["mock"]} == {"camera-A", "camera-B"}
+
+
+def test_master_darks_come_from_the_dark_library(tmp_path, cli):
+    darklibrary = pytest.importorskip("pipeline.darklibrary")
+    from mock_camera.camera import MockCamera
+    from mock_camera.scenes import make_scene
+    from pipeline.io import read_frame
+
+    lib = darklibrary.DarkLibrary(tmp_path / "darks")
+    cam = MockCamera("camera-B", make_scene("hdr", (48, 64), decades=3.0, x_max=2e4), seed=3)
+    cam.cover()
+    for t in (0.001, 0.004):
+        cam.set_exposure(t)
+        stack = [read_frame(cam.capture(tmp_path / f"d{t:g}_{k}.dng").path).data for k in range(6)]
+        lib.add(np.mean(stack, axis=0), 6, camera=cam.identity.model, iso=None, exposure_time=t)
+    text = GOOD.replace('strategy = "matched"', 'strategy = "master"\ncount = 2').replace(
+        "[output]", '[calibration]\npreset = "camera-B"\ndark_library = "darks"\n\n[output]')
+    p = _write(tmp_path, text)
+    proc = cli("run", p, "--json", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    recs = [json.loads(l) for l in (Path(res["run_dir"]) / "manifest.jsonl").read_text().splitlines()]
+    dark_times = sorted({r["file_exposure_s"] for r in recs if r.get("kind") == "dark"})
+    assert 0.001 not in dark_times and 0.004 not in dark_times and len(dark_times) == 4
+    assert recs[0]["plan"]["library_times"] == [0.001, 0.004]
