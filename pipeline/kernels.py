@@ -98,7 +98,7 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
     second step on, a sample whose raw value predicted from the current estimate lies within
     ``sat_sigmas`` of its own standard deviation of ``v_sat`` is dropped for good (saturated
     samples that slip under v_sat on read noise). With ``probabilistic``, Newton steps on the
-    blended likelihood of Eq. 8-10 follow, started from that estimate. Photosites with no
+    blended likelihood of Eq. 8-10 follow (damped to one sigma), started from that estimate. Photosites with no
     usable sample get ``nexp = 0``, ``sigma = 0`` and a lower bound of the irradiance.
     """
     n = len(values)
@@ -218,9 +218,12 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                     if swr <= 0.0 or nr == 0:
                         flagged = True
                         break
-                    step = -L1 / L2 if L2 < 0.0 else L1 / swr
-                    mu += step
                     sig = math.sqrt(1.0 / swr)
+                    # Newton step, damped to one standard deviation (the blended likelihood
+                    # has flat stretches where the bare Newton step overshoots).
+                    step = -L1 / L2 if L2 < 0.0 else L1 / swr
+                    step = min(max(step, -sig), sig)
+                    mu += step
                     nu = nr
                     if abs(step) <= tol * max(abs(mu), sig):
                         break
