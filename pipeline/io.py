@@ -458,7 +458,7 @@ def read_exr(path) -> HdrImage:
     _check_readable(path)
     try:
         with OpenEXR.File(str(path)) as exr:
-            header = exr.header()
+            header = dict(exr.header())  # copy: the mapping is emptied when the file closes
             channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
