@@ -25,13 +25,13 @@ import numba
 import numpy as np
 from numba import prange
 
-from .noise import variance_core
+from .noise import difference_variance
 
 __all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX"]
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
-_vcore = numba.njit(inline="always", cache=True)(variance_core)
+_dvar = numba.njit(inline="always", cache=True)(difference_variance)
 
 _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -48,7 +48,7 @@ def _pick(arr, is_map, scalar, r, c):
 def _sample(v, b, tga, v_sat):
     """x_i of Eq. 6 and whether the sample is usable under Eq. 11 (observed value)."""
     x = (v - b) / tga
-    ok = (v < v_sat) and (b < v_sat) and math.isfinite(x)
+    ok = (v < v_sat) & (b < v_sat) & ((x - x) == 0.0)  # branch-free; x - x != 0 for inf/nan
     return x, ok
 
 
@@ -81,15 +81,14 @@ def first_pass_kernel(v_arr, d_arr, has_dark, base, base_is_map, base_scalar, t_
                 init_sum[r, c] += x
                 init_cnt[r, c] += 1
 
-
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, fastmath={"contract", "arcp", "nsz"})
 def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                  base, base_is_map, base_scalar, t_ref, base_shift,
                  bias, bias_is_map, bias_scalar,
                  D_map, D_is_map, D_scalar, a_map, a_is_map,
                  init_sum, init_cnt, use_init,
                  max_iter, tol, sat_sigmas, probabilistic,
-                 out_irr, out_sig, out_nexp, out_iter):
+                 out_irr, out_sig, out_nexp, out_iter, n_chunks):
     """The ML merge of every photosite (Eq. 6, 8-13, Fig. 3); results into ``out_*``.
 
     Per photosite: x_i (Eq. 6); start from the non-saturated average (Eq. 11 usable set);
@@ -108,132 +107,178 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
         tmin = min(tmin, times[i])
     sat2 = sat_sigmas * sat_sigmas
     sigma_R = math.sqrt(sigma2_R)
-    for r in prange(H):
+    nchunk = min(H, max(1, n_chunks))
+    for ch in prange(nchunk):
+        # Row buffers, allocated once per chunk of rows (not per row).
         X = np.empty((n, W))
-        V = np.empty((n, W))
-        OK = np.empty((n, W), dtype=np.uint8)
-        for i in range(n):
-            vi = values[i]
-            di = darks[i if has_darks else 0]
-            t = times[i]
+        OK = np.empty((n, W))  # 1.0 usable, 0.0 not (float: branch-free, vectorisable loops)
+        A = np.empty(W)
+        DD = np.empty(W)
+        BL = np.empty(W)
+        BASE = np.empty(W)
+        MU = np.empty(W)
+        SIG = np.zeros(W)
+        NU = np.zeros(W)
+        SW = np.empty(W)
+        SWX = np.empty(W)
+        ITER = np.zeros(W, dtype=np.int64)
+        DONE = np.zeros(W, dtype=np.uint8)
+        FLAG = np.zeros(W, dtype=np.uint8)
+        LB = np.empty(W)
+        for r in range(ch * H // nchunk, (ch + 1) * H // nchunk):
             for c in range(W):
-                a = _pick(a_map, a_is_map, 1.0, r, c)
-                D = _pick(D_map, D_is_map, D_scalar, r, c)
-                if has_darks:
-                    b = float(di[r, c])
+                SIG[c] = 0.0
+                NU[c] = 0.0
+                ITER[c] = 0
+                DONE[c] = 0
+                FLAG[c] = 0
+            for c in range(W):
+                A[c] = _pick(a_map, a_is_map, 1.0, r, c)
+                DD[c] = _pick(D_map, D_is_map, D_scalar, r, c)
+                BL[c] = _pick(bias, bias_is_map, bias_scalar, r, c)
+                BASE[c] = _pick(base, base_is_map, base_scalar, r, c)
+            for i in range(n):
+                vi = values[i]
+                di = darks[i if has_darks else 0]
+                t = times[i]
+                for c in range(W):
+                    if has_darks:
+                        b = float(di[r, c])
+                    else:
+                        b = BASE[c] + base_shift * g * DD[c] * (t - t_ref)
+                    x, ok = _sample(float(vi[r, c]), b, t * g * A[c], v_sat)
+                    X[i, c] = x if ok else 0.0
+                    OK[i, c] = 1.0 if ok else 0.0
+            # Start: the non-saturated average (Eq. 11 usable set), same order as the first pass.
+            for c in range(W):
+                if use_init:
+                    s = init_sum[r, c]
+                    cnt = init_cnt[r, c]
                 else:
-                    b = _pick(base, base_is_map, base_scalar, r, c) + base_shift * g * D * (t - t_ref)
-                v = float(vi[r, c])
-                x, ok = _sample(v, b, t * g * a, v_sat)
-                X[i, c] = x
-                V[i, c] = v
-                OK[i, c] = 1 if ok else 0
-        for c in range(W):
-            a = _pick(a_map, a_is_map, 1.0, r, c)
-            D = _pick(D_map, D_is_map, D_scalar, r, c)
-            bl = _pick(bias, bias_is_map, bias_scalar, r, c)
-            if use_init:
-                s = init_sum[r, c]
-                cnt = init_cnt[r, c]
-            else:
-                s = 0.0
-                cnt = 0
-                for i in range(n):
-                    if OK[i, c]:
+                    s = 0.0
+                    cnt = 0.0
+                    for i in range(n):  # X is 0 where not usable: the same sum as the first pass
                         s += X[i, c]
-                        cnt += 1
-            # Lower bound for a photosite saturated in every exposure (shortest exposure at v_sat).
-            lb = ((v_sat - bl) / (g * tmin) - D) / a
-            if cnt == 0:
-                out_irr[r, c] = _clamp32(lb)
-                out_sig[r, c] = 0.0
-                out_nexp[r, c] = 0.0
-                out_iter[r, c] = 0
-                continue
-            mu = s / cnt
-            sig = 0.0
-            nu = 0
-            iters = 0
-            flagged = False
+                        cnt += OK[i, c]
+                # Lower bound for a photosite saturated in every exposure (shortest exposure at v_sat).
+                LB[c] = ((v_sat - BL[c]) / (g * tmin) - DD[c]) / A[c]
+                if cnt == 0:
+                    MU[c] = LB[c]
+                    DONE[c] = 1
+                    FLAG[c] = 1
+                else:
+                    MU[c] = s / cnt
+            # Iterate Eq. 13 <-> Eq. 12 for the whole row at once (vectorisable inner loops).
             for it in range(max_iter):
-                m = mu if mu > 0.0 else 0.0
-                sw = 0.0
-                swx = 0.0
-                nu = 0
+                rule = it > 0 and sat_sigmas > 0.0
+                for c in range(W):
+                    SW[c] = 0.0
+                    SWX[c] = 0.0
+                    NU[c] = 0.0
                 for i in range(n):
-                    if OK[i, c] == 0:
-                        continue
                     t = times[i]
-                    if it > 0 and sat_sigmas > 0.0:
+                    for c in range(W):
+                        m = MU[c] if MU[c] > 0.0 else 0.0
+                        a = A[c]
+                        D = DD[c]
                         tga = t * g * a
-                        varv = _vcore(m, t, g, sigma2_R, D, a, 0.0) * tga * tga
-                        gap = v_sat - (bl + g * t * D + tga * m)
-                        if gap <= 0.0 or gap * gap <= sat2 * varv:
-                            OK[i, c] = 0  # sticky: the usable set only shrinks
-                            continue
-                    w = 1.0 / _vcore(m, t, g, sigma2_R, D, a, k)
-                    sw += w
-                    swx += w * X[i, c]
-                    nu += 1
-                iters = it + 1
-                if nu == 0:
-                    flagged = True
+                        ok = OK[i, c]
+                        if rule:
+                            varv = _dvar(m, t, g, sigma2_R, D, a, 0.0)  # Var(v_i), DN^2
+                            gap = v_sat - (BL[c] + g * t * D + tga * m)
+                            near = (gap <= 0.0) or (gap * gap <= sat2 * varv)
+                            ok = 0.0 if near else ok
+                            OK[i, c] = ok  # sticky: the usable set only shrinks
+                        # w_i = 1 / Var(x_i) = (t g a)^2 / Var(v_i - b_i)  (Eq. 6, 13)
+                        w = ok * ((tga * tga) / _dvar(m, t, g, sigma2_R, D, a, k))
+                        SW[c] += w
+                        SWX[c] += w * X[i, c]
+                        NU[c] += ok
+                all_done = True
+                for c in range(W):
+                    if DONE[c]:
+                        continue
+                    ITER[c] = it + 1
+                    if NU[c] == 0.0:
+                        FLAG[c] = 1
+                        DONE[c] = 1
+                        continue
+                    new = SWX[c] / SW[c]
+                    sig = math.sqrt(1.0 / SW[c])
+                    delta = abs(new - MU[c])
+                    MU[c] = new
+                    SIG[c] = sig
+                    if it > 0 and delta <= tol * max(abs(new), sig):
+                        DONE[c] = 1
+                    else:
+                        all_done = False
+                if all_done:
                     break
-                new = swx / sw
-                sig = math.sqrt(1.0 / sw)
-                delta = abs(new - mu)
-                mu = new
-                if it > 0 and delta <= tol * max(abs(new), sig):
-                    break
-            if probabilistic and not flagged:
-                # Eq. 8-10: blend of the unclipped Gaussian and a uniform density by
-                # P_nsat(v); Newton steps on the log-likelihood (EM step where not concave).
-                for it2 in range(max_iter):
-                    m = mu if mu > 0.0 else 0.0
-                    L1 = 0.0
-                    L2 = 0.0
-                    swr = 0.0
-                    nr = 0
-                    for i in range(n):
-                        v = V[i, c]
-                        x = X[i, c]
-                        if not (v < white) or not math.isfinite(x):
-                            continue
-                        p = 0.5 * math.erfc((v - v_sat) / (_SQRT2 * sigma_R))
-                        if p <= 0.0:
-                            continue
-                        t = times[i]
-                        tga = t * g * a
-                        w = 1.0 / _vcore(m, t, g, sigma2_R, D, a, k)
-                        d = x - mu
-                        num = p * math.sqrt(w) * _INV_SQRT_2PI * math.exp(-0.5 * w * d * d)
-                        den = (1.0 - p) * tga / max(white - bl, 1.0) + num
-                        rr = num / den if den > 0.0 else 0.0
-                        L1 += rr * w * d
-                        L2 += w * (rr * (1.0 - rr) * w * d * d - rr)
-                        swr += rr * w
-                        if rr > 0.5:
-                            nr += 1
-                    iters += 1
-                    if swr <= 0.0 or nr == 0:
-                        flagged = True
-                        break
-                    sig = math.sqrt(1.0 / swr)
-                    # Newton step, damped to one standard deviation (the blended likelihood
-                    # has flat stretches where the bare Newton step overshoots).
-                    step = -L1 / L2 if L2 < 0.0 else L1 / swr
-                    step = min(max(step, -sig), sig)
-                    mu += step
-                    nu = nr
-                    if abs(step) <= tol * max(abs(mu), sig):
-                        break
-            if flagged:
-                est = mu if mu < lb else lb
-                out_irr[r, c] = _clamp32(est)
-                out_sig[r, c] = 0.0
-                out_nexp[r, c] = 0.0
-            else:
-                out_irr[r, c] = _clamp32(mu)
-                out_sig[r, c] = _clamp32(sig)
-                out_nexp[r, c] = nu
-            out_iter[r, c] = min(iters, 255)
+            for c in range(W):
+                mu = MU[c]
+                sig = SIG[c]
+                nu = NU[c]
+                iters = ITER[c]
+                flagged = FLAG[c] != 0
+                a = A[c]
+                D = DD[c]
+                bl = BL[c]
+                if probabilistic and not flagged:
+                    # Eq. 8-10: blend of the unclipped Gaussian and a uniform density by
+                    # P_nsat(v); Newton steps on the log-likelihood (EM step where not concave).
+                    for it2 in range(max_iter):
+                        m = mu if mu > 0.0 else 0.0
+                        L1 = 0.0
+                        L2 = 0.0
+                        swr = 0.0
+                        nr = 0
+                        for i in range(n):
+                            v = float(values[i][r, c])
+                            if not (v < white):
+                                continue
+                            t = times[i]
+                            tga = t * g * a
+                            if has_darks:
+                                b = float(darks[i][r, c])
+                            else:
+                                b = BASE[c] + base_shift * g * D * (t - t_ref)
+                            x = (v - b) / tga
+                            if not math.isfinite(x):
+                                continue
+                            p = 0.5 * math.erfc((v - v_sat) / (_SQRT2 * sigma_R))
+                            if p <= 0.0:
+                                continue
+                            w = (tga * tga) / _dvar(m, t, g, sigma2_R, D, a, k)
+                            d = x - mu
+                            num = p * math.sqrt(w) * _INV_SQRT_2PI * math.exp(-0.5 * w * d * d)
+                            den = (1.0 - p) * tga / max(white - bl, 1.0) + num
+                            rr = num / den if den > 0.0 else 0.0
+                            L1 += rr * w * d
+                            L2 += w * (rr * (1.0 - rr) * w * d * d - rr)
+                            swr += rr * w
+                            if rr > 0.5:
+                                nr += 1
+                        iters += 1
+                        if swr <= 0.0 or nr == 0:
+                            flagged = True
+                            break
+                        sig = math.sqrt(1.0 / swr)
+                        # Newton step, damped to one standard deviation (the blended likelihood
+                        # has flat stretches where the bare Newton step overshoots).
+                        step = -L1 / L2 if L2 < 0.0 else L1 / swr
+                        step = min(max(step, -sig), sig)
+                        mu += step
+                        nu = nr
+                        if abs(step) <= tol * max(abs(mu), sig):
+                            break
+                if flagged:
+                    lb = LB[c]
+                    est = mu if mu < lb else lb
+                    out_irr[r, c] = _clamp32(est)
+                    out_sig[r, c] = 0.0
+                    out_nexp[r, c] = 0.0
+                else:
+                    out_irr[r, c] = _clamp32(mu)
+                    out_sig[r, c] = _clamp32(sig)
+                    out_nexp[r, c] = nu
+                out_iter[r, c] = min(iters, 255)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -166,11 +167,15 @@ class MergeAccumulator:
     master_dark : array_like, optional
         One master dark (DN) for every exposure (``dark_strategy="master"``), averaged from
         ``n_dark`` frames, taken at ``master_dark_time`` seconds.
+    stream : bool
+        Run the first pass in :meth:`add` (default). ``False`` defers all work to
+        :meth:`result`, which then computes the starting average itself in the same order
+        (the batch merge: one pass over the frames, identical results).
     **options
         Fields of :class:`MergeOptions`.
     """
 
-    def __init__(self, calibration: Calibration, shape, master_dark=None, **options):
+    def __init__(self, calibration: Calibration, shape, master_dark=None, *, stream: bool = True, **options):
         try:
             self.options = MergeOptions(**options)
         except TypeError as err:
@@ -198,8 +203,10 @@ class MergeAccumulator:
         self._values: list[np.ndarray] = []
         self._darks: list[np.ndarray] = []
         self._times: list[float] = []
-        self._sum = np.zeros(self.shape, np.float64)
-        self._cnt = np.zeros(self.shape, np.int32)
+        self.stream = bool(stream)
+        init_shape = self.shape if self.stream else (1, 1)
+        self._sum = np.zeros(init_shape, np.float64)
+        self._cnt = np.zeros(init_shape, np.int32)
 
     # -------------------------------------------------------------------------------- setup
     @property
@@ -244,9 +251,10 @@ class MergeAccumulator:
 
         p = self.calibration.params
         base = self._base()
-        first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), d is not None,
-                          base[0], base[1], base[2], base[3], base[4], t, p.g, p.v_sat,
-                          *self._D, *self._a[:2], self._sum, self._cnt)
+        if self.stream:
+                first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), d is not None,
+                              base[0], base[1], base[2], base[3], base[4], t, p.g, p.v_sat,
+                              *self._D, *self._a[:2], self._sum, self._cnt)
         self._values.append(v)
         if d is not None:
             self._darks.append(d)
@@ -258,7 +266,7 @@ class MergeAccumulator:
     # -------------------------------------------------------------------------------- result
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
-        from numba.typed import List
+        import numba
 
         from .kernels import merge_kernel
 
@@ -268,19 +276,23 @@ class MergeAccumulator:
         p = self.calibration.params
         strategy = self.dark_strategy
         k = dark_factor(strategy, opts.n_dark)
-        values = List(self._values)
-        darks = List(self._darks) if self._darks else List([np.zeros((1, 1), np.float32)])
+        # Plain lists (numba "reflected lists", read-only here): unlike numba.typed.List they
+        # need no run-time compilation, which would cost seconds per process.
+        values = list(self._values)
+        darks = list(self._darks) if self._darks else [np.zeros((1, 1), self._values[0].dtype)]
         times = np.asarray(self._times, np.float64)
         base = self._base()
         irr = np.empty(self.shape, np.float32)
         sig = np.empty(self.shape, np.float32)
         nexp = np.empty(self.shape, np.float32)
         iters = np.empty(self.shape, np.uint8)
-        merge_kernel(values, darks, bool(self._darks), times, k, p.g, p.sigma2_R, p.v_sat, p.white_level,
-                     base[0], base[1], base[2], base[3], base[4], *self._bias, *self._D, *self._a[:2],
-                     self._sum, self._cnt, True, int(opts.iterations), float(opts.tolerance),
-                     float(opts.saturation_sigmas), opts.saturation == "probabilistic",
-                     irr, sig, nexp, iters)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
+            merge_kernel(values, darks, bool(self._darks), times, k, p.g, p.sigma2_R, p.v_sat, p.white_level,
+                         base[0], base[1], base[2], base[3], base[4], *self._bias, *self._D, *self._a[:2],
+                         self._sum, self._cnt, self.stream, int(opts.iterations), float(opts.tolerance),
+                         float(opts.saturation_sigmas), opts.saturation == "probabilistic",
+                         irr, sig, nexp, iters, 8 * numba.get_num_threads())
         sat = int(np.count_nonzero(nexp == 0))
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
@@ -348,7 +360,7 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, **options)
         raise InputError(f"the {options['dark_strategy']} dark strategy needs dark frames")
     if master is None and options.get("dark_strategy") == "model" and darks is not None:
         per_frame = [None] * len(values)  # model strategy: dark frames are ignored
-    acc = MergeAccumulator(calibration, shape, master_dark=master, **options)
+    acc = MergeAccumulator(calibration, shape, master_dark=master, stream=False, **options)
     for v, t, d in zip(values, times, per_frame):
         acc.add(v, t, d)
     return acc.result()

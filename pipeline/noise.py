@@ -25,6 +25,7 @@ __all__ = [
     "DarkStrategy",
     "dark_factor",
     "variance_core",
+    "difference_variance",
     "exposure_variance",
     "exposure_weight",
     "merged_variance",
@@ -58,16 +59,23 @@ def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
 _dark_factor = dark_factor
 
 
-def variance_core(mu_pos, t, g, sigma2_R, D, a, k):
-    """Var(x_i) for a non-negative estimate ``mu_pos``, (e-/s)^2 (Eq. 3, 5, 6, 13).
+def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
+    """Var(v_i - b_i), DN^2: the raw value's variance (Eq. 3) plus k times the dark level's
+    (Eq. 5). The one place the formula is written.
 
-    The one place the formula is written. Plain arithmetic only, so that it works on numpy
-    arrays (:func:`exposure_variance`) and, compiled by numba, on scalars inside the merge
-    kernel (:mod:`pipeline.kernels`). ``k`` is :func:`dark_factor`; ``mu_pos`` must already be
-    ``max(mu, 0)``.
+    Plain arithmetic only, so that it works on numpy arrays and, compiled by numba, on scalars
+    inside the merge kernel (:mod:`pipeline.kernels`). ``k`` is :func:`dark_factor` (0 gives
+    the variance of the raw value alone); ``mu_pos`` must already be ``max(mu, 0)``, e-/s.
     """
     g2t = g * g * t
-    return (g2t * (a * mu_pos + D) + sigma2_R + k * (g2t * D + sigma2_R)) / ((t * g * a) * (t * g * a))
+    return g2t * (a * mu_pos + D) + sigma2_R + k * (g2t * D + sigma2_R)
+
+
+def variance_core(mu_pos, t, g, sigma2_R, D, a, k):
+    """Var(x_i) = Var(v_i - b_i) / (t g a)^2, (e-/s)^2 (Eq. 6), for ``mu_pos = max(mu, 0)``;
+    scalar- and array-compatible like :func:`difference_variance`."""
+    tga = t * g * a
+    return difference_variance(mu_pos, t, g, sigma2_R, D, a, k) / (tga * tga)
 
 
 def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
