@@ -123,9 +123,15 @@ def bench_commands(shape, work: Path, run_hdrmerge=True):
     wall, rss, rc, err = _time_v([sys.executable, "-m", "acquire.cli", "merge", *frames, "--darks", *darks,
                                   "--camera", "camera-A", "-o", work / "hdrcap.exr", "--force", "--json",
                                   "--iterations", "20"], env)
-    out["hdrcap_merge"] = {"seconds": wall, "peak_rss_mb": rss, "returncode": rc, "inputs": 12}
+    out["hdrcap_merge"] = {"seconds": wall, "peak_rss_mb": rss, "returncode": rc, "inputs": 12,
+                           "exr_compression": "zip (default)"}
     if rc != 0:
         out["hdrcap_merge"]["stderr"] = err
+    wall, rss, rc, err = _time_v([sys.executable, "-m", "acquire.cli", "merge", *frames, "--darks", *darks,
+                                  "--camera", "camera-A", "-o", work / "hdrcap_rle.exr", "--force", "--json",
+                                  "--iterations", "20", "--exr-compression", "rle"], env)
+    out["hdrcap_merge_rle"] = {"seconds": wall, "peak_rss_mb": rss, "returncode": rc, "inputs": 12,
+                               "exr_compression": "rle"}
     if run_hdrmerge:
         if _ensure_hdrmerge():
             henv = dict(os.environ, QT_QPA_PLATFORM="offscreen")
@@ -144,6 +150,7 @@ def bench_commands(shape, work: Path, run_hdrmerge=True):
                 res["stderr"] = err
             out["hdrmerge"] = res
             out["ratio_hdrcap_to_hdrmerge"] = out["hdrcap_merge"]["seconds"] / wall
+            out["ratio_hdrcap_rle_to_hdrmerge"] = out["hdrcap_merge_rle"]["seconds"] / wall
         else:
             out["hdrmerge"] = {"error": "hdrmerge not installable here"}
     return out

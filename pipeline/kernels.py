@@ -59,7 +59,7 @@ def _clamp32(x):
     return min(max(x, -FLOAT32_MAX), FLOAT32_MAX)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def first_pass_kernel(v_arr, d_arr, has_dark, base, base_is_map, base_scalar, t_ref, base_shift, t, g, v_sat,
                       D_map, D_is_map, D_scalar, a_map, a_is_map, init_sum, init_cnt):
     """Streaming first pass: add one frame's usable x_i to the non-saturated average.
@@ -81,7 +81,7 @@ def first_pass_kernel(v_arr, d_arr, has_dark, base, base_is_map, base_scalar, t_
                 init_sum[r, c] += x
                 init_cnt[r, c] += 1
 
-@numba.njit(parallel=True, cache=True, fastmath={"contract", "arcp", "nsz"})
+@numba.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract", "arcp", "nsz"})
 def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                  base, base_is_map, base_scalar, t_ref, base_shift,
                  bias, bias_is_map, bias_scalar,
@@ -117,6 +117,7 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
         BL = np.empty(W)
         BASE = np.empty(W)
         MU = np.empty(W)
+        M = np.empty(W)
         SIG = np.zeros(W)
         NU = np.zeros(W)
         SW = np.empty(W)
@@ -138,17 +139,22 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                 BL[c] = _pick(bias, bias_is_map, bias_scalar, r, c)
                 BASE[c] = _pick(base, base_is_map, base_scalar, r, c)
             for i in range(n):
-                vi = values[i]
-                di = darks[i if has_darks else 0]
+                vrow = values[i][r]
                 t = times[i]
-                for c in range(W):
-                    if has_darks:
-                        b = float(di[r, c])
-                    else:
+                xrow = X[i]
+                okrow = OK[i]
+                if has_darks:
+                    drow = darks[i][r]
+                    for c in range(W):
+                        x, ok = _sample(float(vrow[c]), float(drow[c]), t * g * A[c], v_sat)
+                        xrow[c] = x if ok else 0.0
+                        okrow[c] = 1.0 if ok else 0.0
+                else:
+                    for c in range(W):
                         b = BASE[c] + base_shift * g * DD[c] * (t - t_ref)
-                    x, ok = _sample(float(vi[r, c]), b, t * g * A[c], v_sat)
-                    X[i, c] = x if ok else 0.0
-                    OK[i, c] = 1.0 if ok else 0.0
+                        x, ok = _sample(float(vrow[c]), b, t * g * A[c], v_sat)
+                        xrow[c] = x if ok else 0.0
+                        okrow[c] = 1.0 if ok else 0.0
             # Start: the non-saturated average (Eq. 11 usable set), same order as the first pass.
             for c in range(W):
                 if use_init:
@@ -170,30 +176,33 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                     MU[c] = s / cnt
             # Iterate Eq. 13 <-> Eq. 12 for the whole row at once (vectorisable inner loops).
             for it in range(max_iter):
-                rule = it > 0 and sat_sigmas > 0.0
                 for c in range(W):
+                    M[c] = MU[c] if MU[c] > 0.0 else 0.0
                     SW[c] = 0.0
                     SWX[c] = 0.0
                     NU[c] = 0.0
+                if it > 0 and sat_sigmas > 0.0:
+                    # Near-saturation rule: drop (for good) a sample whose raw value predicted
+                    # from the current estimate is within sat_sigmas of its sigma of v_sat.
+                    for i in range(n):
+                        t = times[i]
+                        okrow = OK[i]
+                        for c in range(W):
+                            varv = _dvar(M[c], t, g, sigma2_R, DD[c], A[c], 0.0)  # Var(v_i), DN^2
+                            gap = v_sat - (BL[c] + g * t * DD[c] + t * g * A[c] * M[c])
+                            near = (gap <= 0.0) | (gap * gap <= sat2 * varv)
+                            okrow[c] = 0.0 if near else okrow[c]
                 for i in range(n):
                     t = times[i]
+                    okrow = OK[i]
+                    xrow = X[i]
                     for c in range(W):
-                        m = MU[c] if MU[c] > 0.0 else 0.0
-                        a = A[c]
-                        D = DD[c]
-                        tga = t * g * a
-                        ok = OK[i, c]
-                        if rule:
-                            varv = _dvar(m, t, g, sigma2_R, D, a, 0.0)  # Var(v_i), DN^2
-                            gap = v_sat - (BL[c] + g * t * D + tga * m)
-                            near = (gap <= 0.0) or (gap * gap <= sat2 * varv)
-                            ok = 0.0 if near else ok
-                            OK[i, c] = ok  # sticky: the usable set only shrinks
+                        tga = t * g * A[c]
                         # w_i = 1 / Var(x_i) = (t g a)^2 / Var(v_i - b_i)  (Eq. 6, 13)
-                        w = ok * ((tga * tga) / _dvar(m, t, g, sigma2_R, D, a, k))
+                        w = okrow[c] * ((tga * tga) / _dvar(M[c], t, g, sigma2_R, DD[c], A[c], k))
                         SW[c] += w
-                        SWX[c] += w * X[i, c]
-                        NU[c] += ok
+                        SWX[c] += w * xrow[c]
+                        NU[c] += okrow[c]
                 all_done = True
                 for c in range(W):
                     if DONE[c]:
