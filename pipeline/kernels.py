@@ -45,9 +45,10 @@ def _pick(arr, is_map, scalar, r, c):
 
 
 @numba.njit(inline="always", cache=True)
-def _sample(v, b, tga, v_sat):
-    """x_i of Eq. 6 and whether the sample is usable under Eq. 11 (observed value)."""
-    x = (v - b) / tga
+def _sample(v, b, inv_tg, inv_a, v_sat):
+    """x_i = (v - b) / (t g a) of Eq. 6 (from the reciprocals 1/(t g), 1/a: no division per
+    sample) and whether the sample is usable under Eq. 11 (observed value)."""
+    x = (v - b) * inv_tg * inv_a
     ok = (v < v_sat) & (b < v_sat) & ((x - x) == 0.0)  # branch-free; x - x != 0 for inf/nan
     return x, ok
 
@@ -59,7 +60,7 @@ def _clamp32(x):
     return min(max(x, -FLOAT32_MAX), FLOAT32_MAX)
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
+@numba.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract", "arcp", "nsz"})
 def first_pass_kernel(v_arr, d_arr, has_dark, base, base_is_map, base_scalar, t_ref, base_shift, t, g, v_sat,
                       D_map, D_is_map, D_scalar, a_map, a_is_map, init_sum, init_cnt):
     """Streaming first pass: add one frame's usable x_i to the non-saturated average.
@@ -76,7 +77,7 @@ def first_pass_kernel(v_arr, d_arr, has_dark, base, base_is_map, base_scalar, t_
                 b = float(d_arr[r, c])
             else:
                 b = _pick(base, base_is_map, base_scalar, r, c) + base_shift * g * D * (t - t_ref)
-            x, ok = _sample(float(v_arr[r, c]), b, t * g * a, v_sat)
+            x, ok = _sample(float(v_arr[r, c]), b, 1.0 / (t * g), 1.0 / a, v_sat)
             if ok:
                 init_sum[r, c] += x
                 init_cnt[r, c] += 1
@@ -106,6 +107,7 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
     for i in range(n):
         tmin = min(tmin, times[i])
     sat2 = sat_sigmas * sat_sigmas
+    tol2 = tol * tol
     sigma_R = math.sqrt(sigma2_R)
     nchunk = min(H, max(1, n_chunks))
     for ch in prange(nchunk):
@@ -118,6 +120,7 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
         BASE = np.empty(W)
         MU = np.empty(W)
         M = np.empty(W)
+        IA = np.empty(W)
         SIG = np.zeros(W)
         NU = np.zeros(W)
         SW = np.empty(W)
@@ -138,21 +141,23 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                 DD[c] = _pick(D_map, D_is_map, D_scalar, r, c)
                 BL[c] = _pick(bias, bias_is_map, bias_scalar, r, c)
                 BASE[c] = _pick(base, base_is_map, base_scalar, r, c)
+                IA[c] = 1.0 / A[c]
             for i in range(n):
                 vrow = values[i][r]
                 t = times[i]
+                inv_tg = 1.0 / (t * g)
                 xrow = X[i]
                 okrow = OK[i]
                 if has_darks:
                     drow = darks[i][r]
                     for c in range(W):
-                        x, ok = _sample(float(vrow[c]), float(drow[c]), t * g * A[c], v_sat)
+                        x, ok = _sample(float(vrow[c]), float(drow[c]), inv_tg, IA[c], v_sat)
                         xrow[c] = x if ok else 0.0
                         okrow[c] = 1.0 if ok else 0.0
                 else:
                     for c in range(W):
                         b = BASE[c] + base_shift * g * DD[c] * (t - t_ref)
-                        x, ok = _sample(float(vrow[c]), b, t * g * A[c], v_sat)
+                        x, ok = _sample(float(vrow[c]), b, inv_tg, IA[c], v_sat)
                         xrow[c] = x if ok else 0.0
                         okrow[c] = 1.0 if ok else 0.0
             # Start: the non-saturated average (Eq. 11 usable set), same order as the first pass.
@@ -212,12 +217,12 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                         FLAG[c] = 1
                         DONE[c] = 1
                         continue
-                    new = SWX[c] / SW[c]
-                    sig = math.sqrt(1.0 / SW[c])
-                    delta = abs(new - MU[c])
+                    var = 1.0 / SW[c]  # Eq. 12: sigma^2 = 1 / sum w
+                    new = SWX[c] * var
+                    delta = new - MU[c]
                     MU[c] = new
-                    SIG[c] = sig
-                    if it > 0 and delta <= tol * max(abs(new), sig):
+                    SIG[c] = var  # variance here; square root taken once at the end
+                    if it > 0 and delta * delta <= tol2 * max(new * new, var):
                         DONE[c] = 1
                     else:
                         all_done = False
@@ -225,7 +230,7 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                     break
             for c in range(W):
                 mu = MU[c]
-                sig = SIG[c]
+                sig = math.sqrt(SIG[c])
                 nu = NU[c]
                 iters = ITER[c]
                 flagged = FLAG[c] != 0

@@ -114,8 +114,10 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
             if master_dark is not None:
                 options = dict(options, dark_strategy="master")
                 options.setdefault("master_dark_time", master_dark.exposure_time)
+            # stream=False: the frames are all read here anyway, so the merge does its single
+            # pass at the end (less memory than the first-pass sums of a live capture).
             acc = MergeAccumulator(calib, fr.shape, master_dark=None if master_dark is None else master_dark.data,
-                                   **options)
+                                   stream=False, **options)
         if darks:
             d = by_time.get(round(fr.exposure_time, 12))
             if d is None:
