@@ -27,7 +27,6 @@ takes frames one by one as they are captured (first pass) and finishes with the 
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
