@@ -186,28 +186,28 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                     SW[c] = 0.0
                     SWX[c] = 0.0
                     NU[c] = 0.0
-                if it > 0 and sat_sigmas > 0.0:
-                    # Near-saturation rule: drop (for good) a sample whose raw value predicted
-                    # from the current estimate is within sat_sigmas of its sigma of v_sat.
-                    for i in range(n):
-                        t = times[i]
-                        okrow = OK[i]
-                        for c in range(W):
-                            varv = _dvar(M[c], t, g, sigma2_R, DD[c], A[c], 0.0)  # Var(v_i), DN^2
-                            gap = v_sat - (BL[c] + g * t * DD[c] + t * g * A[c] * M[c])
-                            near = (gap <= 0.0) | (gap * gap <= sat2 * varv)
-                            okrow[c] = 0.0 if near else okrow[c]
+                rule = it > 0 and sat_sigmas > 0.0
                 for i in range(n):
                     t = times[i]
                     okrow = OK[i]
                     xrow = X[i]
                     for c in range(W):
                         tga = t * g * A[c]
+                        ok = okrow[c]
+                        if rule:
+                            # Near-saturation rule: drop (for good) a sample whose raw value
+                            # predicted from the current estimate is within sat_sigmas of its
+                            # own sigma of v_sat.
+                            varv = _dvar(M[c], t, g, sigma2_R, DD[c], A[c], 0.0)  # Var(v_i), DN^2
+                            gap = v_sat - (BL[c] + g * t * DD[c] + tga * M[c])
+                            near = (gap <= 0.0) | (gap * gap <= sat2 * varv)
+                            ok = 0.0 if near else ok
+                            okrow[c] = ok
                         # w_i = 1 / Var(x_i) = (t g a)^2 / Var(v_i - b_i)  (Eq. 6, 13)
-                        w = okrow[c] * ((tga * tga) / _dvar(M[c], t, g, sigma2_R, DD[c], A[c], k))
+                        w = ok * ((tga * tga) / _dvar(M[c], t, g, sigma2_R, DD[c], A[c], k))
                         SW[c] += w
                         SWX[c] += w * xrow[c]
-                        NU[c] += okrow[c]
+                        NU[c] += ok
                 all_done = True
                 for c in range(W):
                     if DONE[c]:
