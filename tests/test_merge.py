@@ -346,8 +346,9 @@ def test_emva_two_disjoint_brackets_agree_within_predicted_sigma(emva_dir):
     ok = (a.nexp > 0) & (b.nexp > 0)
     assert ok.mean() > 0.99
     z = (a.irradiance[ok] - b.irradiance[ok]) / np.hypot(a.sigma[ok], b.sigma[ok])
-    assert abs(z.mean()) < 0.05
-    assert 0.9 < z.std() < 1.1, z.std()
+    # (measured: mean +0.04, std 1.007; the small mean is the light's drift between snaps)
+    assert abs(z.mean()) < 0.1
+    assert 0.95 < z.std() < 1.05, z.std()
     # Irradiance proportional to the data set's photon counts per second: single-step merges
     # at very different exposure times give the same e-/s per photon/s (the QE).
     qe = []
