@@ -108,6 +108,7 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
         tmin = min(tmin, times[i])
     sat2 = sat_sigmas * sat_sigmas
     tol2 = tol * tol
+    inv_gtmin = 1.0 / (g * tmin)
     sigma_R = math.sqrt(sigma2_R)
     nchunk = min(H, max(1, n_chunks))
     for ch in prange(nchunk):
@@ -129,6 +130,8 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
         DONE = np.zeros(W, dtype=np.uint8)
         FLAG = np.zeros(W, dtype=np.uint8)
         LB = np.empty(W)
+        S = np.empty(W)
+        CNT = np.empty(W)
         for r in range(ch * H // nchunk, (ch + 1) * H // nchunk):
             for c in range(W):
                 SIG[c] = 0.0
@@ -161,24 +164,27 @@ def merge_kernel(values, darks, has_darks, times, k, g, sigma2_R, v_sat, white,
                         xrow[c] = x if ok else 0.0
                         okrow[c] = 1.0 if ok else 0.0
             # Start: the non-saturated average (Eq. 11 usable set), same order as the first pass.
+            if use_init:
+                for c in range(W):
+                    S[c] = init_sum[r, c]
+                    CNT[c] = init_cnt[r, c]
+            else:
+                for c in range(W):
+                    S[c] = 0.0
+                    CNT[c] = 0.0
+                for i in range(n):  # X is 0 where not usable: the same sums as the first pass
+                    xrow = X[i]
+                    okrow = OK[i]
+                    for c in range(W):
+                        S[c] += xrow[c]
+                        CNT[c] += okrow[c]
             for c in range(W):
-                if use_init:
-                    s = init_sum[r, c]
-                    cnt = init_cnt[r, c]
-                else:
-                    s = 0.0
-                    cnt = 0.0
-                    for i in range(n):  # X is 0 where not usable: the same sum as the first pass
-                        s += X[i, c]
-                        cnt += OK[i, c]
                 # Lower bound for a photosite saturated in every exposure (shortest exposure at v_sat).
-                LB[c] = ((v_sat - BL[c]) / (g * tmin) - DD[c]) / A[c]
-                if cnt == 0:
-                    MU[c] = LB[c]
-                    DONE[c] = 1
-                    FLAG[c] = 1
-                else:
-                    MU[c] = s / cnt
+                LB[c] = ((v_sat - BL[c]) * inv_gtmin - DD[c]) * IA[c]
+                empty = CNT[c] == 0.0
+                MU[c] = LB[c] if empty else S[c] / max(CNT[c], 1.0)
+                DONE[c] = 1 if empty else 0
+                FLAG[c] = 1 if empty else 0
             # Iterate Eq. 13 <-> Eq. 12 for the whole row at once (vectorisable inner loops).
             for it in range(max_iter):
                 for c in range(W):
