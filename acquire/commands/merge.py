@@ -88,7 +88,7 @@ def _read_parallel(paths, times, what, progress):
         times = [None] * len(paths)
     with ThreadPoolExecutor(max_workers=2) as pool:
         futures = [pool.submit(read_frame, p, t) for p, t in zip(paths, times)]
-        for fut in tqdm(futures, desc=f"read {what}s", unit="file", disable=not progress, leave=False):
+        for fut in tqdm(futures, desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False):
             yield fut.result()
 
 

@@ -155,7 +155,7 @@ def simulate_calibration_set(camera_name: str, out: Path, shape, seed: int, temp
     cam = SimulatedCamera(spec, np.full(shape, X), seed=seed, temperature=temperature)
     files: dict[str, list[str]] = {"bias": [], "saturation": [], "flat": [], "dark": []}
     for (kind, t, dark), path in tqdm(list(zip(shots, names)), desc="calibration set", unit="frame",
-                                      disable=not progress):
+                                      disable=None if progress else True):
         cam.capture_to(path, t, dark=dark, overwrite=force)
         files["flat" if kind == "ptc" else kind].append(str(path))
     desc = {"camera": camera_name, "seed": seed, "shape": list(shape), "temperature": temperature,
