@@ -1,0 +1,2 @@
+def meter(): pass
+class MeterReport: pass
