@@ -340,12 +340,18 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     ctx = _Context(calibration, hist, target_snr_db, times, darks, n_dark, overhead, errors, prnu, q, k_sigma)
 
     cap = int(max_exposures) if max_exposures is not None else (DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6)
-    chosen, limit = _greedy(ctx, cap, time_budget)
+    # Eq. 18's greedy; and the same per second of capture time: the faster feasible plan wins
+    runs = []
+    for per_second in ((False, True) if polish else (False,)):
+        chosen, limit = _greedy(ctx, cap, time_budget, per_second)
+        ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
+        if ok and polish:
+            chosen = _capture_order(ctx, _polish(ctx, chosen))
+        runs.append((not ok, ctx.time(chosen) if ok else -ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
+                     chosen, limit, ok))
+    runs.sort(key=lambda r: (r[0], r[1]))
+    _, _, per_second, chosen, limit, ok = runs[0]
     snr_lin = ctx.snr(*ctx.sums(chosen))
-    ok = bool(chosen) and ctx.reached(snr_lin)
-    if ok and polish:
-        chosen = _polish(ctx, chosen)
-        snr_lin = ctx.snr(*ctx.sums(chosen))
 
     exposures = [float(ctx.cand[i]) for i in chosen]
     plan_darks = [darks[i] for i in chosen]
@@ -370,8 +376,9 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
                 plan_ndark, curve)
 
 
-def _greedy(ctx: _Context, cap: int, budget: float | None):
-    """Eq. 18 greedily: add the candidate that lowers sum exp(-snr) most until the target holds.
+def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = False):
+    """Eq. 18 greedily: add the candidate that lowers sum exp(-snr) most until the target holds
+    (``per_second``: most per second of capture time).
 
     Returns the chosen candidate indices (in order) and the reason the search stopped when the
     target was not reached ("" when reached).
@@ -392,7 +399,11 @@ def _greedy(ctx: _Context, cap: int, budget: float | None):
         snr_all = combine_terms(ctx.X[None, :], sw + ctx.W, scd + ctx.CD, scb + ctx.CB, ctx.errors, ctx.prnu).snr
         pen = np.sum(ctx.w_elig * np.exp(-snr_all), axis=1)
         pen = np.where(fits, pen, np.inf)
-        best = int(np.argmin(pen))  # ties: the shorter time (candidates ascend)
+        if per_second:
+            gain = np.where(fits, (current - pen) / ctx.cost_time, -np.inf)
+            best = int(np.argmax(gain))
+        else:
+            best = int(np.argmin(pen))  # ties: the shorter time (candidates ascend)
         if not pen[best] < current * (1 - 1e-12):
             return chosen, "no_gain"
         chosen.append(best)
@@ -401,29 +412,54 @@ def _greedy(ctx: _Context, cap: int, budget: float | None):
         current = float(pen[best])
 
 
+def _capture_order(ctx: _Context, chosen: list[int]) -> list[int]:
+    """Most useful first: repeatedly the exposure of the set that lowers sum exp(-snr) most."""
+    rest = list(chosen)
+    order: list[int] = []
+    while rest:
+        pens = [ctx.penalty(ctx.snr(*ctx.sums(order + [c]))) for c in rest]
+        k = min(range(len(rest)), key=lambda i: (pens[i], ctx.cost_time[rest[i]]))
+        order.append(rest.pop(k))
+    return order
+
+
 def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
-    """Drop exposures the target does not need, then shorten each while the target holds."""
+    """Local search after the greedy: drop exposures the target does not need, then replace
+    each (longest first) by one shorter exposure or by 2-4 copies of a shorter one whenever that
+    costs less time and the target still holds."""
     chosen = list(chosen)
     for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
         rest = [c for k, c in enumerate(chosen) if k != pos and c is not None]
         if rest and ctx.reached(ctx.snr(*ctx.sums(rest))):
             chosen[pos] = None
     chosen = [c for c in chosen if c is not None]
-    changed = True
-    rounds = 0
-    while changed and rounds < 4:
+    order = np.argsort(ctx.cost_time, kind="stable")
+    for _ in range(6):
         changed = False
-        rounds += 1
         for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
-            for c in np.argsort(ctx.cost_time, kind="stable"):
-                if ctx.cost_time[c] >= ctx.cost_time[chosen[pos]]:
+            if pos >= len(chosen):
+                continue
+            base = chosen[:pos] + chosen[pos + 1:]
+            cost = ctx.cost_time[chosen[pos]]
+            # replace it by the cheapest valid alternative: one shorter exposure, or 2..4 copies
+            # of a shorter one when that saves at least 10 % of its time
+            found, found_cost = None, cost * (1 - 1e-9)
+            for c in order:
+                if ctx.cost_time[c] >= found_cost:
                     break
-                trial = chosen.copy()
-                trial[pos] = int(c)
-                if ctx.reached(ctx.snr(*ctx.sums(trial))):
-                    chosen = trial
-                    changed = True
-                    break
+                for k in (1, 2, 3, 4):
+                    new_cost = k * ctx.cost_time[c]
+                    if new_cost >= found_cost or (k > 1 and new_cost > 0.9 * cost):
+                        break
+                    trial = base[:pos] + [int(c)] * k + base[pos:]
+                    if ctx.reached(ctx.snr(*ctx.sums(trial))):
+                        found, found_cost = trial, new_cost
+                        break
+            if found is not None:
+                chosen = found
+                changed = True
+        if not changed:
+            break
     return chosen
 
 
