@@ -47,6 +47,9 @@ class MeterReport:
         holds that limit ``dark_limit`` (e-/s) there, an upper bound.
     dark_limit : float or None
         Detection limit of the longest metering frame, e-/s.
+    status : numpy.ndarray
+        Per photosite: 0 well metered, 1 coarse, 2 only bounded (gap), 3 below the detection
+        limit, 4 saturated at the shortest time.
     n_gap : int
         Saturated in a longer frame and undetected in a shorter one: only bounded; the map
         spreads them log-uniformly over the bounds (ordered by their noisy estimate).
@@ -68,6 +71,7 @@ class MeterReport:
     metered_range: tuple[float, float] | None
     message: str = ""
     n_gap: int = 0
+    status: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -208,7 +212,8 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
     coarse = ~sat1 & ~dark & ~gap & (snr < meter_snr)
     bright_limit = (p.v_sat - np.mean(bias) - t1 * p.g * np.mean(D)) / (t1 * p.g)
     X = np.where(sat1, np.maximum(X, bright_limit), X)
-    good = ~sat1 & ~dark & ~coarse
+    good = ~sat1 & ~dark & ~coarse & ~gap
+    status = np.select([sat1, dark, gap, coarse], [4, 3, 2, 1], 0).astype(np.int8)
     rng = (float(X[good].min()), float(X[good].max())) if good.any() else None
     n = int(X.size)
     parts = [f"metered with {len(frames)} frame(s) at " + ", ".join(f"{t:.4g} s" for t in frames)]
@@ -228,6 +233,6 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
     report = MeterReport(
         times=list(frames), n_pixels=n, n_saturated=int(sat1.sum()),
         bright_limit=float(bright_limit), n_dark=int(dark.sum()), dark_limit=float(dark_limit),
-        n_coarse=int(coarse.sum()), n_gap=int(gap.sum()), metered_range=rng, message="; ".join(parts),
+        n_coarse=int(coarse.sum()), n_gap=int(gap.sum()), status=status, metered_range=rng, message="; ".join(parts),
     )
     return (X, report) if return_report else X

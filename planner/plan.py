@@ -347,7 +347,7 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
         ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
         if ok and polish:
             chosen = _capture_order(ctx, _polish(ctx, chosen))
-        runs.append((not ok, ctx.time(chosen) if ok else -ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
+        runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
                      chosen, limit, ok))
     runs.sort(key=lambda r: (r[0], r[1]))
     _, _, per_second, chosen, limit, ok = runs[0]
@@ -552,19 +552,18 @@ def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, ste
     t0 = max(t for t in allowed if usable_fraction(x_max, t, calibration, "threshold", k_sigma) > 0)
     n_max = int(np.floor(np.log2(t_hi / t0) / step_ev)) + 1
     bracket_all = [t0 * 2.0 ** (step_ev * k) for k in range(max(n_max, 1))]
-    Xe, we = hist.X[elig], hist.weight[elig]
+    ctx = _Context(calibration, hist, target_snr_db, bracket_all, [darks] * len(bracket_all), [1] * len(bracket_all),
+                   overhead, errors, "map", 1.0, k_sigma)
+    ctx.elig = elig  # eligibility is judged at the ladder's shortest time, as for the plan
+    ctx.w_elig = np.where(elig, hist.weight, 0.0)
     best = None
-    target = float(target_snr_db)
     for n in range(1, len(bracket_all) + 1):
-        base = bracket_all[:n]
+        sw, scd, scb = ctx.sums(range(n))
+        t_one = ctx.time(range(n))
         for m in range(1, max_frames // n + 1):
-            seq = base * m
-            tt = sum(t + overhead for t in seq)
-            if best is not None and tt >= best[1]:
+            if best is not None and m * t_one >= best[1]:
                 break
-            snr = predict_snr(Xe, seq, calibration, darks, errors=errors, k_sigma=k_sigma).snr_db
-            if snr.min() >= target - 1e-9:
-                best = (seq, tt)
+            if ctx.reached(ctx.snr(m * sw, m * scd, m * scb)):
+                best = (bracket_all[:n] * m, m * t_one)
                 break
-    del we
     return best
