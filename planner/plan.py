@@ -144,6 +144,21 @@ class Plan:
     n_dark: list[int] = field(default_factory=list)
     curve: dict[str, list] = field(default_factory=dict)
 
+    def merge_options(self) -> dict[str, Any]:
+        """Keyword options for ``pipeline.merge.merge_arrays`` that follow the decisions
+        (saturation model, PRNU model, iterations; the dark strategy when it is one for all)."""
+        out: dict[str, Any] = {}
+        d = self.decisions
+        if "saturation" in d:
+            out["saturation"] = d["saturation"]["choice"]
+        if "prnu" in d:
+            out["prnu"] = d["prnu"]["choice"]
+        if "iterations" in d:
+            out["iterations"] = int(d["iterations"]["choice"])
+        if self.darks and len(set(self.darks)) == 1:
+            out["dark_strategy"] = self.darks[0]
+        return out
+
     def to_dict(self, curve: bool = False) -> dict[str, Any]:
         out = {
             "exposures": list(self.exposures),
@@ -156,6 +171,7 @@ class Plan:
             "feasible": self.feasible,
             "message": self.message,
             "decisions": self.decisions,
+            "merge_options": self.merge_options(),
         }
         if curve:
             out["curve"] = self.curve
