@@ -362,3 +362,52 @@ def test_quantile_relaxes_the_plan_and_holds_on_that_fraction():
     assert part.feasible and part.total_time_s < full.total_time_s
     snr = predict_snr(X.ravel(), part.exposures, CAL_B, part.darks).snr_db
     assert np.mean(snr >= 25.0 - 0.05) >= 0.9 - 0.01  # bins hold their darkest and brightest pixel
+
+
+def test_dark_error_model_matches_simulated_merge_without_dark_frames():
+    """A warm sensor (D = 50 e-/s, 30 % DCNU) merged with a scalar dark current leaves a
+    per-photosite error of ~15 e-/s; matched dark frames remove it but add their read noise.
+    The predicted total-error SNR of both strategies matches the simulator."""
+    spec = CAM_B.replace(dark_current=50.0, dcnu=0.3, prnu=0.0)
+    sensor = SimulatedSensor(spec, (32, 32), seed=12)
+    cal = Calibration(spec.nominal_params())  # scalar D: no dark-current map
+    X = np.full((32, 32), 150.0)
+    t = [1.0, 1.0, 1.0]
+    dark_rms = float(np.std(sensor.dark_current_map()))
+    errors = SystematicErrors(dark_current=dark_rms)
+    rng = np.random.default_rng(4)
+    e_model = e_matched = 0.0
+    S = 6
+    for _ in range(S):
+        frames = [RawFrame(sensor.expose(X, ti, rng=rng), ti) for ti in t]
+        darks = [RawFrame(sensor.expose(0, ti, dark=True, rng=rng), ti) for ti in t]
+        e_model += np.mean((merge_mod.merge_frames(frames, cal).irradiance - X) ** 2)
+        e_matched += np.mean((merge_mod.merge_frames(frames, cal, darks[:1]).irradiance - X) ** 2)
+    meas_model = 10 * np.log10(150.0**2 * S / e_model)
+    meas_matched = 10 * np.log10(150.0**2 * S / e_matched)
+    pred_model = predict_snr(150.0, t, cal, "model", errors=errors).snr_db
+    # merge_frames uses one dark frame per exposure time: the three frames share it
+    assert abs(meas_model - pred_model) < 0.5, (meas_model, pred_model)
+    assert meas_matched > meas_model + 1.0  # the dark frame pays off here
+    plan = plan_exposures(cal, X, 20.0, errors=errors)
+    assert set(plan.darks) == {"matched"}
+
+
+@pytest.mark.parametrize("kw,msg", [
+    ({"target_snr_db": float("nan")}, "target SNR"),
+    ({"allowed_times": [0.01, -1.0]}, "positive"),
+    ({"allowed_times": []}, "no allowed"),
+    ({"max_exposures": 0}, "max exposures"),
+    ({"time_budget": -1.0}, "time budget"),
+    ({"overhead": -0.1}, "overhead"),
+    ({"quantile": 1.5}, "quantile"),
+])
+def test_bad_requests_raise_input_errors(kw, msg):
+    from pipeline.errors import InputError
+
+    args = {"target_snr_db": 20.0, **kw}
+    target = args.pop("target_snr_db")
+    with pytest.raises(InputError, match=msg):
+        plan_exposures(CAL_B, np.full((4, 4), 100.0), target, **args)
+    with pytest.raises(InputError, match="NaN"):
+        plan_exposures(CAL_B, np.array([1.0, np.nan]), 20.0)
