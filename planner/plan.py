@@ -439,16 +439,21 @@ def _capture_order(ctx: _Context, chosen: list[int]) -> list[int]:
     return order
 
 
-def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
-    """Local search after the greedy: drop exposures the target does not need, then replace
-    each (longest first) by one shorter exposure or by 2-4 copies of a shorter one whenever that
-    costs less time and the target still holds."""
+def _drop_unneeded(ctx: _Context, chosen: list[int]) -> list[int]:
+    """Remove exposures (longest first) whose absence still meets the target."""
     chosen = list(chosen)
     for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
         rest = [c for k, c in enumerate(chosen) if k != pos and c is not None]
         if rest and ctx.reached(ctx.snr(*ctx.sums(rest))):
             chosen[pos] = None
-    chosen = [c for c in chosen if c is not None]
+    return [c for c in chosen if c is not None]
+
+
+def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
+    """Local search after the greedy: drop exposures the target does not need, then replace
+    each (longest first) by one shorter exposure or by 2-4 copies of a shorter one whenever that
+    costs less time and the target still holds."""
+    chosen = _drop_unneeded(ctx, chosen)
     order = np.argsort(ctx.cost_time, kind="stable")
     for _ in range(6):
         changed = False
@@ -476,7 +481,7 @@ def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
                 changed = True
         if not changed:
             break
-    return chosen
+    return _drop_unneeded(ctx, chosen)
 
 
 def _fmt_t(t: float) -> str:
