@@ -411,3 +411,43 @@ def test_bad_requests_raise_input_errors(kw, msg):
         plan_exposures(CAL_B, np.full((4, 4), 100.0), target, **args)
     with pytest.raises(InputError, match="NaN"):
         plan_exposures(CAL_B, np.array([1.0, np.nan]), 20.0)
+
+
+def _measured_db(sensor, X, times, cal, seeds=8, **options):
+    """Per-column SNR (dB) of the real merge against truth, pooled over rows and seeds."""
+    err2 = np.zeros(X.shape)
+    for s in range(seeds):
+        rng = np.random.default_rng([11, s])
+        vals = [sensor.expose(X, t, rng=rng) for t in times]
+        err2 += ((merge_mod.merge_arrays(vals, times, cal, **options).irradiance - X) / X) ** 2
+    return -10 * np.log10(err2.sum(0) / (seeds * X.shape[0]))
+
+
+def test_saturation_and_iteration_decisions_match_the_real_merge():
+    if getattr(merge_mod, "merge_arrays", None) is None:
+        pytest.skip("needs the ML merge (merge_arrays, issue 4)")
+    H, W = 32, 128
+    X = make_scene("gradient", (H, W), decades=3, x_max=1e5)
+    sensor = SimulatedSensor(CAM_B, (H, W), seed=3)
+    cal = Calibration(CAM_B.nominal_params(), prnu=sensor.prnu.astype(np.float32),
+                      dark_current_map=sensor.dark_current_map().astype(np.float32))
+    plan = plan_exposures(cal, X, 24.0)
+    opts = plan.merge_options()
+    assert opts["saturation"] == "probabilistic" and opts["iterations"] >= 2
+    thr = _measured_db(sensor, X, plan.exposures, cal, saturation="threshold", iterations=20)
+    prob = _measured_db(sensor, X, plan.exposures, cal, saturation="probabilistic", iterations=20)
+    one = _measured_db(sensor, X, plan.exposures, cal, saturation="threshold", iterations=1)
+    k = _measured_db(sensor, X, plan.exposures, cal, saturation="threshold", iterations=opts["iterations"])
+    assert np.max(prob - thr) > 0.2 + 0.5  # the probabilistic model matters, as predicted
+    assert abs(np.max(prob - thr) - plan.decisions["saturation"]["figure"]) < 1.5
+    assert np.max(thr - one) > 0.2  # one re-weighting step is not enough, as predicted
+    assert np.max(thr - k) < 0.2  # the chosen number is
+    # negligible case: one exposure far from saturation
+    Xl = np.broadcast_to(np.geomspace(300, 900, W), (H, W)).copy()
+    easy = plan_exposures(cal, Xl, 15.0)
+    eo = easy.merge_options()
+    assert eo["saturation"] == "threshold" and eo["iterations"] == 1
+    thr = _measured_db(sensor, Xl, easy.exposures, cal, saturation="threshold", iterations=20)
+    prob = _measured_db(sensor, Xl, easy.exposures, cal, saturation="probabilistic", iterations=20)
+    one = _measured_db(sensor, Xl, easy.exposures, cal, saturation="threshold", iterations=1)
+    assert np.max(np.abs(prob - thr)) < 0.2 and np.max(thr - one) < 0.2
