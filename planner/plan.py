@@ -292,7 +292,7 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
                    time_budget: float | None = None, overhead: float = 0.0, quantile: float | None = None,
                    errors: SystematicErrors | None = None, dark_library: Mapping[float, int] | None = None,
                    tolerance_db: float = 0.2, k_sigma: float = K_SIGMA, bins: int = 256,
-                   polish: bool = True) -> Plan:
+                   polish: bool = True, uniform_darks: bool = False) -> Plan:
     """Plan the exposures that reach ``target_snr_db`` on a scene (Eq. 18, Sec. 8).
 
     Parameters
@@ -326,6 +326,10 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
         Number of log-irradiance bins.
     polish : bool
         Drop unneeded and shorten exposures after the greedy phase.
+    uniform_darks : bool
+        One dark strategy for all exposures (for a merge that takes a single strategy): when
+        the per-exposure selection mixes strategies, plan again with dark frames for every
+        exposure (master darks when the library has one for every allowed time, else matched).
 
     Returns
     -------
@@ -351,6 +355,12 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     t_best = select.longest_usable_time(Xe, times, calibration, k_sigma)
     dark_choice = [select.dark_decision_for_time(Xe, t, calibration, errors, target_lin, _library_n(dark_library, t),
                                                  overhead, tolerance_db, k_sigma, t_best) for t in times]
+    if uniform_darks and len({d["choice"] for d in dark_choice}) > 1:
+        forced = "master" if all(_library_n(dark_library, t) for t in times) else "matched"
+        for d in dark_choice:
+            if d["choice"] != forced:
+                d["reason"] = f"{forced} (one strategy for all exposures was asked; alone: {d['choice']})"
+                d["choice"] = forced
     darks = [d["choice"] for d in dark_choice]
     n_dark = [_library_n(dark_library, t) if d == "master" else 0 for t, d in zip(times, darks)]
     ctx = _Context(calibration, hist, target_snr_db, times, darks, n_dark, overhead, errors, prnu, q, k_sigma)

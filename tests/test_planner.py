@@ -451,3 +451,14 @@ def test_saturation_and_iteration_decisions_match_the_real_merge():
     prob = _measured_db(sensor, Xl, easy.exposures, cal, saturation="probabilistic", iterations=20)
     one = _measured_db(sensor, Xl, easy.exposures, cal, saturation="threshold", iterations=1)
     assert np.max(np.abs(prob - thr)) < 0.2 and np.max(thr - one) < 0.2
+
+
+def test_uniform_darks_gives_one_strategy():
+    X = make_scene("hdr", (32, 32), decades=3, x_max=2e4)
+    errors = SystematicErrors(dark_current=3.0)
+    mixed = plan_exposures(CAL_B, X, 22.0, errors=errors)
+    assert len(set(mixed.darks)) == 2
+    uni = plan_exposures(CAL_B, X, 22.0, errors=errors, uniform_darks=True)
+    assert set(uni.darks) == {"matched"} and uni.feasible
+    assert uni.merge_options()["dark_strategy"] == "matched"
+    assert uni.total_time_s > mixed.total_time_s  # the price of a single strategy

@@ -89,13 +89,14 @@ def _explain(plan) -> str:
 @click.option("--quantile", type=float, help="Fraction of eligible pixels that must reach the target.  [default: 1, all pixels not saturated at the shortest time]")
 @click.option("--dark-error", type=float, help="RMS error of the dark current subtracted without a dark frame, e-/s.  [default: from the calibration]")
 @click.option("--dark-library", multiple=True, help="Master darks available: TIME:N (exposure time in s or a fraction, frame count), several after one flag.")
+@click.option("--uniform-darks", is_flag=True, help="One dark strategy for all exposures (dark frames for all when any needs one).")
 @click.option("--explain", is_flag=True, help="Print each model decision with the figure that drove it.")
 @click.option("--json", "as_json", is_flag=True, help="Print the plan as one line of JSON.")
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Write the Fig. 7 plot (sequence over the histogram, predicted SNR) to this PNG.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --plot file.")
 def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_max, seed, meter_frames, meter_max_time,
             target_snr_db, max_exposures, time_budget, overhead, allowed_times, quantile, dark_error, dark_library,
-            explain, as_json, plot, force):
+            uniform_darks, explain, as_json, plot, force):
     """Plan the exposures that reach --target-snr-db on a scene (greedy Eq. 18, Sec. 8).
 
     The scene comes from an irradiance map (--irradiance MAP.exr) or from metering quick
@@ -136,7 +137,8 @@ def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_m
         base = systematic_errors_from_calibration(cal)
         errors = type(base)(dark_current=dark_error, bias=base.bias, prnu=base.prnu)
     plan = plan_exposures(cal, X, target_snr_db, allowed, max_exposures=max_exposures, time_budget=time_budget,
-                          overhead=overhead, quantile=quantile, errors=errors, dark_library=library or None)
+                          overhead=overhead, quantile=quantile, errors=errors, dark_library=library or None,
+                          uniform_darks=uniform_darks)
     if plot is not None:
         from planner.plot import plot_plan
 
