@@ -68,7 +68,7 @@ def _explain(plan) -> str:
     return "\n".join(lines)
 
 
-@many_values("--allowed-times")
+@many_values("--allowed-times", "--dark-library")
 @click.command("plan")
 @click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate`.")
 @click.option("--camera", help="Simulator preset (camera-A, camera-B): its nominal parameters, and the camera --meter uses.")
