@@ -410,10 +410,16 @@ class HdrImage:
 _META_KEY = "hdrcap"
 
 
-def write_exr(path, image: HdrImage, force: bool = False) -> Path:
-    """Write ``image`` to ``path`` as a ZIP-compressed scanline EXR, atomically.
+#: EXR compression names accepted by :func:`write_exr`.
+EXR_COMPRESSIONS = ("zip", "zips", "piz", "zstd", "rle", "none")
 
-    Channels are stored as FLOAT (float32). The metadata goes into one string attribute
+
+def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip") -> Path:
+    """Write ``image`` to ``path`` as a scanline EXR (ZIP-compressed by default), atomically.
+
+    ``compression`` is one of :data:`EXR_COMPRESSIONS` (``none`` and ``rle`` write much faster,
+    ``zip`` is about a third smaller, ``zstd`` smaller and faster but needs OpenEXR >= 3.4 to
+    read). Channels are stored as FLOAT (float32). The metadata goes into one string attribute
     ``hdrcap`` (JSON, full precision), and the scalar string/number entries are also written
     as plain header attributes so that any EXR viewer shows them.
     """
@@ -428,7 +434,13 @@ def write_exr(path, image: HdrImage, force: bool = False) -> Path:
         if arr.shape != shape:
             raise ValueError(f"channel {name!r} has shape {arr.shape}, expected {shape}")
         chans[name] = arr
-    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    codes = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_COMPRESSION",
+             "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
+    if compression not in codes or not hasattr(OpenEXR, codes.get(compression, "")):
+        raise ValueError(f"EXR compression must be one of {', '.join(codes)}, got {compression!r}")
+    if hasattr(OpenEXR, "set_global_thread_count") and OpenEXR.global_thread_count() == 0:
+        OpenEXR.set_global_thread_count(min(os.cpu_count() or 1, 8))  # compress lines in parallel
+    header: dict[str, Any] = {"compression": getattr(OpenEXR, codes[compression]), "type": OpenEXR.scanlineimage}
     header[_META_KEY] = json.dumps(image.attrs, sort_keys=True, default=_json_default)
     for key, val in image.attrs.items():
         if isinstance(val, str):
@@ -458,7 +470,7 @@ def read_exr(path) -> HdrImage:
     _check_readable(path)
     try:
         with OpenEXR.File(str(path)) as exr:
-            header = exr.header()
+            header = dict(exr.header())  # copy: the mapping is emptied when the file closes
             channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None

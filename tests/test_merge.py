@@ -1,0 +1,362 @@
+"""The optimal merge against the simulator's truth, the practical bound, extremes and real data.
+
+Expectations are independent of the merge: the simulator's true irradiance (physics in
+mock_camera, which never calls pipeline.noise), the practical bound 1/sum w evaluated at the
+TRUE irradiance, and the EMVA 1288 reference data set (a real camera).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mock_camera.sensor import PRESETS, SimulatedSensor
+from pipeline.errors import InputError
+from pipeline.merge import MergeAccumulator, merge_arrays
+from pipeline.noise import exposure_variance
+from pipeline.params import Calibration, SensorParams
+
+TIMES = np.array([1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0])
+MARGIN = 3.0  # the merge's default saturation_sigmas
+
+
+def _truth_calibration(sensor, params):
+    return Calibration(params, prnu=sensor.prnu.astype(np.float32),
+                       dark_current_map=sensor.dark_current_map().astype(np.float32))
+
+
+def _bound(X, a, D, p, times, dark, n_dark=1):
+    """Practical bound 1/sum w at the TRUE irradiance over the exposures whose mean raw value
+    lies more than MARGIN of its standard deviation below v_sat (inf where none)."""
+    t = np.asarray(times)[:, None, None]
+    var = exposure_variance(X[None], t, p.g, p.sigma2_R, D[None], a[None], dark, n_dark)
+    var_v = exposure_variance(X[None], t, p.g, p.sigma2_R, D[None], a[None], "model") * (t * p.g * a) ** 2
+    usable = (p.v_sat - (p.mu_R + p.g * t * (a * X + D))) > MARGIN * np.sqrt(var_v)
+    sw = np.where(usable, 1.0 / var, 0.0).sum(axis=0)
+    return np.where(sw > 0, 1.0 / np.where(sw > 0, sw, 1.0), np.inf)
+
+
+def _clip_levels(spec, times):
+    """Irradiance at which each exposure reaches saturation (e-/s)."""
+    p = spec.nominal_params()
+    return [(min(spec.g * spec.full_well, p.v_sat - spec.mu_R)) / (spec.g * t) for t in times]
+
+
+def _scene(spec, shape, rng):
+    """Log-uniform over 5.5 decades plus a quarter of the photosites just above or below
+    each exposure's saturation."""
+    X = 10 ** rng.uniform(0.0, 5.5, shape)
+    near = rng.random(shape) < 0.25
+    clips = np.array(_clip_levels(spec, TIMES))
+    pick = clips[rng.integers(0, len(clips), shape)] * (1 + rng.uniform(-0.03, 0.05, shape))
+    return np.where(near, pick, X)
+
+
+def _monte_carlo(cam, dark="matched", seeds=(0, 1, 2), shape=(256, 256), n_dark=8, **options):
+    spec = PRESETS[cam]
+    p = spec.nominal_params()
+    out = {k: [] for k in ("X", "err", "sigma", "nexp", "bound")}
+    for seed in seeds:
+        sensor = SimulatedSensor(spec, shape, seed=seed)
+        rng = np.random.default_rng([seed, 77])
+        X = _scene(spec, shape, rng)
+        cal = _truth_calibration(sensor, p)
+        values = [sensor.expose(X, t) for t in TIMES]
+        kw = dict(options)
+        if dark == "matched":
+            darks = [sensor.expose(X, t, dark=True) for t in TIMES]
+        elif dark == "master":
+            darks = [np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
+                     for t in TIMES]
+            kw.update(dark_strategy="master", n_dark=n_dark)
+        else:
+            darks = None
+        res = merge_arrays(values, TIMES, cal, darks, **kw)
+        assert np.isfinite(res.irradiance).all() and np.isfinite(res.sigma).all()
+        out["X"].append(X.ravel())
+        out["err"].append((res.irradiance.astype(np.float64) - X).ravel())
+        out["sigma"].append(res.sigma.ravel().astype(np.float64))
+        out["nexp"].append(res.nexp.ravel())
+        out["bound"].append(_bound(X, sensor.prnu, sensor.dark_current_map(), p, TIMES, dark, n_dark).ravel())
+    return {k: np.concatenate(v) for k, v in out.items()} | {"clip_shortest": _clip_levels(spec, TIMES)[0]}
+
+
+def _check_statistics(mc, mse_tol=0.05):
+    X, err, sig, nexp, bound = mc["X"], mc["err"], mc["sigma"], mc["nexp"], mc["bound"]
+    snr_db = 20 * np.log10(np.maximum(X, 1e-300) / np.sqrt(bound))
+    sel = np.isfinite(bound) & (snr_db > 3.0)
+    assert sel.sum() > 20000
+    # Photosites with some unsaturated exposure are flagged saturated-everywhere only at the
+    # edge of the shortest exposure's range (the near-saturation rule's few-sigma band).
+    flagged = sel & (nexp == 0)
+    assert flagged.mean() < 5e-3
+    assert np.all(X[flagged] > 0.9 * mc["clip_shortest"]), X[flagged].min()
+    use = sel & (nexp > 0)
+    z = err[use] / sig[use]
+    # Honest sigma, and no gross errors (also just above each exposure's saturation).
+    assert 0.95 < z.std() < 1.05, z.std()
+    assert np.mean(np.abs(z) > 6) < 1e-4
+    # Per decade of irradiance: unbiased and at the practical bound.
+    lx = np.log10(X)
+    for lo in range(0, 6):
+        m = use & (lx >= lo) & (lx < lo + 1)
+        if m.sum() < 2000:
+            continue
+        zb = err[m] / np.sqrt(bound[m])
+        assert abs(zb.mean()) < 0.1, (lo, zb.mean())
+        ratio = np.mean(zb**2)
+        assert abs(ratio - 1) < mse_tol, (lo, ratio)
+
+
+@pytest.mark.parametrize("cam", ["camera-A", "camera-B"])
+def test_matched_darks_unbiased_at_bound_honest_sigma(cam):
+    _check_statistics(_monte_carlo(cam, "matched"))
+
+
+@pytest.mark.parametrize("dark", ["master", "model"])
+def test_dark_strategies_reach_their_bound_and_beat_matched_when_dark(dark):
+    mc = _monte_carlo("camera-A", dark, seeds=(3, 4, 5))
+    _check_statistics(mc)
+    ref = _monte_carlo("camera-A", "matched", seeds=(3, 4, 5))
+    low = (mc["X"] < 30) & np.isfinite(mc["bound"])
+    assert low.sum() > 1000
+    # Observed MSE at low irradiance: the strategy's own is clearly below matched darks'.
+    mse, mse_ref = np.mean(mc["err"][low] ** 2), np.mean(ref["err"][low] ** 2)
+    expected = np.mean(mc["bound"][low]) / np.mean(ref["bound"][low])
+    assert expected < 0.85
+    assert mse / mse_ref == pytest.approx(expected, rel=0.08)
+
+
+def test_probabilistic_saturation_no_gross_errors():
+    mc = _monte_carlo("camera-A", "matched", seeds=(5,), saturation="probabilistic")
+    sel = np.isfinite(mc["bound"]) & (mc["X"] / np.sqrt(mc["bound"]) > 1.41)
+    zb = mc["err"][sel] / np.sqrt(mc["bound"][sel])
+    assert np.mean(np.abs(zb) > 6) < 1e-4
+    assert abs(zb.mean()) < 0.1 and np.mean(zb**2) < 1.1
+
+
+def test_near_saturation_rule_is_needed_for_camera_a():
+    """Camera-A's full well clips before the ADC: without the near-saturation rule, samples
+    that slip under v_sat produce gross errors; with it, none."""
+    spec = PRESETS["camera-A"]
+    p = spec.nominal_params()
+    shape = (128, 128)
+    sensor = SimulatedSensor(spec, shape, seed=9)
+    clip = _clip_levels(spec, TIMES)[-1]
+    X = clip * np.linspace(1.05, 3.0, shape[0] * shape[1]).reshape(shape)
+    cal = _truth_calibration(sensor, p)
+    values = [sensor.expose(X, t) for t in TIMES]
+    darks = [sensor.expose(X, t, dark=True) for t in TIMES]
+    with_rule = merge_arrays(values, TIMES, cal, darks)
+    without = merge_arrays(values, TIMES, cal, darks, saturation_sigmas=0.0)
+    z_with = (with_rule.irradiance - X) / with_rule.sigma
+    z_without = (without.irradiance - X) / without.sigma
+    assert np.sum(np.abs(z_without) > 6) >= 3  # the hazard is real in the simulator
+    assert np.sum(np.abs(z_with) > 6) == 0
+
+
+def test_streaming_equals_batch():
+    spec = PRESETS["camera-B"]
+    p = spec.nominal_params()
+    sensor = SimulatedSensor(spec, (64, 96), seed=2)
+    X = _scene(spec, (64, 96), np.random.default_rng(1))
+    cal = _truth_calibration(sensor, p)
+    values = [sensor.expose(X, t) for t in TIMES]
+    darks = [sensor.expose(X, t, dark=True) for t in TIMES]
+    batch = merge_arrays(values, TIMES, cal, darks)
+    acc = MergeAccumulator(cal, X.shape)
+    for v, t, d in zip(values, TIMES, darks):
+        acc.add(v, t, d)
+    stream = acc.result()
+    for name in ("irradiance", "sigma", "nexp"):
+        np.testing.assert_array_equal(getattr(stream, name), getattr(batch, name))
+    # Another arrival order converges to the same estimate (within the tolerance).
+    acc = MergeAccumulator(cal, X.shape, tolerance=1e-10)
+    for i in [3, 0, 5, 1, 4, 2]:
+        acc.add(values[i], TIMES[i], darks[i])
+    other = acc.result()
+    np.testing.assert_allclose(other.irradiance, batch.irradiance, rtol=1e-4, atol=1e-3 * batch.sigma.max())
+    np.testing.assert_array_equal(other.nexp, batch.nexp)
+
+
+def test_master_dark_single_array_and_info():
+    spec = PRESETS["camera-B"]
+    p = spec.nominal_params()
+    sensor = SimulatedSensor(spec, (64, 64), seed=4)
+    X = np.full((64, 64), 200.0)
+    times = [0.01, 0.1]
+    values = [sensor.expose(X, t) for t in times]
+    master = np.mean([sensor.expose(X, 0.1, dark=True) for _ in range(16)], axis=0)
+    res = merge_arrays(values, times, _truth_calibration(sensor, p), master, n_dark=16, master_dark_time=0.1,
+                       iterations=5, tolerance=1e-3, prnu="scalar")
+    assert res.info["dark_strategy"] == "master" and res.info["n_dark"] == 16
+    assert res.info["iterations"] == 5 and res.info["prnu"] == "scalar"
+    z = (res.irradiance - X * sensor.prnu) / res.sigma  # scalar PRNU estimates a*X
+    assert abs(z.mean()) < 0.1 and 0.9 < z.std() < 1.1
+
+
+# ------------------------------------------------------------------------------ extremes
+
+
+def _params(**kw):
+    base = dict(g=0.5, mu_R=64.0, sigma2_R=4.0, v_sat=4000.0, white_level=4095.0, dark_current=0.5)
+    base.update(kw)
+    return SensorParams(**base)
+
+
+def _simulate_plain(p, X, times, rng, dark=True):
+    """Small independent simulator for arbitrary parameters (Poisson, Gaussian, rounding,
+    clipping at white level), float64 values (not restricted to uint16)."""
+    out, darks = [], []
+    for t in times:
+        e = rng.poisson(np.full(X.shape, (X + p.dark_current) * t))
+        v = np.clip(np.rint(p.g * e + p.mu_R + math.sqrt(max(p.sigma2_R - 1 / 12, 0)) * rng.standard_normal(X.shape)),
+                    0, p.white_level)
+        out.append(v.astype(np.float32))
+        e = rng.poisson(np.full(X.shape, p.dark_current * t))
+        darks.append(np.clip(np.rint(p.g * e + p.mu_R + math.sqrt(max(p.sigma2_R - 1 / 12, 0))
+                                     * rng.standard_normal(X.shape)), 0, p.white_level).astype(np.float32))
+    return out, (darks if dark else None)
+
+
+EXTREMES = [
+    # name, params, times, irradiance
+    ("zero irradiance", _params(), [0.01, 0.1, 1.0], 0.0),
+    ("single exposure", _params(), [0.1], 1000.0),
+    ("fifty exposures", _params(), list(np.geomspace(1e-3, 1.0, 50)), 3000.0),
+    ("times 1e-6..1e3 s", _params(), [1e-6, 1e-3, 1.0, 1e3], 2.0),
+    ("sigma_R -> quantisation only", _params(sigma2_R=1 / 12), [0.01, 0.1, 1.0], 500.0),
+    ("huge gain", _params(g=100.0, white_level=65535.0, v_sat=65000.0), [1e-3, 1e-2], 3000.0),
+    ("tiny gain", _params(g=1e-4, white_level=65535.0, v_sat=65000.0), [1.0, 10.0], 1e6),
+    ("dark pixel, negative x", _params(dark_current=0.0), [0.001, 0.01], 0.5),
+]
+
+
+@pytest.mark.parametrize("name,p,times,level", EXTREMES, ids=[e[0] for e in EXTREMES])
+def test_extremes_finite_and_within_uncertainty(name, p, times, level):
+    rng = np.random.default_rng(abs(hash(name)) % 2**32)
+    X = np.full((32, 32), float(level))
+    values, darks = _simulate_plain(p, X, times, rng)
+    res = merge_arrays(values, times, Calibration(p), darks)
+    assert np.isfinite(res.irradiance).all() and np.isfinite(res.sigma).all()
+    ok = res.nexp > 0
+    assert ok.all()
+    z = (res.irradiance[ok] - level) / res.sigma[ok]
+    assert np.all(np.abs(z) < 6)
+    assert abs(z.mean()) < 0.25
+    if name.startswith("dark pixel"):
+        assert (res.irradiance < 0).any()  # the estimate is never clipped at 0
+
+
+@pytest.mark.parametrize("where", ["below", "above"])
+def test_just_below_and_above_saturation_everywhere(where):
+    p = _params(v_sat=4095.0)
+    times = [0.5, 1.0]
+    clip = (p.v_sat - p.mu_R) / (p.g * times[0])
+    level = clip * (0.995 if where == "below" else 1.05)
+    X = np.full((32, 32), level)
+    values, darks = _simulate_plain(p, X, times, np.random.default_rng(11))
+    res = merge_arrays(values, times, Calibration(p), darks)
+    assert np.isfinite(res.irradiance).all() and np.isfinite(res.sigma).all()
+    flagged = res.nexp == 0
+    # Too close to saturation to trust: flagged, with a lower bound no higher than the truth
+    # (allowing the few-sigma band of the near-saturation rule when below); the rare sample
+    # far enough below v_sat is used, within its uncertainty.
+    assert flagged.mean() > (0.95 if where == "below" else 0.999)
+    assert np.all(res.sigma[flagged] == 0)
+    z = (res.irradiance[~flagged] - level) / res.sigma[~flagged]
+    assert np.all(np.abs(z) < 6)
+    assert np.all(res.irradiance <= level * (1.0 if where == "above" else 1.01))
+    assert np.all(res.irradiance > 0.9 * clip)
+
+
+def test_float32_huge_values_and_nan_inputs_stay_finite():
+    p = _params(v_sat=3.0e38, white_level=3.4e38, g=1.0)
+    v = np.full((8, 8), 3.0e38, np.float32)
+    v[0, 0] = np.nan
+    v[1, 1] = np.inf
+    v[2, 2] = -3.0e38
+    res = merge_arrays([v, v * np.float32(0.5)], [1e-6, 1e-6 * 0.5], Calibration(p), iterations=3)
+    for arr in (res.irradiance, res.sigma, res.nexp):
+        assert np.isfinite(arr).all()
+
+
+def test_bad_input_raises_input_error():
+    p = _params()
+    v = np.zeros((4, 4), np.uint16)
+    with pytest.raises(InputError):
+        merge_arrays([v], [0.0], Calibration(p))
+    with pytest.raises(InputError):
+        merge_arrays([v, np.zeros((4, 5), np.uint16)], [1.0, 2.0], Calibration(p))
+    with pytest.raises(InputError):
+        merge_arrays([v], [1.0], Calibration(p), [v, v])
+    with pytest.raises(InputError):
+        merge_arrays([v], [1.0], Calibration(p), saturation="magic")
+    with pytest.raises(InputError):
+        merge_arrays([v], [1.0], Calibration(p), dark_strategy="matched")
+
+
+# ------------------------------------------------------------------------------ real data
+
+
+def _emva_steps(emva_dir):
+    from pipeline.io import read_emva_descriptor, read_image16
+
+    ds = read_emva_descriptor(emva_dir / "EMVA1288_Data.txt")
+    darks = {round(s.exposure_time, 9): s for s in ds.dark()}
+    steps = [s for s in ds.bright()[:50] if round(s.exposure_time, 9) in darks]
+
+    def load(step, k):
+        d = darks[round(step.exposure_time, 9)]
+        return (read_image16(step.images[k], step.exposure_time).data,
+                read_image16(d.images[k], step.exposure_time).data)
+
+    return ds, steps, load
+
+
+def _photon_transfer(steps, load):
+    """Gain (DN/e-) as the slope of temporal variance vs mean (EMVA 1288) on two steps, bias
+    and read variance from the dark pair; independent of the merge."""
+    pts = []
+    for s in steps:
+        (b1, d1), (b2, d2) = load(s, 0), load(s, 1)
+        b1, b2, d1, d2 = (x.astype(np.float64) for x in (b1, b2, d1, d2))
+        mean = 0.5 * (b1.mean() + b2.mean()) - 0.5 * (d1.mean() + d2.mean())
+        var = np.var(b1 - b2) / 2 - np.var(d1 - d2) / 2
+        pts.append((mean, var, d1.mean(), np.var(d1 - d2) / 2))
+    (m1, v1, *_), (m2, v2, mu_R, s2) = pts
+    return (v2 - v1) / (m2 - m1), mu_R, s2
+
+
+def test_emva_two_disjoint_brackets_agree_within_predicted_sigma(emva_dir):
+    ds, steps, load = _emva_steps(emva_dir)
+    g, mu_R, s2 = _photon_transfer([steps[10], steps[25]], load)
+    assert 0.2 < g < 0.4
+    p = SensorParams(g=g, mu_R=mu_R, sigma2_R=s2, v_sat=float(2**ds.bits - 1), white_level=float(2**ds.bits - 1))
+    cal = Calibration(p)
+    chosen = [steps[i] for i in (1, 5, 15, 30)]
+    times = [s.exposure_time for s in chosen]
+    merged = []
+    for k in (0, 1):  # snap_001 bracket vs snap_002 bracket, each with its own darks
+        pairs = [load(s, k) for s in chosen]
+        merged.append(merge_arrays([b for b, _ in pairs], times, cal, [d for _, d in pairs]))
+    a, b = merged
+    ok = (a.nexp > 0) & (b.nexp > 0)
+    assert ok.mean() > 0.99
+    z = (a.irradiance[ok] - b.irradiance[ok]) / np.hypot(a.sigma[ok], b.sigma[ok])
+    # (measured: mean +0.04, std 1.007; the small mean is the light's drift between snaps)
+    assert abs(z.mean()) < 0.1
+    assert 0.95 < z.std() < 1.05, z.std()
+    # Irradiance proportional to the data set's photon counts per second: single-step merges
+    # at very different exposure times give the same e-/s per photon/s (the QE).
+    qe = []
+    for s in (steps[3], steps[12], steps[20], steps[28]):
+        bright, dark = load(s, 0)
+        res = merge_arrays([bright], [s.exposure_time], cal, [dark])
+        qe.append(float(np.mean(res.irradiance[res.nexp > 0])) / (s.photons / s.exposure_time))
+    qe_bracket = float(np.mean(a.irradiance[ok])) / (chosen[0].photons / chosen[0].exposure_time)
+    assert 0.05 < qe[0] < 1.0
+    assert np.ptp(qe) / np.mean(qe) < 0.03, qe
+    assert qe_bracket == pytest.approx(np.mean(qe), rel=0.03)
