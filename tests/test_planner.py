@@ -40,7 +40,7 @@ def _merge(values, times, cal):
     return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal)
 
 
-def _bulk_scene(seed=5, n=20000):
+def _bulk_scene(seed=5, n=8000):
     """4 decades (20..2e5 e-/s): 80 % of pixels in a log-normal bulk at 2e3 e-/s, 20 % tails."""
     rng = np.random.default_rng(seed)
     bulk = 10 ** rng.normal(np.log10(2e3), 0.25, int(0.8 * n))
