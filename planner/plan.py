@@ -1,0 +1,600 @@
+"""Greedy exposure planning for a target SNR (Eq. 18, Sec. 8) with model selection.
+
+The scene enters as a weighted histogram of log-irradiance (each non-empty bin represented by
+its darkest and brightest pixel, so the minimum over pixels is evaluated exactly at the
+extremes). The planner
+
+1. marks the eligible pixels: those with signal that are not saturated even at the shortest
+   allowed exposure (the others are reported, never silently dropped);
+2. selects, before planning, the PRNU model and each candidate time's dark strategy by the
+   SNR they cost at the target level (model selection, :mod:`planner.select`);
+3. adds greedily the allowed exposure that lowers sum_j exp(-snr_j) most (Eq. 18), under the
+   constraints (allowed times, maximum number of exposures, time budget, per-frame overhead),
+   until the target holds at the chosen quantile of eligible pixels;
+4. polishes the sequence (drops exposures that are no longer needed and shortens others while
+   the target still holds), then selects the saturation model and the merge iterations.
+
+All variances come from :mod:`pipeline.noise` through :mod:`planner.predict`.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.params import Calibration
+
+from . import select
+from .ladder import THIRD_STOP_LADDER
+from .predict import (
+    K_SIGMA,
+    SystematicErrors,
+    combine_terms,
+    exposure_terms,
+    predict_snr,
+    systematic_errors_from_calibration,
+    to_db,
+    usable_fraction,
+)
+
+__all__ = [
+    "Plan",
+    "IrradianceHistogram",
+    "irradiance_histogram",
+    "plan_exposures",
+    "plan_exhaustive",
+    "plan_bracket",
+    "DEFAULT_MAX_EXPOSURES",
+]
+
+#: Cap on the number of exposures when the caller gives neither ``max_exposures`` nor a budget.
+DEFAULT_MAX_EXPOSURES = 64
+
+
+@dataclass(frozen=True)
+class IrradianceHistogram:
+    """A scene as weighted irradiance values.
+
+    ``X`` (e-/s, > 0) are the evaluation points (darkest and brightest pixel of each
+    non-empty log-irradiance bin), ``weight`` the number of pixels each stands for,
+    ``n_pixels`` the scene's size and ``n_nosignal`` the pixels with X <= 0.
+    """
+
+    X: np.ndarray
+    weight: np.ndarray
+    n_pixels: int
+    n_nosignal: int
+
+
+def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
+    """Weighted histogram of log10(irradiance) over the pixels with X > 0."""
+    x = np.asarray(irradiance, dtype=np.float64).ravel()
+    if x.size == 0:
+        raise InputError("the irradiance map is empty")
+    if not np.all(np.isfinite(x)):
+        raise InputError("the irradiance map holds NaN or infinite values")
+    pos = x[x > 0]
+    n_nosignal = int(x.size - pos.size)
+    if pos.size == 0:
+        return IrradianceHistogram(np.zeros(0), np.zeros(0), int(x.size), n_nosignal)
+    lx = np.log10(pos)
+    lo, hi = lx.min(), lx.max()
+    if hi - lo < 1e-9:
+        return IrradianceHistogram(np.array([pos[0]]), np.array([float(pos.size)]), int(x.size), n_nosignal)
+    idx = np.minimum(((lx - lo) / (hi - lo) * bins).astype(np.int64), bins - 1)
+    count = np.bincount(idx, minlength=bins).astype(np.float64)
+    bmin = np.full(bins, np.inf)
+    bmax = np.full(bins, -np.inf)
+    np.minimum.at(bmin, idx, pos)
+    np.maximum.at(bmax, idx, pos)
+    keep = count > 0
+    count, bmin, bmax = count[keep], bmin[keep], bmax[keep]
+    single = bmin == bmax
+    X = np.concatenate([bmin, bmax[~single]])
+    w = np.concatenate([np.where(single, count, count / 2), count[~single] / 2])
+    order = np.argsort(X, kind="stable")
+    return IrradianceHistogram(X[order], w[order], int(x.size), n_nosignal)
+
+
+@dataclass
+class Plan:
+    """An exposure plan (contract of DESIGN.md / BRIEF: issue 7).
+
+    Attributes
+    ----------
+    exposures : list of float
+        Exposure times, s, in capture order (the greedy's order: most useful first).
+    darks : list of str
+        Dark strategy per exposure: "matched" (take a dark frame of the same time), "master"
+        (master dark from the library) or "model" (bias + calibrated dark current).
+    predicted_min_snr_db : float
+        Predicted SNR, dB, reached by the chosen quantile of eligible pixels (the minimum over
+        them for quantile 1).
+    total_time_s : float
+        Exposure time of frames and matched dark frames plus the per-frame overhead, s.
+    decisions : dict
+        name -> {"choice", "reason", "figure"}: dark strategy, PRNU, saturation, iterations,
+        eligibility.
+    feasible : bool
+        Whether the target holds at the quantile.
+    message : str
+        One paragraph for people: what was planned, what could not be, best figure.
+    target_snr_db, quantile : float
+        The request.
+    n_dark : list of int
+        Frames of the master dark per exposure (0 unless "master").
+    curve : dict
+        Predicted SNR curve: ``irradiance`` (e-/s), ``snr_db``, ``weight`` (pixels),
+        ``eligible`` (bool) of the histogram points.
+    """
+
+    exposures: list[float]
+    darks: list[str]
+    predicted_min_snr_db: float
+    total_time_s: float
+    decisions: dict[str, dict[str, Any]]
+    feasible: bool
+    message: str
+    target_snr_db: float = float("nan")
+    quantile: float = 1.0
+    n_dark: list[int] = field(default_factory=list)
+    curve: dict[str, list] = field(default_factory=dict)
+
+    def merge_options(self) -> dict[str, Any]:
+        """Keyword options for ``pipeline.merge.merge_arrays`` that follow the decisions
+        (saturation model, PRNU model, iterations; the dark strategy when it is one for all)."""
+        out: dict[str, Any] = {}
+        d = self.decisions
+        if "saturation" in d:
+            out["saturation"] = d["saturation"]["choice"]
+        if "prnu" in d:
+            out["prnu"] = d["prnu"]["choice"]
+        if "iterations" in d:
+            out["iterations"] = int(d["iterations"]["choice"])
+        if self.darks and len(set(self.darks)) == 1:
+            out["dark_strategy"] = self.darks[0]
+        return out
+
+    def to_dict(self, curve: bool = False) -> dict[str, Any]:
+        out = {
+            "exposures": list(self.exposures),
+            "darks": list(self.darks),
+            "n_dark": list(self.n_dark),
+            "predicted_min_snr_db": _finite(self.predicted_min_snr_db),
+            "total_time_s": self.total_time_s,
+            "target_snr_db": self.target_snr_db,
+            "quantile": self.quantile,
+            "feasible": self.feasible,
+            "message": self.message,
+            "decisions": self.decisions,
+            "merge_options": self.merge_options(),
+        }
+        if curve:
+            out["curve"] = self.curve
+        return out
+
+
+def _finite(v: float):
+    return float(v) if np.isfinite(v) else None
+
+
+# --------------------------------------------------------------------------- context
+
+
+class _Context:
+    """Everything the search needs, precomputed per candidate time on the histogram."""
+
+    def __init__(self, calibration, hist, target_db, candidates, darks, n_dark, overhead, errors, prnu,
+                 quantile, k_sigma):
+        self.cal = calibration
+        self.hist = hist
+        self.target_db = float(target_db)
+        self.cand = np.asarray(candidates, dtype=np.float64)
+        self.darks = list(darks)
+        self.n_dark = list(n_dark)
+        self.overhead = float(overhead)
+        self.errors = errors
+        self.prnu = prnu
+        self.quantile = float(quantile)
+        X = hist.X
+        self.X = X
+        self.elig = eligible_mask(X, self.cand.min(), calibration, k_sigma)
+        self.w_elig = np.where(self.elig, hist.weight, 0.0)
+        terms = [exposure_terms(X, t, calibration, d, n or 1, "threshold", k_sigma)
+                 for t, d, n in zip(self.cand, self.darks, self.n_dark)]
+        self.W = np.array([tm.weight for tm in terms])
+        self.CD = np.array([tm.c_dark for tm in terms])
+        self.CB = np.array([tm.c_bias for tm in terms])
+        self.cost_time = np.array([(t + self.overhead) * (2.0 if d == "matched" else 1.0)
+                                   for t, d in zip(self.cand, self.darks)])
+
+    def sums(self, idx):
+        idx = list(idx)
+        if not idx:
+            z = np.zeros_like(self.X)
+            return z, z.copy(), z.copy()
+        return self.W[idx].sum(0), self.CD[idx].sum(0), self.CB[idx].sum(0)
+
+    def snr(self, sw, scd, scb):
+        return combine_terms(self.X, sw, scd, scb, self.errors, self.prnu).snr
+
+    def quantile_db(self, snr_lin) -> float:
+        """SNR (dB) reached by the ``quantile`` fraction of eligible pixels."""
+        w = self.w_elig
+        total = w.sum()
+        if total <= 0:
+            return float("nan")
+        db = to_db(snr_lin)
+        order = np.argsort(db, kind="stable")
+        cw = np.cumsum(w[order]) / total
+        k = int(np.searchsorted(cw, 1.0 - self.quantile + 1e-12, side="right"))
+        k = min(k, len(order) - 1)
+        # the pixel at cumulative fraction just above 1 - quantile
+        return float(db[order][k]) if self.quantile < 1 else float(db[self.elig].min())
+
+    def reached(self, snr_lin) -> bool:
+        return self.quantile_db(snr_lin) >= self.target_db - 1e-9
+
+    def penalty(self, snr_lin) -> float:
+        """Eq. 18: sum over eligible pixels of Q(snr) = exp(-snr)."""
+        return float(np.sum(self.w_elig * np.exp(-snr_lin)))
+
+    def time(self, idx) -> float:
+        return float(sum(self.cost_time[i] for i in idx))
+
+
+def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
+    """Pixels with signal that are usable (not predicted saturated) at the shortest time."""
+    X = np.asarray(X, dtype=np.float64)
+    return (X > 0) & (usable_fraction(X, t_min, calibration, "threshold", k_sigma) > 0)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _check_request(target_snr_db, allowed_times, max_exposures, time_budget, overhead, quantile):
+    if not np.isfinite(target_snr_db):
+        raise InputError(f"target SNR must be a finite number of dB, got {target_snr_db!r}")
+    times = sorted(set(float(t) for t in allowed_times))
+    if not times:
+        raise InputError("no allowed exposure times")
+    if any(not (np.isfinite(t) and t > 0) for t in times):
+        raise InputError(f"allowed exposure times must be positive seconds, got {allowed_times!r}")
+    if max_exposures is not None and int(max_exposures) < 1:
+        raise InputError(f"max exposures must be >= 1, got {max_exposures!r}")
+    if time_budget is not None and not (np.isfinite(time_budget) and time_budget > 0):
+        raise InputError(f"time budget must be a positive number of seconds, got {time_budget!r}")
+    if not (np.isfinite(overhead) and overhead >= 0):
+        raise InputError(f"per-frame overhead must be >= 0 s, got {overhead!r}")
+    if quantile is not None and not (0 < quantile <= 1):
+        raise InputError(f"quantile must be in (0, 1], got {quantile!r}")
+    return times
+
+
+def _library_n(dark_library: Mapping[float, int] | None, t: float) -> int:
+    if not dark_library:
+        return 0
+    for lt, n in dark_library.items():
+        if abs(float(lt) - t) <= 1e-6 * t + 1e-9:
+            return int(n)
+    return 0
+
+
+# --------------------------------------------------------------------------- planning
+
+
+def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
+                   allowed_times: Sequence[float] | None = None, *, max_exposures: int | None = None,
+                   time_budget: float | None = None, overhead: float = 0.0, quantile: float | None = None,
+                   errors: SystematicErrors | None = None, dark_library: Mapping[float, int] | None = None,
+                   tolerance_db: float = 0.2, k_sigma: float = K_SIGMA, bins: int = 256,
+                   polish: bool = True, uniform_darks: bool = False) -> Plan:
+    """Plan the exposures that reach ``target_snr_db`` on a scene (Eq. 18, Sec. 8).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model.
+    irradiance : array_like
+        Irradiance map (or any sample of pixel irradiances), e-/s per photosite.
+    target_snr_db : float
+        Required SNR of the merged estimate, dB (20 log10).
+    allowed_times : sequence of float, optional
+        Exposure times the camera offers, s (default: the 1/3-EV ladder 1/8000..30 s).
+    max_exposures : int, optional
+        Maximum number of exposures (dark frames not counted).
+    time_budget : float, optional
+        Maximum total capture time (frames, dark frames, overheads), s.
+    overhead : float
+        Per-frame overhead (download, shutter latency), s.
+    quantile : float, optional
+        Fraction of eligible pixels that must reach the target (default 1: all pixels that are
+        not saturated even at the shortest allowed time).
+    errors : SystematicErrors, optional
+        Systematic errors of the simpler models (default: from the calibration).
+    dark_library : mapping float -> int, optional
+        Master darks available in the calibration's library: exposure time (s) -> frame count.
+    tolerance_db : float
+        A simpler model is chosen when it costs at most this much SNR at every irradiance bin.
+    k_sigma : float
+        Saturation margin of the threshold rule (standard deviations of the value).
+    bins : int
+        Number of log-irradiance bins.
+    polish : bool
+        Drop unneeded and shorten exposures after the greedy phase.
+    uniform_darks : bool
+        One dark strategy for all exposures (for a merge that takes a single strategy): when
+        the per-exposure selection mixes strategies, plan again with dark frames for every
+        exposure (master darks when the library has one for every allowed time, else matched).
+
+    Returns
+    -------
+    Plan
+    """
+    times = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
+                           max_exposures, time_budget, overhead, quantile)
+    q = 1.0 if quantile is None else float(quantile)
+    errors = errors if errors is not None else systematic_errors_from_calibration(calibration)
+    hist = irradiance_histogram(irradiance, bins)
+    target_lin = 10.0 ** (target_snr_db / 20.0)
+    elig = eligible_mask(hist.X, times[0], calibration, k_sigma) if hist.X.size else np.zeros(0, bool)
+
+    decisions: dict[str, dict[str, Any]] = {}
+    decisions["eligibility"] = select.eligibility_decision(hist, elig, times[0], calibration)
+    if not elig.any():
+        msg = decisions["eligibility"]["reason"] + "; nothing to plan"
+        return Plan([], [], float("nan"), 0.0, decisions, False, msg, float(target_snr_db), q, [], {})
+
+    Xe = hist.X[elig]
+    decisions["prnu"] = select.prnu_decision(errors, target_lin, calibration, tolerance_db)
+    prnu = decisions["prnu"]["choice"]
+    t_best = select.longest_usable_time(Xe, times, calibration, k_sigma)
+    dark_choice = [select.dark_decision_for_time(Xe, t, calibration, errors, target_lin, _library_n(dark_library, t),
+                                                 overhead, tolerance_db, k_sigma, t_best) for t in times]
+    if uniform_darks and len({d["choice"] for d in dark_choice}) > 1:
+        forced = "master" if all(_library_n(dark_library, t) for t in times) else "matched"
+        for d in dark_choice:
+            if d["choice"] != forced:
+                d["reason"] = f"{forced} (one strategy for all exposures was asked; alone: {d['choice']})"
+                d["choice"] = forced
+    darks = [d["choice"] for d in dark_choice]
+    n_dark = [_library_n(dark_library, t) if d == "master" else 0 for t, d in zip(times, darks)]
+    ctx = _Context(calibration, hist, target_snr_db, times, darks, n_dark, overhead, errors, prnu, q, k_sigma)
+
+    cap = int(max_exposures) if max_exposures is not None else (DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6)
+    # Eq. 18's greedy; and the same per second of capture time: the faster feasible plan wins
+    runs = []
+    for per_second in ((False, True) if polish else (False,)):
+        chosen, limit = _greedy(ctx, cap, time_budget, per_second)
+        ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
+        if ok and polish:
+            chosen = _capture_order(ctx, _polish(ctx, chosen))
+        runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
+                     chosen, limit, ok))
+    runs.sort(key=lambda r: (r[0], r[1]))
+    _, _, per_second, chosen, limit, ok = runs[0]
+    snr_lin = ctx.snr(*ctx.sums(chosen))
+
+    exposures = [float(ctx.cand[i]) for i in chosen]
+    plan_darks = [darks[i] for i in chosen]
+    plan_ndark = [n_dark[i] for i in chosen]
+    decisions["dark_strategy"] = select.summarise_dark_decisions([dark_choice[i] for i in chosen], exposures)
+    if chosen:
+        decisions["saturation"] = select.saturation_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
+                                                             calibration, errors, prnu, tolerance_db, k_sigma)
+        decisions["iterations"] = select.iterations_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
+                                                             calibration, errors, prnu, tolerance_db, k_sigma)
+    min_db = ctx.quantile_db(snr_lin) if chosen else float("-inf")
+    total = ctx.time(chosen)
+    msg = _message(ok, target_snr_db, q, min_db, exposures, plan_darks, total, limit, decisions, max_exposures,
+                   time_budget, ctx)
+    curve = {
+        "irradiance": hist.X.tolist(),
+        "snr_db": [(_finite(v)) for v in to_db(snr_lin)],
+        "weight": hist.weight.tolist(),
+        "eligible": elig.tolist(),
+    }
+    return Plan(exposures, plan_darks, float(min_db), float(total), decisions, ok, msg, float(target_snr_db), q,
+                plan_ndark, curve)
+
+
+def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = False):
+    """Eq. 18 greedily: add the candidate that lowers sum exp(-snr) most until the target holds
+    (``per_second``: most per second of capture time).
+
+    Returns the chosen candidate indices (in order) and the reason the search stopped when the
+    target was not reached ("" when reached).
+    """
+    chosen: list[int] = []
+    sw, scd, scb = ctx.sums([])
+    current = ctx.penalty(ctx.snr(sw, scd, scb))
+    used = 0.0
+    while True:
+        if chosen and ctx.reached(ctx.snr(sw, scd, scb)):
+            return chosen, ""
+        if len(chosen) >= cap:
+            return chosen, "max_exposures"
+        fits = np.ones(len(ctx.cand), bool) if budget is None else used + ctx.cost_time <= budget * (1 + 1e-12)
+        if not fits.any():
+            return chosen, "time_budget"
+        # penalty after adding each candidate, all at once: (C, B)
+        snr_all = combine_terms(ctx.X[None, :], sw + ctx.W, scd + ctx.CD, scb + ctx.CB, ctx.errors, ctx.prnu).snr
+        pen = np.sum(ctx.w_elig * np.exp(-snr_all), axis=1)
+        pen = np.where(fits, pen, np.inf)
+        if per_second:
+            gain = np.where(fits, (current - pen) / ctx.cost_time, -np.inf)
+            best = int(np.argmax(gain))
+        else:
+            best = int(np.argmin(pen))  # ties: the shorter time (candidates ascend)
+        if not pen[best] < current * (1 - 1e-12):
+            return chosen, "no_gain"
+        chosen.append(best)
+        used += ctx.cost_time[best]
+        sw, scd, scb = sw + ctx.W[best], scd + ctx.CD[best], scb + ctx.CB[best]
+        current = float(pen[best])
+
+
+def _capture_order(ctx: _Context, chosen: list[int]) -> list[int]:
+    """Most useful first: repeatedly the exposure of the set that lowers sum exp(-snr) most."""
+    rest = list(chosen)
+    order: list[int] = []
+    while rest:
+        pens = [ctx.penalty(ctx.snr(*ctx.sums(order + [c]))) for c in rest]
+        k = min(range(len(rest)), key=lambda i: (pens[i], ctx.cost_time[rest[i]]))
+        order.append(rest.pop(k))
+    return order
+
+
+def _drop_unneeded(ctx: _Context, chosen: list[int]) -> list[int]:
+    """Remove exposures (longest first) whose absence still meets the target."""
+    chosen = list(chosen)
+    for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
+        rest = [c for k, c in enumerate(chosen) if k != pos and c is not None]
+        if rest and ctx.reached(ctx.snr(*ctx.sums(rest))):
+            chosen[pos] = None
+    return [c for c in chosen if c is not None]
+
+
+def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
+    """Local search after the greedy: drop exposures the target does not need, then replace
+    each (longest first) by one shorter exposure or by 2-4 copies of a shorter one whenever that
+    costs less time and the target still holds."""
+    chosen = _drop_unneeded(ctx, chosen)
+    order = np.argsort(ctx.cost_time, kind="stable")
+    for _ in range(6):
+        changed = False
+        for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
+            if pos >= len(chosen):
+                continue
+            base = chosen[:pos] + chosen[pos + 1:]
+            cost = ctx.cost_time[chosen[pos]]
+            # replace it by the cheapest valid alternative: one shorter exposure, or 2..4 copies
+            # of a shorter one when that saves at least 10 % of its time
+            found, found_cost = None, cost * (1 - 1e-9)
+            for c in order:
+                if ctx.cost_time[c] >= found_cost:
+                    break
+                for k in (1, 2, 3, 4):
+                    new_cost = k * ctx.cost_time[c]
+                    if new_cost >= found_cost or (k > 1 and new_cost > 0.9 * cost):
+                        break
+                    trial = base[:pos] + [int(c)] * k + base[pos:]
+                    if ctx.reached(ctx.snr(*ctx.sums(trial))):
+                        found, found_cost = trial, new_cost
+                        break
+            if found is not None:
+                chosen = found
+                changed = True
+        if not changed:
+            break
+    return _drop_unneeded(ctx, chosen)
+
+
+def _fmt_t(t: float) -> str:
+    return f"1/{1 / t:.0f} s" if t < 0.25 else f"{t:g} s"
+
+
+def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, max_exposures, budget, ctx):
+    where = "all eligible pixels" if q >= 1 else f"{100 * q:g} % of eligible pixels"
+    n_m = sum(d == "matched" for d in darks)
+    seq = ", ".join(_fmt_t(t) for t in exposures)
+    parts = []
+    if ok:
+        parts.append(f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB on {where}: "
+                     f"predicted {min_db:.2f} dB, total capture time {total:.4g} s.")
+    else:
+        why = {
+            "max_exposures": f"the limit of {max_exposures if max_exposures is not None else DEFAULT_MAX_EXPOSURES} exposures",
+            "time_budget": f"the time budget of {budget:g} s" if budget is not None else "the time budget",
+            "no_gain": "the allowed exposure times (no further exposure improves the darkest pixels)",
+        }.get(limit, "the constraints")
+        best = f"{min_db:.2f} dB" if np.isfinite(min_db) else "nothing"
+        parts.append(f"INFEASIBLE: target {target:g} dB on {where} cannot be reached within {why}; "
+                     f"best achievable {best} with {len(exposures)} exposures ({seq or 'none'}), "
+                     f"total capture time {total:.4g} s.")
+        failing = ctx.elig & (to_db(ctx.snr(*ctx.sums([]))) < target)
+        if exposures:
+            idx = [int(np.argmin(np.abs(ctx.cand - t))) for t in exposures]
+            snr_now = to_db(ctx.snr(*ctx.sums(idx)))
+            failing = ctx.elig & (snr_now < target)
+        if failing.any():
+            xs = ctx.X[failing]
+            frac = ctx.w_elig[failing].sum() / max(ctx.w_elig.sum(), 1e-300)
+            parts.append(f"Below target: {100 * frac:.3g} % of eligible pixels, irradiance {xs.min():.4g}..{xs.max():.4g} e-/s.")
+    elig = decisions.get("eligibility", {})
+    if elig.get("figure", 0) and elig["figure"] > 0:
+        parts.append(elig["reason"] + ".")
+    return " ".join(parts)
+
+
+# --------------------------------------------------------------------------- references
+
+
+def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, candidate_times: Sequence[float],
+                    max_exposures: int, *, overhead: float = 0.0, quantile: float | None = None,
+                    errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
+                    bins: int = 256) -> tuple[list[float], float] | None:
+    """Exhaustive search over all multisets of ``candidate_times`` of size <= ``max_exposures``:
+    the sequence with the least total capture time that reaches the target (reference for the
+    greedy planner). Returns (times, total_time_s), or None when nothing reaches the target."""
+    times = _check_request(target_snr_db, candidate_times, max_exposures, None, overhead, quantile)
+    errors = errors if errors is not None else SystematicErrors()
+    hist = irradiance_histogram(irradiance, bins)
+    ctx = _Context(calibration, hist, target_snr_db, times, [darks] * len(times), [1] * len(times), overhead, errors,
+                   "map", 1.0 if quantile is None else quantile, k_sigma)
+    best = None
+    for n in range(1, int(max_exposures) + 1):
+        for combo in itertools.combinations_with_replacement(range(len(times)), n):
+            tt = ctx.time(combo)
+            if best is not None and tt >= best[1]:
+                continue
+            if ctx.reached(ctx.snr(*ctx.sums(combo))):
+                best = ([float(ctx.cand[i]) for i in combo], tt)
+    return best
+
+
+def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, step_ev: float,
+                 allowed_times: Sequence[float] | None = None, *, overhead: float = 0.0,
+                 errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
+                 max_frames: int = 400, bins: int = 256) -> tuple[list[float], float] | None:
+    """The naive alternative: a fixed bracket of ``step_ev`` EV steps, long enough to reach the
+    target.
+
+    The bracket starts at the longest time that still measures every eligible pixel's bright
+    end (nothing eligible saturates) and grows by ``step_ev`` EV until the target holds; when
+    even the longest allowed time does not suffice, the whole bracket is repeated. Times are
+    the exact powers of two (not snapped to a ladder). Returns (times, total_time_s) with the
+    least total time over the bracket lengths tried, or None.
+    """
+    allowed = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
+                             None, None, overhead, None)
+    errors = errors if errors is not None else SystematicErrors()
+    hist = irradiance_histogram(irradiance, bins)
+    t_lo_min, t_hi = allowed[0], allowed[-1]
+    elig = eligible_mask(hist.X, t_lo_min, calibration, k_sigma)
+    if not elig.any():
+        return None
+    x_max = hist.X[elig].max()
+    # longest time (within the ladder) that does not saturate the brightest eligible pixel
+    t0 = max(t for t in allowed if usable_fraction(x_max, t, calibration, "threshold", k_sigma) > 0)
+    n_max = int(np.floor(np.log2(t_hi / t0) / step_ev)) + 1
+    bracket_all = [t0 * 2.0 ** (step_ev * k) for k in range(max(n_max, 1))]
+    ctx = _Context(calibration, hist, target_snr_db, bracket_all, [darks] * len(bracket_all), [1] * len(bracket_all),
+                   overhead, errors, "map", 1.0, k_sigma)
+    ctx.elig = elig  # eligibility is judged at the ladder's shortest time, as for the plan
+    ctx.w_elig = np.where(elig, hist.weight, 0.0)
+    best = None
+    for n in range(1, len(bracket_all) + 1):
+        sw, scd, scb = ctx.sums(range(n))
+        t_one = ctx.time(range(n))
+        for m in range(1, max_frames // n + 1):
+            if best is not None and m * t_one >= best[1]:
+                break
+            if ctx.reached(ctx.snr(m * sw, m * scd, m * scb)):
+                best = (bracket_all[:n] * m, m * t_one)
+                break
+    return best

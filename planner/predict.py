@@ -1,0 +1,281 @@
+"""Predicted SNR of a merged exposure set (Eq. 12, 13, Sec. 8).
+
+The variance of every exposure comes from :mod:`pipeline.noise` (``exposure_variance`` /
+``exposure_weight``): this module never writes the noise formula itself. It adds what the
+planner needs on top:
+
+* which samples the merge will use: the threshold rule of Eq. 11 extended as in DESIGN.md
+  (a sample is dropped when its value predicted from the irradiance lies within ``k_sigma``
+  of its own standard deviation of ``v_sat``), or, for the probabilistic saturation model
+  (Eq. 8-10), the probability that the sample is not saturated;
+* the *systematic* per-photosite errors a simpler model leaves in the estimate (dark current
+  and bias not measured by a dark frame, PRNU ignored by a scalar gain). They do not average
+  out over exposures, so the predicted SNR is X / sqrt(Var + bias^2) ("total-error SNR");
+* weights evaluated at a wrong irradiance (a merge stopped after few iterations).
+
+Units: X in e-/s per photosite, t in s, values in DN (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.special import ndtr
+
+from pipeline.noise import exposure_variance, exposure_weight
+from pipeline.params import Calibration
+
+__all__ = [
+    "K_SIGMA",
+    "SystematicErrors",
+    "systematic_errors_from_calibration",
+    "mean_dark_current",
+    "predicted_value",
+    "usable_fraction",
+    "ExposureTerms",
+    "exposure_terms",
+    "SnrPrediction",
+    "combine_terms",
+    "predict_snr",
+    "to_db",
+]
+
+#: Samples whose predicted value lies within this many of their own standard deviations of
+#: v_sat are treated as saturated (DESIGN.md, the extension of Eq. 11).
+K_SIGMA = 3.0
+
+
+def to_db(snr_linear):
+    """20 log10(SNR); -inf where the SNR is 0."""
+    with np.errstate(divide="ignore"):
+        return 20.0 * np.log10(np.asarray(snr_linear, dtype=np.float64))
+
+
+@dataclass(frozen=True)
+class SystematicErrors:
+    """Per-photosite errors that a simpler model leaves in the estimate (RMS over photosites).
+
+    Attributes
+    ----------
+    dark_current : float
+        RMS error of the dark current subtracted when no dark frame is taken ("model"
+        strategy), e-/s. Appears in the estimate x_i as an error of the same size, e-/s.
+    bias : float
+        RMS error of the bias level subtracted by the "model" strategy, DN; appears in x_i as
+        bias / (t g).
+    prnu : float
+        Relative RMS spread of the per-photosite gain a (dimensionless); a scalar gain leaves
+        a relative error of this size in every photosite's estimate.
+    """
+
+    dark_current: float = 0.0
+    bias: float = 0.0
+    prnu: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("dark_current", "bias", "prnu"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"SystematicErrors.{name} must be finite and >= 0, got {v!r}")
+
+
+def mean_dark_current(calibration: Calibration) -> float:
+    """Mean dark current of the calibration, e-/s (the map's mean when there is a map)."""
+    if calibration.dark_current_map is not None:
+        return float(np.mean(calibration.dark_current_map))
+    return float(calibration.params.dark_current)
+
+
+def systematic_errors_from_calibration(calibration: Calibration, dark_rel_error: float | None = None) -> SystematicErrors:
+    """Default :class:`SystematicErrors` of a calibration.
+
+    * dark current: the standard error of the calibrated D combined with a relative error
+      ``dark_rel_error`` of the mean dark current: 0.05 with a per-photosite dark-current map
+      (temperature drift of ~0.3 C with the 6.3 C doubling law), 0.3 without one (a scalar D
+      ignores the dark-current non-uniformity, typically tens of percent);
+    * bias: the standard error of mu_R (a bias map is assumed exact);
+    * PRNU: the spread of the calibration's PRNU map (0 without a map: nothing to choose).
+    """
+    D = mean_dark_current(calibration)
+    if dark_rel_error is None:
+        dark_rel_error = 0.05 if calibration.dark_current_map is not None else 0.3
+    se = calibration.stderr or {}
+    dark = float(np.hypot(float(se.get("dark_current", 0.0)), dark_rel_error * D))
+    bias = float(se.get("mu_R", 0.0))
+    prnu = float(np.std(calibration.prnu)) if calibration.prnu is not None else 0.0
+    return SystematicErrors(dark_current=dark, bias=bias, prnu=prnu)
+
+
+def predicted_value(X, t, calibration: Calibration):
+    """Mean raw value mu_R + g t (X + D) of a photosite of irradiance X at time t, DN (Eq. 2)."""
+    p = calibration.params
+    return p.mu_R + p.g * np.asarray(t, dtype=np.float64) * (np.asarray(X, dtype=np.float64) + mean_dark_current(calibration))
+
+
+def _value_sigma(X, t, calibration: Calibration):
+    """Standard deviation of the raw value, DN: Var(x_i) of :func:`exposure_variance` with no
+    dark term, scaled back by (t g)^2 (Eq. 3)."""
+    p = calibration.params
+    t = np.asarray(t, dtype=np.float64)
+    var_x = exposure_variance(X, t, p.g, p.sigma2_R, mean_dark_current(calibration), 1.0, "model")
+    return np.sqrt(var_x) * t * p.g
+
+
+def usable_fraction(X, t, calibration: Calibration, saturation: str = "threshold", k_sigma: float = K_SIGMA):
+    """Fraction of a sample's information the merge keeps, in [0, 1].
+
+    ``"threshold"``: 1 where the predicted value plus ``k_sigma`` of its standard deviation is
+    below v_sat, else 0 (Eq. 11 with the predicted-within-k-sigma rule of DESIGN.md).
+    ``"probabilistic"``: the probability that the sample is not saturated, Phi((v_sat - v)/s)
+    (the non-saturated part of the mixture of Eq. 8-10; an approximation of the information a
+    censored sample carries).
+    """
+    v = predicted_value(X, t, calibration)
+    s = _value_sigma(X, t, calibration)
+    vsat = calibration.params.v_sat
+    if saturation == "threshold":
+        return (v + k_sigma * s < vsat).astype(np.float64)
+    if saturation == "probabilistic":
+        return ndtr((vsat - v) / s)
+    raise ValueError(f"saturation must be 'threshold' or 'probabilistic', got {saturation!r}")
+
+
+@dataclass(frozen=True)
+class ExposureTerms:
+    """What one exposure adds to the merge at each irradiance: usable weight W = u w
+    ((e-/s)^-2), and the coefficients of the systematic dark (1 for the model strategy) and
+    bias (1/(t g) for the model strategy, 1/(e-/s)/DN... i.e. e-/s per DN) errors."""
+
+    weight: np.ndarray
+    c_dark: np.ndarray
+    c_bias: np.ndarray
+    usable: np.ndarray
+    variance: np.ndarray
+
+
+def exposure_terms(X, t, calibration: Calibration, dark: str = "model", n_dark: float = 1,
+                   saturation: str = "threshold", k_sigma: float = K_SIGMA, weight_at=None) -> ExposureTerms:
+    """Per-irradiance contribution of one exposure of ``t`` seconds with dark strategy ``dark``.
+
+    The weight is the optimal weight of Eq. 13 (from :func:`pipeline.noise.exposure_weight`)
+    evaluated at ``weight_at`` (default: the true irradiance ``X``), times the usable fraction.
+    ``variance`` is the true Var(x_i) at ``X``.
+    """
+    p = calibration.params
+    X = np.asarray(X, dtype=np.float64)
+    D = mean_dark_current(calibration)
+    mu_w = X if weight_at is None else np.asarray(weight_at, dtype=np.float64)
+    u = usable_fraction(X, t, calibration, saturation, k_sigma)
+    w = exposure_weight(mu_w, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark) * u
+    var = exposure_variance(X, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark)
+    is_model = 1.0 if str(getattr(dark, "value", dark)) == "model" else 0.0
+    return ExposureTerms(weight=w, c_dark=w * is_model, c_bias=w * is_model / (t * p.g), usable=u, variance=var)
+
+
+@dataclass(frozen=True)
+class SnrPrediction:
+    """Predicted merge quality at each irradiance ``X`` (e-/s).
+
+    ``snr`` is the total-error ratio X / sqrt(variance + bias^2); ``variance`` the random part
+    ((e-/s)^2, inf where no exposure is usable); ``bias`` the RMS systematic error (e-/s);
+    ``n_usable`` the number of exposures the merge keeps (fractional for the probabilistic
+    saturation model).
+    """
+
+    X: np.ndarray
+    snr: np.ndarray
+    variance: np.ndarray
+    bias: np.ndarray
+    n_usable: np.ndarray
+
+    @property
+    def snr_db(self) -> np.ndarray:
+        return to_db(self.snr)
+
+
+def combine_terms(X, sum_w, sum_cd, sum_cb, errors: SystematicErrors, prnu: str = "map", sum_w2v=None) -> SnrPrediction:
+    """Merged variance 1/sum W (Eq. 12), or sum W^2 Var / (sum W)^2 when the weights are
+    not the inverse variances (``sum_w2v``), the systematic error of the weighted mean, and the
+    total-error SNR."""
+    X = np.asarray(X, dtype=np.float64)
+    ok = sum_w > 0
+    safe = np.where(ok, sum_w, 1.0)
+    if sum_w2v is None:
+        var = np.where(ok, 1.0 / safe, np.inf)
+    else:
+        var = np.where(ok, sum_w2v / safe**2, np.inf)
+    bias2 = (errors.dark_current * sum_cd / safe) ** 2 + (errors.bias * sum_cb / safe) ** 2
+    if prnu == "scalar":
+        bias2 = bias2 + (errors.prnu * X) ** 2
+    elif prnu != "map":
+        raise ValueError(f"prnu must be 'map' or 'scalar', got {prnu!r}")
+    bias2 = np.where(ok, bias2, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        snr = np.where(ok, np.maximum(X, 0.0) / np.sqrt(var + bias2), 0.0)
+    return SnrPrediction(X=X, snr=snr, variance=var, bias=np.sqrt(bias2), n_usable=np.zeros_like(X))
+
+
+def _per_exposure(values, n, name):
+    if values is None or isinstance(values, (str, int, float)):
+        return [values] * n
+    values = list(values)
+    if len(values) != n:
+        raise ValueError(f"{name} has {len(values)} entries for {n} exposures")
+    return values
+
+
+def predict_snr(X, times: Sequence[float], calibration: Calibration, darks="model", n_dark=1, *,
+                errors: SystematicErrors | None = None, prnu: str = "map", saturation: str = "threshold",
+                k_sigma: float = K_SIGMA, weight_at=None) -> SnrPrediction:
+    """Predicted SNR of the merge of exposures ``times`` at irradiance ``X`` (Eq. 12, 13; Sec. 8).
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s per photosite (pixels or histogram bins).
+    times : sequence of float
+        Exposure times, s (repeats allowed).
+    calibration : Calibration
+        Camera model; its mean dark current and the scalar parameters are used.
+    darks : str or sequence of str
+        Dark strategy per exposure ("matched", "master", "model").
+    n_dark : float or sequence of float
+        Frames in the master dark per exposure (``"master"`` only).
+    errors : SystematicErrors, optional
+        Systematic errors of the simpler models (default: none).
+    prnu : {"map", "scalar"}
+        Whether the merge corrects PRNU per photosite or with a scalar gain.
+    saturation : {"threshold", "probabilistic"}
+        Saturation model of the merge.
+    k_sigma : float
+        Margin of the threshold rule, standard deviations of the value.
+    weight_at : array_like, optional
+        Irradiance at which the merge evaluates its weights (default: the true X, i.e. a
+        converged merge).
+
+    Returns
+    -------
+    SnrPrediction
+    """
+    X = np.asarray(X, dtype=np.float64)
+    times = [float(t) for t in times]
+    errors = errors or SystematicErrors()
+    darks = _per_exposure(darks, len(times), "darks")
+    n_dark = _per_exposure(n_dark, len(times), "n_dark")
+    sw = np.zeros_like(X)
+    scd = np.zeros_like(X)
+    scb = np.zeros_like(X)
+    sw2v = np.zeros_like(X) if weight_at is not None else None
+    nu = np.zeros_like(X)
+    for t, d, n in zip(times, darks, n_dark):
+        term = exposure_terms(X, t, calibration, d, n if n else 1, saturation, k_sigma, weight_at)
+        sw += term.weight
+        scd += term.c_dark
+        scb += term.c_bias
+        nu += term.usable
+        if sw2v is not None:
+            sw2v += term.weight**2 * term.variance
+    pred = combine_terms(X, sw, scd, scb, errors, prnu, sw2v)
+    return SnrPrediction(X=pred.X, snr=pred.snr, variance=pred.variance, bias=pred.bias, n_usable=nu)

@@ -1,0 +1,196 @@
+"""Model selection: model only what the scene requires (each decision with its figure).
+
+Every decision compares the predicted SNR (:func:`planner.predict.predict_snr`, variances
+from :mod:`pipeline.noise`) of a simpler model with the full one and takes the simpler one
+when it costs at most ``tolerance_db`` at every eligible irradiance bin:
+
+* dark strategy per exposure time: without a dark frame the per-photosite dark current and
+  bias errors stay in the estimate (they do not average out); the cost at the target level is
+  10 log10(1 + T^2 b^2 / X^2) dB for a systematic error b (e-/s) at irradiance X and target
+  SNR T. Above the tolerance a master dark from the library is used when there is one (no
+  capture time), else a matched dark frame (costs t + overhead and adds its read noise);
+* PRNU: a scalar gain leaves a relative error p (the PRNU spread) in every photosite: cost
+  10 log10(1 + T^2 p^2) dB;
+* saturation: the probabilistic model (Eq. 8-10) keeps part of the information of samples
+  within k sigma of v_sat that the threshold rule drops; gain = predicted SNR difference;
+* iterations: weights evaluated at the previous estimate instead of the truth; the start is
+  the non-saturated (uniform) average; the number of re-weighting steps after which the
+  predicted SNR is within the tolerance of the converged merge.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.params import Calibration
+
+from .predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
+
+__all__ = [
+    "target_loss_db",
+    "dark_decision_for_time",
+    "longest_usable_time",
+    "RELEVANCE_FACTOR",
+    "summarise_dark_decisions",
+    "prnu_decision",
+    "saturation_decision",
+    "iterations_decision",
+    "eligibility_decision",
+    "MAX_ITERATIONS",
+]
+
+MAX_ITERATIONS = 8
+
+
+def target_loss_db(bias, X, target_lin: float):
+    """SNR lost at the target level by a systematic error ``bias`` (e-/s) at irradiance X, dB:
+    10 log10(1 + T^2 bias^2 / X^2)."""
+    X = np.asarray(X, dtype=np.float64)
+    return 10.0 * np.log10(1.0 + (target_lin * np.asarray(bias, dtype=np.float64) / X) ** 2)
+
+
+#: An exposure more than this factor shorter than the longest usable time of a pixel carries
+#: a small share of that pixel's weight (about 1/RELEVANCE_FACTOR or less); its dark error is
+#: judged only where it matters.
+RELEVANCE_FACTOR = 8.0
+
+
+def longest_usable_time(Xe, times, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
+    """For each irradiance, the longest of ``times`` at which it is not predicted saturated
+    (0 where none is)."""
+    Xe = np.asarray(Xe, dtype=np.float64)
+    best = np.zeros_like(Xe)
+    for t in sorted(times):
+        best = np.where(usable_fraction(Xe, t, calibration, "threshold", k_sigma) > 0, t, best)
+    return best
+
+
+def dark_decision_for_time(Xe, t: float, calibration: Calibration, errors: SystematicErrors, target_lin: float,
+                           n_library: int, overhead: float, tolerance_db: float, k_sigma: float = K_SIGMA,
+                           t_best=None) -> dict:
+    """Dark strategy for an exposure of ``t`` s on the eligible irradiances ``Xe`` (e-/s).
+
+    The cost of skipping the dark frame is evaluated where the exposure matters: where it is
+    usable and within a factor :data:`RELEVANCE_FACTOR` of the longest usable time
+    ``t_best`` (per irradiance; default: everywhere it is usable).
+    """
+    p = calibration.params
+    use = usable_fraction(Xe, t, calibration, "threshold", k_sigma) > 0
+    if t_best is not None:
+        use &= t * RELEVANCE_FACTOR >= np.asarray(t_best)
+    b = float(np.hypot(errors.dark_current, errors.bias / (t * p.g)))
+    loss = float(target_loss_db(b, Xe[use], target_lin).max()) if use.any() else 0.0
+    if loss <= tolerance_db:
+        choice, why = "model", f"no dark frame: the dark model's error ({b:.3g} e-/s) costs {loss:.3f} dB at the target"
+    elif n_library >= 1:
+        choice, why = "master", f"master dark of {n_library} frames: the dark model would cost {loss:.3f} dB"
+    else:
+        choice, why = "matched", (f"matched dark frame (+{t + overhead:.4g} s): the dark model would cost "
+                                  f"{loss:.3f} dB and the library has no master dark for this time")
+    return {"choice": choice, "reason": why, "figure": loss, "time": float(t)}
+
+
+def summarise_dark_decisions(per_exposure: list[dict], exposures: list[float]) -> dict:
+    """One decision entry for the dark strategies of the planned exposures."""
+    reasons = [f"{t:.6g} s: {d['reason']}" for t, d in zip(exposures, per_exposure)]
+    return {
+        "choice": [d["choice"] for d in per_exposure],
+        "reason": "; ".join(reasons) if reasons else "no exposures",
+        "figure": [round(d["figure"], 4) for d in per_exposure],
+        "unit": "dB lost at the target without a dark frame, per exposure",
+    }
+
+
+def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Calibration, tolerance_db: float) -> dict:
+    """Per-photosite PRNU map or a scalar gain."""
+    loss = float(10.0 * np.log10(1.0 + (target_lin * errors.prnu) ** 2))
+    if calibration.prnu is None:
+        return {"choice": "scalar", "reason": "the calibration has no PRNU map", "figure": loss,
+                "unit": "dB lost at the target with a scalar gain"}
+    if loss <= tolerance_db:
+        why = f"scalar gain: the PRNU spread {100 * errors.prnu:.3g} % costs {loss:.3f} dB at the target"
+        choice = "scalar"
+    else:
+        why = f"per-photosite PRNU map: a scalar gain would cost {loss:.3f} dB (spread {100 * errors.prnu:.3g} %)"
+        choice = "map"
+    return {"choice": choice, "reason": why, "figure": loss, "unit": "dB lost at the target with a scalar gain"}
+
+
+def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA) -> dict:
+    """Threshold rule or probabilistic saturation model, by the predicted SNR gain."""
+    kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
+    thr = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="threshold", **kw).snr_db
+    prob = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic", **kw).snr_db
+    gain = np.where(np.isfinite(thr), prob - thr, np.where(np.isfinite(prob), np.inf, 0.0))
+    g = float(gain.max()) if gain.size else 0.0
+    frac = float(np.mean(gain > tolerance_db)) if gain.size else 0.0
+    if g > tolerance_db:
+        choice = "probabilistic"
+        why = (f"probabilistic saturation (Eq. 8-10): samples near v_sat add up to {g:.3f} dB "
+               f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB)")
+    else:
+        choice = "threshold"
+        why = f"threshold rule (Eq. 11): the probabilistic model would add at most {g:.3f} dB"
+    return {"choice": choice, "reason": why, "figure": g if np.isfinite(g) else 1e9,
+            "unit": "dB gained by the probabilistic model (max over bins)"}
+
+
+def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k_sigma):
+    """Worst SNR loss (dB over bins) after k = 1..MAX_ITERATIONS re-weighting steps."""
+    Xe = np.asarray(Xe, dtype=np.float64)
+    nd = [n or 1 for n in n_dark]
+    kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
+    opt = predict_snr(Xe, exposures, calibration, darks, nd, **kw).snr_db
+    # start: the non-saturated average (uniform weights over usable samples)
+    su = np.zeros_like(Xe)
+    suv = np.zeros_like(Xe)
+    for t, d, n in zip(exposures, darks, nd):
+        term = exposure_terms(Xe, t, calibration, d, n, "threshold", k_sigma)
+        su += term.usable
+        suv += term.usable * term.variance
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = np.where(su > 0, np.sqrt(suv) / np.maximum(su, 1e-300) / Xe, 0.0)
+    losses = []
+    for _ in range(MAX_ITERATIONS):
+        worst_db = None
+        worst_var = None
+        for sgn in (-1.0, 1.0):
+            pred = predict_snr(Xe, exposures, calibration, darks, nd, weight_at=Xe * (1 + sgn * delta), **kw)
+            db = pred.snr_db
+            if worst_db is None:
+                worst_db, worst_var = db, pred.variance
+            else:
+                worse = db < worst_db
+                worst_db = np.where(worse, db, worst_db)
+                worst_var = np.where(worse, pred.variance, worst_var)
+        fin = np.isfinite(opt)
+        losses.append(float(np.max(opt[fin] - worst_db[fin])) if fin.any() else 0.0)
+        delta = np.where(np.isfinite(worst_var), np.sqrt(worst_var) / Xe, 0.0)
+    return losses
+
+
+def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA) -> dict:
+    """Number of merge re-weighting steps (Fig. 3) needed to be within the tolerance."""
+    losses = _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k_sigma)
+    k = next((i + 1 for i, loss in enumerate(losses) if loss <= tolerance_db), MAX_ITERATIONS)
+    why = (f"{k} re-weighting step(s): predicted loss against the converged merge "
+           + ", ".join(f"{loss:.3f} dB after {i + 1}" for i, loss in enumerate(losses[:max(k, 2)])))
+    return {"choice": k, "reason": why, "figure": losses[k - 1], "unit": "dB lost against the converged merge"}
+
+
+def eligibility_decision(hist, elig, t_min: float, calibration: Calibration) -> dict:
+    """Which pixels the target applies to, and which the camera cannot measure."""
+    inelig = ~elig & (hist.X > 0)
+    n_sat = float(hist.weight[inelig].sum())
+    n = max(hist.n_pixels, 1)
+    parts = [f"{hist.n_pixels - n_sat - hist.n_nosignal:.0f} of {hist.n_pixels} pixels eligible"]
+    if n_sat > 0:
+        x_lim = float(hist.X[inelig].min())
+        parts.append(f"{100 * n_sat / n:.3g} % of pixels ({n_sat:.0f}) are brighter than the shortest allowed exposure "
+                     f"({t_min:.4g} s) can measure (X >= {x_lim:.4g} e-/s): excluded, the merge reports lower bounds there")
+    if hist.n_nosignal:
+        parts.append(f"{hist.n_nosignal} pixels without signal (X <= 0) excluded")
+    return {"choice": "not saturated at the shortest time", "reason": "; ".join(parts), "figure": n_sat / n,
+            "unit": "fraction of pixels saturated even at the shortest time"}
