@@ -340,9 +340,9 @@ def run_evaluation(out: Path | None = None, quick: bool = False, seed: int = 0, 
     from pipeline.evaluation import weights_vs_output
 
     say = progress or (lambda msg: None)
-    shape = (32, 192) if quick else (64, 384)
+    shape = (32, 192) if quick else (64, 768)
     reps = 2 if quick else 6
-    n_bins = 16 if quick else 24
+    n_bins = 16 if quick else 40
     base_b = PRESETS["camera-B"]
     cases = {
         "camera-A": PRESETS["camera-A"],
