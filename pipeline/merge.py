@@ -1,15 +1,33 @@
-"""HDR merge (walking-skeleton version).
+"""The optimal HDR merge: iterative maximum likelihood with uncertainty (Sec. 4-5, Fig. 3).
 
-One re-weighting step of the paper's estimator: start from the non-saturated average of the
-per-exposure estimates x_i (Eq. 6), weight each usable sample by the inverse of the model
-variance at that estimate (Eq. 13, :func:`pipeline.noise.exposure_variance`), and report the
-weighted mean with its standard deviation 1/sqrt(sum w) (Eq. 12). Samples at or above
-v_sat are excluded (Eq. 11). The full iterative ML merge with dark strategies, the
-probabilistic saturation model and a compiled kernel replaces this in the optimal-merge issue.
+For every photosite, from N exposures (v_i, b_i, t_i):
+
+* x_i = (v_i - b_i) / (t_i g a) (Eq. 6), b_i the dark level of the chosen strategy;
+* usable samples: v_i < v_sat (Eq. 11), and, once an estimate exists, the raw value
+  predicted from it lies more than ``saturation_sigmas`` of its own standard deviation below
+  v_sat (where the full well clips before the ADC, saturated samples slip under v_sat on read
+  noise; each one would be a gross error);
+* weights w_i = 1/Var(x_i) from the calibrated model at max(mu, 0) (Eq. 13, variance from
+  :func:`pipeline.noise.variance_core`, the single place it is written), estimate
+  mu = sum w x / sum w and sigma^2 = 1/sum w (Eq. 12), iterated from the non-saturated
+  average until the change is below ``tolerance`` times max(|mu|, sigma) (Fig. 3). The estimate
+  is never clipped (dark photosites may be negative);
+* optionally the full saturation model (Eq. 8-10), maximised by Newton steps;
+* photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound.
+
+Dark strategies (each with its own variance term, see :mod:`pipeline.noise`): ``matched``
+(one dark frame per exposure), ``master`` (per-exposure master darks, or one master dark,
+averaged from ``n_dark`` frames), ``model`` (bias level plus calibrated dark current).
+
+The work is done by the compiled kernels of :mod:`pipeline.kernels`. :class:`MergeAccumulator`
+takes frames one by one as they are captured (first pass) and finishes with the iterations;
+:func:`merge_arrays` and :func:`merge_frames` use it, so streaming and batch results agree.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -17,17 +35,20 @@ import numpy as np
 
 from .errors import InputError
 from .io import RawFrame, check_frames
-from .noise import exposure_variance
+from .noise import DarkStrategy, dark_factor
 from .params import Calibration
 
-__all__ = ["MergeResult", "merge_frames"]
+__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames"]
+
+_SATURATION_MODELS = ("threshold", "probabilistic")
+_PRNU_MODES = ("map", "scalar")
 
 
 @dataclass
 class MergeResult:
     """Irradiance (e-/s per photosite), its standard deviation (same unit) and the number of
     unsaturated exposures used per photosite (0: saturated everywhere, irradiance is a lower
-    bound). ``info`` records the options and inputs."""
+    bound and sigma is 0). ``info`` records the options and inputs."""
 
     irradiance: np.ndarray
     sigma: np.ndarray
@@ -35,12 +56,312 @@ class MergeResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class MergeOptions:
+    """Options of the optimal merge; the defaults are the recommended setting.
+
+    Attributes
+    ----------
+    iterations : int
+        Maximum number of re-weighting steps per photosite (>= 1; the near-saturation rule
+        needs >= 2). Dimensionless.
+    tolerance : float
+        Stop when |mu_new - mu| <= tolerance * max(|mu_new|, sigma). Relative, >= 0.
+    saturation : {"threshold", "probabilistic"}
+        Eq. 11 (plus the near-saturation rule) or the blended likelihood of Eq. 8-10.
+    saturation_sigmas : float
+        Margin of the near-saturation rule, in standard deviations of the raw value (0 turns
+        the rule off).
+    prnu : {"map", "scalar"}
+        Use the calibration's per-photosite gain map a_j, or a = 1.
+    dark_strategy : {"matched", "master", "model"} or None
+        None: ``matched`` when dark frames are given, ``master`` with a master dark,
+        ``model`` otherwise.
+    n_dark : float
+        Frames averaged into each master dark (``master`` only).
+    master_dark_time : float or None
+        Exposure time (s) of a single master dark; the dark current over the difference to
+        each exposure time is added from the calibration. None: the master dark is used as is.
+    """
+
+    iterations: int = 20
+    tolerance: float = 1e-6
+    saturation: str = "threshold"
+    saturation_sigmas: float = 3.0
+    prnu: str = "map"
+    dark_strategy: str | None = None
+    n_dark: float = 1
+    master_dark_time: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.iterations, (int, np.integer)) or self.iterations < 1:
+            raise InputError(f"iterations must be an integer >= 1, got {self.iterations!r}")
+        if not (np.isfinite(self.tolerance) and self.tolerance >= 0):
+            raise InputError(f"tolerance must be finite and >= 0, got {self.tolerance!r}")
+        if self.saturation not in _SATURATION_MODELS:
+            raise InputError(f"saturation must be one of {', '.join(_SATURATION_MODELS)}, got {self.saturation!r}")
+        if not (np.isfinite(self.saturation_sigmas) and self.saturation_sigmas >= 0):
+            raise InputError(f"saturation_sigmas must be finite and >= 0, got {self.saturation_sigmas!r}")
+        if self.prnu not in _PRNU_MODES:
+            raise InputError(f"prnu must be one of {', '.join(_PRNU_MODES)}, got {self.prnu!r}")
+        if self.dark_strategy is not None and self.dark_strategy not in {d.value for d in DarkStrategy}:
+            raise InputError(f"dark strategy must be matched, master or model, got {self.dark_strategy!r}")
+        if not (np.isfinite(self.n_dark) and self.n_dark >= 1):
+            raise InputError(f"n_dark (frames in the master dark) must be >= 1, got {self.n_dark!r}")
+        if self.master_dark_time is not None and not (np.isfinite(self.master_dark_time) and self.master_dark_time >= 0):
+            raise InputError(f"master dark exposure time must be finite and >= 0, got {self.master_dark_time!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _check_time(t) -> float:
+    try:
+        t = float(t)
+    except (TypeError, ValueError):
+        raise InputError(f"exposure time must be a number, got {t!r}") from None
+    if not (np.isfinite(t) and t > 0):
+        raise InputError(f"exposure time must be finite and > 0 s, got {t!r}")
+    return t
+
+
+def _as_frame(arr, shape, what) -> np.ndarray:
+    """uint16 stays uint16 (no copy); everything else becomes float32 (DN)."""
+    arr = np.asarray(arr)
+    if arr.ndim != 2:
+        raise InputError(f"{what}: expected a 2-D mosaic, got shape {arr.shape}")
+    if shape is not None and arr.shape != tuple(shape):
+        raise InputError(f"{what}: size {arr.shape[1]}x{arr.shape[0]} differs from {shape[1]}x{shape[0]}")
+    if arr.dtype == np.uint16 or arr.dtype == np.float32:
+        return np.ascontiguousarray(arr)
+    if arr.dtype.kind not in "uif" and arr.dtype != np.bool_:
+        raise InputError(f"{what}: pixel type {arr.dtype} is not numeric")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _map_arg(arr, shape, scalar, what):
+    """(float32 map, is_map, float scalar) for the kernels."""
+    if arr is None:
+        return np.zeros((1, 1), np.float32), False, float(scalar)
+    arr = np.asarray(arr)
+    if arr.shape != tuple(shape):
+        raise InputError(f"calibration {what} map has shape {arr.shape}, the frames {tuple(shape)}")
+    return np.ascontiguousarray(arr, dtype=np.float32), True, float(scalar)
+
+
+class MergeAccumulator:
+    """Streaming optimal merge: add frames as they are captured, then :meth:`result`.
+
+    Each :meth:`add` runs the first pass (the non-saturated average the iterations start
+    from) on that frame; :meth:`result` runs the iterations. Frames are kept by reference
+    (not copied): do not modify them after adding. The result equals :func:`merge_arrays`
+    on the same frames in the same order.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model and maps.
+    shape : (int, int)
+        Mosaic size (rows, columns).
+    master_dark : array_like, optional
+        One master dark (DN) for every exposure (``dark_strategy="master"``), averaged from
+        ``n_dark`` frames, taken at ``master_dark_time`` seconds.
+    **options
+        Fields of :class:`MergeOptions`.
+    """
+
+    def __init__(self, calibration: Calibration, shape, master_dark=None, **options):
+        try:
+            self.options = MergeOptions(**options)
+        except TypeError as err:
+            raise InputError(f"unknown merge option ({err})") from None
+        self.calibration = calibration
+        self.shape = tuple(int(s) for s in shape)
+        if len(self.shape) != 2 or min(self.shape) < 1:
+            raise InputError(f"image shape must be two positive sizes, got {shape!r}")
+        p = calibration.params
+        opts = self.options
+        self.master_dark = None if master_dark is None else _as_frame(master_dark, self.shape, "master dark")
+        strategy = opts.dark_strategy
+        if strategy is None and self.master_dark is not None:
+            strategy = "master"
+        self._strategy = strategy  # may still be None: decided by the first add()
+        if self.master_dark is not None and strategy != "master":
+            raise InputError(f"a master dark was given but the dark strategy is {strategy!r}")
+        use_map = opts.prnu == "map" and calibration.prnu is not None
+        self._a = _map_arg(calibration.prnu if use_map else None, self.shape, 1.0, "PRNU")
+        if use_map and not np.all(np.isfinite(self._a[0]) & (self._a[0] > 0)):
+            raise InputError("calibration PRNU map must be finite and > 0")
+        self._D = _map_arg(calibration.dark_current_map, self.shape, p.dark_current, "dark-current")
+        self._bias = _map_arg(calibration.bias_map, self.shape, p.mu_R, "bias")
+        self.prnu_used = "map" if use_map else "scalar"
+        self._values: list[np.ndarray] = []
+        self._darks: list[np.ndarray] = []
+        self._times: list[float] = []
+        self._sum = np.zeros(self.shape, np.float64)
+        self._cnt = np.zeros(self.shape, np.int32)
+
+    # -------------------------------------------------------------------------------- setup
+    @property
+    def dark_strategy(self) -> str:
+        return self._strategy or "model"
+
+    @property
+    def _has_darks(self) -> bool:
+        return self._strategy in ("matched", "master") and self.master_dark is None
+
+    def _base(self):
+        """(base map, is_map, scalar, t_ref, shift) of the dark level without dark frames."""
+        if self.master_dark is not None:
+            t_ref = self.options.master_dark_time
+            arr = self.master_dark.astype(np.float32, copy=False)
+            return arr, True, 0.0, (0.0 if t_ref is None else t_ref), (0.0 if t_ref is None else 1.0)
+        return (*self._bias, 0.0, 1.0)
+
+    def add(self, values, t, dark=None) -> None:
+        """Add one exposure: raw mosaic ``values`` (DN), exposure time ``t`` (s) and, for the
+        matched/master-per-exposure strategies, its dark frame ``dark`` (DN)."""
+        t = _check_time(t)
+        v = _as_frame(values, self.shape, f"frame {len(self._values) + 1} (t={t:g} s)")
+        if self._strategy is None:
+            self._strategy = "matched" if dark is not None else "model"
+        if self._has_darks:
+            if dark is None:
+                raise InputError(f"frame {len(self._values) + 1} (t={t:g} s): no dark frame for the "
+                                 f"{self._strategy} dark strategy")
+            d = _as_frame(dark, self.shape, f"dark frame for t={t:g} s")
+            if self._darks and d.dtype != self._darks[0].dtype:
+                raise InputError("dark frames must all have the same pixel type")
+        else:
+            if dark is not None:
+                raise InputError(f"a dark frame was given but the dark strategy is {self._strategy}")
+            d = None
+        if self._values and v.dtype != self._values[0].dtype:
+            v = v.astype(np.float32)
+            if self._values[0].dtype != np.float32:
+                self._values = [x.astype(np.float32) for x in self._values]
+        from .kernels import first_pass_kernel
+
+        p = self.calibration.params
+        base = self._base()
+        first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), d is not None,
+                          base[0], base[1], base[2], base[3], base[4], t, p.g, p.v_sat,
+                          *self._D, *self._a[:2], self._sum, self._cnt)
+        self._values.append(v)
+        if d is not None:
+            self._darks.append(d)
+        self._times.append(t)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    # -------------------------------------------------------------------------------- result
+    def result(self) -> MergeResult:
+        """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
+        from numba.typed import List
+
+        from .kernels import merge_kernel
+
+        if not self._values:
+            raise InputError("no frames to merge")
+        opts = self.options
+        p = self.calibration.params
+        strategy = self.dark_strategy
+        k = dark_factor(strategy, opts.n_dark)
+        values = List(self._values)
+        darks = List(self._darks) if self._darks else List([np.zeros((1, 1), np.float32)])
+        times = np.asarray(self._times, np.float64)
+        base = self._base()
+        irr = np.empty(self.shape, np.float32)
+        sig = np.empty(self.shape, np.float32)
+        nexp = np.empty(self.shape, np.float32)
+        iters = np.empty(self.shape, np.uint8)
+        merge_kernel(values, darks, bool(self._darks), times, k, p.g, p.sigma2_R, p.v_sat, p.white_level,
+                     base[0], base[1], base[2], base[3], base[4], *self._bias, *self._D, *self._a[:2],
+                     self._sum, self._cnt, True, int(opts.iterations), float(opts.tolerance),
+                     float(opts.saturation_sigmas), opts.saturation == "probabilistic",
+                     irr, sig, nexp, iters)
+        sat = int(np.count_nonzero(nexp == 0))
+        info = {
+            "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
+            **opts.to_dict(),
+            "dark_strategy": strategy,
+            "n_dark": float(opts.n_dark) if strategy == "master" else None,
+            "master_dark": self.master_dark is not None,
+            "prnu": self.prnu_used,
+            "exposure_times": list(self._times),
+            "n_frames": len(self._values),
+            "n_darks": len(self._darks) if self._darks else (1 if self.master_dark is not None else 0),
+            "saturated_everywhere": sat,
+            "iterations_used_mean": float(iters.mean()),
+            "iterations_used_max": int(iters.max()),
+            "kernel": "numba",
+        }
+        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info)
+
+
+def merge_arrays(values, times, calibration: Calibration, darks=None, **options) -> MergeResult:
+    """Merge raw mosaics into irradiance and uncertainty (Eq. 6, 8-13, Fig. 3).
+
+    Parameters
+    ----------
+    values : sequence of 2-D arrays
+        Raw mosaics, DN (uint16 or float).
+    times : sequence of float
+        Exposure times, s, one per mosaic.
+    calibration : Calibration
+        Camera model (g, mu_R, sigma2_R, v_sat, D; optional PRNU, bias and dark-current maps).
+    darks : sequence of 2-D arrays, or one 2-D array, optional
+        A sequence: one dark frame per mosaic (``matched``), or one master dark per mosaic
+        (``dark_strategy="master"``, ``n_dark`` frames each). One array: a master dark for all
+        exposures (see ``master_dark_time``). None: the ``model`` strategy.
+    **options
+        Fields of :class:`MergeOptions` (iterations, tolerance, saturation, saturation_sigmas,
+        prnu, dark_strategy, n_dark, master_dark_time).
+
+    Returns
+    -------
+    MergeResult
+        float32 irradiance (e-/s), sigma (e-/s) and nexp; ``info`` records the options.
+    """
+    values = list(values)
+    times = list(times)
+    if not values:
+        raise InputError("no frames to merge")
+    if len(times) != len(values):
+        raise InputError(f"{len(times)} exposure times for {len(values)} frames")
+    shape = np.shape(values[0])
+    if len(shape) != 2:
+        raise InputError(f"frame 1: expected a 2-D mosaic, got shape {shape}")
+    master = None
+    per_frame = [None] * len(values)
+    if darks is not None:
+        if isinstance(darks, np.ndarray) and darks.ndim == 2:
+            master = darks
+            options.setdefault("dark_strategy", "master")
+        else:
+            darks = list(darks)
+            if len(darks) != len(values):
+                raise InputError(f"{len(darks)} dark frames for {len(values)} frames")
+            per_frame = darks
+    elif options.get("dark_strategy") in ("matched", "master"):
+        raise InputError(f"the {options['dark_strategy']} dark strategy needs dark frames")
+    if master is None and options.get("dark_strategy") == "model" and darks is not None:
+        per_frame = [None] * len(values)  # model strategy: dark frames are ignored
+    acc = MergeAccumulator(calibration, shape, master_dark=master, **options)
+    for v, t, d in zip(values, times, per_frame):
+        acc.add(v, t, d)
+    return acc.result()
+
+
 def merge_frames(
     frames: Sequence[RawFrame],
     calibration: Calibration,
     darks: Sequence[RawFrame] | None = None,
+    master_dark: RawFrame | None = None,
+    **options,
 ) -> MergeResult:
-    """Merge a bracket of raw frames into irradiance and uncertainty (Eq. 6, 11-13).
+    """Merge a bracket of raw frames into irradiance and uncertainty (Eq. 6, 8-13).
 
     Parameters
     ----------
@@ -49,17 +370,25 @@ def merge_frames(
     calibration : Calibration
         Camera model (g, mu_R, sigma2_R, v_sat, D; optional PRNU and dark-current maps).
     darks : sequence of RawFrame, optional
-        One matching dark frame per exposure (same exposure time). Without darks the bias
-        level and the calibrated dark current are subtracted.
+        Dark frames matched to the exposures by exposure time (one per time; with
+        ``dark_strategy="master"`` each is a master dark of ``n_dark`` frames). Without darks
+        (and without ``master_dark``) the bias level and the calibrated dark current are
+        subtracted (``model``).
+    master_dark : RawFrame, optional
+        One master dark for all exposures (averaged from ``n_dark`` frames); its exposure time
+        is used as ``master_dark_time`` unless given.
+    **options
+        Fields of :class:`MergeOptions`.
     """
     frames = check_frames(frames)
-    p = calibration.params
     shape = frames[0].shape
-    if darks:
+    per_frame = None
+    strategy = options.get("dark_strategy")
+    if darks and strategy != "model":
         darks = check_frames(darks, "dark frame")
         if darks[0].shape != shape:
             raise InputError(f"{darks[0].path}: dark frame size differs from the bracket's")
-        by_time = {}
+        by_time: dict[float, RawFrame] = {}
         for d in darks:
             by_time.setdefault(round(d.exposure_time, 12), d)
         missing = [f for f in frames if round(f.exposure_time, 12) not in by_time]
@@ -67,59 +396,17 @@ def merge_frames(
             raise InputError(
                 f"{missing[0].path}: no dark frame with exposure time {missing[0].exposure_time:g} s"
             )
-        dark_strategy = "matched"
+        per_frame = [by_time[round(f.exposure_time, 12)].data for f in frames]
+    if master_dark is not None:
+        if per_frame is not None:
+            raise InputError("give either dark frames or a master dark, not both")
+        if master_dark.shape != shape:
+            raise InputError(f"{master_dark.path}: master dark size differs from the bracket's")
+        options.setdefault("master_dark_time", master_dark.exposure_time)
+        options.setdefault("dark_strategy", "master")
+        result = merge_arrays([f.data for f in frames], [f.exposure_time for f in frames], calibration,
+                              np.asarray(master_dark.data), **options)
     else:
-        by_time = {}
-        dark_strategy = "model"
-    a = calibration.prnu if calibration.prnu is not None else 1.0
-    D = calibration.dark_current_map if calibration.dark_current_map is not None else p.dark_current
-    bias = calibration.bias_map if calibration.bias_map is not None else p.mu_R
-
-    sum_x = np.zeros(shape)
-    n_ok = np.zeros(shape)
-    xs, oks = [], []
-    for fr in frames:
-        t = fr.exposure_time
-        v = fr.data.astype(np.float64)
-        if dark_strategy == "matched":
-            b = by_time[round(t, 12)].data.astype(np.float64)
-        else:
-            b = bias + t * p.g * D
-        x = (v - b) / (t * p.g * a)
-        ok = v < p.v_sat
-        xs.append(x)
-        oks.append(ok)
-        sum_x += np.where(ok, x, 0.0)
-        n_ok += ok
-    mu0 = np.where(n_ok > 0, sum_x / np.maximum(n_ok, 1), 0.0)
-
-    sw = np.zeros(shape)
-    swx = np.zeros(shape)
-    for fr, x, ok in zip(frames, xs, oks):
-        w = 1.0 / exposure_variance(mu0, fr.exposure_time, p.g, p.sigma2_R, D, a, dark_strategy)
-        sw += np.where(ok, w, 0.0)
-        swx += np.where(ok, w * x, 0.0)
-    irr = np.where(sw > 0, swx / np.where(sw > 0, sw, 1.0), 0.0)
-    sigma = np.where(sw > 0, 1.0 / np.sqrt(np.where(sw > 0, sw, 1.0)), 0.0)
-
-    # Saturated everywhere: lower bound from the shortest exposure at the saturation limit.
-    sat = n_ok == 0
-    if np.any(sat):
-        t_min = min(fr.exposure_time for fr in frames)
-        bound = (p.v_sat - (bias if dark_strategy == "model" else p.mu_R)) / (t_min * p.g * a)
-        irr = np.where(sat, bound, irr)
-        sigma = np.where(sat, 0.0, sigma)
-    info = {
-        "method": "one-step inverse-variance (skeleton)",
-        "dark_strategy": dark_strategy,
-        "exposure_times": [fr.exposure_time for fr in frames],
-        "n_frames": len(frames),
-        "n_darks": len(darks or []),
-        "saturated_everywhere": int(sat.sum()),
-    }
-    return MergeResult(
-        irradiance=irr.astype(np.float32),
-        sigma=sigma.astype(np.float32),
-        nexp=n_ok.astype(np.float32),
-        info=info,
-    )
+        result = merge_arrays([f.data for f in frames], [f.exposure_time for f in frames], calibration,
+                              per_frame, **options)
+    return result

@@ -23,6 +23,8 @@ import numpy as np
 
 __all__ = [
     "DarkStrategy",
+    "dark_factor",
+    "variance_core",
     "exposure_variance",
     "exposure_weight",
     "merged_variance",
@@ -41,7 +43,8 @@ class DarkStrategy(str, Enum):
     MODEL = "model"
 
 
-def _dark_factor(dark: DarkStrategy | str, n_dark: float) -> float:
+def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
+    """The factor k of the dark-level variance: 1 (matched), 1/n_dark (master), 0 (model)."""
     dark = DarkStrategy(dark)
     if dark is DarkStrategy.MATCHED:
         return 1.0
@@ -50,6 +53,21 @@ def _dark_factor(dark: DarkStrategy | str, n_dark: float) -> float:
             raise ValueError(f"a master dark needs n_dark >= 1, got {n_dark!r}")
         return 1.0 / float(n_dark)
     return 0.0
+
+
+_dark_factor = dark_factor
+
+
+def variance_core(mu_pos, t, g, sigma2_R, D, a, k):
+    """Var(x_i) for a non-negative estimate ``mu_pos``, (e-/s)^2 (Eq. 3, 5, 6, 13).
+
+    The one place the formula is written. Plain arithmetic only, so that it works on numpy
+    arrays (:func:`exposure_variance`) and, compiled by numba, on scalars inside the merge
+    kernel (:mod:`pipeline.kernels`). ``k`` is :func:`dark_factor`; ``mu_pos`` must already be
+    ``max(mu, 0)``.
+    """
+    g2t = g * g * t
+    return (g2t * (a * mu_pos + D) + sigma2_R + k * (g2t * D + sigma2_R)) / ((t * g * a) * (t * g * a))
 
 
 def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
@@ -84,15 +102,12 @@ def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1
     numpy.ndarray
         Variance in (e-/s)^2, float64, broadcast over the inputs.
     """
-    k = _dark_factor(dark, n_dark)
+    k = dark_factor(dark, n_dark)
     mu = np.maximum(np.asarray(mu, dtype=np.float64), 0.0)
     t = np.asarray(t, dtype=np.float64)
     a = np.asarray(a, dtype=np.float64)
     D = np.asarray(D, dtype=np.float64)
-    g2t = g * g * t
-    var_v = g2t * (a * mu + D) + sigma2_R
-    var_b = k * (g2t * D + sigma2_R)
-    return (var_v + var_b) / (t * g * a) ** 2
+    return np.asarray(variance_core(mu, t, g, sigma2_R, D, a, k), dtype=np.float64)
 
 
 def exposure_weight(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
