@@ -28,14 +28,20 @@ import numpy as np
 from pipeline.errors import HdrcapError, InputError
 
 __all__ = ["EvalSetup", "evaluation_params", "make_setup", "TEN_X_READOUT", "ZERO_READOUT", "simulate_bracket_arrays", "merge_method", "snr_experiment",
-           "qq_experiment", "run_evaluation", "BASELINES", "CURVES", "command"]
+           "qq_experiment", "run_evaluation", "BASELINES", "CURVES", "OPTIMAL_OPTIONS", "command"]
 
 #: The Table 1 baselines, in the paper's order.
 BASELINES = ("uniform", "mann-picard", "debevec-malik", "mitsunaga-nayar", "reinhard", "robertson", "tsin",
              "kirk-andersen")
 #: Curves of the SNR plots: the baselines, Eq. 13 at the observed value (one pass), and the
 #: maximum-likelihood merge of pipeline.merge ("optimal").
-CURVES = BASELINES + ("optimal@observed", "optimal")
+CURVES = BASELINES + ("optimal@observed", "optimal-defaults", "optimal")
+
+#: Options of the ML merge for the ``optimal`` curve: Eq. 11 threshold only. The evaluation's
+#: v_sat already lies 5 sigma_R below the saturated output (:func:`evaluation_params`), so the
+#: merge's extra near-saturation rule (drop samples predicted within 3 sigma of v_sat) is off;
+#: ``optimal-defaults`` shows the merge with its defaults (rule on) for comparison.
+OPTIMAL_OPTIONS = {"saturation_sigmas": 0.0}
 
 
 def TEN_X_READOUT(spec):
@@ -119,12 +125,15 @@ def merge_method(name: str, frames, darks, times, calibration, **options):
     """Merge with curve ``name`` of :data:`CURVES`; returns a :class:`pipeline.merge.MergeResult`.
 
     ``optimal`` is the maximum-likelihood merge (:func:`pipeline.merge.merge_arrays` with
-    ``options``; before it exists, the skeleton :func:`pipeline.merge.merge_frames`).
+    ``options``; before it exists, the skeleton :func:`pipeline.merge.merge_frames`);
+    ``optimal-defaults`` the same merge with its default options.
     ``optimal@observed`` is the registry's Eq. 13 at the observed value (one pass).
     """
     from pipeline import merge as merge_mod
     from pipeline.weighting import merge_weighted
 
+    if name == "optimal-defaults":
+        name, options = "optimal", {}
     if name == "optimal":
         if hasattr(merge_mod, "merge_arrays"):
             return merge_mod.merge_arrays(frames, list(times), calibration, darks=darks, **options)
@@ -161,7 +170,8 @@ def snr_experiment(setup: EvalSetup, reps: int = 4, seed: int = 0, curves: Seque
         frames, darks = simulate_bracket_arrays(setup, rng)
         for c in curves:
             t0 = time.perf_counter()
-            res = merge_method(c, frames, darks, setup.times, calib, **(options or {}))
+            opts = dict(OPTIMAL_OPTIONS if options is None else options)
+            res = merge_method(c, frames, darks, setup.times, calib, **opts)
             seconds[c] += time.perf_counter() - t0
             est[c].append(np.asarray(res.irradiance, dtype=np.float64))
     stacks = {c: np.stack(v) for c, v in est.items()}
@@ -236,6 +246,7 @@ _STYLE = {
     "uniform": ("tab:gray", ":"), "mann-picard": ("tab:brown", "--"), "debevec-malik": ("tab:orange", "-"),
     "mitsunaga-nayar": ("tab:green", "-"), "reinhard": ("tab:olive", "--"), "robertson": ("tab:purple", "-"),
     "tsin": ("tab:pink", "-"), "kirk-andersen": ("tab:cyan", "-"), "optimal@observed": ("tab:blue", ":"),
+    "optimal-defaults": ("tab:red", ":"),
     "optimal": ("tab:red", "-"),
 }
 
@@ -353,7 +364,8 @@ def run_evaluation(out: Path | None = None, quick: bool = False, seed: int = 0, 
     results: dict = {"seed": seed, "quick": quick, "snr": {}, "notes": {
         "snr_db": "-10 log10(mean ((estimate - X)/X)^2) over the photosites and repetitions of each bin",
         "efficiency": "mean(bound/X^2) / mean(((estimate - X)/X)^2); bound = 1/sum_i w_i(X), Eq. 12-13",
-        "optimal": "maximum-likelihood merge of pipeline.merge (iterative Eq. 12-13)",
+        "optimal": "maximum-likelihood merge of pipeline.merge (iterative Eq. 12-13), options " + json.dumps(OPTIMAL_OPTIONS),
+        "optimal-defaults": "the same merge with its default options (near-saturation rule 3 sigma on)",
         "optimal@observed": "Eq. 13 evaluated at each sample's observed value, one pass",
         "zero readout": "sigma2_R = 1/12 DN^2 (quantisation only), no dark current",
         "10x readout": "sigma_R x 10 (sigma2_R x 100), bias raised to 6 sigma_R so that no value clips at 0",
