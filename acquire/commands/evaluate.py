@@ -96,13 +96,14 @@ def evaluation_params(spec):
 
 
 def make_setup(spec, shape=(64, 256), seed: int = 0, decades: float = 4.0, n_exp: int = 6, ratio: float = 4.0,
-               t_max: float = 1.0, fill: float = 0.8) -> EvalSetup:
-    """Build the experiment of the module docstring for sensor ``spec``."""
+               t_max: float = 1.0, fill: float = 0.8, params=None) -> EvalSetup:
+    """Build the experiment of the module docstring for sensor ``spec``; ``params`` (a
+    :class:`pipeline.params.SensorParams`) replaces :func:`evaluation_params` when given."""
     from mock_camera import SimulatedSensor
     from mock_camera.scenes import make_scene
     from pipeline.params import Calibration
 
-    p = evaluation_params(spec)
+    p = evaluation_params(spec) if params is None else params
     times = tuple(float(t_max / ratio ** (n_exp - 1 - k)) for k in range(n_exp))
     x_max = fill * (p.v_sat - p.mu_R) / (p.g * times[0])
     scene = make_scene("gradient", shape, decades=decades, x_max=x_max)
