@@ -113,7 +113,7 @@ def run_emva(descriptor, saturation_criterion, provenance):
 
 
 @many_values("--bias", "--saturation", "--flat", "--dark", "--times")
-@click.command("calibrate")
+@click.command("calibrate", short_help="Calibrate the camera noise model from bias, saturation, flat and dark frames.")
 @click.option("--bias", multiple=True, type=click.Path(path_type=Path), help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.")
 @click.option("--saturation", multiple=True, type=click.Path(path_type=Path), help="Saturation frame(s): every photosite at full well.")
 @click.option("--flat", multiple=True, type=click.Path(path_type=Path), help="Flat fields; consecutive frames at the same exposure time form pairs (gain). Pairs at >= 3 levels give the photon-transfer regression.")

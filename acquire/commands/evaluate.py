@@ -430,7 +430,7 @@ def _print_summary(results: dict) -> None:
         click.echo(f"Gaussian check {label}: Shapiro-Wilk rejection at 5 %: {rates}")
 
 
-@click.command("evaluate")
+@click.command("evaluate", short_help="Reproduce the paper's Sec. 7 evaluation: SNR per weighting vs the bound, Q-Q, efficiency.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder for evaluation.json and the PNG plots.")
 @click.option("--quick", is_flag=True, help="Smaller images and fewer repetitions (about 4x faster).")
