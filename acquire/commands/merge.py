@@ -14,18 +14,7 @@ from pipeline.errors import InputError
 
 def read_frames(paths, times=None, what="frame", progress=False):
     """Read raw files / 16-bit images; ``times`` (seconds, one per path) override EXIF."""
-    from tqdm import tqdm
-
-    from pipeline.io import read_frame
-
-    paths = list(paths)
-    if times:
-        if len(times) != len(paths):
-            raise InputError(f"--times gives {len(times)} exposure times for {len(paths)} {what}s")
-    else:
-        times = [None] * len(paths)
-    return [read_frame(p, t) for p, t in tqdm(list(zip(paths, times)), desc=f"read {what}s", unit="file",
-                                               disable=None if progress else True, leave=False)]
+    return list(_read_parallel(paths, times, what, progress))
 
 
 def build_hdr_image(result, frames, calibration, extra=None):
