@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.params import THIRD_STOP_TIMES
+
 from .backend import SimulatedCamera
 from .sensor import PRESETS, SensorSpec
 
@@ -40,13 +42,8 @@ __all__ = [
     "STANDARD_TIMES",
 ]
 
-_THIRD_STOPS = (
-    [30, 25, 20, 15, 13, 10, 8, 6, 5, 4, 3.2, 2.5, 2, 1.6, 1.3, 1, 0.8, 0.6, 0.5, 0.4, 0.3]
-    + [1 / d for d in (4, 5, 6, 8, 10, 13, 15, 20, 25, 30, 40, 50, 60, 80, 100, 125, 160, 200, 250, 320,
-                       400, 500, 640, 800, 1000, 1250, 1600, 2000, 2500, 3200, 4000, 5000, 6400, 8000)]
-)
 #: The usual 1/3-stop shutter speeds of a DSLR, 1/8000 s .. 30 s, ascending.
-STANDARD_TIMES: tuple[float, ...] = tuple(sorted(float(t) for t in _THIRD_STOPS))
+STANDARD_TIMES: tuple[float, ...] = THIRD_STOP_TIMES
 
 
 class MockCameraError(Exception):

@@ -30,6 +30,7 @@ __all__ = [
     "read_image16",
     "read_frame",
     "check_frames",
+    "check_exposure_time",
     "sha256_file",
     "EmvaStep",
     "EmvaDataset",
@@ -96,13 +97,16 @@ def _check_readable(path: Path) -> None:
         raise InputError(f"{path}: empty file")
 
 
-def _check_time(path, t) -> float:
+def check_exposure_time(t, where=None) -> float:
+    """Return ``t`` as float seconds, or raise :class:`InputError` (prefixed with ``where``,
+    e.g. the file name) unless it is a finite number > 0."""
+    prefix = f"{where}: " if where is not None else ""
     try:
         t = float(t)
     except (TypeError, ValueError):
-        raise InputError(f"{path}: exposure time {t!r} is not a number") from None
+        raise InputError(f"{prefix}exposure time {t!r} is not a number") from None
     if not (np.isfinite(t) and t > 0):
-        raise InputError(f"{path}: exposure time must be a positive number of seconds, got {t!r}")
+        raise InputError(f"{prefix}exposure time must be a positive number of seconds, got {t!r}")
     return t
 
 
@@ -199,7 +203,7 @@ def read_raw(path, exposure_time: float | None = None) -> RawFrame:
         raise InputError(f"{path}: no exposure time in EXIF; give it explicitly (--times)")
     return RawFrame(
         data=data,
-        exposure_time=_check_time(path, t),
+        exposure_time=check_exposure_time(t, path),
         iso=float(exif["ISOSpeedRatings"]) if exif.get("ISOSpeedRatings") else iso,
         black_level=black,
         white_level=white,
@@ -216,7 +220,7 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     _check_readable(path)
     if exposure_time is None:
         raise InputError(f"{path}: a PNG/TIFF frame needs an explicit exposure time (--times)")
-    t = _check_time(path, exposure_time)
+    t = check_exposure_time(exposure_time, path)
     suffix = path.suffix.lower()
     try:
         if suffix in (".tif", ".tiff"):

@@ -34,7 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .errors import InputError
-from .io import RawFrame, check_frames
+from .io import RawFrame, check_exposure_time, check_frames
 from .noise import DarkStrategy, dark_factor
 from .params import Calibration
 
@@ -113,16 +113,6 @@ class MergeOptions:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
-
-
-def _check_time(t) -> float:
-    try:
-        t = float(t)
-    except (TypeError, ValueError):
-        raise InputError(f"exposure time must be a number, got {t!r}") from None
-    if not (np.isfinite(t) and t > 0):
-        raise InputError(f"exposure time must be finite and > 0 s, got {t!r}")
-    return t
 
 
 def _as_frame(arr, shape, what) -> np.ndarray:
@@ -227,7 +217,7 @@ class MergeAccumulator:
     def add(self, values, t, dark=None) -> None:
         """Add one exposure: raw mosaic ``values`` (DN), exposure time ``t`` (s) and, for the
         matched/master-per-exposure strategies, its dark frame ``dark`` (DN)."""
-        t = _check_time(t)
+        t = check_exposure_time(t)
         v = _as_frame(values, self.shape, f"frame {len(self._values) + 1} (t={t:g} s)")
         if self._strategy is None:
             self._strategy = "matched" if dark is not None else "model"

@@ -6,14 +6,12 @@ from fractions import Fraction
 
 import numpy as np
 
+from pipeline.params import THIRD_STOP_TIMES
+
 __all__ = ["THIRD_STOP_LADDER", "shutter_ladder", "parse_time"]
 
-_FAST = (8000, 6400, 5000, 4000, 3200, 2500, 2000, 1600, 1250, 1000, 800, 640, 500, 400, 320, 250, 200,
-         160, 125, 100, 80, 60, 50, 40, 30, 25, 20, 15, 13, 10, 8, 6, 5, 4)
-_SLOW = (0.3, 0.4, 0.5, 0.6, 0.8, 1, 1.3, 1.6, 2, 2.5, 3.2, 4, 5, 6, 8, 10, 13, 15, 20, 25, 30)
-
 #: The usual 1/3-EV shutter ladder of a camera, 1/8000 s to 30 s, in seconds (55 values).
-THIRD_STOP_LADDER: tuple[float, ...] = tuple(1.0 / d for d in _FAST) + tuple(float(s) for s in _SLOW)
+THIRD_STOP_LADDER: tuple[float, ...] = THIRD_STOP_TIMES
 
 
 def shutter_ladder(t_min: float = 1 / 8000, t_max: float = 30.0) -> tuple[float, ...]:
