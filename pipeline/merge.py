@@ -190,8 +190,13 @@ class MergeAccumulator:
         self._bias = _map_arg(calibration.bias_map, self.shape, p.mu_R, "bias")
         self.prnu_used = "map" if use_map else "scalar"
         self._values: list[np.ndarray] = []
-        self._darks: list[np.ndarray] = []
+        self._darks: list[np.ndarray | None] = []
         self._times: list[float] = []
+        self._kinds: list[int] = []
+        self._coefs: list[float] = []
+        self._ks: list[float] = []
+        self._strats: list[str] = []
+        self._ndark: list[float] = []
         self.stream = bool(stream)
         init_shape = self.shape if self.stream else (1, 1)
         self._sum = np.zeros(init_shape, np.float64)
@@ -200,54 +205,79 @@ class MergeAccumulator:
     # -------------------------------------------------------------------------------- setup
     @property
     def dark_strategy(self) -> str:
-        return self._strategy or "model"
+        """The common dark strategy of the frames added, or ``"mixed"``."""
+        used = set(self._strats)
+        if len(used) > 1:
+            return "mixed"
+        return used.pop() if used else (self._strategy or "model")
 
-    @property
-    def _has_darks(self) -> bool:
-        return self._strategy in ("matched", "master") and self.master_dark is None
+    def _frame_strategy(self, strategy, dark) -> str:
+        if strategy is None:
+            if self._strategy is None:
+                self._strategy = "matched" if dark is not None else "model"
+            return self._strategy
+        if strategy not in {d.value for d in DarkStrategy}:
+            raise InputError(f"dark strategy must be matched, master or model, got {strategy!r}")
+        return strategy
 
-    def _base(self):
-        """(base map, is_map, scalar, t_ref, shift) of the dark level without dark frames."""
-        if self.master_dark is not None:
-            t_ref = self.options.master_dark_time
-            arr = self.master_dark.astype(np.float32, copy=False)
-            return arr, True, 0.0, (0.0 if t_ref is None else t_ref), (0.0 if t_ref is None else 1.0)
-        return (*self._bias, 0.0, 1.0)
+    def add(self, values, t, dark=None, *, strategy=None, n_dark=None) -> None:
+        """Add one exposure: raw mosaic ``values`` (DN), exposure time ``t`` (s) and its dark
+        level.
 
-    def add(self, values, t, dark=None) -> None:
-        """Add one exposure: raw mosaic ``values`` (DN), exposure time ``t`` (s) and, for the
-        matched/master-per-exposure strategies, its dark frame ``dark`` (DN)."""
+        ``strategy`` (None: the accumulator's ``dark_strategy``, else ``matched`` when ``dark``
+        is given and ``model`` otherwise) may differ from frame to frame: ``matched`` needs
+        ``dark``, a dark frame at the same time; ``master`` takes ``dark`` as this exposure's
+        master dark averaged from ``n_dark`` frames (default: the ``n_dark`` option), or
+        without ``dark`` the accumulator's single master dark; ``model`` takes no dark frame
+        (bias level plus calibrated dark current).
+        """
         t = check_exposure_time(t)
-        v = _as_frame(values, self.shape, f"frame {len(self._values) + 1} (t={t:g} s)")
-        if self._strategy is None:
-            self._strategy = "matched" if dark is not None else "model"
-        if self._has_darks:
-            if dark is None:
-                raise InputError(f"frame {len(self._values) + 1} (t={t:g} s): no dark frame for the "
-                                 f"{self._strategy} dark strategy")
-            d = _as_frame(dark, self.shape, f"dark frame for t={t:g} s")
-            if self._darks and d.dtype != self._darks[0].dtype:
-                raise InputError("dark frames must all have the same pixel type")
-        else:
+        what = f"frame {len(self._values) + 1} (t={t:g} s)"
+        v = _as_frame(values, self.shape, what)
+        s = self._frame_strategy(strategy, dark)
+        p = self.calibration.params
+        n = self.options.n_dark if n_dark is None else n_dark
+        if s == "model":
             if dark is not None:
-                raise InputError(f"a dark frame was given but the dark strategy is {self._strategy}")
-            d = None
+                raise InputError(f"{what}: a dark frame was given but the dark strategy is model")
+            kind, coef, d = 1, p.g * t, None
+        elif dark is not None:
+            kind, coef = 0, 0.0
+            d = _as_frame(dark, self.shape, f"dark frame for t={t:g} s")
+        elif s == "master" and self.master_dark is not None:
+            t_ref = self.options.master_dark_time
+            kind, coef, d = 2, (0.0 if t_ref is None else p.g * (t - t_ref)), None
+        else:
+            raise InputError(f"{what}: no dark frame for the {s} dark strategy")
+        k = dark_factor(s, n)
+        if d is not None:
+            own = [x for x in self._darks if x is not None]
+            if own and d.dtype != own[0].dtype:
+                d = d.astype(np.float32)
+                if own[0].dtype != np.float32:
+                    self._darks = [None if x is None else x.astype(np.float32) for x in self._darks]
         if self._values and v.dtype != self._values[0].dtype:
             v = v.astype(np.float32)
             if self._values[0].dtype != np.float32:
                 self._values = [x.astype(np.float32) for x in self._values]
-        from .kernels import first_pass_kernel
-
-        p = self.calibration.params
-        base = self._base()
         if self.stream:
-                first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), d is not None,
-                              base[0], base[1], base[2], base[3], base[4], t, p.g, p.v_sat,
+            from .kernels import first_pass_kernel
+
+            if kind == 2:
+                base = (self.master_dark.astype(np.float32, copy=False), True, 0.0)
+            else:
+                base = self._bias
+            first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), kind,
+                              base[0], base[1], base[2], coef, t, p.g, p.v_sat,
                               *self._D, *self._a[:2], self._sum, self._cnt)
         self._values.append(v)
-        if d is not None:
-            self._darks.append(d)
+        self._darks.append(d)
         self._times.append(t)
+        self._kinds.append(kind)
+        self._coefs.append(coef)
+        self._ks.append(k)
+        self._strats.append(s)
+        self._ndark.append(float(n) if s == "master" else (1.0 if s == "matched" else 0.0))
 
     def __len__(self) -> int:
         return len(self._values)
@@ -264,21 +294,24 @@ class MergeAccumulator:
         opts = self.options
         p = self.calibration.params
         strategy = self.dark_strategy
-        k = dark_factor(strategy, opts.n_dark)
         # Plain lists (numba "reflected lists", read-only here): unlike numba.typed.List they
         # need no run-time compilation, which would cost seconds per process.
         values = list(self._values)
-        darks = list(self._darks) if self._darks else [np.zeros((1, 1), self._values[0].dtype)]
+        own = [d for d in self._darks if d is not None]
+        hold = np.zeros((1, 1), own[0].dtype if own else np.float32)  # frames without a dark frame
+        darks = [hold if d is None else d for d in self._darks]
         times = np.asarray(self._times, np.float64)
-        base = self._base()
+        has_master = self.master_dark is not None
+        master = self.master_dark.astype(np.float32, copy=False) if has_master else np.zeros((1, 1), np.float32)
         irr = np.empty(self.shape, np.float32)
         sig = np.empty(self.shape, np.float32)
         nexp = np.empty(self.shape, np.float32)
         iters = np.empty(self.shape, np.uint8)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
-            merge_kernel(values, darks, bool(self._darks), times, k, p.g, p.sigma2_R, p.v_sat, p.white_level,
-                         base[0], base[1], base[2], base[3], base[4], *self._bias, *self._D, *self._a[:2],
+            merge_kernel(values, darks, np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
+                         np.asarray(self._ks, np.float64), times, p.g, p.sigma2_R, p.v_sat, p.white_level,
+                         master, has_master, *self._bias, *self._D, *self._a[:2],
                          self._sum, self._cnt, self.stream, int(opts.iterations), float(opts.tolerance),
                          float(opts.saturation_sigmas), opts.saturation == "probabilistic",
                          irr, sig, nexp, iters, 8 * numba.get_num_threads())
@@ -288,11 +321,13 @@ class MergeAccumulator:
             **opts.to_dict(),
             "dark_strategy": strategy,
             "n_dark": float(opts.n_dark) if strategy == "master" else None,
+            "dark_strategies": list(self._strats),
+            "n_dark_per_frame": list(self._ndark),
             "master_dark": self.master_dark is not None,
             "prnu": self.prnu_used,
             "exposure_times": list(self._times),
             "n_frames": len(self._values),
-            "n_darks": len(self._darks) if self._darks else (1 if self.master_dark is not None else 0),
+            "n_darks": len(own) + (1 if has_master and 2 in self._kinds else 0),
             "saturated_everywhere": sat,
             "iterations_used_mean": float(iters.mean()),
             "iterations_used_max": int(iters.max()),
@@ -301,7 +336,8 @@ class MergeAccumulator:
         return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info)
 
 
-def merge_arrays(values, times, calibration: Calibration, darks=None, **options) -> MergeResult:
+def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None,
+                 **options) -> MergeResult:
     """Merge raw mosaics into irradiance and uncertainty (Eq. 6, 8-13, Fig. 3).
 
     Parameters
@@ -312,10 +348,16 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, **options)
         Exposure times, s, one per mosaic.
     calibration : Calibration
         Camera model (g, mu_R, sigma2_R, v_sat, D; optional PRNU, bias and dark-current maps).
-    darks : sequence of 2-D arrays, or one 2-D array, optional
-        A sequence: one dark frame per mosaic (``matched``), or one master dark per mosaic
-        (``dark_strategy="master"``, ``n_dark`` frames each). One array: a master dark for all
-        exposures (see ``master_dark_time``). None: the ``model`` strategy.
+    darks : sequence of 2-D arrays (or None entries), or one 2-D array, optional
+        A sequence aligned with ``values``: each mosaic's dark frame (``matched``), its master
+        dark (``master``, ``n_dark`` frames) or None (``model``, or the single master dark). One
+        array: a master dark for all exposures (see ``master_dark_time``). None: the ``model``
+        strategy.
+    dark_strategies : sequence of str or None, optional
+        Dark strategy per mosaic (``matched``, ``master``, ``model``; None entries take the
+        ``dark_strategy`` option): a plan may mix them.
+    n_darks : sequence of float or None, optional
+        Frames averaged into each mosaic's master dark (None entries: the ``n_dark`` option).
     **options
         Fields of :class:`MergeOptions` (iterations, tolerance, saturation, saturation_sigmas,
         prnu, dark_strategy, n_dark, master_dark_time).
@@ -323,7 +365,8 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, **options)
     Returns
     -------
     MergeResult
-        float32 irradiance (e-/s), sigma (e-/s) and nexp; ``info`` records the options.
+        float32 irradiance (e-/s), sigma (e-/s) and nexp; ``info`` records the options and the
+        dark strategy of every frame.
     """
     values = list(values)
     times = list(times)
@@ -334,6 +377,8 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, **options)
     shape = np.shape(values[0])
     if len(shape) != 2:
         raise InputError(f"frame 1: expected a 2-D mosaic, got shape {shape}")
+    strategies = _per_frame(dark_strategies, len(values), "dark strategies")
+    ndarks = _per_frame(n_darks, len(values), "master-dark frame counts")
     master = None
     per_frame = [None] * len(values)
     if darks is not None:
@@ -345,14 +390,24 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, **options)
             if len(darks) != len(values):
                 raise InputError(f"{len(darks)} dark frames for {len(values)} frames")
             per_frame = darks
-    elif options.get("dark_strategy") in ("matched", "master"):
+    elif options.get("dark_strategy") in ("matched", "master") and not all(strategies):
         raise InputError(f"the {options['dark_strategy']} dark strategy needs dark frames")
-    if master is None and options.get("dark_strategy") == "model" and darks is not None:
-        per_frame = [None] * len(values)  # model strategy: dark frames are ignored
+    default = options.get("dark_strategy")
+    # Frames merged with the model strategy ignore any dark frame given for them.
+    per_frame = [None if (s or default) == "model" else d for d, s in zip(per_frame, strategies)]
     acc = MergeAccumulator(calibration, shape, master_dark=master, stream=False, **options)
-    for v, t, d in zip(values, times, per_frame):
-        acc.add(v, t, d)
+    for v, t, d, s, n in zip(values, times, per_frame, strategies, ndarks):
+        acc.add(v, t, d, strategy=s, n_dark=n)
     return acc.result()
+
+
+def _per_frame(items, n, what) -> list:
+    if items is None:
+        return [None] * n
+    items = list(items)
+    if len(items) != n:
+        raise InputError(f"{len(items)} {what} for {n} frames")
+    return items
 
 
 def merge_frames(
@@ -360,6 +415,9 @@ def merge_frames(
     calibration: Calibration,
     darks: Sequence[RawFrame] | None = None,
     master_dark: RawFrame | None = None,
+    *,
+    dark_strategies: Sequence[str | None] | None = None,
+    n_darks: Sequence[float | None] | None = None,
     **options,
 ) -> MergeResult:
     """Merge a bracket of raw frames into irradiance and uncertainty (Eq. 6, 8-13).
@@ -374,40 +432,47 @@ def merge_frames(
         Dark frames matched to the exposures by exposure time (one per time; with
         ``dark_strategy="master"`` each is a master dark of ``n_dark`` frames). Without darks
         (and without ``master_dark``) the bias level and the calibrated dark current are
-        subtracted (``model``).
+        subtracted (``model``). Frames merged with the ``model`` strategy need none.
     master_dark : RawFrame, optional
         One master dark for all exposures (averaged from ``n_dark`` frames); its exposure time
         is used as ``master_dark_time`` unless given.
+    dark_strategies, n_darks : sequences aligned with ``frames``, optional
+        Per-frame dark strategy and master-dark frame count (see :func:`merge_arrays`).
     **options
         Fields of :class:`MergeOptions`.
     """
     frames = check_frames(frames)
     shape = frames[0].shape
+    strategies = _per_frame(dark_strategies, len(frames), "dark strategies")
+    default = options.get("dark_strategy")
     per_frame = None
-    strategy = options.get("dark_strategy")
-    if darks and strategy != "model":
+    if darks and default != "model" or (darks and any(s not in (None, "model") for s in strategies)):
         darks = check_frames(darks, "dark frame")
         if darks[0].shape != shape:
             raise InputError(f"{darks[0].path}: dark frame size differs from the bracket's")
         by_time: dict[float, RawFrame] = {}
         for d in darks:
             by_time.setdefault(round(d.exposure_time, 12), d)
-        missing = [f for f in frames if round(f.exposure_time, 12) not in by_time]
-        if missing:
-            raise InputError(
-                f"{missing[0].path}: no dark frame with exposure time {missing[0].exposure_time:g} s"
-            )
-        per_frame = [by_time[round(f.exposure_time, 12)].data for f in frames]
+        per_frame = []
+        for f, s in zip(frames, strategies):
+            if (s or default) == "model":
+                per_frame.append(None)
+                continue
+            d = by_time.get(round(f.exposure_time, 12))
+            if d is None and not ((s or default) == "master" and master_dark is not None):
+                raise InputError(f"{f.path}: no dark frame with exposure time {f.exposure_time:g} s")
+            per_frame.append(None if d is None else d.data)
     if master_dark is not None:
-        if per_frame is not None:
+        if per_frame is not None and all(s is None for s in strategies):
             raise InputError("give either dark frames or a master dark, not both")
         if master_dark.shape != shape:
             raise InputError(f"{master_dark.path}: master dark size differs from the bracket's")
         options.setdefault("master_dark_time", master_dark.exposure_time)
         options.setdefault("dark_strategy", "master")
-        result = merge_arrays([f.data for f in frames], [f.exposure_time for f in frames], calibration,
-                              np.asarray(master_dark.data), **options)
-    else:
-        result = merge_arrays([f.data for f in frames], [f.exposure_time for f in frames], calibration,
-                              per_frame, **options)
-    return result
+        acc = MergeAccumulator(calibration, shape, master_dark=np.asarray(master_dark.data), stream=False, **options)
+        for f, d, s, n in zip(frames, per_frame or [None] * len(frames), strategies,
+                              _per_frame(n_darks, len(frames), "master-dark frame counts")):
+            acc.add(f.data, f.exposure_time, d, strategy=s, n_dark=n)
+        return acc.result()
+    return merge_arrays([f.data for f in frames], [f.exposure_time for f in frames], calibration, per_frame,
+                        dark_strategies=strategies, n_darks=n_darks, **options)

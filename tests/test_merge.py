@@ -29,9 +29,11 @@ def _truth_calibration(sensor, params):
 
 def _bound(X, a, D, p, times, dark, n_dark=1):
     """Practical bound 1/sum w at the TRUE irradiance over the exposures whose mean raw value
-    lies more than MARGIN of its standard deviation below v_sat (inf where none)."""
+    lies more than MARGIN of its standard deviation below v_sat (inf where none). ``dark``: one
+    strategy, or one per exposure."""
     t = np.asarray(times)[:, None, None]
-    var = exposure_variance(X[None], t, p.g, p.sigma2_R, D[None], a[None], dark, n_dark)
+    darks = [dark] * len(times) if isinstance(dark, str) else list(dark)
+    var = np.stack([exposure_variance(X, ti, p.g, p.sigma2_R, D, a, d, n_dark) for ti, d in zip(times, darks)])
     var_v = exposure_variance(X[None], t, p.g, p.sigma2_R, D[None], a[None], "model") * (t * p.g * a) ** 2
     usable = (p.v_sat - (p.mu_R + p.g * t * (a * X + D))) > MARGIN * np.sqrt(var_v)
     sw = np.where(usable, 1.0 / var, 0.0).sum(axis=0)
@@ -71,9 +73,18 @@ def _monte_carlo(cam, dark="matched", seeds=(0, 1, 2), shape=(256, 256), n_dark=
             darks = [np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
                      for t in TIMES]
             kw.update(dark_strategy="master", n_dark=n_dark)
-        else:
+        elif dark == "model":
             darks = None
+        else:  # one strategy per exposure
+            darks = [None if d == "model" else
+                     sensor.expose(X, t, dark=True) if d == "matched" else
+                     np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
+                     for d, t in zip(dark, TIMES)]
+            kw.update(dark_strategies=list(dark), n_darks=[n_dark if d == "master" else None for d in dark])
         res = merge_arrays(values, TIMES, cal, darks, **kw)
+        if not isinstance(dark, str):
+            assert res.info["dark_strategy"] == "mixed" and res.info["dark_strategies"] == list(dark)
+            assert res.info["n_dark_per_frame"] == [{"model": 0, "matched": 1, "master": n_dark}[d] for d in dark]
         assert np.isfinite(res.irradiance).all() and np.isfinite(res.sigma).all()
         out["X"].append(X.ravel())
         out["err"].append((res.irradiance.astype(np.float64) - X).ravel())
@@ -128,6 +139,30 @@ def test_dark_strategies_reach_their_bound_and_beat_matched_when_dark(dark):
     expected = np.mean(mc["bound"][low]) / np.mean(ref["bound"][low])
     assert expected < 0.85
     assert mse / mse_ref == pytest.approx(expected, rel=0.08)
+
+
+def test_mixed_dark_strategies_per_exposure_reach_their_bound():
+    """A plan may mix strategies: no dark frame for the short exposures (read noise dominates
+    nothing there), master darks in the middle, matched darks for the longest."""
+    mixed = ("model", "model", "master", "master", "matched", "matched")
+    mc = _monte_carlo("camera-B", mixed, seeds=(6, 7))
+    _check_statistics(mc)
+    # Streaming with per-frame strategies equals the batch merge.
+    spec = PRESETS["camera-B"]
+    sensor = SimulatedSensor(spec, (32, 48), seed=1)
+    X = _scene(spec, (32, 48), np.random.default_rng(2))
+    cal = _truth_calibration(sensor, spec.nominal_params())
+    values = [sensor.expose(X, t) for t in TIMES]
+    darks = [None if d == "model" else sensor.expose(X, t, dark=True) for d, t in zip(mixed, TIMES)]
+    batch = merge_arrays(values, TIMES, cal, darks, dark_strategies=mixed, n_darks=[1] * 6)
+    acc = MergeAccumulator(cal, X.shape, n_dark=1)
+    for v, t, d, s in zip(values, TIMES, darks, mixed):
+        acc.add(v, t, d, strategy=s)
+    np.testing.assert_array_equal(acc.result().irradiance, batch.irradiance)
+    with pytest.raises(InputError, match="no dark frame for the matched"):
+        merge_arrays(values, TIMES, cal, [None] * 6, dark_strategies=["matched"] * 6)
+    with pytest.raises(InputError, match="6 dark strategies for 5 frames|5 exposure times"):
+        merge_arrays(values[:5], TIMES[:5], cal, None, dark_strategies=mixed)
 
 
 def test_probabilistic_saturation_no_gross_errors():
