@@ -640,18 +640,24 @@ def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, m
 def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, candidate_times: Sequence[float],
                     max_exposures: int, *, overhead: float = DEFAULT_OVERHEAD_S, quantile: float | None = None,
                     errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
-                    bins: int = 256) -> tuple[list[float], float] | None:
+                    bins: int = 256, first: float | None = None) -> tuple[list[float], float] | None:
     """Exhaustive search over all multisets of ``candidate_times`` of size <= ``max_exposures``:
     the sequence with the least total capture time that reaches the target (reference for the
-    greedy planner). Returns (times, total_time_s), or None when nothing reaches the target."""
+    greedy planner). ``first``: only sequences that hold this time (one of the candidates), as
+    the planner's sequences hold the bulk exposure. Returns (times, total_time_s), or None when
+    nothing reaches the target."""
     times = _check_request(target_snr_db, candidate_times, max_exposures, None, overhead, quantile)
     errors = errors if errors is not None else SystematicErrors()
     hist = irradiance_histogram(irradiance, bins)
     ctx = _Context(calibration, hist, target_snr_db, times, [darks] * len(times), [1] * len(times), overhead, errors,
                    "map", 1.0 if quantile is None else quantile, k_sigma)
+    fixed: tuple[int, ...] = ()
+    if first is not None:
+        fixed = (int(np.argmin(np.abs(np.asarray(times) - float(first)))),)
     best = None
     for n in range(1, int(max_exposures) + 1):
-        for combo in itertools.combinations_with_replacement(range(len(times)), n):
+        for rest in itertools.combinations_with_replacement(range(len(times)), n - len(fixed)):
+            combo = fixed + rest
             tt = ctx.time(combo)
             if best is not None and tt >= best[1]:
                 continue

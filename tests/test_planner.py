@@ -25,6 +25,7 @@ from planner import (
     predict_snr,
 )
 from planner.ladder import THIRD_STOP_LADDER
+from planner.plan import DEFAULT_OVERHEAD_S
 from planner.predict import usable_fraction
 
 CAM_B = PRESETS["camera-B"]
@@ -191,17 +192,23 @@ def test_first_exposure_is_the_longest_that_spares_the_bulk(scene):
 # --------------------------------------------------------------------------- (iii), (iv)
 
 
-@pytest.mark.parametrize("cam,decades,target", [("camera-B", 2, 20), ("camera-B", 3, 15), ("camera-A", 2, 15),
-                                                ("camera-A", 3.5, 20)])
-def test_greedy_within_15_percent_of_exhaustive(cam, decades, target):
+@pytest.mark.parametrize("cam,decades,target,overhead", [
+    ("camera-B", 2, 20, 0.002), ("camera-B", 3, 15, 0.002), ("camera-A", 2, 15, 0.002), ("camera-A", 3.5, 20, 0.002),
+    ("camera-A", 2, 25, DEFAULT_OVERHEAD_S)])
+def test_greedy_within_15_percent_of_exhaustive(cam, decades, target, overhead):
+    """(camera-A, 2 decades, 25 dB) costs 1.21x the optimum at 0.002 s overhead because the
+    plan must start with the bulk exposure; 1.06x at the default overhead (docs/planner.md)."""
     cal = Calibration(PRESETS[cam].nominal_params())
     X = make_scene("hdr", (48, 48), decades=decades, x_max=5e4 if decades < 3.5 else 2e5)
     cands = [1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1]
-    greedy = plan_exposures(cal, X, target, cands, errors=NO_ERR, max_exposures=6, overhead=0.002)
-    best = plan_exhaustive(cal, X, target, cands, 6, errors=NO_ERR, overhead=0.002)
+    greedy = plan_exposures(cal, X, target, cands, errors=NO_ERR, max_exposures=6, overhead=overhead)
+    best = plan_exhaustive(cal, X, target, cands, 6, errors=NO_ERR, overhead=overhead)
     assert best is not None and greedy.feasible
     assert greedy.total_time_s <= 1.15 * best[1], (greedy.exposures, best)
     assert set(greedy.exposures) <= set(cands) and len(greedy.exposures) <= 6
+    # among the sequences that start from the same (bulk) exposure, too
+    same_first = plan_exhaustive(cal, X, target, cands, 6, errors=NO_ERR, overhead=overhead, first=greedy.exposures[0])
+    assert greedy.total_time_s <= 1.15 * same_first[1], (greedy.exposures, same_first)
 
 
 @pytest.mark.parametrize("target", [20, 25])
