@@ -443,11 +443,24 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
             if d["choice"] != forced:
                 d["reason"] = f"{forced} (one strategy for all exposures was asked; alone: {d['choice']})"
                 d["choice"] = forced
-    darks = [d["choice"] for d in dark_choice]
+    # Candidates: each allowed time with its decided dark strategy and, where that is a dark
+    # frame, also without one: the greedy then pays for a dark frame only when the SNR it buys
+    # is cheaper in capture time than more exposures (the systematic error of the dark model is
+    # part of the predicted SNR, so the target still holds).
+    cand_t, cand_dec = [], []
+    for t, dec in zip(times, dark_choice):
+        if dec["choice"] != "model" and not uniform_darks:
+            cand_t.append(t)
+            cand_dec.append({**dec, "choice": "model", "reason": (
+                f"no dark frame: the dark model costs {dec['figure']:.3f} dB at the target, yet the plan reaches the "
+                f"target for less capture time without it (the alternative: {dec['choice']})")})
+        cand_t.append(t)
+        cand_dec.append(dec)
+    darks = [d["choice"] for d in cand_dec]
     n_dark = [_library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0)
-              for t, d in zip(times, darks)]
-    ctx = _Context(calibration, hist, target_snr_db, times, darks, n_dark, overhead, errors, prnu, q, k_sigma)
-    i_first = times.index(t_first)
+              for t, d in zip(cand_t, darks)]
+    ctx = _Context(calibration, hist, target_snr_db, cand_t, darks, n_dark, overhead, errors, prnu, q, k_sigma)
+    i_first = len(cand_t) - 1 - cand_t[::-1].index(t_first)  # the decided strategy comes last
     while time_budget is not None and i_first >= 0 and ctx.cost_time[i_first] > time_budget * (1 + 1e-12):
         i_first -= 1
     seed = [i_first] if i_first >= 0 and bulk_first else []
@@ -469,7 +482,7 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     exposures = [float(ctx.cand[i]) for i in chosen]
     plan_darks = [darks[i] for i in chosen]
     plan_ndark = [n_dark[i] for i in chosen]
-    decisions["dark_strategy"] = select.summarise_dark_decisions([dark_choice[i] for i in chosen], exposures)
+    decisions["dark_strategy"] = select.summarise_dark_decisions([cand_dec[i] for i in chosen], exposures)
     if chosen:
         decisions["saturation"] = select.saturation_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
                                                              calibration, errors, prnu, tolerance_db, k_sigma)
@@ -477,7 +490,7 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
                                                              calibration, errors, prnu, tolerance_db, k_sigma)
     min_db = ctx.quantile_db(snr_lin) if chosen else float("-inf")
     total = ctx.time(chosen)
-    msg = _message(ok, target_snr_db, q, min_db, exposures, plan_darks, total, limit, decisions, max_exposures,
+    msg = _message(ok, target_snr_db, q, min_db, chosen, plan_darks, total, limit, decisions, max_exposures,
                    time_budget, ctx)
     curve = {
         "irradiance": hist.X.tolist(),
@@ -601,7 +614,8 @@ def _fmt_t(t: float) -> str:
     return f"1/{1 / t:.0f} s" if t < 0.25 else f"{t:g} s"
 
 
-def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, max_exposures, budget, ctx):
+def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_exposures, budget, ctx):
+    exposures = [float(ctx.cand[i]) for i in chosen]
     where = "all eligible pixels" if q >= 1 else f"{100 * q:g} % of eligible pixels"
     n_m = sum(d == "matched" for d in darks)
     seq = ", ".join(_fmt_t(t) for t in exposures)
@@ -621,8 +635,7 @@ def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, m
                      f"total capture time {total:.4g} s.")
         failing = ctx.elig & (to_db(ctx.snr(*ctx.sums([]))) < target)
         if exposures:
-            idx = [int(np.argmin(np.abs(ctx.cand - t))) for t in exposures]
-            snr_now = to_db(ctx.snr(*ctx.sums(idx)))
+            snr_now = to_db(ctx.snr(*ctx.sums(chosen)))
             failing = ctx.elig & (snr_now < target)
         if failing.any():
             xs = ctx.X[failing]

@@ -228,12 +228,12 @@ def test_constraints_are_respected_and_time_is_accounted():
     X = make_scene("hdr", (48, 48), decades=3, x_max=5e4)
     allowed = [1 / 500, 1 / 125, 1 / 30, 1 / 8, 0.5, 2.0]
     plan = plan_exposures(CAL_B, X, 20, allowed, overhead=0.3, max_exposures=12,
-                          errors=SystematicErrors(dark_current=2.0))
+                          errors=SystematicErrors(dark_current=6.0))
     assert plan.feasible
     assert set(plan.exposures) <= set(allowed)
     expected = sum((t + 0.3) * (2 if d == "matched" else 1) for t, d in zip(plan.exposures, plan.darks))
     assert plan.total_time_s == pytest.approx(expected)
-    assert "matched" in plan.darks  # 2 e-/s dark error on the long exposures' dim pixels
+    assert "matched" in plan.darks  # 6 e-/s dark error caps the 50 e-/s pixels at 18.4 dB without dark frames
 
 
 def test_target_above_the_full_well_limit_is_reported_with_best_figure():
@@ -539,10 +539,37 @@ def test_plan_gives_the_merge_what_it_needs():
     merge_mod.MergeOptions(**uni)
 
 
-def test_dark_decisions_hold_for_the_plan_they_are_made_for():
-    """Nominal camera-B calibration (no dark-current map: 0.3 e-/s dark error): the plan may not
-    dodge dark frames by measuring dim pixels with shorter, dark-frame-free exposures; its SNR
-    is within 0.2 dB of the same exposures with matched dark frames at every bin."""
+def test_dark_frames_only_where_the_target_needs_them_simulated():
+    """A warm sensor (D = 10 e-/s, 30 % DCNU) calibrated without a dark-current map: the dark
+    model leaves ~3 e-/s per photosite. At 20 dB the plan reaches the target without dark
+    frames (the error is part of the predicted SNR) and the simulator confirms it on every
+    level; at 23 dB the dimmest level (cap 24.4 dB) needs a dark frame and gets one."""
+    if getattr(merge_mod, "merge_arrays", None) is None:
+        pytest.skip("needs the ML merge (merge_arrays, issue 4)")
+    spec = CAM_B.replace(dark_current=10.0, dcnu=0.3, prnu=0.0)
+    levels = np.array([50.0, 150.0, 500.0, 2000.0])
+    X = np.repeat(levels, 32 * 32).reshape(64, 64)
+    sensor = SimulatedSensor(spec, X.shape, seed=7)
+    cal = Calibration(spec.nominal_params())  # scalar D: the calibration has no dark-current map
+    plan = plan_exposures(cal, X, 20.0)
+    assert plan.feasible and set(plan.darks) == {"model"}
+    S = 4
+    err2 = np.zeros(X.shape)
+    for s in range(S):
+        rng = np.random.default_rng([5, s])
+        res = merge_mod.merge_arrays([sensor.expose(X, t, rng=rng) for t in plan.exposures], plan.exposures, cal,
+                                     **plan.merge_options())
+        err2 += (res.irradiance - X) ** 2
+    measured = np.array([10 * np.log10(lv**2 * S / err2[X == lv].mean()) for lv in levels])
+    # 3 sigma Monte-Carlo margin: noise over S*1024 samples, the fixed pattern over 1024 photosites
+    margin = 10 * np.log10(1 + 3 * np.sqrt(2 / 1024))
+    assert np.all(measured >= 20.0 - margin), measured
+    assert plan_exposures(cal, X, 23.0).darks.count("matched") >= 1
+
+
+def test_dark_decisions_are_within_0p2_db_where_the_dark_error_is_small():
+    """Nominal camera-B calibration (no dark-current map: 0.3 e-/s dark error) at 25 dB: the
+    plan's SNR is within 0.2 dB of the same exposures with matched dark frames at every bin."""
     X = make_scene("hdr", (64, 64), decades=4, x_max=2e5)
     errors = SystematicErrors(dark_current=0.3)
     plan = plan_exposures(CAL_B, X, 25.0, errors=errors)
