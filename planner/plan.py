@@ -7,7 +7,8 @@ extremes). The planner
 1. marks the eligible pixels: those with signal that are not saturated even at the shortest
    allowed exposure (the others are reported, never silently dropped);
 2. selects, before planning, the PRNU model and each candidate time's dark strategy by the
-   SNR they cost at the target level (model selection, :mod:`planner.select`);
+   SNR they cost at the target level (model selection, :mod:`planner.select`); a time whose
+   decision is a dark frame is offered to the search both with and without it;
 3. starts from the longest allowed exposure that does not saturate the scene's bulk (all
    eligible pixels but the brightest ``highlight_fraction``, Sec. 8) and adds greedily the
    allowed exposure that lowers sum_j exp(-snr_j) most (Eq. 18), under the constraints

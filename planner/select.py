@@ -8,7 +8,10 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
   bias errors stay in the estimate (they do not average out); the cost at the target level is
   10 log10(1 + T^2 b^2 / X^2) dB for a systematic error b (e-/s) at irradiance X and target
   SNR T. Above the tolerance a master dark from the library is used when there is one (no
-  capture time), else a matched dark frame (costs t + overhead and adds its read noise);
+  capture time), else a matched dark frame (costs t + overhead and adds its read noise). The
+  planner then offers such a time both with that dark and without a dark frame, and keeps the
+  dark only when the SNR it buys (the systematic error is part of the predicted SNR) is
+  cheaper than more exposures;
 * PRNU: a scalar gain leaves a relative error p (the PRNU spread) in every photosite: cost
   10 log10(1 + T^2 p^2) dB;
 * saturation: the probabilistic model (Eq. 8-10) keeps part of the information of samples
