@@ -488,7 +488,8 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
         decisions["saturation"] = select.saturation_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
                                                              calibration, errors, prnu, tolerance_db, k_sigma)
         decisions["iterations"] = select.iterations_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
-                                                             calibration, errors, prnu, tolerance_db, k_sigma)
+                                                             calibration, errors, prnu, tolerance_db, k_sigma,
+                                                             decisions["saturation"]["choice"])
     min_db = ctx.quantile_db(snr_lin) if chosen else float("-inf")
     total = ctx.time(chosen)
     msg = _message(ok, target_snr_db, q, min_db, chosen, plan_darks, total, limit, decisions, max_exposures,

@@ -578,3 +578,24 @@ def test_dark_decisions_are_within_0p2_db_where_the_dark_error_is_small():
     chosen = predict_snr(Xe, plan.exposures, CAL_B, plan.darks, [n or 1 for n in plan.n_dark], errors=errors).snr_db
     full = predict_snr(Xe, plan.exposures, CAL_B, "matched", errors=errors).snr_db
     assert np.min(chosen - full) >= -0.2, float(np.min(chosen - full))
+
+
+def test_merge_options_of_the_plan_give_no_gross_errors_on_camera_a():
+    """camera-A clips at the full well before the ADC: saturated values fall below v_sat. The
+    plan's merge options must leave no photosite beyond 6 sigma of the truth (simulator). Measured
+    with other options on this sequence: threshold with 1 step 140, probabilistic with 2 steps
+    17, probabilistic converged 16 of 12288."""
+    if getattr(merge_mod, "merge_arrays", None) is None:
+        pytest.skip("needs the ML merge (merge_arrays, issue 4)")
+    spec = PRESETS["camera-A"]
+    X = make_scene("hdr", (96, 128), decades=3, x_max=2e5)
+    sensor = SimulatedSensor(spec, X.shape, seed=2)
+    cal = Calibration(spec.nominal_params(), prnu=sensor.prnu.astype(np.float32))
+    plan = plan_exposures(cal, X, 15.0)
+    opts = plan.merge_options()
+    rng = np.random.default_rng(1)
+    vals = [sensor.expose(X, t, rng=rng) for t in plan.exposures]
+    res = merge_mod.merge_arrays(vals, plan.exposures, cal, **opts)
+    assert np.all(res.sigma > 0)
+    z = (res.irradiance - X) / res.sigma
+    assert np.sum(np.abs(z) > 6) == 0, (opts, int(np.sum(np.abs(z) > 6)))
