@@ -18,7 +18,8 @@ from mock_camera.scenes import make_scene
 from pipeline import merge as merge_mod
 from pipeline.io import RawFrame
 from pipeline.params import Calibration
-from planner import SystematicErrors, plan_bracket, plan_exhaustive, plan_exposures, predict_snr
+from planner import (SystematicErrors, plan_bracket, plan_exhaustive, plan_exposures, predict_snr,
+                     systematic_errors_from_calibration)
 from planner.plan import DEFAULT_OVERHEAD_S
 from planner.ladder import THIRD_STOP_LADDER
 from planner.predict import usable_fraction
@@ -28,7 +29,7 @@ def _merge(values, times, cal, **options):
     merge_arrays = getattr(merge_mod, "merge_arrays", None)
     if merge_arrays is not None:
         return merge_arrays(values, times, cal, **options), "merge_arrays"
-    return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal), "merge_frames"
+    return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal, **options), "merge_frames"
 
 
 def bulk_time(X, spec, highlight_fraction=0.05, k_sigma=3.0):
@@ -144,12 +145,16 @@ def capture_merge(seeds):
         err2 = np.zeros((H, W))
         for s in range(seeds):
             rng = np.random.default_rng([11, s])
-            res, how = _merge([sensor.expose(X, t, rng=rng) for t in plan.exposures], plan.exposures, cal)
+            res, how = _merge([sensor.expose(X, t, rng=rng) for t in plan.exposures], plan.exposures, cal,
+                              **plan.merge_options())
             err2 += ((res.irradiance - X) / X) ** 2
         meas = -10 * np.log10(err2.sum(0) / (seeds * H))
-        pred = predict_snr(X[0], plan.exposures, cal, plan.darks).snr_db
+        opts = plan.merge_options()
+        pred = predict_snr(X[0], plan.exposures, cal, plan.darks, errors=systematic_errors_from_calibration(cal),
+                           prnu=opts["prnu"], saturation=opts["saturation"]).snr_db
         margin = 10 * np.log10(1 + 3 * np.sqrt(2 / (seeds * H)))
-        rows.append({"target_db": target, "merge": how, "n_exposures": len(plan.exposures),
+        rows.append({"target_db": target, "merge": how, "merge_options": plan.merge_options(),
+                     "n_exposures": len(plan.exposures),
                      "fraction_columns_at_target": float(np.mean(meas >= target - margin)),
                      "min_measured_db": round(float(meas.min()), 3),
                      "median_measured_minus_predicted_db": round(float(np.median(meas - pred)), 3),

@@ -23,6 +23,7 @@ from planner import (
     plan_exhaustive,
     plan_exposures,
     predict_snr,
+    systematic_errors_from_calibration,
 )
 from planner.ladder import THIRD_STOP_LADDER
 from planner.plan import DEFAULT_OVERHEAD_S
@@ -33,12 +34,12 @@ CAL_B = Calibration(CAM_B.nominal_params())
 NO_ERR = SystematicErrors()
 
 
-def _merge(values, times, cal):
+def _merge(values, times, cal, **options):
     """The project's merge: merge_arrays when it exists (issue 4), else merge_frames."""
     merge_arrays = getattr(merge_mod, "merge_arrays", None)
     if merge_arrays is not None:
-        return merge_arrays(values, times, cal)
-    return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal)
+        return merge_arrays(values, times, cal, **options)
+    return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal, **options)
 
 
 def _bulk_scene(seed=5, n=8000):
@@ -120,14 +121,16 @@ def test_planned_capture_reaches_target_against_truth(target):
     for s in range(S):
         rng = np.random.default_rng([11, s])
         values = [sensor.expose(X, t, rng=rng) for t in plan.exposures]
-        res = _merge(values, plan.exposures, cal)
+        res = _merge(values, plan.exposures, cal, **plan.merge_options())  # merged as the plan says
         err2 += ((res.irradiance - X) / X) ** 2
     measured = -10 * np.log10(err2.sum(0) / (S * H))  # pooled per column (S*H samples)
     n = S * H
     margin = 10 * np.log10(1 + 3 * np.sqrt(2 / n))  # 3 sigma Monte-Carlo error of an MSE
     assert np.mean(measured >= target - margin) >= 0.99, np.round(measured - target, 2)
     # the prediction is honest, not just conservative: the typical column matches it
-    pred = predict_snr(X[0], plan.exposures, cal, plan.darks).snr_db
+    opts = plan.merge_options()
+    pred = predict_snr(X[0], plan.exposures, cal, plan.darks, errors=systematic_errors_from_calibration(cal),
+                       prnu=opts["prnu"], saturation=opts["saturation"]).snr_db
     assert abs(np.median(measured - pred)) < 0.3
 
 
