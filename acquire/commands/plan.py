@@ -101,8 +101,10 @@ def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_m
     """Plan the exposures that reach --target-snr-db on a scene (greedy Eq. 18, Sec. 8).
 
     The scene comes from an irradiance map (--irradiance MAP.exr) or from metering quick
-    frames (--meter; simulated camera). The plan lists exposure times in capture order, the
-    dark strategy of each (matched dark frame, master dark, or model), the predicted minimum
+    frames (--meter; simulated camera). The plan lists exposure times in capture order (first
+    the longest that does not saturate the scene's bulk, all but the brightest
+    --highlight-fraction of the pixels), the dark strategy of each (matched dark frame, master
+    dark, or model) and its dark-frame count, the merge options to use, the predicted minimum
     SNR, the total capture time and the model decisions (dark frames, PRNU, saturation model,
     merge iterations) with the figures that drove them. Infeasible requests are reported with
     the best achievable SNR (exit status 0; "feasible": false in the JSON).
