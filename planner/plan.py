@@ -250,6 +250,17 @@ class _Context:
         self.CB = np.array([tm.c_bias for tm in terms])
         self.cost_time = np.array([(t + self.overhead) * (2.0 if d == "matched" else 1.0)
                                    for t, d in zip(self.cand, self.darks)])
+        # candidates of one exposure time with another dark strategy: a plan gives each time
+        # one strategy (the merge matches frames to the plan by exposure time)
+        self.rival = np.array([[a == b and da != db for b, db in zip(self.cand, self.darks)]
+                               for a, da in zip(self.cand, self.darks)], dtype=bool).reshape(len(self.cand), -1)
+
+    def excluded(self, idx) -> np.ndarray:
+        """Candidates that would give an exposure time of ``idx`` a second dark strategy."""
+        out = np.zeros(len(self.cand), bool)
+        for i in idx:
+            out |= self.rival[i]
+        return out
 
     def sums(self, idx):
         idx = list(idx)
@@ -523,6 +534,7 @@ def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = Fa
         if len(chosen) >= cap:
             return chosen, "max_exposures"
         fits = np.ones(len(ctx.cand), bool) if budget is None else used + ctx.cost_time <= budget * (1 + 1e-12)
+        fits &= ~ctx.excluded(chosen)
         if not fits.any():
             return chosen, "time_budget"
         # penalty after adding each candidate, all at once: (C, B)
@@ -581,9 +593,12 @@ def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
             # replace it by the cheapest valid alternative: one shorter exposure, or 2..4 copies
             # of a shorter one when that saves at least 10 % of its time
             found, found_cost = None, cost * (1 - 1e-9)
+            excluded = ctx.excluded(base)
             for c in order:
                 if ctx.cost_time[c] >= found_cost:
                     break
+                if excluded[c]:
+                    continue
                 for k in (1, 2, 3, 4):
                     new_cost = k * ctx.cost_time[c]
                     if new_cost >= found_cost or (k > 1 and new_cost > 0.9 * cost):

@@ -432,6 +432,9 @@ def test_dark_error_model_matches_simulated_merge_without_dark_frames():
     assert meas_matched > meas_model + 1.0  # the dark frame pays off here
     plan = plan_exposures(cal, X, 20.0, errors=errors)
     assert "matched" in plan.darks  # the dark model alone caps this pixel at 19.7 dB
+    # one time only: each exposure time keeps one dark strategy (the merge matches frames to
+    # the plan by time), so both frames get a dark frame rather than one of each
+    assert plan_exposures(cal, X, 20.0, [1.0], errors=errors).darks == ["matched", "matched"]
 
 
 @pytest.mark.parametrize("kw,msg", [
@@ -530,6 +533,7 @@ def test_plan_gives_the_merge_what_it_needs():
     assert "master" in plan.darks and len(set(plan.darks)) >= 2
     for t, d, n in zip(plan.exposures, plan.darks, plan.n_dark):
         assert n == {"model": 0, "matched": 1, "master": lib.get(t, -1)}[d], (t, d, n)
+    assert len(set(zip(plan.exposures, plan.darks))) == len(set(plan.exposures))  # one strategy per time
     d = json.loads(json.dumps(plan.to_dict()))
     for key in ("exposures", "darks", "n_dark", "merge_options", "decisions", "predicted_min_snr_db", "total_time_s"):
         assert key in d
