@@ -7,12 +7,19 @@ extremes). The planner
 1. marks the eligible pixels: those with signal that are not saturated even at the shortest
    allowed exposure (the others are reported, never silently dropped);
 2. selects, before planning, the PRNU model and each candidate time's dark strategy by the
-   SNR they cost at the target level (model selection, :mod:`planner.select`);
-3. adds greedily the allowed exposure that lowers sum_j exp(-snr_j) most (Eq. 18), under the
-   constraints (allowed times, maximum number of exposures, time budget, per-frame overhead),
-   until the target holds at the chosen quantile of eligible pixels;
+   SNR they cost at the target level (model selection, :mod:`planner.select`); a time whose
+   decision is a dark frame is offered to the search both with and without it;
+3. starts from the longest allowed exposure that does not saturate the scene's bulk (all
+   eligible pixels but the brightest ``highlight_fraction``, Sec. 8) and adds greedily the
+   allowed exposure that lowers sum_j exp(-snr_j) most (Eq. 18), under the constraints
+   (allowed times, maximum number of exposures, time budget, per-frame overhead), until the
+   target holds at the chosen quantile of eligible pixels;
 4. polishes the sequence (drops exposures that are no longer needed and shortens others while
-   the target still holds), then selects the saturation model and the merge iterations.
+   the target still holds; never the first), then selects the saturation model and the
+   merge iterations.
+
+Every frame costs its exposure time plus a per-frame overhead (default
+:data:`DEFAULT_OVERHEAD_S`); a matched dark frame costs as much again.
 
 All variances come from :mod:`pipeline.noise` through :mod:`planner.predict`.
 """
@@ -49,10 +56,24 @@ __all__ = [
     "plan_exhaustive",
     "plan_bracket",
     "DEFAULT_MAX_EXPOSURES",
+    "DEFAULT_HIGHLIGHT_FRACTION",
+    "DEFAULT_OVERHEAD_S",
+    "bulk_irradiance",
+    "first_exposure",
 ]
 
 #: Cap on the number of exposures when the caller gives neither ``max_exposures`` nor a budget.
 DEFAULT_MAX_EXPOSURES = 64
+
+#: The scene's "bulk" is every eligible pixel but the brightest ``DEFAULT_HIGHLIGHT_FRACTION``
+#: (highlights: light sources, speculars). The first exposure is the longest allowed time that
+#: saturates at most this fraction of the eligible pixels (Sec. 8: "the longest exposure before
+#: saturation").
+DEFAULT_HIGHLIGHT_FRACTION = 0.05
+
+#: Default per-frame overhead, s: what a tethered camera spends per frame besides the exposure
+#: (shutter and mirror latency, writing the raw, downloading it over USB). See docs/planner.md.
+DEFAULT_OVERHEAD_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -126,10 +147,17 @@ class Plan:
     target_snr_db, quantile : float
         The request.
     n_dark : list of int
-        Frames of the master dark per exposure (0 unless "master").
+        Dark frames behind each exposure's dark subtraction: 1 for "matched" (one dark frame
+        captured right after it), the frame count of the library's master dark for "master",
+        0 for "model".
     curve : dict
         Predicted SNR curve: ``irradiance`` (e-/s), ``snr_db``, ``weight`` (pixels),
         ``eligible`` (bool) of the histogram points.
+    saturation_sigmas : float
+        Margin of the near-saturation rule the plan assumed (standard deviations of the raw
+        value); the merge must use the same.
+    overhead_s : float
+        Per-frame overhead the plan counted, s.
     """
 
     exposures: list[float]
@@ -143,27 +171,37 @@ class Plan:
     quantile: float = 1.0
     n_dark: list[int] = field(default_factory=list)
     curve: dict[str, list] = field(default_factory=dict)
+    saturation_sigmas: float = K_SIGMA
+    overhead_s: float = 0.0
 
     def merge_options(self) -> dict[str, Any]:
-        """Keyword options for ``pipeline.merge.merge_arrays`` that follow the decisions
-        (saturation model, PRNU model, iterations; the dark strategy when it is one for all)."""
+        """Keyword options for ``pipeline.merge.merge_arrays`` (fields of ``MergeOptions``)
+        that apply the decisions: ``iterations``, ``saturation`` ("threshold" |
+        "probabilistic"), ``saturation_sigmas`` (the margin the plan assumed), ``prnu``
+        ("map" | "scalar"); and, only when every exposure has the same dark strategy,
+        ``dark_strategy`` (plus ``n_dark`` when that is "master" with one frame count). The
+        per-exposure strategies and frame counts are :attr:`darks` and :attr:`n_dark`."""
         out: dict[str, Any] = {}
         d = self.decisions
-        if "saturation" in d:
-            out["saturation"] = d["saturation"]["choice"]
-        if "prnu" in d:
-            out["prnu"] = d["prnu"]["choice"]
         if "iterations" in d:
             out["iterations"] = int(d["iterations"]["choice"])
+        if "saturation" in d:
+            out["saturation"] = d["saturation"]["choice"]
+        out["saturation_sigmas"] = float(self.saturation_sigmas)
+        if "prnu" in d:
+            out["prnu"] = d["prnu"]["choice"]
         if self.darks and len(set(self.darks)) == 1:
             out["dark_strategy"] = self.darks[0]
+            if self.darks[0] == "master" and len(set(self.n_dark)) == 1:
+                out["n_dark"] = int(self.n_dark[0])
         return out
 
     def to_dict(self, curve: bool = False) -> dict[str, Any]:
+        """The plan as JSON-ready data (the schema of ``hdrcap plan --json``, docs/planner.md)."""
         out = {
             "exposures": list(self.exposures),
             "darks": list(self.darks),
-            "n_dark": list(self.n_dark),
+            "n_dark": [int(n) for n in self.n_dark],
             "predicted_min_snr_db": _finite(self.predicted_min_snr_db),
             "total_time_s": self.total_time_s,
             "target_snr_db": self.target_snr_db,
@@ -172,6 +210,7 @@ class Plan:
             "message": self.message,
             "decisions": self.decisions,
             "merge_options": self.merge_options(),
+            "overhead_s": float(self.overhead_s),
         }
         if curve:
             out["curve"] = self.curve
@@ -211,6 +250,17 @@ class _Context:
         self.CB = np.array([tm.c_bias for tm in terms])
         self.cost_time = np.array([(t + self.overhead) * (2.0 if d == "matched" else 1.0)
                                    for t, d in zip(self.cand, self.darks)])
+        # candidates of one exposure time with another dark strategy: a plan gives each time
+        # one strategy (the merge matches frames to the plan by exposure time)
+        self.rival = np.array([[a == b and da != db for b, db in zip(self.cand, self.darks)]
+                               for a, da in zip(self.cand, self.darks)], dtype=bool).reshape(len(self.cand), -1)
+
+    def excluded(self, idx) -> np.ndarray:
+        """Candidates that would give an exposure time of ``idx`` a second dark strategy."""
+        out = np.zeros(len(self.cand), bool)
+        for i in idx:
+            out |= self.rival[i]
+        return out
 
     def sums(self, idx):
         idx = list(idx)
@@ -253,6 +303,35 @@ def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_
     return (X > 0) & (usable_fraction(X, t_min, calibration, "threshold", k_sigma) > 0)
 
 
+def bulk_irradiance(irradiance, t_min: float, calibration: Calibration,
+                    highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION, k_sigma: float = K_SIGMA) -> float | None:
+    """Brightest irradiance of the scene's bulk, e-/s (Sec. 8).
+
+    The eligible pixels are those with signal that are not saturated at the shortest allowed
+    time ``t_min`` (:func:`eligible_mask`); the bulk is all of them but the brightest
+    ``floor(highlight_fraction * N)`` (N = number of eligible pixels). Saturation is monotone in
+    the irradiance, so an exposure saturates at most that fraction of the eligible pixels exactly
+    when it does not saturate the returned value. None when no pixel is eligible.
+    """
+    x = np.asarray(irradiance, dtype=np.float64).ravel()
+    x = x[eligible_mask(x, t_min, calibration, k_sigma)]
+    if x.size == 0:
+        return None
+    n_allow = int(np.floor(float(highlight_fraction) * x.size + 1e-9))
+    k = x.size - 1 - min(n_allow, x.size - 1)  # ascending rank of the (n_allow + 1)-th brightest
+    return float(np.partition(x, k)[k])
+
+
+def first_exposure(x_bulk: float, times: Sequence[float], calibration: Calibration,
+                   k_sigma: float = K_SIGMA) -> float:
+    """The first exposure of a plan: the longest of ``times`` that does not saturate ``x_bulk``
+    (e-/s) under the merge's near-saturation rule (predicted value + ``k_sigma`` of its own
+    standard deviation below v_sat, Eq. 11 and DESIGN.md); the shortest time when none does."""
+    times = sorted(float(t) for t in times)
+    ok = [t for t in times if usable_fraction(x_bulk, t, calibration, "threshold", k_sigma) > 0]
+    return ok[-1] if ok else times[0]
+
+
 # --------------------------------------------------------------------------- validation
 
 
@@ -289,10 +368,11 @@ def _library_n(dark_library: Mapping[float, int] | None, t: float) -> int:
 
 def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
                    allowed_times: Sequence[float] | None = None, *, max_exposures: int | None = None,
-                   time_budget: float | None = None, overhead: float = 0.0, quantile: float | None = None,
-                   errors: SystematicErrors | None = None, dark_library: Mapping[float, int] | None = None,
-                   tolerance_db: float = 0.2, k_sigma: float = K_SIGMA, bins: int = 256,
-                   polish: bool = True, uniform_darks: bool = False) -> Plan:
+                   time_budget: float | None = None, overhead: float = DEFAULT_OVERHEAD_S,
+                   quantile: float | None = None, errors: SystematicErrors | None = None,
+                   dark_library: Mapping[float, int] | None = None, tolerance_db: float = 0.2,
+                   k_sigma: float = K_SIGMA, bins: int = 256, polish: bool = True, uniform_darks: bool = False,
+                   highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION, bulk_first: bool = True) -> Plan:
     """Plan the exposures that reach ``target_snr_db`` on a scene (Eq. 18, Sec. 8).
 
     Parameters
@@ -310,7 +390,7 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     time_budget : float, optional
         Maximum total capture time (frames, dark frames, overheads), s.
     overhead : float
-        Per-frame overhead (download, shutter latency), s.
+        Per-frame overhead (download, shutter latency), s; default :data:`DEFAULT_OVERHEAD_S`.
     quantile : float, optional
         Fraction of eligible pixels that must reach the target (default 1: all pixels that are
         not saturated even at the shortest allowed time).
@@ -330,6 +410,13 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
         One dark strategy for all exposures (for a merge that takes a single strategy): when
         the per-exposure selection mixes strategies, plan again with dark frames for every
         exposure (master darks when the library has one for every allowed time, else matched).
+    highlight_fraction : float
+        The first exposure is the longest allowed time that saturates at most this fraction of
+        the eligible pixels (:func:`bulk_irradiance`, :func:`first_exposure`); Eq. 18's greedy
+        adds the others. It is captured first and never dropped by the polish.
+    bulk_first : bool
+        Start from that exposure (default). False: Eq. 18's greedy chooses every exposure
+        (faster plans when the per-frame overhead is near 0; see docs/planner.md).
 
     Returns
     -------
@@ -337,6 +424,8 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     """
     times = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
                            max_exposures, time_budget, overhead, quantile)
+    if not (np.isfinite(highlight_fraction) and 0 <= highlight_fraction < 1):
+        raise InputError(f"highlight fraction must be in [0, 1), got {highlight_fraction!r}")
     q = 1.0 if quantile is None else float(quantile)
     errors = errors if errors is not None else systematic_errors_from_calibration(calibration)
     hist = irradiance_histogram(irradiance, bins)
@@ -347,12 +436,17 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     decisions["eligibility"] = select.eligibility_decision(hist, elig, times[0], calibration)
     if not elig.any():
         msg = decisions["eligibility"]["reason"] + "; nothing to plan"
-        return Plan([], [], float("nan"), 0.0, decisions, False, msg, float(target_snr_db), q, [], {})
+        return Plan([], [], float("nan"), 0.0, decisions, False, msg, float(target_snr_db), q, [], {},
+                    float(k_sigma), float(overhead))
 
     Xe = hist.X[elig]
     decisions["prnu"] = select.prnu_decision(errors, target_lin, calibration, tolerance_db)
     prnu = decisions["prnu"]["choice"]
     t_best = select.longest_usable_time(Xe, times, calibration, k_sigma)
+    cap = int(max_exposures) if max_exposures is not None else (DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6)
+    # the first exposure: the longest that does not saturate the scene's bulk (Sec. 8)
+    x_bulk = bulk_irradiance(irradiance, times[0], calibration, highlight_fraction, k_sigma)
+    t_first = first_exposure(x_bulk, times, calibration, k_sigma)
     dark_choice = [select.dark_decision_for_time(Xe, t, calibration, errors, target_lin, _library_n(dark_library, t),
                                                  overhead, tolerance_db, k_sigma, t_best) for t in times]
     if uniform_darks and len({d["choice"] for d in dark_choice}) > 1:
@@ -361,36 +455,57 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
             if d["choice"] != forced:
                 d["reason"] = f"{forced} (one strategy for all exposures was asked; alone: {d['choice']})"
                 d["choice"] = forced
-    darks = [d["choice"] for d in dark_choice]
-    n_dark = [_library_n(dark_library, t) if d == "master" else 0 for t, d in zip(times, darks)]
-    ctx = _Context(calibration, hist, target_snr_db, times, darks, n_dark, overhead, errors, prnu, q, k_sigma)
-
-    cap = int(max_exposures) if max_exposures is not None else (DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6)
+    # Candidates: each allowed time with its decided dark strategy and, where that is a dark
+    # frame, also without one: the greedy then pays for a dark frame only when the SNR it buys
+    # is cheaper in capture time than more exposures (the systematic error of the dark model is
+    # part of the predicted SNR, so the target still holds).
+    cand_t, cand_dec = [], []
+    for t, dec in zip(times, dark_choice):
+        if dec["choice"] != "model" and not uniform_darks:
+            cand_t.append(t)
+            cand_dec.append({**dec, "choice": "model", "reason": (
+                f"no dark frame: the dark model costs {dec['figure']:.3f} dB at the target, yet the plan reaches the "
+                f"target for less capture time without it (the alternative: {dec['choice']})")})
+        cand_t.append(t)
+        cand_dec.append(dec)
+    darks = [d["choice"] for d in cand_dec]
+    n_dark = [_library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0)
+              for t, d in zip(cand_t, darks)]
+    ctx = _Context(calibration, hist, target_snr_db, cand_t, darks, n_dark, overhead, errors, prnu, q, k_sigma)
+    # the seed: the bulk exposure (with and without a dark frame when both are candidates); a
+    # time budget too small for it moves it down the ladder
+    fits = [i for i in range(len(cand_t)) if time_budget is None or ctx.cost_time[i] <= time_budget * (1 + 1e-12)]
+    t_seed = max((cand_t[i] for i in fits if cand_t[i] <= t_first), default=None)
+    seeds = [[i] for i in fits if cand_t[i] == t_seed] if bulk_first and t_seed is not None else [[]]
     # Eq. 18's greedy; and the same per second of capture time: the faster feasible plan wins
     runs = []
-    for per_second in ((False, True) if polish else (False,)):
-        chosen, limit = _greedy(ctx, cap, time_budget, per_second)
-        ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
-        if ok and polish:
-            chosen = _capture_order(ctx, _polish(ctx, chosen))
-        runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
-                     chosen, limit, ok))
+    for seed in seeds:
+        for per_second in ((False, True) if polish else (False,)):
+            chosen, limit = _greedy(ctx, cap, time_budget, per_second, seed)
+            ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
+            if ok and polish:
+                chosen = _capture_order(ctx, _polish(ctx, chosen, len(seed)), len(seed))
+            runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
+                         chosen, limit, ok))
     runs.sort(key=lambda r: (r[0], r[1]))
     _, _, per_second, chosen, limit, ok = runs[0]
+    if bulk_first:
+        decisions["first_exposure"] = _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx, k_sigma)
     snr_lin = ctx.snr(*ctx.sums(chosen))
 
     exposures = [float(ctx.cand[i]) for i in chosen]
     plan_darks = [darks[i] for i in chosen]
     plan_ndark = [n_dark[i] for i in chosen]
-    decisions["dark_strategy"] = select.summarise_dark_decisions([dark_choice[i] for i in chosen], exposures)
+    decisions["dark_strategy"] = select.summarise_dark_decisions([cand_dec[i] for i in chosen], exposures)
     if chosen:
         decisions["saturation"] = select.saturation_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
                                                              calibration, errors, prnu, tolerance_db, k_sigma)
         decisions["iterations"] = select.iterations_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
-                                                             calibration, errors, prnu, tolerance_db, k_sigma)
+                                                             calibration, errors, prnu, tolerance_db, k_sigma,
+                                                             decisions["saturation"]["choice"])
     min_db = ctx.quantile_db(snr_lin) if chosen else float("-inf")
     total = ctx.time(chosen)
-    msg = _message(ok, target_snr_db, q, min_db, exposures, plan_darks, total, limit, decisions, max_exposures,
+    msg = _message(ok, target_snr_db, q, min_db, chosen, plan_darks, total, limit, decisions, max_exposures,
                    time_budget, ctx)
     curve = {
         "irradiance": hist.X.tolist(),
@@ -399,26 +514,27 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
         "eligible": elig.tolist(),
     }
     return Plan(exposures, plan_darks, float(min_db), float(total), decisions, ok, msg, float(target_snr_db), q,
-                plan_ndark, curve)
+                plan_ndark, curve, float(k_sigma), float(overhead))
 
 
-def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = False):
-    """Eq. 18 greedily: add the candidate that lowers sum exp(-snr) most until the target holds
-    (``per_second``: most per second of capture time).
+def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = False, seed=()):
+    """Eq. 18 greedily: starting from ``seed`` (candidate indices), add the candidate that lowers
+    sum exp(-snr) most until the target holds (``per_second``: most per second of capture time).
 
     Returns the chosen candidate indices (in order) and the reason the search stopped when the
     target was not reached ("" when reached).
     """
-    chosen: list[int] = []
-    sw, scd, scb = ctx.sums([])
+    chosen: list[int] = [int(i) for i in seed][:max(cap, 0)]
+    sw, scd, scb = ctx.sums(chosen)
     current = ctx.penalty(ctx.snr(sw, scd, scb))
-    used = 0.0
+    used = ctx.time(chosen)
     while True:
         if chosen and ctx.reached(ctx.snr(sw, scd, scb)):
             return chosen, ""
         if len(chosen) >= cap:
             return chosen, "max_exposures"
         fits = np.ones(len(ctx.cand), bool) if budget is None else used + ctx.cost_time <= budget * (1 + 1e-12)
+        fits &= ~ctx.excluded(chosen)
         if not fits.any():
             return chosen, "time_budget"
         # penalty after adding each candidate, all at once: (C, B)
@@ -438,10 +554,11 @@ def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = Fa
         current = float(pen[best])
 
 
-def _capture_order(ctx: _Context, chosen: list[int]) -> list[int]:
-    """Most useful first: repeatedly the exposure of the set that lowers sum exp(-snr) most."""
-    rest = list(chosen)
-    order: list[int] = []
+def _capture_order(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
+    """The first ``n_fixed`` as they are, then most useful first: repeatedly the exposure of the
+    set that lowers sum exp(-snr) most."""
+    rest = list(chosen[n_fixed:])
+    order: list[int] = list(chosen[:n_fixed])
     while rest:
         pens = [ctx.penalty(ctx.snr(*ctx.sums(order + [c]))) for c in rest]
         k = min(range(len(rest)), key=lambda i: (pens[i], ctx.cost_time[rest[i]]))
@@ -449,25 +566,26 @@ def _capture_order(ctx: _Context, chosen: list[int]) -> list[int]:
     return order
 
 
-def _drop_unneeded(ctx: _Context, chosen: list[int]) -> list[int]:
-    """Remove exposures (longest first) whose absence still meets the target."""
+def _drop_unneeded(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
+    """Remove exposures (longest first, never the first ``n_fixed``) whose absence still meets
+    the target."""
     chosen = list(chosen)
-    for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
+    for pos in sorted(range(n_fixed, len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
         rest = [c for k, c in enumerate(chosen) if k != pos and c is not None]
         if rest and ctx.reached(ctx.snr(*ctx.sums(rest))):
             chosen[pos] = None
     return [c for c in chosen if c is not None]
 
 
-def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
+def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
     """Local search after the greedy: drop exposures the target does not need, then replace
     each (longest first) by one shorter exposure or by 2-4 copies of a shorter one whenever that
-    costs less time and the target still holds."""
-    chosen = _drop_unneeded(ctx, chosen)
+    costs less time and the target still holds. The first ``n_fixed`` stay as they are."""
+    chosen = _drop_unneeded(ctx, chosen, n_fixed)
     order = np.argsort(ctx.cost_time, kind="stable")
     for _ in range(6):
         changed = False
-        for pos in sorted(range(len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
+        for pos in sorted(range(n_fixed, len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
             if pos >= len(chosen):
                 continue
             base = chosen[:pos] + chosen[pos + 1:]
@@ -475,9 +593,12 @@ def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
             # replace it by the cheapest valid alternative: one shorter exposure, or 2..4 copies
             # of a shorter one when that saves at least 10 % of its time
             found, found_cost = None, cost * (1 - 1e-9)
+            excluded = ctx.excluded(base)
             for c in order:
                 if ctx.cost_time[c] >= found_cost:
                     break
+                if excluded[c]:
+                    continue
                 for k in (1, 2, 3, 4):
                     new_cost = k * ctx.cost_time[c]
                     if new_cost >= found_cost or (k > 1 and new_cost > 0.9 * cost):
@@ -491,14 +612,30 @@ def _polish(ctx: _Context, chosen: list[int]) -> list[int]:
                 changed = True
         if not changed:
             break
-    return _drop_unneeded(ctx, chosen)
+    return _drop_unneeded(ctx, chosen, n_fixed)
+
+
+def _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx: _Context, k_sigma) -> dict:
+    """The first exposure and the figure behind it (the bulk's brightest irradiance)."""
+    unit = "e-/s, brightest irradiance of the bulk"
+    if t_seed is None:
+        return {"choice": None, "reason": "no allowed time fits the time budget", "figure": x_bulk, "unit": unit}
+    sat = ctx.elig & (usable_fraction(ctx.X, t_seed, ctx.cal, "threshold", k_sigma) == 0)
+    frac = float(ctx.w_elig[sat].sum() / max(ctx.w_elig.sum(), 1e-300))
+    why = (f"{_fmt_t(t_first)}: the longest allowed time that does not saturate the bulk (all eligible pixels but "
+           f"the brightest {100 * highlight_fraction:g} %, up to {x_bulk:.4g} e-/s; {k_sigma:g} sigma margin)")
+    if t_seed != t_first:
+        why = f"{_fmt_t(t_seed)}, the longest that fits the time budget; wanted " + why
+    why += f"; it saturates about {100 * frac:.3g} % of the eligible pixels"
+    return {"choice": float(t_seed), "reason": why, "figure": x_bulk, "unit": unit}
 
 
 def _fmt_t(t: float) -> str:
     return f"1/{1 / t:.0f} s" if t < 0.25 else f"{t:g} s"
 
 
-def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, max_exposures, budget, ctx):
+def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_exposures, budget, ctx):
+    exposures = [float(ctx.cand[i]) for i in chosen]
     where = "all eligible pixels" if q >= 1 else f"{100 * q:g} % of eligible pixels"
     n_m = sum(d == "matched" for d in darks)
     seq = ", ".join(_fmt_t(t) for t in exposures)
@@ -518,8 +655,7 @@ def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, m
                      f"total capture time {total:.4g} s.")
         failing = ctx.elig & (to_db(ctx.snr(*ctx.sums([]))) < target)
         if exposures:
-            idx = [int(np.argmin(np.abs(ctx.cand - t))) for t in exposures]
-            snr_now = to_db(ctx.snr(*ctx.sums(idx)))
+            snr_now = to_db(ctx.snr(*ctx.sums(chosen)))
             failing = ctx.elig & (snr_now < target)
         if failing.any():
             xs = ctx.X[failing]
@@ -535,20 +671,26 @@ def _message(ok, target, q, min_db, exposures, darks, total, limit, decisions, m
 
 
 def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, candidate_times: Sequence[float],
-                    max_exposures: int, *, overhead: float = 0.0, quantile: float | None = None,
+                    max_exposures: int, *, overhead: float = DEFAULT_OVERHEAD_S, quantile: float | None = None,
                     errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
-                    bins: int = 256) -> tuple[list[float], float] | None:
+                    bins: int = 256, first: float | None = None) -> tuple[list[float], float] | None:
     """Exhaustive search over all multisets of ``candidate_times`` of size <= ``max_exposures``:
     the sequence with the least total capture time that reaches the target (reference for the
-    greedy planner). Returns (times, total_time_s), or None when nothing reaches the target."""
+    greedy planner). ``first``: only sequences that hold this time (one of the candidates), as
+    the planner's sequences hold the bulk exposure. Returns (times, total_time_s), or None when
+    nothing reaches the target."""
     times = _check_request(target_snr_db, candidate_times, max_exposures, None, overhead, quantile)
     errors = errors if errors is not None else SystematicErrors()
     hist = irradiance_histogram(irradiance, bins)
     ctx = _Context(calibration, hist, target_snr_db, times, [darks] * len(times), [1] * len(times), overhead, errors,
                    "map", 1.0 if quantile is None else quantile, k_sigma)
+    fixed: tuple[int, ...] = ()
+    if first is not None:
+        fixed = (int(np.argmin(np.abs(np.asarray(times) - float(first)))),)
     best = None
     for n in range(1, int(max_exposures) + 1):
-        for combo in itertools.combinations_with_replacement(range(len(times)), n):
+        for rest in itertools.combinations_with_replacement(range(len(times)), n - len(fixed)):
+            combo = fixed + rest
             tt = ctx.time(combo)
             if best is not None and tt >= best[1]:
                 continue
@@ -558,7 +700,7 @@ def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, 
 
 
 def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, step_ev: float,
-                 allowed_times: Sequence[float] | None = None, *, overhead: float = 0.0,
+                 allowed_times: Sequence[float] | None = None, *, overhead: float = DEFAULT_OVERHEAD_S,
                  errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
                  max_frames: int = 400, bins: int = 256) -> tuple[list[float], float] | None:
     """The naive alternative: a fixed bracket of ``step_ev`` EV steps, long enough to reach the

@@ -8,7 +8,10 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
   bias errors stay in the estimate (they do not average out); the cost at the target level is
   10 log10(1 + T^2 b^2 / X^2) dB for a systematic error b (e-/s) at irradiance X and target
   SNR T. Above the tolerance a master dark from the library is used when there is one (no
-  capture time), else a matched dark frame (costs t + overhead and adds its read noise);
+  capture time), else a matched dark frame (costs t + overhead and adds its read noise). The
+  planner then offers such a time both with that dark and without a dark frame, and keeps the
+  dark only when the SNR it buys (the systematic error is part of the predicted SNR) is
+  cheaper than more exposures;
 * PRNU: a scalar gain leaves a relative error p (the PRNU spread) in every photosite: cost
   10 log10(1 + T^2 p^2) dB;
 * saturation: the probabilistic model (Eq. 8-10) keeps part of the information of samples
@@ -39,9 +42,15 @@ __all__ = [
     "iterations_decision",
     "eligibility_decision",
     "MAX_ITERATIONS",
+    "CONVERGED_ITERATIONS",
+    "full_well_clips_first",
 ]
 
 MAX_ITERATIONS = 8
+
+#: Iterations asked of the merge when they must converge (the merge's default; it stops each
+#: photosite at its tolerance, so this costs time only where needed).
+CONVERGED_ITERATIONS = 20
 
 
 def target_loss_db(bias, X, target_lin: float):
@@ -118,15 +127,35 @@ def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Cali
     return {"choice": choice, "reason": why, "figure": loss, "unit": "dB lost at the target with a scalar gain"}
 
 
+def full_well_clips_first(calibration: Calibration) -> bool:
+    """Whether the full well, not the ADC, limits the raw values: v_sat lies more than 3 read-noise
+    sigma below the ADC's largest value (camera-A: 3709 against 4095 DN; camera-B: 1023 = 1023)."""
+    p = calibration.params
+    return bool(p.white_level - p.v_sat > 3.0 * np.sqrt(p.sigma2_R))
+
+
 def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA) -> dict:
-    """Threshold rule or probabilistic saturation model, by the predicted SNR gain."""
+    """Threshold rule or probabilistic saturation model, by the predicted SNR gain.
+
+    Where the full well clips before the ADC (:func:`full_well_clips_first`), saturated values
+    scatter below v_sat with the read noise; the mixture of Eq. 8-10 (a uniform density above
+    v_sat) does not describe them, and the merge's probabilistic model leaves gross errors there
+    (measured, camera-A, planned sequences, 96x128: 0-28 photosites beyond 6 sigma with the
+    probabilistic model, 0-3 with the threshold rule and converged iterations). The threshold
+    rule is taken then, whatever the predicted gain."""
     kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
     thr = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="threshold", **kw).snr_db
     prob = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic", **kw).snr_db
     gain = np.where(np.isfinite(thr), prob - thr, np.where(np.isfinite(prob), np.inf, 0.0))
     g = float(gain.max()) if gain.size else 0.0
     frac = float(np.mean(gain > tolerance_db)) if gain.size else 0.0
-    if g > tolerance_db:
+    if g > tolerance_db and full_well_clips_first(calibration):
+        choice = "threshold"
+        why = (f"threshold rule (Eq. 11): the probabilistic model would add up to {g:.3f} dB, but the full well clips "
+               f"before the ADC (v_sat {calibration.params.v_sat:.6g} DN < white level "
+               f"{calibration.params.white_level:.6g} DN): saturated values fall below v_sat, where Eq. 8-10 takes "
+               f"them as data")
+    elif g > tolerance_db:
         choice = "probabilistic"
         why = (f"probabilistic saturation (Eq. 8-10): samples near v_sat add up to {g:.3f} dB "
                f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB)")
@@ -171,13 +200,39 @@ def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k
     return losses
 
 
-def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA) -> dict:
-    """Number of merge re-weighting steps (Fig. 3) needed to be within the tolerance."""
+def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA,
+                        saturation: str = "threshold") -> dict:
+    """Number of merge re-weighting steps (Fig. 3) needed to be within the tolerance.
+
+    Floors on top of the predicted loss, for samples that saturate: when a planned exposure
+    saturates some of the irradiances ``Xe``, at least 2 (the near-saturation rule drops a
+    sample by its value predicted from the previous estimate, so it acts from the second step
+    on), and :data:`CONVERGED_ITERATIONS` where the full well clips before the ADC (measured on
+    camera-A: one step leaves up to 438 of 12288 photosites beyond 6 sigma, two steps up to 3,
+    converged ones up to 3); :data:`CONVERGED_ITERATIONS` with the probabilistic saturation
+    model (its Newton steps must converge; the merge stops each photosite at its tolerance, so
+    this costs time only where needed).
+    """
     losses = _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k_sigma)
     k = next((i + 1 for i, loss in enumerate(losses) if loss <= tolerance_db), MAX_ITERATIONS)
     why = (f"{k} re-weighting step(s): predicted loss against the converged merge "
            + ", ".join(f"{loss:.3f} dB after {i + 1}" for i, loss in enumerate(losses[:max(k, 2)])))
-    return {"choice": k, "reason": why, "figure": losses[k - 1], "unit": "dB lost against the converged merge"}
+    figure = losses[k - 1]
+    saturates = any(np.any(usable_fraction(Xe, t, calibration, "threshold", k_sigma) == 0) for t in set(exposures))
+    if saturation == "probabilistic":
+        k = CONVERGED_ITERATIONS
+        why = (f"{k} re-weighting steps (stop at the merge's tolerance): the probabilistic saturation model's "
+               f"Newton steps must converge; without it " + why)
+    elif saturates and full_well_clips_first(calibration):
+        k = CONVERGED_ITERATIONS
+        why = (f"{k} re-weighting steps (stop at the merge's tolerance): planned exposures saturate some pixels and "
+               f"the full well clips before the ADC, so saturated samples slip under v_sat until the estimate has "
+               f"converged; without it " + why)
+    elif saturates and k < 2:
+        k = 2
+        why = ("2 re-weighting steps: planned exposures saturate some pixels and the near-saturation rule acts "
+               "from the second step on; without it " + why)
+    return {"choice": k, "reason": why, "figure": figure, "unit": "dB lost against the converged merge"}
 
 
 def eligibility_decision(hist, elig, t_min: float, calibration: Calibration) -> dict:

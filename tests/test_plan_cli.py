@@ -9,7 +9,9 @@ import pytest
 
 from acquire.cli import main
 from mock_camera.scenes import make_scene
-from pipeline.io import HdrImage, write_exr
+from mock_camera import PRESETS
+from pipeline.io import HdrImage, read_exr, write_exr
+from pipeline.params import THIRD_STOP_TIMES
 
 
 def _run(capsys, *args):
@@ -36,8 +38,26 @@ def test_plan_json_contract_from_irradiance_map(capsys, scene_exr):
     assert d["feasible"] and d["predicted_min_snr_db"] >= 20 - 1e-6
     assert len(d["darks"]) == len(d["exposures"]) >= 2
     assert d["total_time_s"] >= sum(d["exposures"]) + 0.1 * len(d["exposures"])
-    for name in ("dark_strategy", "prnu", "saturation", "iterations"):
+    for name in ("dark_strategy", "prnu", "saturation", "iterations", "first_exposure"):
         assert {"choice", "reason", "figure"} <= set(d["decisions"][name])
+    # what `hdrcap merge --plan` reads: per-exposure darks and n_dark, and the merge options
+    assert len(d["n_dark"]) == len(d["exposures"])
+    assert all(n == {"model": 0, "matched": 1}[k] for k, n in zip(d["darks"], d["n_dark"]))
+    opts = d["merge_options"]
+    assert opts["saturation_sigmas"] == 3.0 and opts["prnu"] in ("map", "scalar")
+    assert opts["saturation"] in ("threshold", "probabilistic") and opts["iterations"] >= 1
+    assert d["overhead_s"] == 0.1
+    # the first exposure is the longest ladder time that clips at most 5 % of the scene
+    # (simulator parameters; 3 sigma margin), and it is listed first
+    spec = PRESETS["camera-B"]
+    x = read_exr(scene_exr).channels["irradiance"].astype(np.float64).ravel()
+
+    def clips(t):
+        e = t * (x + spec.dark_current)
+        return spec.mu_R + spec.g * e + 3 * np.sqrt(spec.g**2 * e + spec.sigma2_R) >= spec.nominal_params().v_sat
+
+    t_bulk = max(t for t in THIRD_STOP_TIMES if np.mean(clips(t)) <= 0.05)  # no pixel clips at 1/8000 s here
+    assert d["exposures"][0] == pytest.approx(t_bulk, rel=1e-9)
 
 
 def test_plan_allowed_times_budget_and_infeasible(capsys, scene_exr):

@@ -84,7 +84,8 @@ def _explain(plan) -> str:
 @click.option("--target-snr-db", type=float, required=True, help="Target SNR of the merged irradiance, dB (20 log10).")
 @click.option("--max-exposures", type=click.IntRange(min=1), help="Maximum number of exposures (dark frames not counted).")
 @click.option("--time-budget", type=float, help="Maximum total capture time incl. dark frames and overheads, s.")
-@click.option("--overhead", default=0.0, show_default=True, type=float, help="Per-frame overhead (download, latency), s.")
+@click.option("--overhead", type=float, help="Per-frame overhead besides the exposure (shutter latency, raw write, USB download), s.  [default: 1, typical of a tethered DSLR]")
+@click.option("--highlight-fraction", type=click.FloatRange(0, 1, max_open=True), help="The first exposure is the longest that saturates at most this fraction of the eligible pixels (the scene's highlights).  [default: 0.05]")
 @click.option("--allowed-times", multiple=True, help="Exposure times the camera offers (s or fractions like 1/250, several after one flag).  [default: 1/3-EV ladder 1/8000..30 s]")
 @click.option("--quantile", type=float, help="Fraction of eligible pixels that must reach the target.  [default: 1, all pixels not saturated at the shortest time]")
 @click.option("--dark-error", type=float, help="RMS error of the dark current subtracted without a dark frame, e-/s.  [default: from the calibration]")
@@ -95,19 +96,25 @@ def _explain(plan) -> str:
 @click.option("--plot", type=click.Path(dir_okay=False, path_type=Path), help="Write the Fig. 7 plot (sequence over the histogram, predicted SNR) to this PNG.")
 @click.option("--force", is_flag=True, help="Overwrite an existing --plot file.")
 def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_max, seed, meter_frames, meter_max_time,
-            target_snr_db, max_exposures, time_budget, overhead, allowed_times, quantile, dark_error, dark_library,
-            uniform_darks, explain, as_json, plot, force):
+            target_snr_db, max_exposures, time_budget, overhead, highlight_fraction, allowed_times, quantile, dark_error,
+            dark_library, uniform_darks, explain, as_json, plot, force):
     """Plan the exposures that reach --target-snr-db on a scene (greedy Eq. 18, Sec. 8).
 
     The scene comes from an irradiance map (--irradiance MAP.exr) or from metering quick
-    frames (--meter; simulated camera). The plan lists exposure times in capture order, the
-    dark strategy of each (matched dark frame, master dark, or model), the predicted minimum
+    frames (--meter; simulated camera). The plan lists exposure times in capture order (first
+    the longest that does not saturate the scene's bulk, all but the brightest
+    --highlight-fraction of the pixels), the dark strategy of each (matched dark frame, master
+    dark, or model) and its dark-frame count, the merge options to use, the predicted minimum
     SNR, the total capture time and the model decisions (dark frames, PRNU, saturation model,
     merge iterations) with the figures that drove them. Infeasible requests are reported with
     the best achievable SNR (exit status 0; "feasible": false in the JSON).
     """
     from planner import plan_exposures, systematic_errors_from_calibration
     from planner.ladder import parse_time
+    from planner.plan import DEFAULT_HIGHLIGHT_FRACTION, DEFAULT_OVERHEAD_S
+
+    overhead = DEFAULT_OVERHEAD_S if overhead is None else overhead
+    highlight_fraction = DEFAULT_HIGHLIGHT_FRACTION if highlight_fraction is None else highlight_fraction
 
     if bool(irradiance) == bool(do_meter):
         raise InputError("give exactly one scene source: --irradiance MAP.exr or --meter")
@@ -138,7 +145,7 @@ def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_m
         errors = type(base)(dark_current=dark_error, bias=base.bias, prnu=base.prnu)
     plan = plan_exposures(cal, X, target_snr_db, allowed, max_exposures=max_exposures, time_budget=time_budget,
                           overhead=overhead, quantile=quantile, errors=errors, dark_library=library or None,
-                          uniform_darks=uniform_darks)
+                          uniform_darks=uniform_darks, highlight_fraction=highlight_fraction)
     if plot is not None:
         from planner.plot import plot_plan
 
