@@ -221,8 +221,10 @@ def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_
 @numba.njit(cache=True, error_model="numpy")
 def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, white, r, c, mu, sig, a, D,
                    bl, base_c, master_c, max_iter, tol):
-    """Eq. 8-10: blend of the unclipped Gaussian and a uniform density by P_nsat(v); Newton
+    """Eq. 8-10: blend of the unclipped Gaussian and a uniform density by P_nsat; Newton
     steps on the log-likelihood (EM step where not concave), damped to one sigma, from ``mu``.
+    P_nsat is Eq. 8's probability that the observed v is not saturated, times the probability
+    that the value predicted from the current estimate does not reach v_sat.
     Returns (mu, sigma, n used, steps, flagged)."""
     sigma_R = math.sqrt(sigma2_R)
     nu = 0.0
@@ -235,7 +237,7 @@ def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, w
         nr = 0
         for i in range(len(values)):
             v = float(values[i][r, c])
-            if not (v < white):
+            if not (v < v_sat):  # Eq. 11: values at or above the limit are saturated
                 continue
             t = times[i]
             tga = t * g * a
@@ -249,7 +251,13 @@ def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, w
             x = (v - b) / tga
             if not math.isfinite(x):
                 continue
-            p = 0.5 * math.erfc((v - v_sat) / (_SQRT2 * sigma_R))
+            # P_nsat: the observed value's (Eq. 8) times the probability that the unclipped
+            # value predicted from the current estimate stays below v_sat. Without the second
+            # factor a saturated sample that slips under v_sat on read noise keeps a large
+            # responsibility wherever the estimate lies just above that exposure's saturation.
+            ev = bl + g * t * D + tga * m  # E(v_i) without clipping, DN
+            sv = math.sqrt(_dvar(m, t, g, sigma2_R, D, a, 0.0))
+            p = 0.5 * math.erfc((v - v_sat) / (_SQRT2 * sigma_R)) * (1.0 - 0.5 * math.erfc((v_sat - ev) / (_SQRT2 * sv)))
             if p <= 0.0:
                 continue
             w = (tga * tga) / _dvar(m, t, g, sigma2_R, D, a, ks[i])

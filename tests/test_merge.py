@@ -165,12 +165,36 @@ def test_mixed_dark_strategies_per_exposure_reach_their_bound():
         merge_arrays(values[:5], TIMES[:5], cal, None, dark_strategies=mixed)
 
 
-def test_probabilistic_saturation_no_gross_errors():
-    mc = _monte_carlo("camera-A", "matched", seeds=(5,), saturation="probabilistic")
-    sel = np.isfinite(mc["bound"]) & (mc["X"] / np.sqrt(mc["bound"]) > 1.41)
+@pytest.mark.parametrize("cam", ["camera-A", "camera-B"])
+def test_probabilistic_saturation_honest_and_no_gross_errors(cam):
+    mc = _monte_carlo(cam, "matched", seeds=(5,), saturation="probabilistic")
+    sel = np.isfinite(mc["bound"]) & (mc["X"] / np.sqrt(mc["bound"]) > 1.41) & (mc["nexp"] > 0)
+    z = mc["err"][sel] / mc["sigma"][sel]
+    assert 0.95 < z.std() < 1.05, z.std()
+    assert np.mean(np.abs(z) > 6) < 1e-4
     zb = mc["err"][sel] / np.sqrt(mc["bound"][sel])
-    assert np.mean(np.abs(zb) > 6) < 1e-4
-    assert abs(zb.mean()) < 0.1 and np.mean(zb**2) < 1.1
+    # The threshold model's bound leaves out the samples near saturation; the blended
+    # likelihood uses part of them, so its MSE is at or below that bound.
+    assert abs(zb.mean()) < 0.1 and np.mean(zb**2) < 1.02
+
+
+def test_probabilistic_saturation_just_above_each_clip_camera_a():
+    """Camera-A's full well clips before the ADC, so saturated samples slip under v_sat on
+    read noise; irradiances from 0.9x to 1.5x each exposure's clip level: no gross errors."""
+    spec = PRESETS["camera-A"]
+    p = spec.nominal_params()
+    shape = (64, 128)
+    sensor = SimulatedSensor(spec, shape, seed=9)
+    cal = _truth_calibration(sensor, p)
+    beyond = []
+    for clip in _clip_levels(spec, TIMES):
+        X = clip * np.linspace(0.9, 1.5, shape[0] * shape[1]).reshape(shape)
+        values = [sensor.expose(X, t) for t in TIMES]
+        darks = [sensor.expose(X, t, dark=True) for t in TIMES]
+        res = merge_arrays(values, TIMES, cal, darks, saturation="probabilistic")
+        ok = res.nexp > 0
+        beyond.append(int(np.sum(np.abs(res.irradiance[ok] - X[ok]) > 6 * res.sigma[ok])))
+    assert sum(beyond) == 0, beyond
 
 
 def test_near_saturation_rule_is_needed_for_camera_a():
