@@ -328,28 +328,38 @@ def job_calibration(job: Job):
 # --------------------------------------------------------------------------- planning
 def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str], None]):
     """The capture plan: a fixed bracket, or meter + planner for a target SNR (falls back to
-    the job's bracket, or a 2-stop bracket over the camera's range, when the planner is absent)."""
+    the job's bracket, or a 2-stop bracket over the camera's range, when the planner is absent).
+
+    The planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
+    dark frames are captured only for matched and master exposures, and not for master
+    exposures whose master dark the dark library holds. ``info`` (recorded in the manifest)
+    carries the planner's decisions and merge options for the merge and the EXR header."""
     from acquire.session import CapturePlan
 
     exp, darks = job["exposure"], job["darks"]
     allowed = camera.allowed_exposure_times()
     times = list(exp["times"])
-    strategy = darks["strategy"]
+    strategy: str | list[str] = darks["strategy"]
     info: dict[str, Any] = {"mode": exp["mode"]}
     if exp["mode"] == "snr":
         try:
             import planner
 
             irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
+            root = _library_root(job, calibration)
+            library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False).items()}
             plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
                                           max_exposures=exp.get("max_exposures"),
-                                          time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"))
+                                          time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
+                                          dark_library=library or None)
             times = list(plan.exposures)
-            if "strategy" not in job.given.get("darks", ()) and getattr(plan, "darks", None):
-                planned = sorted(set(plan.darks))
-                strategy = planned[0] if len(planned) == 1 else "matched"
             info.update(planner=True, predicted_min_snr_db=plan.predicted_min_snr_db, feasible=plan.feasible,
-                        message=plan.message)
+                        message=plan.message, plan=_plan_record(plan))
+            if getattr(plan, "darks", None):
+                if "strategy" not in job.given.get("darks", ()):
+                    strategy = list(plan.darks)
+                elif set(plan.darks) != {strategy}:
+                    info["plan_overridden"] = {"darks": {"plan": list(plan.darks), "used": strategy}}
             echo(f"plan: {plan.message}")
         except (ImportError, AttributeError) as err:
             if not times:
@@ -358,15 +368,32 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
             info.update(planner=False, fallback=f"planner not available ({err}); fixed bracket")
             echo(f"hdrcap: planner not available ({type(err).__name__}); using a fixed bracket of "
                  f"{len(times)} exposures: {', '.join(f'{t:g}' for t in times)} s")
-    root = _library_root(job, calibration)
-    masters = library_masters(root, camera, [nearest_allowed(t, allowed) for t in times]) \
-        if strategy == "master" else {}
+    snapped = [nearest_allowed(t, allowed) for t in times]
+    per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
+    master_times = [t for t, s in zip(snapped, per) if s == "master"]
+    masters = library_masters(_library_root(job, calibration), camera, master_times, load=False) if master_times else {}
     if masters:
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
-        echo(f"dark library: master darks for {len(masters)} of {len(set(times))} exposure times")
-    plan = CapturePlan.bracket(times, allowed, strategy, n_dark=darks["count"], repeats=exp["repeats"],
+        echo(f"dark library: master darks for {len(masters)} of {len(set(master_times))} master-dark exposure times")
+    plan = CapturePlan.bracket(snapped, allowed, strategy, n_dark=darks["count"], repeats=exp["repeats"],
                                series=job["calibration"]["series"], library_times=list(masters))
     return plan, info
+
+
+def _plan_record(plan) -> dict:
+    """What the manifest keeps of a planner's plan (JSON): the plan without its SNR curve, and
+    the merge options that follow its decisions."""
+    d = plan.to_dict() if hasattr(plan, "to_dict") else {}
+    d.pop("curve", None)
+    if "merge_options" not in d and hasattr(plan, "merge_options"):
+        d["merge_options"] = plan.merge_options()
+    return _json_safe(d)
+
+
+def _json_safe(obj):
+    import json
+
+    return json.loads(json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
 def _library_root(job: Job, calibration) -> str | None:
@@ -375,36 +402,18 @@ def _library_root(job: Job, calibration) -> str | None:
     return getattr(calibration, "dark_library", None)
 
 
-def library_masters(root, camera, times) -> dict[float, tuple]:
-    """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N).
-
-    Matched by camera model, ISO (when both are known), exposure time (0.1 %) and temperature
-    (within 1 degree C when both are known); the one with most frames wins. Empty when the
-    there is no dark library (or ``pipeline.darklibrary`` is not there)."""
+def library_masters(root, camera, times, load: bool = True) -> dict[float, tuple]:
+    """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N), matched
+    by :meth:`pipeline.darklibrary.DarkLibrary.masters` to the camera's model and temperature
+    (data None unless ``load``). Empty when there is no dark library."""
     if not root:
         return {}
-    try:
-        from pipeline.darklibrary import DarkLibrary
-    except ImportError:
-        return {}
-    lib = DarkLibrary(root)
-    model = str(getattr(getattr(camera, "identity", None), "model", ""))
+    from pipeline.darklibrary import DarkLibrary
+
+    model = str(getattr(getattr(camera, "identity", None), "model", "")) or None
     temp = camera.temperature() if hasattr(camera, "temperature") else None
-    out = {}
-    for t in sorted(set(times)):
-        best = None
-        for e in lib.entries():
-            if model and model not in e.camera and e.camera not in model:
-                continue
-            if not math.isclose(e.exposure_time, t, rel_tol=1e-3):
-                continue
-            if temp is not None and e.temperature is not None and abs(e.temperature - temp) > 1.0:
-                continue
-            if best is None or e.n_frames > best.n_frames:
-                best = e
-        if best is not None:
-            out[t] = lib.load(best)
-    return out
+    found = DarkLibrary(root).masters(times, camera=model, temperature=temp, load=load)
+    return {t: (data, n) for t, (data, n, _e) in found.items()}
 
 
 def _meter_fn(camera, run_dir: Path):
@@ -471,11 +480,19 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         retry = RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
         meta = {"job": str(job.path) if job.path else None, "job_name": job.name, "repetition": n,
                 "planning": info, "calibration": calibration.provenance}
+        planned = info.get("plan") or {}
+        options = _plan_merge_options(planned)
         session = CaptureSession(camera, run_dir, plan, calibration=calibration, light=light, retry=retry,
                                  resume=resume, progress=progress, meta=meta, check_dark=d["check"],
-                                 master_darks=masters)
+                                 master_darks=masters, merge_options=options)
         result = session.run()
-        outputs = _write_outputs(job, run_dir, result, calibration, camera, exr_path, png_path, force)
+        header = None
+        if planned:
+            from acquire.commands.merge import planner_attribute
+
+            header = planner_attribute(planned, None, None, options, info.get("plan_overridden"),
+                                       source="hdrcap run (planned from metering)")
+        outputs = _write_outputs(job, run_dir, result, calibration, camera, exr_path, png_path, force, header)
     finally:
         if own:
             try:
@@ -496,7 +513,18 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
     return (summary, result) if return_result else summary
 
 
-def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force) -> dict:
+def _plan_merge_options(planned: dict) -> dict:
+    """The merge options the planner decided (recorded in the manifest's planning record)."""
+    if not planned:
+        return {}
+    from acquire.commands.merge import PLAN_OPTIONS, check_plan
+
+    decided = check_plan(planned, "planner").merge_options()
+    return {k: v for k, v in decided.items() if k in PLAN_OPTIONS}
+
+
+def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force,
+                   planner_header: dict | None = None) -> dict:
     from acquire.commands.merge import build_hdr_image
     from pipeline.io import RawFrame, write_exr
     from pipeline.preview import write_preview_png
@@ -511,6 +539,8 @@ def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_pat
               for r in lights]
     extra = {"run_dir": str(run_dir), "job": job.name, "camera": lights[0]["camera"] if lights else {},
              "manifest": "manifest.jsonl"}
+    if planner_header:
+        extra["planner"] = planner_header
     if exr_path is not None:
         write_exr(exr_path, build_hdr_image(merge, frames, calibration, extra), force=force)
         out["exr"] = str(exr_path)

@@ -16,8 +16,8 @@ Guarantees
   hash is checked), a frame whose file landed but was not yet recorded is verified and
   adopted, unfinished downloads are discarded, and only the missing frames are captured.
 * A lock on the run folder and one on the camera stop two sessions from colliding.
-* Each verified light frame is handed to the merge as it lands
-  (``pipeline.merge.MergeAccumulator`` when present; otherwise the merge runs at the end).
+* Each verified light frame is handed to the merge (``pipeline.merge.MergeAccumulator``) as
+  it lands, with the dark strategy the plan gives its exposure time.
 """
 
 from __future__ import annotations
@@ -95,41 +95,57 @@ def frame_stem(index: int, spec: FrameSpec) -> str:
     return f"{index:04d}_{spec.kind}_{spec.exposure_s:.6g}s"
 
 
+DARK_STRATEGIES = ("matched", "master", "model")
+
+
 @dataclass(frozen=True)
 class CapturePlan:
     """The frames of a run in capture order, and how dark frames are used by the merge.
 
-    ``dark_strategy``: ``matched`` (one dark frame per exposure time), ``master`` (``n_dark``
-    dark frames per exposure time, averaged) or ``model`` (no dark frames: bias level and
-    calibrated dark current).
+    The dark strategy of an exposure time is ``matched`` (one dark frame of that time),
+    ``master`` (``n_dark`` dark frames of that time averaged, or a master dark of the dark
+    library for the ``library_times``) or ``model`` (no dark frame: bias level and calibrated
+    dark current). ``dark_strategy`` is the strategy of every exposure time, or ``"mixed"``;
+    then ``time_strategies`` holds (time, strategy) pairs for every exposure time.
     """
 
     frames: tuple[FrameSpec, ...]
     dark_strategy: str = "matched"
     n_dark: int = 1
     library_times: tuple[float, ...] = ()
+    time_strategies: tuple[tuple[float, str], ...] = ()
 
     @classmethod
-    def bracket(cls, times: Sequence[float], allowed: Sequence[float] | None = None, dark_strategy: str = "matched",
-                n_dark: int = 1, repeats: int = 1, series: Sequence[dict] = (),
-                library_times: Sequence[float] = ()) -> "CapturePlan":
+    def bracket(cls, times: Sequence[float], allowed: Sequence[float] | None = None,
+                dark_strategy: str | Sequence[str] = "matched", n_dark: int = 1, repeats: int = 1,
+                series: Sequence[dict] = (), library_times: Sequence[float] = ()) -> "CapturePlan":
         """A bracket of ``times`` (each snapped to the nearest ``allowed`` time), ``repeats``
-        frames per time, dark frames per ``dark_strategy`` and calibration ``series``
-        (dicts with ``kind``, ``times``, ``count``). Frames needing the light blocked come
-        first, so the light is blocked once. ``library_times``: exposure times whose master
-        dark comes from the dark library (no dark frames are captured for them)."""
-        if dark_strategy not in ("matched", "master", "model"):
-            raise InputError(f"dark strategy must be matched, master or model, got {dark_strategy!r}")
+        frames per time, dark frames per dark strategy and calibration ``series`` (dicts with
+        ``kind``, ``times``, ``count``). ``dark_strategy`` is one strategy for all exposures or
+        one per entry of ``times`` (a planner's per-exposure choice). Frames needing the light
+        blocked come first, so the light is blocked once. ``library_times``: exposure times
+        whose master dark comes from the dark library (no dark frames are captured for them;
+        only ``master`` times qualify)."""
         snap = (lambda t: nearest_allowed(t, allowed)) if allowed else float
         times = [snap(float(t)) for t in times]
+        per = [dark_strategy] * len(times) if isinstance(dark_strategy, str) else list(dark_strategy)
+        if len(per) != len(times):
+            raise InputError(f"{len(per)} dark strategies for {len(times)} exposure times")
+        by_time: dict[float, str] = {}
+        for t, s in zip(times, per):
+            if s not in DARK_STRATEGIES:
+                raise InputError(f"dark strategy must be matched, master or model, got {s!r}")
+            if by_time.setdefault(round(t, 12), s) != s:
+                raise InputError(f"exposure {t:g} s has two dark strategies ({by_time[round(t, 12)]} and {s})")
         uniq = sorted(set(times))
+        nd = {"matched": 1, "master": max(1, int(n_dark)), "model": 0}
+        lib = {round(float(t), 12) for t in library_times}
+        lib = {k for k in lib if by_time.get(k) == "master"}
         dark_frames, light_frames = [], []
-        nd = {"matched": 1, "master": max(1, int(n_dark)), "model": 0}[dark_strategy]
-        lib = {round(float(t), 12) for t in library_times} if dark_strategy == "master" else set()
         for t in uniq:
             if round(t, 12) in lib:
                 continue
-            for j in range(nd):
+            for j in range(nd[by_time[round(t, 12)]]):
                 dark_frames.append(("dark", t, j))
         for j in range(max(1, int(repeats))):
             for t in times:
@@ -147,23 +163,48 @@ class CapturePlan:
             n = seen.get(base, 0)
             seen[base] = n + 1
             frames.append(FrameSpec(key=f"{base}-{n}", kind=kind, exposure_s=t))
-        return cls(frames=tuple(frames), dark_strategy=dark_strategy, n_dark=nd or 1,
-                   library_times=tuple(sorted(t for t in uniq if round(t, 12) in lib)))
+        used = {dark_strategy} if isinstance(dark_strategy, str) else set(by_time.values()) or {"matched"}
+        uniform = used.pop() if len(used) == 1 else "mixed"
+        if uniform not in DARK_STRATEGIES + ("mixed",):
+            raise InputError(f"dark strategy must be matched, master or model, got {uniform!r}")
+        pairs = () if uniform != "mixed" else tuple((t, by_time[round(t, 12)]) for t in uniq)
+        n_used = max(1, int(n_dark)) if "master" in by_time.values() or uniform == "master" else 1
+        return cls(frames=tuple(frames), dark_strategy=uniform, n_dark=n_used,
+                   library_times=tuple(sorted(t for t in uniq if round(t, 12) in lib)), time_strategies=pairs)
+
+    def strategy_for(self, t: float) -> str:
+        """The dark strategy of exposure time ``t`` (s)."""
+        if not self.time_strategies:
+            return self.dark_strategy
+        for pt, s in self.time_strategies:
+            if math.isclose(pt, t, rel_tol=1e-3):
+                return s
+        raise SessionError(f"exposure {t:g} s is not in the plan")
+
+    def strategies(self) -> dict[float, str]:
+        """Exposure time (s) -> dark strategy, for every exposure time of the light frames."""
+        return {f.exposure_s: self.strategy_for(f.exposure_s) for f in self.frames if f.kind == "light"}
 
     @classmethod
     def from_dict(cls, d: dict) -> "CapturePlan":
-        """The plan recorded in a manifest (:meth:`to_dict`)."""
+        """The plan recorded in a manifest (:meth:`to_dict`; also manifests written before
+        per-exposure strategies)."""
         return cls(tuple(FrameSpec(**f) for f in d["frames"]), d["dark_strategy"], d["n_dark"],
-                   tuple(d.get("library_times", ())))
+                   tuple(d.get("library_times", ())),
+                   tuple((float(t), str(s)) for t, s in d.get("time_strategies", ())))
 
     def fingerprint(self) -> str:
         blob = json.dumps([[f.key, f.kind, f.exposure_s] for f in self.frames] + [self.dark_strategy, self.n_dark]
-                          + ([list(self.library_times)] if self.library_times else []))
+                          + ([list(self.library_times)] if self.library_times else [])
+                          + ([[list(p) for p in self.time_strategies]] if self.time_strategies else []))
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def to_dict(self) -> dict:
-        return {"dark_strategy": self.dark_strategy, "n_dark": self.n_dark, "library_times": list(self.library_times),
-                "frames": [asdict(f) for f in self.frames], "fingerprint": self.fingerprint()}
+        out = {"dark_strategy": self.dark_strategy, "n_dark": self.n_dark, "library_times": list(self.library_times),
+               "frames": [asdict(f) for f in self.frames], "fingerprint": self.fingerprint()}
+        if self.time_strategies:
+            out["time_strategies"] = [list(p) for p in self.time_strategies]
+        return out
 
 
 @dataclass(frozen=True)
@@ -258,90 +299,78 @@ def _identity(camera) -> dict:
 class StreamingMerge:
     """Feeds verified frames to the merge as they land.
 
-    Uses ``pipeline.merge.MergeAccumulator(calibration, shape, dark_strategy=, n_dark=)`` when
-    the merge provides it; otherwise keeps the arrays and merges at the end with
-    ``pipeline.merge.merge_arrays`` or ``merge_frames``. Dark frames come before the light
-    frames in a plan, so each light frame has its dark frame(s) when it lands.
+    Uses ``pipeline.merge.MergeAccumulator``; each light frame is added with the dark
+    strategy of its exposure time (``strategy_for``): ``matched`` with the dark frame of that
+    time, ``master`` with the average of the dark frames of that time (N = their number) or the
+    library's master dark (its N), ``model`` without a dark frame. Dark frames come before the
+    light frames in a plan, so each light frame has its dark frame(s) when it lands.
+
+    Parameters
+    ----------
+    calibration : pipeline.params.Calibration
+    shape : (int, int)
+    strategy_for : callable or str
+        Exposure time (s) -> "matched" | "master" | "model"; a string: one for all.
+    options : dict, optional
+        Further :class:`pipeline.merge.MergeOptions` fields (iterations, saturation, prnu, ...).
     """
 
-    def __init__(self, calibration, shape, dark_strategy: str = "matched", n_dark: int = 1):
+    def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = "matched",
+                 options: dict | None = None):
+        from pipeline.merge import MergeAccumulator
+
         self.calibration = calibration
         self.shape = tuple(shape)
-        self.dark_strategy = dark_strategy
-        self.n_dark = n_dark
+        self.strategy_for = (lambda _t, s=strategy_for: s) if isinstance(strategy_for, str) else strategy_for
         self._dark_sum: dict[float, np.ndarray] = {}
         self._dark_n: dict[float, int] = {}
-        self._lights: list[tuple[np.ndarray, float, np.ndarray | None]] = []
-        self.streamed = False
-        self._acc = None
-        try:
-            from pipeline.merge import MergeAccumulator
+        self._averaged: dict[float, int] = {}
+        self._library: dict[float, tuple[np.ndarray, int]] = {}
+        self.streamed = True
+        opts = {k: v for k, v in (options or {}).items() if k not in ("dark_strategy", "n_dark")}
+        uniform = strategy_for if isinstance(strategy_for, str) and strategy_for != "mixed" else None
+        self._acc = MergeAccumulator(calibration, self.shape, dark_strategy=uniform, **opts)
 
-            self._acc = MergeAccumulator(calibration, self.shape, dark_strategy=dark_strategy, n_dark=n_dark)
-            self.streamed = True
-        except (ImportError, AttributeError, TypeError):
-            self._acc = None
-
-    def _dark_for(self, t: float) -> np.ndarray | None:
-        if self.dark_strategy == "model":
-            return None
+    def _dark_for(self, t: float, strategy: str) -> tuple[np.ndarray | None, int | None]:
+        """(dark level in DN, frames averaged in it for ``master``) of exposure ``t``."""
+        if strategy == "model":
+            return None, None
         k = round(t, 12)
+        if strategy == "master" and k in self._library:
+            return self._library[k]
         if k not in self._dark_sum:
-            raise SessionError(f"no dark frame for exposure {t:g} s before its light frame")
+            raise SessionError(f"no dark frame for exposure {t:g} s ({strategy} dark strategy) before its light frame")
         n = self._dark_n[k]
-        return self._dark_sum[k] if n == 1 else self._dark_sum[k] / n
+        if n > 1:  # average once (the dark frames of a time all come before its light frames)
+            self._dark_sum[k], self._dark_n[k] = (self._dark_sum[k] / n).astype(np.float32), 1
+            self._averaged[k] = n
+        n = self._averaged.get(k, n)
+        return self._dark_sum[k], (n if strategy == "master" else None)
 
     def add_dark(self, values: np.ndarray, t: float) -> None:
         k = round(t, 12)
+        if k in self._averaged:
+            raise SessionError(f"a dark frame for exposure {t:g} s came after its light frames")
         if k in self._dark_sum:  # a master dark: sum in float64
             self._dark_sum[k] = self._dark_sum[k] + values.astype(np.float64)
             self._dark_n[k] += 1
         else:
             self._dark_sum[k], self._dark_n[k] = values, 1
 
-    def add_master(self, values: np.ndarray, t: float) -> None:
-        """A master dark for exposure ``t`` from the dark library (already averaged)."""
-        k = round(t, 12)
-        self._dark_sum[k], self._dark_n[k] = np.asarray(values, np.float64), 1
+    def add_master(self, values: np.ndarray, t: float, n_frames: int = 1) -> None:
+        """A master dark (DN) for exposure ``t`` from the dark library, averaged from ``n_frames``."""
+        self._library[round(t, 12)] = (np.asarray(values, np.float32), int(n_frames))
 
     def add_light(self, values: np.ndarray, t: float) -> None:
-        dark = self._dark_for(t)
-        if self._acc is not None:
-            self._acc.add(values, t, dark=dark)
-        else:
-            self._lights.append((values, t, dark))
+        strategy = self.strategy_for(t)
+        dark, n = self._dark_for(t, strategy)
+        self._acc.add(values, t, dark, strategy=strategy, n_dark=n)
 
     def result(self):
         """The :class:`pipeline.merge.MergeResult` of everything added."""
-        if self._acc is not None:
-            return self._acc.result()
-        if not self._lights:
+        if not len(self._acc):
             raise SessionError("no light frames to merge")
-        values = [v for v, _t, _d in self._lights]
-        times = [t for _v, t, _d in self._lights]
-        darks = None if self.dark_strategy == "model" else [d for _v, _t, d in self._lights]
-        try:
-            from pipeline.merge import merge_arrays
-
-            return merge_arrays(values, times, self.calibration, darks=darks,
-                                dark_strategy=self.dark_strategy, n_dark=self.n_dark)
-        except (ImportError, AttributeError):
-            pass
-        from pipeline.io import RawFrame
-        from pipeline.merge import merge_frames
-
-        frames = [RawFrame(data=v, exposure_time=t, path=f"<light {i}>") for i, (v, t) in enumerate(zip(values, times))]
-        dframes = None
-        if darks is not None:
-            by_t = {}
-            for d, t in zip(darks, times):
-                by_t.setdefault(round(t, 12), (d, t))
-            dframes = [RawFrame(data=d, exposure_time=t, path=f"<dark {t:g}>") for d, t in by_t.values()]
-        res = merge_frames(frames, self.calibration, dframes)
-        res.info["note"] = "merged at the end (no MergeAccumulator in pipeline.merge)"
-        if self.dark_strategy == "master":
-            res.info["note"] += "; master darks treated as single dark frames (conservative sigma)"
-        return res
+        return self._acc.result()
 
 
 @dataclass
@@ -388,12 +417,15 @@ class CaptureSession:
     check_dark : float
         A dark frame whose median lies above this fraction of the raw range stops the session
         (the light was not blocked); 0 disables the check.
+    merge_options : dict, optional
+        Options of the merge (:class:`pipeline.merge.MergeOptions` fields such as iterations,
+        saturation, prnu), e.g. the planner's decisions.
     """
 
     def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
                  retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
                  meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05,
-                 master_darks: dict | None = None):
+                 master_darks: dict | None = None, merge_options: dict | None = None):
         self.camera = camera
         self.run_dir = Path(run_dir)
         self.plan = plan
@@ -406,6 +438,7 @@ class CaptureSession:
         self.sleep = sleep
         self.check_dark = check_dark
         self.master_darks = {round(float(t), 12): v for t, v in (master_darks or {}).items()}
+        self.merge_options = dict(merge_options or {})
         missing = [t for t in plan.library_times if round(t, 12) not in self.master_darks]
         if missing:
             raise SessionError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
@@ -550,10 +583,10 @@ class CaptureSession:
         if rec["kind"] not in ("light", "dark"):
             return merger
         if merger is None:
-            n_dark = min([self.plan.n_dark] + [n for _d, n in self.master_darks.values()])
-            merger = StreamingMerge(self.calibration, values.shape, self.plan.dark_strategy, n_dark)
-            for t, (data, _n) in self.master_darks.items():
-                merger.add_master(data, t)
+            strategy = self.plan.dark_strategy if not self.plan.time_strategies else self.plan.strategy_for
+            merger = StreamingMerge(self.calibration, values.shape, strategy, self.merge_options)
+            for t, (data, n) in self.master_darks.items():
+                merger.add_master(data, t, n)
         if rec["kind"] == "dark":
             merger.add_dark(values, rec["file_exposure_s"])
         else:

@@ -19,7 +19,7 @@ import numpy as np
 from .errors import InputError
 from .io import atomic_output
 
-__all__ = ["DarkEntry", "DarkLibrary", "LIBRARY_FORMAT", "LIBRARY_VERSION"]
+__all__ = ["DarkEntry", "DarkLibrary", "LIBRARY_FORMAT", "LIBRARY_VERSION", "same_camera"]
 
 LIBRARY_FORMAT = "hdrcap-dark-library"
 LIBRARY_VERSION = 1
@@ -54,6 +54,13 @@ class DarkEntry:
     file: str
     level: float = float("nan")
     created: str = ""
+
+
+def same_camera(a: str | None, b: str | None) -> bool:
+    """Whether two camera names denote the same camera: equal, or one contains the other
+    ("Nikon D750" and "D750"); an empty or unknown name matches any."""
+    a, b = (a or "").strip(), (b or "").strip()
+    return not a or not b or a == b or a in b or b in a
 
 
 def _slug(text: str) -> str:
@@ -116,14 +123,19 @@ class DarkLibrary:
                 tmp.write_text(json.dumps(index, indent=1))
         return entry
 
-    def find(self, *, camera: str, iso: float | None, exposure_time: float, temperature: float | None = None,
+    def find(self, *, camera: str | None, iso: float | None, exposure_time: float, temperature: float | None = None,
              temperature_tolerance: float = 1.0, rtol: float = 1e-3) -> DarkEntry | None:
-        """The entry matching camera, ISO and exposure time (relative tolerance ``rtol``) whose
-        temperature is closest and within ``temperature_tolerance`` degrees C (any temperature
-        when either is unknown); the one with most frames on ties."""
+        """The entry matching camera (:func:`same_camera`; None: any), ISO (when both are
+        known) and exposure time (relative tolerance ``rtol``) whose temperature is closest and
+        within ``temperature_tolerance`` degrees C (any temperature when either is unknown);
+        the one with most frames on ties."""
+        return self._find(self.entries(), camera, iso, exposure_time, temperature, temperature_tolerance, rtol)
+
+    @staticmethod
+    def _find(entries, camera, iso, exposure_time, temperature, temperature_tolerance, rtol):
         best = None
-        for e in self.entries():
-            if e.camera != camera or (iso is not None and e.iso is not None and abs(e.iso - iso) > 0.5):
+        for e in entries:
+            if not same_camera(camera, e.camera) or (iso is not None and e.iso is not None and abs(e.iso - iso) > 0.5):
                 continue
             if not np.isclose(e.exposure_time, exposure_time, rtol=rtol, atol=0):
                 continue
@@ -136,6 +148,21 @@ class DarkLibrary:
             if best is None or key < best[0]:
                 best = (key, e)
         return None if best is None else best[1]
+
+    def masters(self, times, *, camera: str | None = None, iso: float | None = None,
+                temperature: float | None = None, temperature_tolerance: float = 1.0,
+                rtol: float = 1e-3, load: bool = True) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
+        """Master darks for the exposure ``times`` (s) that the library holds, matched as in
+        :meth:`find`: t -> (float32 master dark in DN, its frame count N, its entry); the data
+        is None unless ``load``. Times without a master are absent; an absent library gives an
+        empty dict."""
+        entries = self.entries()
+        out = {}
+        for t in sorted({float(t) for t in times}):
+            e = self._find(entries, camera, iso, t, temperature, temperature_tolerance, rtol)
+            if e is not None:
+                out[t] = (*self.load(e), e) if load else (None, e.n_frames, e)
+        return out
 
     def load(self, entry: DarkEntry) -> tuple[np.ndarray, int]:
         """The master dark (float32, DN) and its frame count N."""

@@ -194,3 +194,48 @@ def test_master_darks_come_from_the_dark_library(tmp_path, cli):
     dark_times = sorted({r["file_exposure_s"] for r in recs if r.get("kind") == "dark"})
     assert 0.001 not in dark_times and 0.004 not in dark_times and len(dark_times) == 4
     assert recs[0]["plan"]["library_times"] == [0.001, 0.004]
+
+
+def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatch):
+    """A plan mixing "model" and "matched": dark frames only for the matched times, each light
+    frame merged with its own strategy and the planner's merge options, the decisions in the
+    EXR header, and the result within its stated uncertainty of the truth."""
+    import planner
+    from acquire.job import run_job
+    from mock_camera import PRESETS
+    from mock_camera.scenes import make_scene
+    from mock_camera.sensor import SimulatedSensor
+    from pipeline.calibration import save_calibration
+    from pipeline.io import read_exr
+    from pipeline.params import Calibration
+    from planner.plan import Plan
+
+    # a calibration that knows the mock camera's fixed patterns (seed 3), so z measures the merge alone
+    sensor = SimulatedSensor(PRESETS["camera-B"], (48, 64), seed=3)
+    save_calibration(tmp_path / "cal.npz", Calibration(
+        params=PRESETS["camera-B"].nominal_params(), prnu=sensor.prnu.astype(np.float32),
+        dark_current_map=sensor.dark_current_map().astype(np.float32), provenance={"source": "simulator truth"}))
+    times = [1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0]  # from the camera's ladder, as the planner's
+    darks = ["model", "matched", "model", "matched", "model", "matched"]
+    decisions = {"saturation": {"choice": "probabilistic", "reason": "test", "figure": 0.2},
+                 "prnu": {"choice": "map", "reason": "test", "figure": 0.4},
+                 "iterations": {"choice": 5, "reason": "test", "figure": 0.01}}
+    fake = Plan(times, darks, 22.0, 3.0, decisions, True, "a test plan", 20.0, 1.0, [0] * 6, {})
+    monkeypatch.setattr(planner, "meter", lambda *a, **k: np.ones((48, 64)))
+    monkeypatch.setattr(planner, "plan_exposures", lambda *a, **k: fake)
+    text = GOOD.replace('mode = "bracket"', 'mode = "snr"\ntarget_snr_db = 20.0').replace(
+        'strategy = "matched"\n', "").replace("[output]", '[calibration]\nfile = "cal.npz"\n\n[output]')
+    summary, res = run_job(load_job(_write(tmp_path, text)), run_dir=tmp_path / "run", progress=False,
+                           echo=lambda s: None, return_result=True)
+    dark_times = sorted(r["file_exposure_s"] for r in res.frames.values() if r["kind"] == "dark")
+    assert dark_times == pytest.approx([1 / 250, 1 / 15, 1.0], rel=1e-3)
+    img = read_exr(summary["exr"])
+    m, p = img.attrs["merge"], img.attrs["planner"]
+    assert m["dark_strategies"] == darks and m["iterations"] == 5 and m["saturation"] == "probabilistic"
+    assert p["decisions"] == decisions and p["predicted_min_snr_db"] == 22.0
+    assert p["options_from_plan"] == {"saturation": "probabilistic", "prnu": "map", "iterations": 5,
+                                      "saturation_sigmas": 3.0}
+    truth = make_scene("hdr", (48, 64), decades=3.0, x_max=2e4)
+    ok = img.channels["nexp"] > 0
+    z = (img.channels["irradiance"][ok] - truth[ok]) / img.channels["sigma"][ok]
+    assert ok.mean() > 0.99 and 0.9 < z.std() < 1.1 and abs(z.mean()) < 0.1, (z.std(), z.mean())

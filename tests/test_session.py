@@ -14,6 +14,7 @@ import pytest
 from acquire.manifest import Manifest
 from acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
 from mock_camera.camera import MockCamera, MockFaults
+from pipeline.errors import InputError
 from pipeline.io import read_frame, sha256_file
 
 REPO = Path(__file__).resolve().parents[1]
@@ -297,3 +298,23 @@ def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
     assert 0.7 < 1.4826 * np.median(np.abs(z - np.median(z))) < 1.3
     with pytest.raises(SessionError, match="no master dark"):
         CaptureSession(_camera(), tmp_path / "run2", plan, progress=False, master_darks={TIMES[0]: masters[TIMES[0]]})
+
+
+def test_capture_plan_per_exposure_strategies_and_old_manifests():
+    t = [1 / 1000, 1 / 250, 1 / 60, 1 / 250]
+    plan = CapturePlan.bracket(t, None, ["model", "matched", "master", "matched"], n_dark=3, library_times=[1 / 60])
+    assert [(f.kind, f.exposure_s) for f in plan.frames if f.kind == "dark"] == [("dark", 1 / 250)]
+    assert plan.dark_strategy == "mixed" and plan.strategy_for(1 / 60) == "master" and plan.library_times == (1 / 60,)
+    again = CapturePlan.from_dict(json.loads(json.dumps(plan.to_dict())))
+    assert again == plan and again.fingerprint() == plan.fingerprint()
+    with pytest.raises(InputError, match="two dark strategies"):
+        CapturePlan.bracket(t, None, ["model", "matched", "master", "model"])
+    # a manifest written before per-exposure strategies (fingerprint by the code before them):
+    # the same plan, the same fingerprint
+    old = {"dark_strategy": "master", "n_dark": 2, "library_times": [], "fingerprint": "109ac916a4f30da9", "frames": [
+        {"key": "dark-0.001-0", "kind": "dark", "exposure_s": 0.001},
+        {"key": "dark-0.001-1", "kind": "dark", "exposure_s": 0.001},
+        {"key": "light-0.001-0", "kind": "light", "exposure_s": 0.001}]}
+    p = CapturePlan.from_dict(old)
+    assert p == CapturePlan.bracket([0.001], None, "master", n_dark=2) and p.strategy_for(0.001) == "master"
+    assert p.fingerprint() == old["fingerprint"]
