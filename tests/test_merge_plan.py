@@ -154,3 +154,20 @@ def test_merge_takes_the_json_of_hdrcap_plan(data, tmp_path, capsys):
         assert m[name] == value
     assert set(p["options_from_plan"]) >= {"saturation", "prnu", "iterations"} and p["options_overridden"] == {}
     assert sorted(m["dark_strategies"]) == sorted(plan["darks"])
+
+
+def test_dark_strategy_given_overrides_the_plan_and_bad_plans_fail(data, tmp_path, capsys):
+    plan = _plan(tmp_path / "plan.json", darks=["model"] * 6, merge_options={"saturation": "threshold", "denoise": 1})
+    code, _, err = _run(capsys, "merge", *data["frames"], "--darks", *data["darks"], "--calibration", data["cal"],
+                        "--plan", plan, "--dark-strategy", "matched", "-o", tmp_path / "o.exr")
+    assert code == 0, err
+    assert "'denoise' is not one hdrcap merge knows" in err
+    img = read_exr(tmp_path / "o.exr")
+    p = img.attrs["planner"]
+    assert img.attrs["merge"]["dark_strategies"] == ["matched"] * 6
+    assert p["options_overridden"] == {"darks": {"plan": ["model"] * 6, "used": "matched"}}
+    assert p["options_from_plan"] == {"saturation": "threshold"} and p["options_ignored"] == ["denoise"]
+    (tmp_path / "bad.json").write_text("{not json")
+    code, _, err = _run(capsys, "merge", *data["frames"], "--camera", "camera-B", "--plan", tmp_path / "bad.json",
+                        "-o", tmp_path / "b.exr")
+    assert code != 0 and err.startswith(f"hdrcap: error: {tmp_path / 'bad.json'}: not a plan")
