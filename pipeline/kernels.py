@@ -223,10 +223,12 @@ def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, w
                    bl, base_c, master_c, max_iter, tol):
     """Eq. 8-10: blend of the unclipped Gaussian and a uniform density by P_nsat; Newton
     steps on the log-likelihood (EM step where not concave), damped to one sigma, from ``mu``.
-    P_nsat is Eq. 8's probability that the observed v is not saturated, times the probability
-    that the value predicted from the current estimate does not reach v_sat.
+    Samples at or above v_sat are saturated (Eq. 11); below, P_nsat is the probability that the
+    observed value is not saturated given the current estimate (see the comment in the loop).
     Returns (mu, sigma, n used, steps, flagged)."""
     sigma_R = math.sqrt(sigma2_R)
+    full_well = white - v_sat > 3.0 * sigma_R
+    v_clip = v_sat + 3.0 * sigma_R
     nu = 0.0
     steps = 0
     for _ in range(max_iter):
@@ -251,13 +253,23 @@ def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, w
             x = (v - b) / tga
             if not math.isfinite(x):
                 continue
-            # P_nsat: the observed value's (Eq. 8) times the probability that the unclipped
-            # value predicted from the current estimate stays below v_sat. Without the second
-            # factor a saturated sample that slips under v_sat on read noise keeps a large
-            # responsibility wherever the estimate lies just above that exposure's saturation.
-            ev = bl + g * t * D + tga * m  # E(v_i) without clipping, DN
-            sv = math.sqrt(_dvar(m, t, g, sigma2_R, D, a, 0.0))
-            p = 0.5 * math.erfc((v - v_sat) / (_SQRT2 * sigma_R)) * (1.0 - 0.5 * math.erfc((v_sat - ev) / (_SQRT2 * sv)))
+            # P_nsat (Eq. 8), the probability that the observed v < v_sat is not saturated,
+            # given the current estimate. Where the ADC clips (v_sat at the white level) a
+            # saturated value never lies below v_sat: P_nsat = 1. Where the full well clips
+            # first, saturated values scatter around v_clip = v_sat + 3 sigma_R (Sec. 6: v_sat
+            # is the saturation level minus three sigma) and may slip under v_sat: P_nsat is
+            # the posterior of "unclipped" (prior: the value predicted from the estimate stays
+            # below v_clip; likelihoods: Gaussians around E(v) and around v_clip).
+            p = 1.0
+            if full_well:
+                ev = bl + g * t * D + tga * m  # E(v_i) without clipping, DN
+                sv = math.sqrt(_dvar(m, t, g, sigma2_R, D, a, 0.0))
+                pu = 1.0 - 0.5 * math.erfc((v_clip - ev) / (_SQRT2 * sv))
+                zu = (v - ev) / sv
+                zc = (v - v_clip) / sigma_R
+                la = math.log(max(pu, 1e-300)) - 0.5 * zu * zu - math.log(sv)
+                lb = math.log(max(1.0 - pu, 1e-300)) - 0.5 * zc * zc - math.log(sigma_R)
+                p = 1.0 / (1.0 + math.exp(min(lb - la, 700.0)))
             if p <= 0.0:
                 continue
             w = (tga * tga) / _dvar(m, t, g, sigma2_R, D, a, ks[i])

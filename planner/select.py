@@ -137,25 +137,17 @@ def full_well_clips_first(calibration: Calibration) -> bool:
 def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA) -> dict:
     """Threshold rule or probabilistic saturation model, by the predicted SNR gain.
 
-    Where the full well clips before the ADC (:func:`full_well_clips_first`), saturated values
-    scatter below v_sat with the read noise; the mixture of Eq. 8-10 (a uniform density above
-    v_sat) does not describe them, and the merge's probabilistic model leaves gross errors there
-    (measured, camera-A, planned sequences, 96x128: 0-28 photosites beyond 6 sigma with the
-    probabilistic model, 0-3 with the threshold rule and converged iterations). The threshold
-    rule is taken then, whatever the predicted gain."""
+    The merge's probabilistic model (Eq. 8-10) takes the saturated values that slip under v_sat
+    where the full well clips before the ADC into account (P_nsat given the current estimate),
+    so it is chosen on any camera when it gains more than ``tolerance_db`` (measured: camera-A,
+    no photosite beyond 6 sigma just above any exposure's clip)."""
     kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
     thr = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="threshold", **kw).snr_db
     prob = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic", **kw).snr_db
     gain = np.where(np.isfinite(thr), prob - thr, np.where(np.isfinite(prob), np.inf, 0.0))
     g = float(gain.max()) if gain.size else 0.0
     frac = float(np.mean(gain > tolerance_db)) if gain.size else 0.0
-    if g > tolerance_db and full_well_clips_first(calibration):
-        choice = "threshold"
-        why = (f"threshold rule (Eq. 11): the probabilistic model would add up to {g:.3f} dB, but the full well clips "
-               f"before the ADC (v_sat {calibration.params.v_sat:.6g} DN < white level "
-               f"{calibration.params.white_level:.6g} DN): saturated values fall below v_sat, where Eq. 8-10 takes "
-               f"them as data")
-    elif g > tolerance_db:
+    if g > tolerance_db:
         choice = "probabilistic"
         why = (f"probabilistic saturation (Eq. 8-10): samples near v_sat add up to {g:.3f} dB "
                f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB)")
