@@ -380,6 +380,11 @@ def read_emva_descriptor(path) -> EmvaDataset:
 # --------------------------------------------------------------------------- atomic output
 
 
+# The process's umask, read once at import (reading it means setting it, not thread-safe later).
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
+
 @contextlib.contextmanager
 def atomic_output(path, force: bool = False, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it into place atomically.
@@ -401,6 +406,9 @@ def atomic_output(path, force: bool = False, suffix: str | None = None) -> Itera
     tmp = Path(tmp)
     try:
         yield tmp
+        # mkstemp creates the file private (0600); the output gets the permissions any new
+        # file of this process gets (0666 minus the umask), like a plain open() would give it.
+        os.chmod(tmp, 0o666 & ~_UMASK)
         if force:
             os.replace(tmp, path)
         else:

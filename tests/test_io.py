@@ -140,6 +140,18 @@ def test_atomic_output_leaves_nothing_on_error(tmp_path):
             pass
 
 
+def test_atomic_output_gets_the_usual_file_mode(tmp_path):
+    """Outputs are readable like any file the process creates (mkstemp alone gives 0600)."""
+    import stat
+
+    from pipeline import io as pio
+
+    target = tmp_path / "out.txt"
+    with atomic_output(target) as tmp:
+        tmp.write_text("x")
+    assert stat.S_IMODE(target.stat().st_mode) == 0o666 & ~pio._UMASK
+
+
 def test_emva_descriptor(emva_dir):
     ds = read_emva_descriptor(emva_dir / "EMVA1288_Data.txt")
     assert (ds.bits, ds.width, ds.height) == (12, 640, 480)
