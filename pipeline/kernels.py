@@ -1,13 +1,20 @@
 """Compiled per-photosite kernels of the optimal merge (numba, parallel over rows).
 
 The whole estimator of :mod:`pipeline.merge` runs here: one pass over the input frames, no
-full-size per-frame temporaries (only buffers of one row per frame and thread), float64
-arithmetic, float32 outputs. The variance is :func:`pipeline.noise.difference_variance`,
-compiled as is (the formula is written only there).
+full-size per-frame temporaries (only buffers of one row per frame and thread), float32
+outputs. The variance is :func:`pipeline.noise.difference_variance` (the formula is written
+only there; :func:`_weigh` evaluates the same expression from per-frame constants).
 
-The work on a row is split into small loops over the columns (load one frame's samples, add one
-frame's weighted samples, update the estimates), each a separate compiled function over plain
-1-D arrays without branches, so that LLVM vectorises them (SIMD over photosites).
+The work on a row is split into small loops over blocks of columns (load one frame's samples,
+weigh three frames' samples, update the estimates), each a separate compiled function over
+plain 1-D arrays without branches, so that LLVM vectorises them (SIMD over photosites).
+
+Precision: the samples x_i, the starting average and the estimates are float64. The weights
+and their sums use the precision of the caller's ``proto`` array: float32 (twice the SIMD
+width, a quarter of the cost of a division) where :meth:`pipeline.merge.MergeAccumulator.
+_single_precision_safe` proves every such quantity stays well inside the float32 range, else
+float64. Three samples share one division (w_i = n_i/d_i from 1/(d1 d2 d3)) where the block's
+variances allow it.
 
 Conventions shared by the kernels
 ---------------------------------
@@ -82,82 +89,127 @@ def _fill_row(out, arr, is_map, scalar, r):
 
 
 @numba.njit(inline="always", cache=True)
-def _keep(sample, xrow, okrow, S, CNT, c):
-    """Store a sample (x, usable) of :func:`_sample` (0 where not usable) and add it to the
+def _keep(sample, xrow, S, CNT, c):
+    """Store a sample (x, usable) of :func:`_sample` (NaN where not usable) and add it to the
     sums of the starting average."""
     x, ok = sample
-    xv = x if ok else 0.0
-    okv = 1.0 if ok else 0.0
-    xrow[c] = xv
-    okrow[c] = okv
-    S[c] += xv
-    CNT[c] += okv
+    xrow[c] = x if ok else math.nan
+    S[c] += x if ok else 0.0
+    CNT[c] += 1.0 if ok else 0.0
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _load_dark(vrow, drow, xrow, okrow, S, CNT, inv_tg, IA, v_sat, c0, c1):
-    """One frame's samples x_i and usable flags (Eq. 6, 11), dark level from a dark frame row;
-    adds the usable x_i to the sums S, CNT of the starting average."""
+def _load_dark(vrow, drow, xrow, S, CNT, inv_tg, IA, v_sat, c0, c1):
+    """One frame's samples x_i (Eq. 6; NaN where not usable, Eq. 11), dark level from a dark
+    frame row; adds the usable x_i to the sums S, CNT of the starting average."""
     for c in range(numba.uint64(c0), numba.uint64(c1)):
-        _keep(_sample(float(vrow[c]), float(drow[c]), inv_tg, IA[c], v_sat), xrow, okrow, S, CNT, c)
+        _keep(_sample(float(vrow[c]), float(drow[c]), inv_tg, IA[c], v_sat), xrow, S, CNT, c)
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _load_base(vrow, BASE, DD, coef, xrow, okrow, S, CNT, inv_tg, IA, v_sat, c0, c1):
+def _load_base(vrow, BASE, DD, coef, xrow, S, CNT, inv_tg, IA, v_sat, c0, c1):
     """As :func:`_load_dark` with the dark level BASE + coef * D (bias or master dark plus
     dark current)."""
     for c in range(numba.uint64(c0), numba.uint64(c1)):
-        _keep(_sample(float(vrow[c]), BASE[c] + coef * DD[c], inv_tg, IA[c], v_sat), xrow, okrow, S, CNT, c)
+        _keep(_sample(float(vrow[c]), BASE[c] + coef * DD[c], inv_tg, IA[c], v_sat), xrow, S, CNT, c)
+
+
+# Range of variances (DN^2) within which three samples share one division (their product
+# stays far inside the range of the arithmetic: float64, float32); a block whose variances
+# may leave it takes one division per sample (extreme gains, times or read noise).
+_SHARED_RANGE64 = (1e-90, 1e90)
+_SHARED_RANGE32 = (1e-12, 1e12)
+
+
+# Constants written as float32 so that the helpers below keep the precision of their arrays
+# (float32 constants in float64 arithmetic are exact; float64 ones would promote float32 code).
+_NAN32 = np.float32(np.nan)
+_ZERO32 = np.float32(0.0)
+_ONE32 = np.float32(1.0)
 
 
 @numba.njit(inline="always", cache=True)
-def _weigh(x, okv, a, D, bl, m, t, g, sigma2_R, k, v_sat, sat2, rule):
-    """One sample's (usable flag, weight w_i, w_i x_i) at the current estimate m = max(mu, 0).
+def _weigh(x, u, vsb, a2, D, fr, s2, sat2, rule):
+    """One sample's terms at the current estimate through u = a max(mu, 0) + D: (x kept, or
+    NaN once dropped; numerator n_i; variance d_i), so that the weight
+    w_i = n_i / d_i = (t g a)^2 / Var(v_i - b_i) = 1 / Var(x_i) (Eq. 6, 13; 0 when not usable).
 
-    w_i = 1/Var(x_i) = (t g a)^2 / Var(v_i - b_i) (Eq. 6, 13). With ``rule`` (the
-    near-saturation rule), a sample whose raw value predicted from m lies within sqrt(sat2) of
-    its own standard deviation of v_sat is dropped (saturated samples that slip under v_sat on
-    read noise)."""
-    tga = t * g * a
-    varv = _dvar(m, t, g, sigma2_R, D, a, 0.0)  # Var(v_i), DN^2
-    gap = v_sat - (bl + g * t * D + tga * m)
-    near = rule & ((gap <= 0.0) | (gap * gap <= sat2 * varv))
-    ok = 0.0 if near else okv
-    w = ok * ((tga * tga) / _dvar(m, t, g, sigma2_R, D, a, k))
-    return ok, w, w * x
+    ``fr`` holds the frame's constants (t g, g^2 t, (t g)^2, k, sigma_R^2 (1 + k)), so that
+    d_i = g^2 t (u + k D) + sigma_R^2 (1 + k) is :func:`pipeline.noise.difference_variance`.
+    With ``rule`` (the near-saturation rule; a compile-time constant), a sample whose raw
+    value predicted from the estimate lies within sqrt(sat2) of its own standard deviation of
+    v_sat is dropped for good (saturated samples that slip under v_sat on read noise)."""
+    tg, g2t, tg2, k, s2k = fr
+    use = x == x
+    if rule:
+        varv = g2t * u + s2  # Var(v_i), DN^2
+        gap = vsb - tg * u  # v_sat - E(v_i), DN
+        use = use & (gap > 0.0) & (gap * gap > sat2 * varv)
+    d = g2t * (u + k * D) + s2k
+    return (x if use else _NAN32), (tg2 * a2 if use else _ZERO32), d
 
 
-@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _accumulate(xrow, okrow, t, k, A, DD, BL, M, SW, SWX, NU, g, sigma2_R, v_sat, sat2, rule, c0, c1):
-    """Add one frame's weighted samples (:func:`_weigh`) to the sums of Eq. 12; samples dropped
-    by the near-saturation rule are dropped for good (``okrow``)."""
-    for c in range(numba.uint64(c0), numba.uint64(c1)):
-        ok, w, wx = _weigh(xrow[c], okrow[c], A[c], DD[c], BL[c], M[c], t, g, sigma2_R, k, v_sat, sat2, rule)
-        okrow[c] = ok
-        SW[c] += w
-        SWX[c] += wx
-        NU[c] += ok
+@numba.njit(inline="always", cache=True)
+def _frame(FR, i):
+    return FR[i, 0], FR[i, 1], FR[i, 2], FR[i, 3], FR[i, 4]
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _accumulate3(x1, o1, t1, k1, x2, o2, t2, k2, x3, o3, t3, k3, A, DD, BL, M, SW, SWX, NU, g, sigma2_R,
-                 v_sat, sat2, rule, c0, c1):
-    """:func:`_accumulate` for three frames in one pass (the per-photosite maps and sums are
-    read and written once for three samples)."""
+def _accumulate(x1, f1, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1):
+    """Add one frame's weighted samples (:func:`_weigh`, one division each) to the sums of
+    Eq. 12."""
     for c in range(numba.uint64(c0), numba.uint64(c1)):
-        a = A[c]
+        y1, n1, d1 = _weigh(x1[c], U[c], VSB[c], A2[c], DD[c], f1, s2, sat2, rule)
+        w1 = n1 / d1
+        if rule:
+            x1[c] = y1
+        SW[c] += w1
+        SWX[c] += w1 * y1 if n1 > _ZERO32 else _ZERO32
+
+
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _accumulate3(x1, f1, x2, f2, x3, f3, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1):
+    """:func:`_accumulate` for three frames in one pass, with one division for the three
+    weights: r = 1 / (d1 d2 d3), w3 = n3 d1 d2 r, w1 = n1 d2 (d3 r), w2 = n2 d1 (d3 r) (the
+    caller checks that every d lies within [_SHARED_LO, _SHARED_HI])."""
+    for c in range(numba.uint64(c0), numba.uint64(c1)):
+        u = U[c]
+        vsb = VSB[c]
+        a2 = A2[c]
         D = DD[c]
-        bl = BL[c]
-        m = M[c]
-        ok1, w1, wx1 = _weigh(x1[c], o1[c], a, D, bl, m, t1, g, sigma2_R, k1, v_sat, sat2, rule)
-        ok2, w2, wx2 = _weigh(x2[c], o2[c], a, D, bl, m, t2, g, sigma2_R, k2, v_sat, sat2, rule)
-        ok3, w3, wx3 = _weigh(x3[c], o3[c], a, D, bl, m, t3, g, sigma2_R, k3, v_sat, sat2, rule)
-        o1[c] = ok1
-        o2[c] = ok2
-        o3[c] = ok3
+        y1, n1, d1 = _weigh(x1[c], u, vsb, a2, D, f1, s2, sat2, rule)
+        y2, n2, d2 = _weigh(x2[c], u, vsb, a2, D, f2, s2, sat2, rule)
+        y3, n3, d3 = _weigh(x3[c], u, vsb, a2, D, f3, s2, sat2, rule)
+        p = d1 * d2
+        r = _ONE32 / (p * d3)
+        e = d3 * r
+        w1 = n1 * d2 * e
+        w2 = n2 * d1 * e
+        w3 = n3 * p * r
+        if rule:
+            x1[c] = y1
+            x2[c] = y2
+            x3[c] = y3
         SW[c] += (w1 + w2) + w3
-        SWX[c] += (wx1 + wx2) + wx3
-        NU[c] += (ok1 + ok2) + ok3
+        z = _ZERO32
+        SWX[c] += ((w1 * y1 if n1 > z else z) + (w2 * y2 if n2 > z else z)) + (w3 * y3 if n3 > z else z)
+
+
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _iterate(X, FR, n, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, shared, c0, c1):
+    """One pass of Eq. 13 -> Eq. 12 sums over all frames, three at a time with ``shared``
+    (one division for three samples)."""
+    for c in range(numba.uint64(c0), numba.uint64(c1)):
+        SW[c] = _ZERO32
+        SWX[c] = _ZERO32
+    i = 0
+    while shared and i + 3 <= n:
+        _accumulate3(X[i], _frame(FR, i), X[i + 1], _frame(FR, i + 1), X[i + 2], _frame(FR, i + 2),
+                     U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1)
+        i += 3
+    while i < n:
+        _accumulate(X[i], _frame(FR, i), U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1)
+        i += 1
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -173,15 +225,44 @@ def _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, v_sat, inv_gtmin, c0, c1)
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _row_update(MU, SIG, SW, SWX, NU, DONE, FLAG, ITER, it, tol2, c0, c1):
+def _row_estimate(MU, A, DD, U, c0, c1):
+    """u = a max(mu, 0) + D, the estimate the weights of the next pass are taken at (Eq. 13).
+    Returns the smallest and largest u + k D over the block and 0 <= k <= 1 (the range of the
+    variances, for the choice of the shared division)."""
+    lo = math.inf
+    hi = -math.inf
+    for c in range(numba.uint64(c0), numba.uint64(c1)):
+        m = MU[c]
+        D = DD[c]
+        u = A[c] * (m if m > 0.0 else 0.0) + D
+        U[c] = u
+        lo = min(lo, u + min(D, 0.0))
+        hi = max(hi, u + max(D, 0.0))
+    return lo, hi
+
+
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _row_usable(X, n, NU, c0, c1):
+    """NU = the number of usable samples (x not NaN) of every photosite."""
+    for c in range(numba.uint64(c0), numba.uint64(c1)):
+        NU[c] = 0.0
+    for i in range(n):
+        xi = X[i]
+        for c in range(numba.uint64(c0), numba.uint64(c1)):
+            NU[c] += 1.0 if xi[c] == xi[c] else 0.0
+
+
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, it, tol2, c0, c1):
     """Eq. 12 for the photosites not yet converged: mu = sum w x / sum w, sigma^2 = 1/sum w;
-    converged when the change is within tol * max(|mu|, sigma) (Fig. 3). Returns the number of
-    photosites still iterating."""
+    converged when the change is within tol * max(|mu|, sigma) (Fig. 3); no usable sample left
+    (sum w = 0: every weight of a usable sample is > 0) flags the photosite. Returns the
+    number of photosites still iterating."""
     active = 0
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         live = DONE[c] == 0.0
-        none = NU[c] == 0.0
-        var = 1.0 / (SW[c] if SW[c] > 0.0 else 1.0)
+        none = SW[c] == 0.0
+        var = float(_ONE32 / (SW[c] if SW[c] > _ZERO32 else _ONE32))  # in the precision of the sums
         new = SWX[c] * var
         delta = new - MU[c]
         conv = (it > 0) & (delta * delta <= tol2 * max(new * new, var))
@@ -199,12 +280,16 @@ def _row_update(MU, SIG, SW, SWX, NU, DONE, FLAG, ITER, it, tol2, c0, c1):
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
 def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter, c0, c1):
     """Results of the threshold model: flagged photosites (no usable sample) get nexp = 0,
-    sigma = 0 and the lower bound; everything clamped to finite float32."""
+    sigma = 0 and the lower bound; everything clamped to finite float32. Returns the number of
+    photosites with nexp = 0, the sum and the maximum of the iteration counts."""
     oi = out_irr[r]
     os_ = out_sig[r]
     on = out_nexp[r]
     ot = out_iter[r]
     big = FLOAT32_MAX
+    n0 = 0
+    isum = 0.0
+    imax = 0.0
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         flagged = FLAG[c] != 0.0
         mu = MU[c]
@@ -214,8 +299,14 @@ def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_
         s = math.sqrt(SIG[c])
         s = 0.0 if s != s else s
         os_[c] = 0.0 if flagged else min(s, big)
-        on[c] = 0.0 if flagged else NU[c]
-        ot[c] = min(ITER[c], 255.0)
+        nu = 0.0 if flagged else NU[c]
+        on[c] = nu
+        it = min(ITER[c], 255.0)
+        ot[c] = it
+        n0 += 1 if nu == 0.0 else 0
+        isum += it
+        imax = max(imax, it)
+    return n0, isum, imax
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -328,7 +419,7 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
                  D_map, D_is_map, D_scalar, a_map, a_is_map,
                  init_sum, init_cnt, use_init,
                  max_iter, tol, sat_sigmas, probabilistic,
-                 out_irr, out_sig, out_nexp, out_iter, n_chunks):
+                 out_irr, out_sig, out_nexp, out_iter, stats, proto):
     """The ML merge of every photosite (Eq. 6, 8-13, Fig. 3); results into ``out_*``.
 
     Per photosite: x_i (Eq. 6); start from the non-saturated average (Eq. 11 usable set);
@@ -339,7 +430,13 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
     samples that slip under v_sat on read noise). With ``probabilistic``, Newton steps on the
     blended likelihood of Eq. 8-10 follow (damped to one sigma), started from that estimate.
     Photosites with no usable sample get ``nexp = 0``, ``sigma = 0`` and a lower bound of the
-    irradiance.
+    irradiance. The rows are split into ``len(stats)`` chunks (run in parallel); each chunk's
+    row of ``stats`` receives its number of photosites with nexp = 0, the sum and the maximum
+    of its iteration counts.
+
+    The weights and their sums are computed in the precision of ``proto`` (a 1-element array,
+    float64 or float32; the caller picks float32 only where every quantity provably stays
+    inside its range). The samples x_i are computed, and the estimates updated, in float64.
     """
     n = len(values)
     H, W = values[0].shape
@@ -349,81 +446,114 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
     sat2 = sat_sigmas * sat_sigmas
     tol2 = tol * tol
     inv_gtmin = 1.0 / (g * tmin)
-    nchunk = min(H, max(1, n_chunks))
+    nchunk = stats.shape[0]
     block = 1024
+    # Per-frame constants of the weights (see _weigh): t g, g^2 t, (t g)^2, k, sigma_R^2 (1 + k),
+    # and the scalars, in the precision of the weights.
+    FR = np.empty((n, 5), proto.dtype)
+    for i in range(n):
+        tg = times[i] * g
+        FR[i, 0] = tg
+        FR[i, 1] = g * tg
+        FR[i, 2] = tg * tg
+        FR[i, 3] = ks[i]
+        FR[i, 4] = sigma2_R * (1.0 + ks[i])
+    SC = np.empty(2, proto.dtype)
+    SC[0] = sigma2_R
+    SC[1] = sat2
+    s2w = SC[0]
+    sat2w = SC[1]
+    shared_lo, shared_hi = _SHARED_RANGE32 if proto.itemsize == 4 else _SHARED_RANGE64
     for ch in prange(nchunk):
         # Row buffers, allocated once per chunk of rows (not per row).
-        X = np.empty((n, W))
-        OK = np.empty((n, W))  # 1.0 usable, 0.0 not (float: branch-free, vectorisable loops)
+        X = np.empty((n, W), proto.dtype)  # x_i of Eq. 6, NaN where not usable (branch-free loops)
         A = np.empty(W)
+        A2 = np.empty(W, proto.dtype)
         IA = np.empty(W)
         DD = np.empty(W)
+        DW = np.empty(W, proto.dtype)
         BL = np.empty(W)
+        VSB = np.empty(W, proto.dtype)
         MB = np.empty(W)
         MU = np.empty(W)
-        M = np.empty(W)
+        U = np.empty(W, proto.dtype)
         SIG = np.empty(W)
         NU = np.empty(W)
-        SW = np.empty(W)
-        SWX = np.empty(W)
+        SW = np.empty(W, proto.dtype)
+        SWX = np.empty(W, proto.dtype)
         ITER = np.empty(W)
         DONE = np.empty(W)
         FLAG = np.empty(W)
         LB = np.empty(W)
         S = np.empty(W)
         CNT = np.empty(W)
+        # Maps given as scalars are filled once per chunk, maps once per row.
+        _fill_row(A, a_map, False, 1.0, 0)
+        _fill_row(IA, a_map, False, 1.0, 0)
+        _fill_row(A2, a_map, False, 1.0, 0)
+        _fill_row(DD, D_map, False, D_scalar, 0)
+        _fill_row(DW, D_map, False, D_scalar, 0)
+        _fill_row(BL, bias, False, bias_scalar, 0)
+        _fill_row(VSB, bias, False, v_sat - bias_scalar, 0)
+        n0 = 0
+        isum = 0.0
+        imax = 0.0
         for r in range(ch * H // nchunk, (ch + 1) * H // nchunk):
-            _fill_row(A, a_map, a_is_map, 1.0, r)
-            _fill_row(DD, D_map, D_is_map, D_scalar, r)
-            _fill_row(BL, bias, bias_is_map, bias_scalar, r)
+            if a_is_map:
+                _fill_row(A, a_map, True, 1.0, r)
+                for c in range(W):
+                    IA[c] = 1.0 / A[c]
+                    A2[c] = A[c] * A[c]
+            if D_is_map:
+                _fill_row(DD, D_map, True, D_scalar, r)
+                _fill_row(DW, D_map, True, D_scalar, r)
+            if bias_is_map:
+                _fill_row(BL, bias, True, bias_scalar, r)
+                for c in range(W):
+                    VSB[c] = v_sat - BL[c]
             if has_master:
                 _fill_row(MB, master, True, 0.0, r)
             for c in range(W):
-                IA[c] = 1.0 / A[c]
                 SIG[c] = 0.0
                 NU[c] = 0.0
                 ITER[c] = 0.0
-            # Blocks of columns small enough for all their buffers to stay in the L1 cache
+            # Blocks of columns small enough for their buffers to stay in the L1/L2 caches
             # through the loads and all the iterations.
             for c0 in range(0, W, block):
                 c1 = min(W, c0 + block)
                 for c in range(numba.uint64(c0), numba.uint64(c1)):
                     S[c] = 0.0
                     CNT[c] = 0.0
-                for i in range(n):  # x_i, usable flags and the sums of the non-saturated average
+                for i in range(n):  # x_i and the sums of the non-saturated average
                     inv_tg = 1.0 / (times[i] * g)
                     kind = kinds[i]
                     if kind == 0:
-                        _load_dark(values[i][r], darks[i][r], X[i], OK[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
+                        _load_dark(values[i][r], darks[i][r], X[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
                     elif kind == 1:
-                        _load_base(values[i][r], BL, DD, coefs[i], X[i], OK[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
+                        _load_base(values[i][r], BL, DD, coefs[i], X[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
                     else:
-                        _load_base(values[i][r], MB, DD, coefs[i], X[i], OK[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
+                        _load_base(values[i][r], MB, DD, coefs[i], X[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
                 if use_init:  # the first pass of the streaming merge summed the same values in the same order
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
                         S[c] = init_sum[r, c]
                         CNT[c] = init_cnt[r, c]
                 _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, v_sat, inv_gtmin, c0, c1)
-                # Iterate Eq. 13 <-> Eq. 12 for the whole block at once, frames three at a time.
+                # Iterate Eq. 13 <-> Eq. 12 for the whole block at once, frames three at a time
+                # (the near-saturation rule from the second step on).
                 for it in range(max_iter):
-                    for c in range(numba.uint64(c0), numba.uint64(c1)):
-                        M[c] = MU[c] if MU[c] > 0.0 else 0.0
-                        SW[c] = 0.0
-                        SWX[c] = 0.0
-                        NU[c] = 0.0
-                    rule = it > 0 and sat_sigmas > 0.0
-                    i = 0
-                    while i + 3 <= n:
-                        _accumulate3(X[i], OK[i], times[i], ks[i], X[i + 1], OK[i + 1], times[i + 1], ks[i + 1],
-                                     X[i + 2], OK[i + 2], times[i + 2], ks[i + 2], A, DD, BL, M, SW, SWX, NU,
-                                     g, sigma2_R, v_sat, sat2, rule, c0, c1)
-                        i += 3
-                    while i < n:
-                        _accumulate(X[i], OK[i], times[i], ks[i], A, DD, BL, M, SW, SWX, NU, g, sigma2_R, v_sat,
-                                    sat2, rule, c0, c1)
-                        i += 1
-                    if _row_update(MU, SIG, SW, SWX, NU, DONE, FLAG, ITER, it, tol2, c0, c1) == 0:
+                    lo, hi = _row_estimate(MU, A, DD, U, c0, c1)
+                    # One division for three samples when no variance can leave the safe range.
+                    shared = (lo == lo) & (hi == hi)
+                    for i in range(n):
+                        shared &= FR[i, 1] * min(lo, 0.0) + FR[i, 4] >= shared_lo
+                        shared &= FR[i, 1] * max(hi, 0.0) + FR[i, 4] <= shared_hi
+                    if it > 0 and sat_sigmas > 0.0:
+                        _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, True, shared, c0, c1)
+                    else:
+                        _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, False, shared, c0, c1)
+                    if _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, it, tol2, c0, c1) == 0:
                         break
+                _row_usable(X, n, NU, c0, c1)
                 if probabilistic:
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
                         if FLAG[c] != 0.0:
@@ -438,4 +568,11 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
                             FLAG[c] = 1.0
                         else:
                             NU[c] = nu
-                _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter, c0, c1)
+                b0, bsum, bmax = _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter,
+                                             c0, c1)
+                n0 += b0
+                isum += bsum
+                imax = max(imax, bmax)
+        stats[ch, 0] = n0
+        stats[ch, 1] = isum
+        stats[ch, 2] = imax

@@ -27,6 +27,8 @@ takes frames one by one as they are captured (first pass) and finishes with the 
 from __future__ import annotations
 
 import dataclasses
+import math
+import weakref
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -137,6 +139,29 @@ def _map_arg(arr, shape, scalar, what):
     if arr.shape != tuple(shape):
         raise InputError(f"calibration {what} map has shape {arr.shape}, the frames {tuple(shape)}")
     return np.ascontiguousarray(arr, dtype=np.float32), True, float(scalar)
+
+
+# The weights of the iterations in float32 where that is provably safe (see
+# MergeAccumulator._single_precision_safe); False forces float64 (tests compare the two).
+SINGLE_PRECISION_WEIGHTS = True
+
+_EXTREMA: dict = {}
+
+
+def _extrema(map_arg) -> tuple[float, float]:
+    """(min, max) of a kernel map argument (array, is_map, scalar); maps are scanned once and
+    remembered while the array lives (non-finite values give (nan, nan))."""
+    arr, is_map, scalar = map_arg
+    if not is_map:
+        return float(scalar), float(scalar)
+    key = id(arr)
+    hit = _EXTREMA.get(key)
+    if hit is not None and hit[0]() is arr:
+        return hit[1]
+    lo, hi = float(np.min(arr)), float(np.max(arr))
+    ext = (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else (math.nan, math.nan)
+    _EXTREMA[key] = (weakref.ref(arr), ext)
+    return ext
 
 
 class MergeAccumulator:
@@ -283,6 +308,41 @@ class MergeAccumulator:
         return len(self._values)
 
     # -------------------------------------------------------------------------------- result
+    def _single_precision_safe(self, values, darks, master) -> bool:
+        """Whether the weights and their sums may be computed in float32 (twice the SIMD width):
+        bounds of every float32 quantity of the iterations, from the pixel types, the
+        calibration and the exposure times, must lie well inside the float32 range (1e-30 to
+        1e30). Integer frames only; float dark frames and maps are bounded by their extrema."""
+        if not all(v.dtype == np.uint16 for v in values):
+            return False
+        p = self.calibration.params
+        g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
+        t = np.asarray(self._times, np.float64)
+        a_lo, a_hi = _extrema(self._a)
+        d_lo, d_hi = _extrema(self._D)
+        b_lo, b_hi = _extrema(self._bias)
+        m_lo, m_hi = _extrema((master, True, 0.0)) if self.master_dark is not None else (0.0, 0.0)
+        if not (a_lo > 0 and d_lo >= 0 and s2 > 0):
+            return False
+        b_abs = 0.0
+        for d, kind, coef in zip(darks, self._kinds, self._coefs):
+            if kind == 0:
+                lo, hi = (0.0, 65535.0) if d.dtype == np.uint16 else _extrema((d, True, 0.0))
+            else:
+                lo, hi = (b_lo, b_hi) if kind == 1 else (m_lo, m_hi)
+                lo, hi = lo - abs(coef) * d_hi, hi + abs(coef) * d_hi
+            b_abs = max(b_abs, abs(lo), abs(hi))
+        tg_lo, tg_hi = float(t.min()) * g, float(t.max()) * g
+        x_max = (abs(v_sat) + b_abs) / (tg_lo * a_lo)
+        u_max = a_hi * x_max + d_hi
+        var_hi = g * tg_hi * (u_max + d_hi) + 2.0 * s2
+        w_hi = (tg_hi * a_hi) ** 2 / s2
+        w_lo = (tg_lo * a_lo) ** 2 / var_hi
+        n = len(values)
+        bounds = [x_max, u_max, var_hi, w_hi * n, w_hi * n * x_max, (tg_hi * a_hi) ** 2, abs(v_sat) + abs(b_lo) + abs(b_hi)]
+        small = [s2, w_lo, (tg_lo * a_lo) ** 2]
+        return bool(np.all(np.isfinite(bounds + small)) and max(bounds) <= 1e30 and min(small) >= 1e-30)
+
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
         import numba
@@ -307,6 +367,10 @@ class MergeAccumulator:
         sig = np.empty(self.shape, np.float32)
         nexp = np.empty(self.shape, np.float32)
         iters = np.empty(self.shape, np.uint8)
+        single = SINGLE_PRECISION_WEIGHTS and self._single_precision_safe(values, darks, master)
+        # Rows in chunks run in parallel; per chunk: photosites with nexp = 0, sum and max of
+        # the iteration counts.
+        stats = np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), 3))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
             merge_kernel(values, darks, np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
@@ -314,8 +378,8 @@ class MergeAccumulator:
                          master, has_master, *self._bias, *self._D, *self._a[:2],
                          self._sum, self._cnt, self.stream, int(opts.iterations), float(opts.tolerance),
                          float(opts.saturation_sigmas), opts.saturation == "probabilistic",
-                         irr, sig, nexp, iters, 8 * numba.get_num_threads())
-        sat = int(np.count_nonzero(nexp == 0))
+                         irr, sig, nexp, iters, stats, np.zeros(1, np.float32 if single else np.float64))
+        sat = int(stats[:, 0].sum())
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
             **opts.to_dict(),
@@ -329,9 +393,10 @@ class MergeAccumulator:
             "n_frames": len(self._values),
             "n_darks": len(own) + (1 if has_master and 2 in self._kinds else 0),
             "saturated_everywhere": sat,
-            "iterations_used_mean": float(iters.mean()),
-            "iterations_used_max": int(iters.max()),
+            "iterations_used_mean": float(stats[:, 1].sum() / max(irr.size, 1)),
+            "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
+            "weights_precision": "float32" if single else "float64",
         }
         return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info)
 

@@ -8,6 +8,7 @@ TRUE irradiance, and the EMVA 1288 reference data set (a real camera).
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 import pytest
@@ -294,12 +295,17 @@ EXTREMES = [
 ]
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.uint16])
 @pytest.mark.parametrize("name,p,times,level", EXTREMES, ids=[e[0] for e in EXTREMES])
-def test_extremes_finite_and_within_uncertainty(name, p, times, level):
-    rng = np.random.default_rng(abs(hash(name)) % 2**32)
+def test_extremes_finite_and_within_uncertainty(name, p, times, level, dtype):
+    """Float frames take float64 weights; the same frames as integers (as read from raw files)
+    take float32 weights where the bounds allow: either way finite and within uncertainty."""
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
     X = np.full((32, 32), float(level))
     values, darks = _simulate_plain(p, X, times, rng)
+    values, darks = [v.astype(dtype) for v in values], [d.astype(dtype) for d in darks]
     res = merge_arrays(values, times, Calibration(p), darks)
+    assert res.info["weights_precision"] == ("float32" if dtype == np.uint16 else "float64")
     assert np.isfinite(res.irradiance).all() and np.isfinite(res.sigma).all()
     ok = res.nexp > 0
     assert ok.all()
@@ -420,3 +426,67 @@ def test_emva_two_disjoint_brackets_agree_within_predicted_sigma(emva_dir):
     assert 0.05 < qe[0] < 1.0
     assert np.ptp(qe) / np.mean(qe) < 0.03, qe
     assert qe_bracket == pytest.approx(np.mean(qe), rel=0.03)
+
+
+def test_weights_precision_choice():
+    """float32 weights for integer frames with ordinary parameters; float64 for float frames
+    and where a bound leaves the float32 range (tiny read noise, extreme times and gains)."""
+    rng = np.random.default_rng(5)
+    X = np.full((16, 16), 500.0)
+    p = _params()
+    values, darks = _simulate_plain(p, X, [0.01, 0.1, 1.0], rng)
+    u16 = [v.astype(np.uint16) for v in values]
+    d16 = [d.astype(np.uint16) for d in darks]
+    assert merge_arrays(u16, [0.01, 0.1, 1.0], Calibration(p), d16).info["weights_precision"] == "float32"
+    assert merge_arrays(values, [0.01, 0.1, 1.0], Calibration(p), darks).info["weights_precision"] == "float64"
+    tiny = _params(sigma2_R=1e-40, dark_current=0.0)
+    assert merge_arrays(u16, [0.01, 0.1, 1.0], Calibration(tiny), d16).info["weights_precision"] == "float64"
+    far = merge_arrays(u16, [1e-9, 0.1, 1e3], Calibration(_params(g=1e4, white_level=65535.0, v_sat=65000.0)), d16)
+    assert far.info["weights_precision"] == "float64"
+
+
+@pytest.mark.parametrize("cam", ["camera-A", "camera-B"])
+def test_float32_weights_agree_with_float64_weights(cam, monkeypatch):
+    """The float32 weights change the estimates by a negligible fraction of their sigma (the
+    Monte Carlo tests above check the float32 path against the truth and the bound)."""
+    import pipeline.merge as pm
+
+    spec = PRESETS[cam]
+    sensor = SimulatedSensor(spec, (128, 128), seed=3)
+    X = _scene(spec, (128, 128), np.random.default_rng(3))
+    cal = _truth_calibration(sensor, spec.nominal_params())
+    values = [sensor.expose(X, t) for t in TIMES]
+    darks = [sensor.expose(X, t, dark=True) for t in TIMES]
+    single = merge_arrays(values, TIMES, cal, darks)
+    monkeypatch.setattr(pm, "SINGLE_PRECISION_WEIGHTS", False)
+    double = merge_arrays(values, TIMES, cal, darks)
+    assert single.info["weights_precision"] == "float32" and double.info["weights_precision"] == "float64"
+    np.testing.assert_array_equal(single.nexp, double.nexp)
+    ok = double.nexp > 0
+    assert np.max(np.abs(single.irradiance - double.irradiance)[ok] / double.sigma[ok]) < 1e-3
+    assert np.max(np.abs(single.sigma[ok] / double.sigma[ok] - 1)) < 1e-5
+
+
+def test_shared_division_equals_one_division_per_sample():
+    """The iteration pass with one division for three samples gives the weights of one
+    division per sample (relative 1e-13), dropped samples included."""
+    from pipeline.kernels import _iterate
+
+    rng = np.random.default_rng(9)
+    n, W = 7, 300
+    X = rng.uniform(-50, 5000, (n, W))
+    X[rng.random((n, W)) < 0.1] = np.nan
+    t = np.geomspace(1e-3, 1.0, n)
+    g, s2, k = 2.0, 9.0, rng.choice([0.0, 0.125, 1.0], n)
+    FR = np.stack([t * g, g * g * t, (t * g) ** 2, k, s2 * (1 + k)], axis=1)
+    U, VSB = rng.uniform(0, 3000, W), rng.uniform(100, 4000, W)
+    A2, DD = rng.uniform(0.9, 1.1, W) ** 2, rng.uniform(0, 5, W)
+    out = []
+    for shared in (True, False):
+        Xc, SW, SWX = X.copy(), np.zeros(W), np.zeros(W)
+        _iterate(Xc, FR, n, U, VSB, A2, DD, SW, SWX, s2, 9.0, True, shared, 0, W)
+        out.append((Xc, SW, SWX))
+    np.testing.assert_array_equal(np.isnan(out[0][0]), np.isnan(out[1][0]))
+    assert np.isnan(out[0][0]).sum() > np.isnan(X).sum()  # the near-saturation rule dropped some
+    np.testing.assert_allclose(out[0][1], out[1][1], rtol=1e-13)
+    np.testing.assert_allclose(out[0][2], out[1][2], rtol=1e-12, atol=1e-12 * np.abs(out[1][2]).max())
