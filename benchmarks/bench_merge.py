@@ -166,7 +166,12 @@ def main(argv=None):
     shape = _shape(args.mpix)
     import numba
 
-    report = {"mpix": args.mpix, "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads()}
+    import pipeline  # noqa: F401  (sets numba's CPU features before anything compiles)
+    from numba.core import config
+
+    report = {"mpix": args.mpix, "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
+              "vector_width": "512-bit (prefer-256-bit lifted)" if (config.CPU_FEATURES or "").endswith(
+                  "-prefer-256-bit") else "numba default"}
     report["kernel"] = bench_kernel(shape, max(3, args.iterations))
     if not args.no_command:
         with tempfile.TemporaryDirectory(prefix="bench_merge_") as tmp:

@@ -79,9 +79,11 @@ def _clamp32(x):
 # ------------------------------------------------------------------------ row loops (SIMD)
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
 def _fill_row(out, arr, is_map, scalar, r):
+    """A row buffer from a map's row (the padding beyond the image is left as it is) or a
+    scalar (padding included)."""
     if is_map:
         src = arr[r]
-        for c in range(out.shape[0]):
+        for c in range(src.shape[0]):
             out[c] = src[c]
     else:
         for c in range(out.shape[0]):
@@ -104,6 +106,17 @@ def _load_dark(vrow, drow, xrow, S, CNT, inv_tg, IA, v_sat, c0, c1):
     frame row; adds the usable x_i to the sums S, CNT of the starting average."""
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         _keep(_sample(float(vrow[c]), float(drow[c]), inv_tg, IA[c], v_sat), xrow, S, CNT, c)
+
+
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _load_dark3(v1, d1, x1, inv1, v2, d2, x2, inv2, v3, d3, x3, inv3, S, CNT, IA, v_sat, c0, c1):
+    """:func:`_load_dark` for three frames in one pass (the sums are added to in the frames'
+    order, as three single passes would)."""
+    for c in range(numba.uint64(c0), numba.uint64(c1)):
+        ia = IA[c]
+        _keep(_sample(float(v1[c]), float(d1[c]), inv1, ia, v_sat), x1, S, CNT, c)
+        _keep(_sample(float(v2[c]), float(d2[c]), inv2, ia, v_sat), x2, S, CNT, c)
+        _keep(_sample(float(v3[c]), float(d3[c]), inv3, ia, v_sat), x3, S, CNT, c)
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -197,11 +210,8 @@ def _accumulate3(x1, f1, x2, f2, x3, f3, U, VSB, A2, DD, SW, SWX, s2, sat2, rule
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
 def _iterate(X, FR, n, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, shared, c0, c1):
-    """One pass of Eq. 13 -> Eq. 12 sums over all frames, three at a time with ``shared``
-    (one division for three samples)."""
-    for c in range(numba.uint64(c0), numba.uint64(c1)):
-        SW[c] = _ZERO32
-        SWX[c] = _ZERO32
+    """One pass of Eq. 13 -> Eq. 12 sums (cleared by :func:`_estimate`) over all frames, three
+    at a time with ``shared`` (one division for three samples)."""
     i = 0
     while shared and i + 3 <= n:
         _accumulate3(X[i], _frame(FR, i), X[i + 1], _frame(FR, i + 1), X[i + 2], _frame(FR, i + 2),
@@ -213,32 +223,34 @@ def _iterate(X, FR, n, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, shared, c0, c1):
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, v_sat, inv_gtmin, c0, c1):
+def _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, A, U, SW, SWX, v_sat, inv_gtmin, u_lo, u_hi, c0, c1):
     """The starting estimate: the non-saturated average (Eq. 11 usable set); photosites with no
-    usable sample get the lower bound of the shortest exposure at v_sat and are done."""
+    usable sample get the lower bound of the shortest exposure at v_sat and are done. Prepares
+    the first pass (:func:`_estimate`); returns the number of photosites outside its range."""
+    bad = 0
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         LB[c] = ((v_sat - BL[c]) * inv_gtmin - DD[c]) * IA[c]
         empty = CNT[c] == 0.0
-        MU[c] = LB[c] if empty else S[c] / max(CNT[c], 1.0)
+        m = LB[c] if empty else S[c] / max(CNT[c], 1.0)
+        MU[c] = m
         DONE[c] = 1.0 if empty else 0.0
         FLAG[c] = 1.0 if empty else 0.0
+        bad += _estimate(m, A[c], DD[c], U, SW, SWX, c, u_lo, u_hi)
+    return bad
 
 
-@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _row_estimate(MU, A, DD, U, c0, c1):
-    """u = a max(mu, 0) + D, the estimate the weights of the next pass are taken at (Eq. 13).
-    Returns the smallest and largest u + k D over the block and 0 <= k <= 1 (the range of the
-    variances, for the choice of the shared division)."""
-    lo = math.inf
-    hi = -math.inf
-    for c in range(numba.uint64(c0), numba.uint64(c1)):
-        m = MU[c]
-        D = DD[c]
-        u = A[c] * (m if m > 0.0 else 0.0) + D
-        U[c] = u
-        lo = min(lo, u + min(D, 0.0))
-        hi = max(hi, u + max(D, 0.0))
-    return lo, hi
+@numba.njit(inline="always", cache=True)
+def _estimate(m, a, D, U, SW, SWX, c, u_lo, u_hi):
+    """u = a max(mu, 0) + D, the estimate the weights of the next pass are taken at (Eq. 13),
+    into U; clears the sums of that pass. Returns 1 when u + k D (0 <= k <= 1) may leave
+    [u_lo, u_hi], the range in which every frame's variance allows the shared division, else 0
+    (an integer count: vectorises, unlike a floating-point min/max)."""
+    u = a * (m if m > 0.0 else 0.0) + D
+    U[c] = u
+    SW[c] = _ZERO32
+    SWX[c] = _ZERO32
+    out = (u + min(D, 0.0) < u_lo) | (u + max(D, 0.0) > u_hi) | (u != u)
+    return 1 if out else 0
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -253,43 +265,50 @@ def _row_usable(X, n, NU, c0, c1):
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
-def _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, it, tol2, c0, c1):
+def _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, A, DD, U, it, tol2, u_lo, u_hi, c0, c1):
     """Eq. 12 for the photosites not yet converged: mu = sum w x / sum w, sigma^2 = 1/sum w;
     converged when the change is within tol * max(|mu|, sigma) (Fig. 3); no usable sample left
-    (sum w = 0: every weight of a usable sample is > 0) flags the photosite. Returns the
-    number of photosites still iterating."""
+    (sum w = 0: every weight of a usable sample is > 0) flags the photosite. Prepares the next
+    pass (:func:`_estimate`). Returns the number of photosites still iterating and the number
+    outside the next pass's range."""
     active = 0
+    bad = 0
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         live = DONE[c] == 0.0
-        none = SW[c] == 0.0
-        var = float(_ONE32 / (SW[c] if SW[c] > _ZERO32 else _ONE32))  # in the precision of the sums
+        sw = SW[c]
+        none = sw == 0.0
+        var = float(_ONE32 / (sw if sw > _ZERO32 else _ONE32))  # in the precision of the sums
         new = SWX[c] * var
-        delta = new - MU[c]
+        m = MU[c]
+        delta = new - m
         conv = (it > 0) & (delta * delta <= tol2 * max(new * new, var))
         upd = live & (not none)
         ITER[c] = it + 1.0 if live else ITER[c]
         FLAG[c] = 1.0 if (live & none) else FLAG[c]
-        MU[c] = new if upd else MU[c]
+        m = new if upd else m
+        MU[c] = m
         SIG[c] = var if upd else SIG[c]  # variance here; square root taken at the end
         fin = live & (none | conv)
         DONE[c] = 1.0 if fin else DONE[c]
         active += 1 if (live & (not fin)) else 0
-    return active
+        bad += _estimate(m, A[c], DD[c], U, SW, SWX, c, u_lo, u_hi)
+    return active, bad
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
 def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter, c0, c1):
     """Results of the threshold model: flagged photosites (no usable sample) get nexp = 0,
     sigma = 0 and the lower bound; everything clamped to finite float32. Returns the number of
-    photosites with nexp = 0, the sum and the maximum of the iteration counts."""
+    photosites with nexp = 0, the sum and the maximum of the iteration counts (integer
+    reductions: they vectorise, floating-point ones would not without reassociation)."""
     oi = out_irr[r]
     os_ = out_sig[r]
     on = out_nexp[r]
     ot = out_iter[r]
     big = FLOAT32_MAX
     n0 = 0
-    isum = 0.0
-    imax = 0.0
+    isum = 0
+    imax = 0
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         flagged = FLAG[c] != 0.0
         mu = MU[c]
@@ -301,7 +320,7 @@ def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_
         os_[c] = 0.0 if flagged else min(s, big)
         nu = 0.0 if flagged else NU[c]
         on[c] = nu
-        it = min(ITER[c], 255.0)
+        it = int(min(ITER[c], 255.0))
         ot[c] = it
         n0 += 1 if nu == 0.0 else 0
         isum += it
@@ -447,7 +466,11 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
     tol2 = tol * tol
     inv_gtmin = 1.0 / (g * tmin)
     nchunk = stats.shape[0]
-    block = 1024
+    # Blocks of columns: whole rows up to 8192 columns (fewer loop prologues and remainders).
+    # The row buffers are padded to a multiple of 64 columns so that the loops that touch only
+    # buffers run without scalar remainders; padded columns hold no usable sample (x NaN).
+    block = 8192
+    Wp = (W + 63) // 64 * 64
     # Per-frame constants of the weights (see _weigh): t g, g^2 t, (t g)^2, k, sigma_R^2 (1 + k),
     # and the scalars, in the precision of the weights.
     FR = np.empty((n, 5), proto.dtype)
@@ -463,30 +486,39 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
     SC[1] = sat2
     s2w = SC[0]
     sat2w = SC[1]
+    # The shared division needs every variance d_i = g^2 t_i (u + k D) + s2k_i within
+    # [shared_lo, shared_hi]: each s2k_i inside it, and u + k D within [u_lo, u_hi].
     shared_lo, shared_hi = _SHARED_RANGE32 if proto.itemsize == 4 else _SHARED_RANGE64
+    shared_frames = True
+    u_lo = -math.inf
+    u_hi = math.inf
+    for i in range(n):
+        shared_frames &= (FR[i, 4] >= shared_lo) & (FR[i, 4] <= shared_hi)
+        u_lo = max(u_lo, (shared_lo - FR[i, 4]) / FR[i, 1])
+        u_hi = min(u_hi, (shared_hi - FR[i, 4]) / FR[i, 1])
     for ch in prange(nchunk):
         # Row buffers, allocated once per chunk of rows (not per row).
-        X = np.empty((n, W), proto.dtype)  # x_i of Eq. 6, NaN where not usable (branch-free loops)
-        A = np.empty(W)
-        A2 = np.empty(W, proto.dtype)
-        IA = np.empty(W)
-        DD = np.empty(W)
-        DW = np.empty(W, proto.dtype)
-        BL = np.empty(W)
-        VSB = np.empty(W, proto.dtype)
-        MB = np.empty(W)
-        MU = np.empty(W)
-        U = np.empty(W, proto.dtype)
-        SIG = np.empty(W)
-        NU = np.empty(W)
-        SW = np.empty(W, proto.dtype)
-        SWX = np.empty(W, proto.dtype)
-        ITER = np.empty(W)
-        DONE = np.empty(W)
-        FLAG = np.empty(W)
-        LB = np.empty(W)
-        S = np.empty(W)
-        CNT = np.empty(W)
+        X = np.full((n, Wp), np.nan, proto.dtype)  # x_i of Eq. 6, NaN where not usable (branch-free loops)
+        A = np.empty(Wp)
+        A2 = np.empty(Wp, proto.dtype)
+        IA = np.empty(Wp)
+        DD = np.empty(Wp)
+        DW = np.empty(Wp, proto.dtype)
+        BL = np.empty(Wp)
+        VSB = np.empty(Wp, proto.dtype)
+        MB = np.empty(Wp)
+        MU = np.empty(Wp)
+        U = np.empty(Wp, proto.dtype)
+        SIG = np.empty(Wp)
+        NU = np.empty(Wp)
+        SW = np.empty(Wp, proto.dtype)
+        SWX = np.empty(Wp, proto.dtype)
+        ITER = np.empty(Wp)
+        DONE = np.empty(Wp)
+        FLAG = np.empty(Wp)
+        LB = np.empty(Wp)
+        S = np.empty(Wp)
+        CNT = np.empty(Wp)
         # Maps given as scalars are filled once per chunk, maps once per row.
         _fill_row(A, a_map, False, 1.0, 0)
         _fill_row(IA, a_map, False, 1.0, 0)
@@ -496,8 +528,8 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
         _fill_row(BL, bias, False, bias_scalar, 0)
         _fill_row(VSB, bias, False, v_sat - bias_scalar, 0)
         n0 = 0
-        isum = 0.0
-        imax = 0.0
+        isum = 0
+        imax = 0
         for r in range(ch * H // nchunk, (ch + 1) * H // nchunk):
             if a_is_map:
                 _fill_row(A, a_map, True, 1.0, r)
@@ -513,47 +545,53 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
                     VSB[c] = v_sat - BL[c]
             if has_master:
                 _fill_row(MB, master, True, 0.0, r)
-            for c in range(W):
+            for c in range(Wp):
                 SIG[c] = 0.0
                 NU[c] = 0.0
                 ITER[c] = 0.0
-            # Blocks of columns small enough for their buffers to stay in the L1/L2 caches
-            # through the loads and all the iterations.
             for c0 in range(0, W, block):
                 c1 = min(W, c0 + block)
-                for c in range(numba.uint64(c0), numba.uint64(c1)):
+                cp = Wp if c1 == W else c1  # the buffer-only loops run over the padding too
+                for c in range(numba.uint64(c0), numba.uint64(cp)):
                     S[c] = 0.0
                     CNT[c] = 0.0
-                for i in range(n):  # x_i and the sums of the non-saturated average
+                i = 0
+                while i < n:  # x_i and the sums of the non-saturated average
                     inv_tg = 1.0 / (times[i] * g)
                     kind = kinds[i]
+                    if kind == 0 and i + 3 <= n and kinds[i + 1] == 0 and kinds[i + 2] == 0:
+                        _load_dark3(values[i][r], darks[i][r], X[i], inv_tg,
+                                    values[i + 1][r], darks[i + 1][r], X[i + 1], 1.0 / (times[i + 1] * g),
+                                    values[i + 2][r], darks[i + 2][r], X[i + 2], 1.0 / (times[i + 2] * g),
+                                    S, CNT, IA, v_sat, c0, c1)
+                        i += 3
+                        continue
                     if kind == 0:
                         _load_dark(values[i][r], darks[i][r], X[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
                     elif kind == 1:
                         _load_base(values[i][r], BL, DD, coefs[i], X[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
                     else:
                         _load_base(values[i][r], MB, DD, coefs[i], X[i], S, CNT, inv_tg, IA, v_sat, c0, c1)
+                    i += 1
                 if use_init:  # the first pass of the streaming merge summed the same values in the same order
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
                         S[c] = init_sum[r, c]
                         CNT[c] = init_cnt[r, c]
-                _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, v_sat, inv_gtmin, c0, c1)
+                bad = _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, A, U, SW, SWX, v_sat, inv_gtmin, u_lo, u_hi,
+                                 c0, cp)
                 # Iterate Eq. 13 <-> Eq. 12 for the whole block at once, frames three at a time
-                # (the near-saturation rule from the second step on).
+                # (the near-saturation rule from the second step on); one division for three
+                # samples when no variance of the block can leave the safe range.
                 for it in range(max_iter):
-                    lo, hi = _row_estimate(MU, A, DD, U, c0, c1)
-                    # One division for three samples when no variance can leave the safe range.
-                    shared = (lo == lo) & (hi == hi)
-                    for i in range(n):
-                        shared &= FR[i, 1] * min(lo, 0.0) + FR[i, 4] >= shared_lo
-                        shared &= FR[i, 1] * max(hi, 0.0) + FR[i, 4] <= shared_hi
+                    shared = shared_frames & (bad == 0)
                     if it > 0 and sat_sigmas > 0.0:
-                        _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, True, shared, c0, c1)
+                        _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, True, shared, c0, cp)
                     else:
-                        _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, False, shared, c0, c1)
-                    if _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, it, tol2, c0, c1) == 0:
+                        _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, False, shared, c0, cp)
+                    active, bad = _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, A, DD, U, it, tol2, u_lo, u_hi, c0, cp)
+                    if active == 0:
                         break
-                _row_usable(X, n, NU, c0, c1)
+                _row_usable(X, n, NU, c0, cp)
                 if probabilistic:
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
                         if FLAG[c] != 0.0:
