@@ -9,8 +9,9 @@ Knobs (``pipeline.merge.merge_arrays`` options unless said otherwise):
 * PRNU ``map`` (per photosite, Eq. 14) vs ``scalar`` (a = 1);
 * darks ``matched`` (one dark frame per exposure) vs ``master`` (16 dark frames averaged per
   exposure time) vs ``model`` (no dark frame: bias + calibrated dark current);
-* input arrays uint16 (native) vs float32 vs float64 (the merge stores float32 and computes in
-  float64 either way; this measures the conversion and checks the results agree).
+* input arrays uint16 (native) vs float32 vs float64 (float frames are stored as float32 and
+  take float64 weights; uint16 frames take float32 weights where the merge's bounds allow: this
+  measures both and checks the results agree).
 
 Data: the evaluation's gradient (4 decades, 6 exposures two stops apart, 1/1024..1 s) on
 camera-A and camera-B with the sensor's true PRNU and dark-current maps and Table 2's v_sat
