@@ -69,13 +69,6 @@ def _sample(v, b, inv_tg, inv_a, v_sat):
     return x, ok
 
 
-@numba.njit(inline="always", cache=True)
-def _clamp32(x):
-    if not math.isfinite(x):
-        return 0.0 if math.isnan(x) else (FLOAT32_MAX if x > 0 else -FLOAT32_MAX)
-    return min(max(x, -FLOAT32_MAX), FLOAT32_MAX)
-
-
 # ------------------------------------------------------------------------ row loops (SIMD)
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
 def _fill_row(out, arr, is_map, scalar, r):
@@ -184,7 +177,7 @@ def _accumulate(x1, f1, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1):
 def _accumulate3(x1, f1, x2, f2, x3, f3, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1):
     """:func:`_accumulate` for three frames in one pass, with one division for the three
     weights: r = 1 / (d1 d2 d3), w3 = n3 d1 d2 r, w1 = n1 d2 (d3 r), w2 = n2 d1 (d3 r) (the
-    caller checks that every d lies within [_SHARED_LO, _SHARED_HI])."""
+    caller checks that every d lies within _SHARED_RANGE64 or _SHARED_RANGE32)."""
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         u = U[c]
         vsb = VSB[c]

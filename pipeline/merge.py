@@ -160,6 +160,8 @@ def _extrema(map_arg) -> tuple[float, float]:
         return hit[1]
     lo, hi = float(np.min(arr)), float(np.max(arr))
     ext = (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else (math.nan, math.nan)
+    for dead in [k for k, (ref, _) in _EXTREMA.items() if ref() is None]:  # no growth over weeks of merges
+        del _EXTREMA[dead]
     _EXTREMA[key] = (weakref.ref(arr), ext)
     return ext
 

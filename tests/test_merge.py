@@ -490,3 +490,20 @@ def test_shared_division_equals_one_division_per_sample():
     assert np.isnan(out[0][0]).sum() > np.isnan(X).sum()  # the near-saturation rule dropped some
     np.testing.assert_allclose(out[0][1], out[1][1], rtol=1e-13)
     np.testing.assert_allclose(out[0][2], out[1][2], rtol=1e-12, atol=1e-12 * np.abs(out[1][2]).max())
+
+
+def test_map_extrema_cached_per_array_and_pruned():
+    """The float32-weights check scans a map once while it lives, and forgets dead arrays (no
+    growth over weeks of unattended merges)."""
+    import pipeline.merge as pm
+
+    maps = [np.full((4, 4), float(i), np.float32) for i in range(5)]
+    assert [pm._extrema((m, True, 0.0)) for m in maps] == [(float(i), float(i)) for i in range(5)]
+    maps[0][0, 0] = 100.0  # cached: a map is not rescanned while it lives
+    assert pm._extrema((maps[0], True, 0.0)) == (0.0, 0.0)
+    ids = {id(m) for m in maps}
+    del maps
+    fresh = np.array([[np.inf]], np.float32)
+    assert all(np.isnan(pm._extrema((fresh, True, 0.0))))
+    assert not ids & set(pm._EXTREMA) - {id(fresh)}
+    assert pm._extrema((None, False, 2.5)) == (2.5, 2.5)
