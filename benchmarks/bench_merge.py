@@ -166,7 +166,7 @@ def main(argv=None):
     shape = _shape(args.mpix)
     import numba
 
-    import pipeline  # noqa: F401  (sets numba's CPU features before anything compiles)
+    import pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
     from numba.core import config
 
     report = {"mpix": args.mpix, "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),

@@ -5,8 +5,9 @@ Private to :mod:`pipeline.calibration`; every accumulation is float64.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 
 __all__ = ["stack_add", "stack_add_equal", "masked_moments", "pair_keep", "pair_moments"]
 

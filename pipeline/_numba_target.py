@@ -8,6 +8,9 @@ This module lifts the preference by giving
 numba the host's own CPU features plus ``-prefer-256-bit``; nothing else changes (same
 instructions available, same results up to the order of floating-point sums).
 
+Modules that compile with numba take ``numba`` from here (``from ._numba_target import
+numba``), so :func:`configure` runs before their first compilation, and only in processes that
+compile (llvmlite's import costs ~70 ms, which commands that never compile should not pay).
 It must run before numba compiles or loads its first function in the process; it does
 nothing when the user has set ``NUMBA_CPU_NAME`` or ``NUMBA_CPU_FEATURES`` or when
 ``HDRCAP_NUMBA_PREFER_256=1``, and nothing on CPUs without AVX-512.
@@ -43,3 +46,10 @@ def configure() -> str | None:
     else:
         os.environ["NUMBA_CPU_FEATURES"] = features
     return features
+
+
+configure()
+
+import numba  # noqa: E402  (after configure(): nothing compiles before the target is set)
+
+__all__ = ["configure", "numba"]

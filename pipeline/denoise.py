@@ -74,9 +74,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 
+from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 from .errors import InputError
 
 __all__ = [

@@ -36,10 +36,10 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numba import prange
 
+from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 from .noise import difference_variance
 
 __all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX"]

@@ -347,9 +347,9 @@ class MergeAccumulator:
 
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
-        import numba
+        from .kernels import merge_kernel  # first: it configures numba's compile target
 
-        from .kernels import merge_kernel
+        import numba
 
         if not self._values:
             raise InputError("no frames to merge")
