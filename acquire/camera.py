@@ -20,7 +20,7 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any, Protocol, Sequence, runtime_checkable
 
-from pipeline.errors import HdrcapError
+from hdrcap.pipeline.errors import HdrcapError
 
 __all__ = [
     "Camera",
@@ -256,7 +256,7 @@ def dark_level(path) -> float:
         with Image.open(path) as im:
             data = np.asarray(im.convert("L"), dtype=np.float64)
         return float(np.median(data) / 255.0)
-    from pipeline.io import read_frame
+    from hdrcap.pipeline.io import read_frame
 
     fr = read_frame(path)
     black = fr.black_level or 0.0

@@ -15,8 +15,8 @@ import sys
 
 import click
 
-from pipeline import __version__
-from pipeline.errors import HdrcapError
+from hdrcap import __version__
+from hdrcap.pipeline.errors import HdrcapError
 
 __all__ = ["cli", "main"]
 
@@ -40,12 +40,12 @@ def cli() -> None:
 
 
 def _register() -> None:
-    import acquire.commands as pkg
+    import hdrcap.acquire.commands as pkg
 
     for mod in pkgutil.iter_modules(pkg.__path__):
         if mod.name.startswith("_"):
             continue
-        module = importlib.import_module(f"acquire.commands.{mod.name}")
+        module = importlib.import_module(f"hdrcap.acquire.commands.{mod.name}")
         cmd = getattr(module, "command", None)
         if isinstance(cmd, click.Command):
             cli.add_command(cmd)

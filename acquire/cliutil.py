@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from pipeline.errors import InputError
+from hdrcap.pipeline.errors import InputError
 
 __all__ = ["ManyValuesCommand", "many_values", "echo_json", "resolve_calibration"]
 
@@ -84,16 +84,16 @@ def resolve_calibration(calibration: str | None, camera: str | None, temperature
     ``calibration`` is a file written by ``hdrcap calibrate``; ``camera`` names a simulator
     preset (``camera-A``, ``camera-B``) whose nominal parameters are used.
     """
-    from pipeline.params import Calibration
+    from hdrcap.pipeline.params import Calibration
 
     if calibration:
         try:
-            from pipeline.calibration import load_calibration
+            from hdrcap.pipeline.calibration import load_calibration
         except ImportError:  # pragma: no cover - before the calibration module exists
             raise InputError("calibration files are not supported yet; use --camera PRESET") from None
         return load_calibration(calibration)
     if camera:
-        from mock_camera import PRESETS
+        from hdrcap.mock_camera import PRESETS
 
         if camera not in PRESETS:
             raise InputError(f"unknown camera preset {camera!r}; choose from {', '.join(PRESETS)}")

@@ -37,7 +37,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.errors import InputError
+from hdrcap.pipeline.errors import InputError
 
 from .camera import (
     CameraBusyError,

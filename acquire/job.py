@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.errors import InputError
+from hdrcap.pipeline.errors import InputError
 
 from .camera import nearest_allowed
 
@@ -168,24 +168,24 @@ def _check_values(job: Job) -> None:
     if cam["backend"] not in ("mock", "gphoto2"):
         raise job.error("camera", "backend", f"must be \"mock\" or \"gphoto2\", got {cam['backend']!r}")
     if cam["backend"] == "mock":
-        from mock_camera import PRESETS
+        from hdrcap.mock_camera import PRESETS
 
         if cam["preset"] not in PRESETS:
             raise job.error("camera", "preset", f"unknown simulator preset {cam['preset']!r}; choose from "
                                                f"{', '.join(PRESETS)}")
-        from acquire.commands.simulate import parse_size
+        from hdrcap.acquire.commands.simulate import parse_size
 
         try:
             parse_size(cam["size"])
         except InputError as err:
             raise job.error("camera", "size", str(err)) from None
         try:
-            from mock_camera.camera import MockFaults
+            from hdrcap.mock_camera.camera import MockFaults
 
             MockFaults.from_dict(cam.get("faults", {}))
         except (TypeError, ValueError) as err:
             raise job.error("camera", "faults", str(err)) from None
-        from mock_camera.scenes import SCENES
+        from hdrcap.mock_camera.scenes import SCENES
 
         scene = job["scene"]["name"]
         if scene not in SCENES and not scene.lower().endswith(".exr"):
@@ -280,15 +280,15 @@ def open_camera(job: Job, n: int = 0):
     """The job's camera (for the mock backend: with the job's scene; seed + n per repetition)."""
     cam = job["camera"]
     if cam["backend"] == "mock":
-        from acquire.commands.simulate import load_scene, parse_size
-        from mock_camera.camera import MockCamera, MockFaults
+        from hdrcap.acquire.commands.simulate import load_scene, parse_size
+        from hdrcap.mock_camera.camera import MockCamera, MockFaults
 
         sc = job["scene"]
         shape = parse_size(cam["size"])
         scene = load_scene(_scene_path(job, sc["name"]), shape, sc["decades"], sc["x_max"])
         return MockCamera(cam["preset"], scene, seed=cam["seed"] + n, allowed_times=cam.get("allowed_times"),
                           faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
-    from acquire.gphoto2_camera import Gphoto2Camera
+    from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
 
     camera = Gphoto2Camera(cam.get("model"), cam.get("port"), delete_after_download=cam["delete_after_download"],
                            long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
@@ -316,7 +316,7 @@ def check_job_against_camera(job: Job, camera) -> None:
 
 
 def job_calibration(job: Job):
-    from acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.cliutil import resolve_calibration
 
     cal = job["calibration"]
     if "file" in cal:
@@ -334,7 +334,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     dark frames are captured only for matched and master exposures, and not for master
     exposures whose master dark the dark library holds. ``info`` (recorded in the manifest)
     carries the planner's decisions and merge options for the merge and the EXR header."""
-    from acquire.session import CapturePlan
+    from hdrcap.acquire.session import CapturePlan
 
     exp, darks = job["exposure"], job["darks"]
     allowed = camera.allowed_exposure_times()
@@ -343,7 +343,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     info: dict[str, Any] = {"mode": exp["mode"]}
     if exp["mode"] == "snr":
         try:
-            import planner
+            from hdrcap import planner
 
             irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
             root = _library_root(job, calibration)
@@ -408,7 +408,7 @@ def library_masters(root, camera, times, load: bool = True) -> dict[float, tuple
     (data None unless ``load``). Empty when there is no dark library."""
     if not root:
         return {}
-    from pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.darklibrary import DarkLibrary
 
     model = str(getattr(getattr(camera, "identity", None), "model", "")) or None
     temp = camera.temperature() if hasattr(camera, "temperature") else None
@@ -417,7 +417,7 @@ def library_masters(root, camera, times, load: bool = True) -> dict[float, tuple
 
 
 def _meter_fn(camera, run_dir: Path):
-    from pipeline.io import read_frame
+    from hdrcap.pipeline.io import read_frame
 
     meter_dir = run_dir / "meter"
     meter_dir.mkdir(parents=True, exist_ok=True)
@@ -440,8 +440,8 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
     """Run one repetition of ``job``; returns a summary dict (run folder, frames, outputs), and
     the :class:`acquire.session.SessionResult` too when ``return_result``. ``exr_path`` and
     ``png_path`` override the job's outputs (which lie inside the run folder)."""
-    from acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy
-    from acquire.manifest import Manifest
+    from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy
+    from hdrcap.acquire.manifest import Manifest
 
     run_dir = Path(run_dir) if run_dir else run_folder(job, n, resume)
     own = camera is None
@@ -456,7 +456,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         if png_path is None and job["output"]["png"]:
             png_path = run_dir / job["output"]["png"]
         if not resume and Manifest(run_dir).exists():
-            from acquire.session import SessionError
+            from hdrcap.acquire.session import SessionError
 
             raise SessionError(f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it "
                                "or choose another run folder")
@@ -488,7 +488,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         result = session.run()
         header = None
         if planned:
-            from acquire.commands.merge import planner_attribute
+            from hdrcap.acquire.commands.merge import planner_attribute
 
             header = planner_attribute(planned, None, None, options, info.get("plan_overridden"),
                                        source="hdrcap run (planned from metering)")
@@ -517,7 +517,7 @@ def _plan_merge_options(planned: dict) -> dict:
     """The merge options the planner decided (recorded in the manifest's planning record)."""
     if not planned:
         return {}
-    from acquire.commands.merge import PLAN_OPTIONS, check_plan
+    from hdrcap.acquire.commands.merge import PLAN_OPTIONS, check_plan
 
     decided = check_plan(planned, "planner").merge_options()
     return {k: v for k, v in decided.items() if k in PLAN_OPTIONS}
@@ -525,9 +525,9 @@ def _plan_merge_options(planned: dict) -> dict:
 
 def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force,
                    planner_header: dict | None = None) -> dict:
-    from acquire.commands.merge import build_hdr_image
-    from pipeline.io import RawFrame, write_exr
-    from pipeline.preview import write_preview_png
+    from hdrcap.acquire.commands.merge import build_hdr_image
+    from hdrcap.pipeline.io import RawFrame, write_exr
+    from hdrcap.pipeline.preview import write_preview_png
 
     out: dict[str, Any] = {}
     merge = result.merge
@@ -549,7 +549,7 @@ def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_pat
         out["png"] = str(png_path)
     truth = getattr(getattr(camera, "sim", None), "scene", None)
     if truth is not None:  # the simulator knows the truth: report the error against it
-        from pipeline.evaluation import error_against_truth
+        from hdrcap.pipeline.evaluation import error_against_truth
 
         out["error_vs_truth"] = error_against_truth(merge.irradiance, merge.sigma, merge.nexp, truth)
     return out

@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from typing import Any, Iterator
 
-from pipeline.errors import InputError
+from hdrcap.pipeline.errors import InputError
 
 __all__ = ["Manifest", "EventLog", "utc_now", "MANIFEST_NAME", "EVENTS_NAME"]
 
@@ -107,7 +107,7 @@ class Manifest:
 
     def verify_hashes(self) -> list[str]:
         """Keys whose file is missing or whose sha256 differs from the manifest's."""
-        from pipeline.io import sha256_file
+        from hdrcap.pipeline.io import sha256_file
 
         bad = []
         for key, rec in self.frames().items():

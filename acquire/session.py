@@ -37,7 +37,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pipeline.errors import HdrcapError, InputError
+from hdrcap.pipeline.errors import HdrcapError, InputError
 
 from .camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
 from .manifest import EventLog, Manifest, utc_now
@@ -317,7 +317,7 @@ class StreamingMerge:
 
     def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = "matched",
                  options: dict | None = None):
-        from pipeline.merge import MergeAccumulator
+        from hdrcap.pipeline.merge import MergeAccumulator
 
         self.calibration = calibration
         self.shape = tuple(shape)
@@ -480,7 +480,7 @@ class CaptureSession:
     def _run_locked(self, ident: dict, t0: float) -> SessionResult:
         from tqdm import tqdm
 
-        from pipeline.io import read_frame
+        from hdrcap.pipeline.io import read_frame
 
         manifest = Manifest(self.run_dir)
         log = EventLog(self.run_dir)
@@ -649,7 +649,7 @@ class CaptureSession:
 
     def _verify(self, path: Path, spec: FrameSpec, applied: float, res) -> tuple[dict, np.ndarray]:
         """Open the file and check its size and exposure time (CorruptFrameError if not)."""
-        from pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
+        from hdrcap.pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
         if path.suffix.lower() not in RAW_EXTENSIONS | IMAGE_EXTENSIONS:
             raise SessionError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
@@ -689,7 +689,7 @@ class CaptureSession:
         return rec, frame.data
 
     def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict) -> dict:
-        from pipeline.io import sha256_file
+        from hdrcap.pipeline.io import sha256_file
 
         return {"file": str(final.relative_to(self.run_dir)), "sha256": sha256_file(final),
                 "bytes": final.stat().st_size, "index": i, "camera": ident}

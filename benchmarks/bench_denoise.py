@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pipeline.denoise import DenoiseSettings, denoise  # noqa: E402
+from hdrcap.pipeline.denoise import DenoiseSettings, denoise  # noqa: E402
 
 
 def make_input(h: int, w: int, seed: int = 0):

@@ -39,8 +39,8 @@ def _shape(mpix: float) -> tuple[int, int]:
 
 def _frames(shape, seed=0):
     """Bracket + darks from the simulator, generated in tiles of rows (memory)."""
-    from mock_camera.scenes import make_scene
-    from mock_camera.sensor import PRESETS, SimulatedSensor
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 
     spec = PRESETS["camera-A"]
     h, w = shape
@@ -58,8 +58,8 @@ def _frames(shape, seed=0):
 
 
 def bench_kernel(shape, iterations, repeats=3):
-    from pipeline.merge import merge_arrays
-    from pipeline.params import Calibration
+    from hdrcap.pipeline.merge import merge_arrays
+    from hdrcap.pipeline.params import Calibration
 
     values, darks, spec = _frames(shape)
     cal = Calibration(spec.nominal_params())
@@ -104,9 +104,9 @@ def _ensure_hdrmerge():
 
 
 def bench_commands(shape, work: Path, run_hdrmerge=True):
-    from mock_camera.backend import SimulatedCamera
-    from mock_camera.scenes import make_scene
-    from mock_camera.sensor import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.mock_camera.sensor import PRESETS
 
     spec = PRESETS["camera-A"]
     cam = SimulatedCamera(spec, make_scene("hdr", shape, 4.0, 2e5), seed=1)
@@ -118,16 +118,16 @@ def bench_commands(shape, work: Path, run_hdrmerge=True):
     env = dict(os.environ, PYTHONPATH=str(REPO))
     out = {}
     # Warm the numba cache (compilation is a one-off, not part of a merge).
-    subprocess.run([sys.executable, "-m", "acquire.cli", "merge", frames[0], "--camera", "camera-A", "-o",
+    subprocess.run([sys.executable, "-m", "hdrcap", "merge", frames[0], "--camera", "camera-A", "-o",
                     work / "warm.exr", "--force"], env=env, capture_output=True)
-    wall, rss, rc, err = _time_v([sys.executable, "-m", "acquire.cli", "merge", *frames, "--darks", *darks,
+    wall, rss, rc, err = _time_v([sys.executable, "-m", "hdrcap", "merge", *frames, "--darks", *darks,
                                   "--camera", "camera-A", "-o", work / "hdrcap.exr", "--force", "--json",
                                   "--iterations", "20"], env)
     out["hdrcap_merge"] = {"seconds": wall, "peak_rss_mb": rss, "returncode": rc, "inputs": 12,
                            "exr_compression": "zip (default)"}
     if rc != 0:
         out["hdrcap_merge"]["stderr"] = err
-    wall, rss, rc, err = _time_v([sys.executable, "-m", "acquire.cli", "merge", *frames, "--darks", *darks,
+    wall, rss, rc, err = _time_v([sys.executable, "-m", "hdrcap", "merge", *frames, "--darks", *darks,
                                   "--camera", "camera-A", "-o", work / "hdrcap_rle.exr", "--force", "--json",
                                   "--iterations", "20", "--exr-compression", "rle"], env)
     out["hdrcap_merge_rle"] = {"seconds": wall, "peak_rss_mb": rss, "returncode": rc, "inputs": 12,
@@ -166,7 +166,7 @@ def main(argv=None):
     shape = _shape(args.mpix)
     import numba
 
-    import pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
+    import hdrcap.pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
     from numba.core import config
 
     report = {"mpix": args.mpix, "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),

@@ -83,9 +83,9 @@ print(json.dumps({"merge_seconds": sec, "version": colour_hdri.__version__}))
 RUN_HDRCAP = r"""
 import json, sys, time, numpy as np
 sys.path.insert(0, sys.argv[2])
-from pipeline.io import read_frame
-from pipeline.params import Calibration, SensorParams
-from pipeline import merge as M
+from hdrcap.pipeline.io import read_frame
+from hdrcap.pipeline.params import Calibration, SensorParams
+from hdrcap.pipeline import merge as M
 files, darks, out, calib, options = json.loads(sys.argv[1])
 frames = [read_frame(f) for f in files]
 dk = [read_frame(f) for f in darks]
@@ -137,9 +137,9 @@ def simulate(work: Path, camera: str, shape, seed: int):
     """Write the DNG bracket + darks and 16-bit linear TIFFs; return paths, truth and sensor."""
     import tifffile
 
-    from mock_camera import PRESETS
-    from mock_camera.backend import SimulatedCamera
-    from mock_camera.scenes import make_scene
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap.mock_camera.scenes import make_scene
 
     spec = PRESETS[camera]
     p = spec.nominal_params()  # Table 2 values, as a user's calibration gives them
@@ -153,7 +153,7 @@ def simulate(work: Path, camera: str, shape, seed: int):
         d = cam.capture_to(work / f"dark_{i}.dng", t, dark=True, overwrite=True)
         files.append(str(f))
         darks.append(str(d))
-    from pipeline.io import read_frame
+    from hdrcap.pipeline.io import read_frame
 
     times = []
     for i, f in enumerate(files):
@@ -189,7 +189,7 @@ def main(argv=None) -> int:
     if args.setup:
         setup_venv(args.venv)
         return 0
-    from pipeline.evaluation import bound_variance, log_bins, snr_per_bin
+    from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
 
     w, h = (int(v) for v in args.size.split("x"))
     work = args.out / "data"

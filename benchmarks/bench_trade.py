@@ -62,11 +62,11 @@ CONFIGS = {
 
 
 def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bins: int) -> dict:
-    from acquire.commands.evaluate import make_setup, simulate_bracket_arrays
-    from mock_camera import PRESETS
-    from pipeline.evaluation import bound_variance, log_bins, snr_per_bin
-    from pipeline.merge import merge_arrays
-    from pipeline.weighting import merge_weighted
+    from hdrcap.acquire.commands.evaluate import make_setup, simulate_bracket_arrays
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
+    from hdrcap.pipeline.merge import merge_arrays
+    from hdrcap.pipeline.weighting import merge_weighted
 
     spec = PRESETS[camera]
     setup = make_setup(spec, shape=shape, seed=seed, params=spec.nominal_params())

@@ -45,7 +45,7 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         sim = Path(tmp) / "sim"
-        subprocess.run([sys.executable, "-m", "acquire.cli", "simulate", "--camera", args.camera, "--size", args.size,
+        subprocess.run([sys.executable, "-m", "hdrcap", "simulate", "--camera", args.camera, "--size", args.size,
                         "--out", str(sim), "--json"], check=True, cwd=REPO, capture_output=True,
                        env=dict(os.environ, PYTHONPATH=str(REPO)))
         frames = sorted(glob.glob(str(sim / "frame_*.dng")))

@@ -46,8 +46,8 @@ def main(argv=None):
 
     emva = emva_dataset_dir()
     if emva is not None:
-        from pipeline.merge import merge_arrays
-        from pipeline.params import Calibration, SensorParams
+        from hdrcap.pipeline.merge import merge_arrays
+        from hdrcap.pipeline.params import Calibration, SensorParams
 
         ds, steps, load = T._emva_steps(emva)
         g, mu_R, s2 = T._photon_transfer([steps[10], steps[25]], load)

@@ -13,16 +13,16 @@ import time
 
 import numpy as np
 
-from mock_camera import PRESETS, SimulatedSensor
-from mock_camera.scenes import make_scene
-from pipeline import merge as merge_mod
-from pipeline.io import RawFrame
-from pipeline.params import Calibration
-from planner import (SystematicErrors, plan_bracket, plan_exhaustive, plan_exposures, predict_snr,
+from hdrcap.mock_camera import PRESETS, SimulatedSensor
+from hdrcap.mock_camera.scenes import make_scene
+from hdrcap.pipeline import merge as merge_mod
+from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.params import Calibration
+from hdrcap.planner import (SystematicErrors, plan_bracket, plan_exhaustive, plan_exposures, predict_snr,
                      systematic_errors_from_calibration)
-from planner.plan import DEFAULT_OVERHEAD_S
-from planner.ladder import THIRD_STOP_LADDER
-from planner.predict import usable_fraction
+from hdrcap.planner.plan import DEFAULT_OVERHEAD_S
+from hdrcap.planner.ladder import THIRD_STOP_LADDER
+from hdrcap.planner.predict import usable_fraction
 
 
 def _merge(values, times, cal, **options):

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.params import THIRD_STOP_TIMES
+from hdrcap.pipeline.params import THIRD_STOP_TIMES
 
 from .backend import SimulatedCamera
 from .sensor import PRESETS, SensorSpec

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.params import SensorParams
+from hdrcap.pipeline.params import SensorParams
 
 __all__ = ["SensorSpec", "SimulatedSensor", "PRESETS", "preset", "QUANTISATION_VARIANCE"]
 

@@ -1046,7 +1046,7 @@ def save_calibration(path, calibration: Calibration, force: bool = False) -> Pat
     ``metadata`` entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``,
     ``stderr``, ``provenance``, ``maps``. Any file name is accepted.
     """
-    from . import __version__
+    from hdrcap import __version__
     from .io import atomic_output
 
     arrays = {}

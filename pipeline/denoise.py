@@ -438,8 +438,8 @@ def _simulate_scene(scene: str, shape, seed: int):
     """Camera-B bracket with matched darks of a mock scene, merged; returns (truth, MergeResult)."""
     # Imported here, not at module level: the evaluation needs the simulator (contract
     # pipeline.denoise.evaluate_denoising); the filter itself never touches it.
-    from mock_camera.scenes import make_scene
-    from mock_camera.sensor import PRESETS, SimulatedSensor
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 
     from .params import Calibration
 

@@ -6,7 +6,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from pipeline.params import THIRD_STOP_TIMES
+from hdrcap.pipeline.params import THIRD_STOP_TIMES
 
 __all__ = ["THIRD_STOP_LADDER", "shutter_ladder", "parse_time"]
 

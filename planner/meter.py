@@ -17,9 +17,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.noise import exposure_variance
-from pipeline.params import Calibration
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.noise import exposure_variance
+from hdrcap.pipeline.params import Calibration
 
 from .ladder import THIRD_STOP_LADDER
 from .predict import K_SIGMA, usable_fraction

@@ -32,8 +32,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.errors import InputError
-from pipeline.params import Calibration
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.params import Calibration
 
 from . import select
 from .ladder import THIRD_STOP_LADDER

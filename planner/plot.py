@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io import atomic_output
-from pipeline.params import Calibration
+from hdrcap.pipeline.io import atomic_output
+from hdrcap.pipeline.params import Calibration
 
 from .plan import Plan
 from .predict import K_SIGMA, predict_snr, usable_fraction

@@ -24,8 +24,8 @@ from typing import Sequence
 import numpy as np
 from scipy.special import ndtr
 
-from pipeline.noise import exposure_variance, exposure_weight
-from pipeline.params import Calibration
+from hdrcap.pipeline.noise import exposure_variance, exposure_weight
+from hdrcap.pipeline.params import Calibration
 
 __all__ = [
     "K_SIGMA",

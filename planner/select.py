@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.params import Calibration
+from hdrcap.pipeline.params import Calibration
 
 from .predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
 

@@ -34,7 +34,7 @@ def run_cli(*args, cwd=None, check=False, timeout=600, env=None) -> subprocess.C
     if env:
         full_env.update(env)
     proc = subprocess.run(
-        [sys.executable, "-m", "acquire.cli", *map(str, args)],
+        [sys.executable, "-m", "hdrcap", *map(str, args)],
         cwd=cwd or REPO,
         capture_output=True,
         text=True,

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from acquire.cli import main
+from hdrcap.acquire.cli import main
 
 # Published EMVA 1288 reference-implementation results for reference set 001 (Basler CCD,
 # 12 bit): the example results file of EMVA1288/emva1288, doc/datasets/datasets_results.rst
@@ -61,7 +61,7 @@ def test_simulate_then_calibrate(calibration_set, tmp_path, capsys):
     assert sorted(e["exposure_time"] for e in index["entries"]) == [0.5, 1, 2, 4, 8, 16]
     assert all(e["n_frames"] == 2 and e["temperature"] == 20 for e in index["entries"])
     # the file loads, and is not overwritten without --force
-    from pipeline.calibration import load_calibration
+    from hdrcap.pipeline.calibration import load_calibration
 
     cal = load_calibration(cal_path)
     assert cal.prnu.shape == (96, 96) and cal.params.g == pytest.approx(summary["g"])
@@ -101,7 +101,7 @@ def test_emva_reference_set_001(emva_dir, tmp_path, capsys):
     assert e["index_sensitivity_max"] == EMVA_REF001["index_sensitivity_max"]
     assert s["prnu_std"] == pytest.approx(EMVA_REF001["PRNU1288"] / 100, rel=0.05)
     assert elapsed < 60  # seconds, not minutes (about 5 s on one core)
-    from pipeline.calibration import load_calibration
+    from hdrcap.pipeline.calibration import load_calibration
 
     cal = load_calibration(out)
     assert cal.prnu.shape == (480, 640) and abs(float(cal.prnu.mean()) - 1) < 1e-5

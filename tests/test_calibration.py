@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mock_camera import PRESETS, SimulatedSensor
-from mock_camera.sensor import SensorSpec
-from pipeline.calibration import (
+from hdrcap.mock_camera import PRESETS, SimulatedSensor
+from hdrcap.mock_camera.sensor import SensorSpec
+from hdrcap.pipeline.calibration import (
     PixelStack,
     calibrate,
     load_calibration,
@@ -20,8 +20,8 @@ from pipeline.calibration import (
     photon_transfer_gain,
     save_calibration,
 )
-from pipeline.errors import InputError, OutputExistsError
-from pipeline.io import RawFrame
+from hdrcap.pipeline.errors import InputError, OutputExistsError
+from hdrcap.pipeline.io import RawFrame
 
 SHAPE = (256, 256)
 
@@ -307,13 +307,13 @@ def test_calibration_file_round_trip_and_checks(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="junk.npz"):
         load_calibration(tmp_path / "junk.npz")
-    from acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.cliutil import resolve_calibration
 
     assert resolve_calibration(str(path), None).params == cal.params
 
 
 def test_dark_library(tmp_path):
-    from pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.darklibrary import DarkLibrary
 
     lib = DarkLibrary(tmp_path / "lib")
     assert lib.entries() == []
@@ -336,8 +336,8 @@ def test_emva_stage_on_a_simulated_descriptor(tmp_path):
     everywhere; the real reference set is tested in test_calibrate_cli.py)."""
     from PIL import Image
 
-    from pipeline.emva import emva_calibration, emva_data, emva_results
-    from pipeline.io import read_emva_descriptor
+    from hdrcap.pipeline.emva import emva_calibration, emva_data, emva_results
+    from hdrcap.pipeline.io import read_emva_descriptor
 
     spec = PRESETS["camera-A"].replace(dark_current=50.0)
     sensor = SimulatedSensor(spec, (96, 96), seed=6)

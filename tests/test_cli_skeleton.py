@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.io import read_exr, read_raw
+from hdrcap.pipeline.io import read_exr, read_raw
 
 
 @pytest.fixture(scope="module")

@@ -11,8 +11,8 @@ import json
 import numpy as np
 import pytest
 
-from acquire.cli import main
-from pipeline.denoise import (
+from hdrcap.acquire.cli import main
+from hdrcap.pipeline.denoise import (
     CONTROL_SCENES,
     EVAL_SCENES,
     DenoiseSettings,
@@ -23,8 +23,8 @@ from pipeline.denoise import (
     evaluate_denoising,
     normalised_mse,
 )
-from pipeline.errors import InputError
-from pipeline.io import HdrImage, read_exr, write_exr
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
 
 def _gauss_sums(radius, s, one_sided=False):

@@ -12,13 +12,13 @@ import json
 import numpy as np
 import pytest
 
-from acquire.commands.evaluate import (BASELINES, TEN_X_READOUT, ZERO_READOUT, make_setup, qq_experiment,
+from hdrcap.acquire.commands.evaluate import (BASELINES, TEN_X_READOUT, ZERO_READOUT, make_setup, qq_experiment,
                                        snr_experiment)
-from mock_camera import PRESETS
-from pipeline import merge as merge_mod
-from pipeline.evaluation import (bound_variance, log_bins, paired_difference, qq_data, snr_per_bin,
+from hdrcap.mock_camera import PRESETS
+from hdrcap.pipeline import merge as merge_mod
+from hdrcap.pipeline.evaluation import (bound_variance, log_bins, paired_difference, qq_data, snr_per_bin,
                                  weights_vs_output)
-from pipeline.params import SensorParams
+from hdrcap.pipeline.params import SensorParams
 
 needs_ml_merge = pytest.mark.skipif(not hasattr(merge_mod, "merge_arrays"),
                                     reason="needs the maximum-likelihood merge_arrays (optimal-merge issue)")
@@ -193,7 +193,7 @@ def test_evaluate_command_quick(tmp_path, cli):
 
 def test_evaluate_denoise_without_module_is_a_clear_error(tmp_path, cli):
     try:
-        import pipeline.denoise  # noqa: F401
+        import hdrcap.pipeline.denoise  # noqa: F401
     except ImportError:
         proc = cli("evaluate", "--out", tmp_path / "x", "--quick", "--denoise")
         assert proc.returncode != 0 and "hdrcap: error: --denoise needs pipeline.denoise" in proc.stderr

@@ -24,8 +24,8 @@ PRELUDE = """
 import json, os, sys, threading, time
 from pathlib import Path
 sys.path.insert(0, {repo!r})
-from acquire.gphoto2_camera import Gphoto2Camera, list_cameras
-from acquire.camera import (CameraBusyError, CameraDisconnectedError, CameraGoneError, StorageFullError,
+from hdrcap.acquire.gphoto2_camera import Gphoto2Camera, list_cameras
+from hdrcap.acquire.camera import (CameraBusyError, CameraDisconnectedError, CameraGoneError, StorageFullError,
                             frame_is_dark, fault_kind)
 OUT = Path({out!r})
 RESULT = {{}}
@@ -44,7 +44,7 @@ def _vcam_dir(tmp_path: Path, shade: int = 200) -> Path:
 def _dng(path: Path, t: float) -> None:
     import datetime
 
-    from mock_camera.dng import write_dng
+    from hdrcap.mock_camera.dng import write_dng
 
     data = (np.arange(32 * 32, dtype=np.uint16).reshape(32, 32) % 900 + 40).astype(np.uint16)
     with open(path, "wb") as f:
@@ -116,7 +116,7 @@ def test_capture_download_delete_and_dng_from_card(tmp_path):
     assert got.read_bytes() == (vdir / "scene.jpg").read_bytes()  # the virtual camera returns its .jpg
     assert r["applied"] == pytest.approx(0.01)
     assert r["camera_file"] not in r["after"] and r["kept"]
-    from pipeline.io import read_frame
+    from hdrcap.pipeline.io import read_frame
 
     fr = read_frame(r["dng"])
     assert fr.exposure_time == pytest.approx(1 / 125) and fr.shape == (32, 32)

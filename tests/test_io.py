@@ -8,9 +8,9 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from mock_camera.dng import exposure_rational, write_dng
-from pipeline.errors import InputError, OutputExistsError
-from pipeline.io import (
+from hdrcap.mock_camera.dng import exposure_rational, write_dng
+from hdrcap.pipeline.errors import InputError, OutputExistsError
+from hdrcap.pipeline.io import (
     HdrImage,
     atomic_output,
     check_frames,
@@ -144,7 +144,7 @@ def test_atomic_output_gets_the_usual_file_mode(tmp_path):
     """Outputs are readable like any file the process creates (mkstemp alone gives 0600)."""
     import stat
 
-    from pipeline import io as pio
+    from hdrcap.pipeline import io as pio
 
     target = tmp_path / "out.txt"
     with atomic_output(target) as tmp:

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.job import load_job
-from pipeline.errors import InputError
+from hdrcap.acquire.job import load_job
+from hdrcap.pipeline.errors import InputError
 
 GOOD = """\
 [job]
@@ -92,8 +92,8 @@ def test_exposure_outside_camera_range_rejected_before_any_frame(tmp_path, cli):
 
 
 def test_run_job_merge_within_stated_uncertainty(tmp_path, cli):
-    from mock_camera.scenes import make_scene
-    from pipeline.io import read_exr
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.pipeline.io import read_exr
 
     p = _write(tmp_path, GOOD)
     proc = cli("run", p, "--json", "--no-progress")
@@ -173,9 +173,9 @@ def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
 
 def test_master_darks_come_from_the_dark_library(tmp_path, cli):
     darklibrary = pytest.importorskip("pipeline.darklibrary")
-    from mock_camera.camera import MockCamera
-    from mock_camera.scenes import make_scene
-    from pipeline.io import read_frame
+    from hdrcap.mock_camera.camera import MockCamera
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.pipeline.io import read_frame
 
     lib = darklibrary.DarkLibrary(tmp_path / "darks")
     cam = MockCamera("camera-B", make_scene("hdr", (48, 64), decades=3.0, x_max=2e4), seed=3)
@@ -200,15 +200,15 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
     """A plan mixing "model" and "matched": dark frames only for the matched times, each light
     frame merged with its own strategy and the planner's merge options, the decisions in the
     EXR header, and the result within its stated uncertainty of the truth."""
-    import planner
-    from acquire.job import run_job
-    from mock_camera import PRESETS
-    from mock_camera.scenes import make_scene
-    from mock_camera.sensor import SimulatedSensor
-    from pipeline.calibration import save_calibration
-    from pipeline.io import read_exr
-    from pipeline.params import Calibration
-    from planner.plan import Plan
+    from hdrcap import planner
+    from hdrcap.acquire.job import run_job
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.mock_camera.sensor import SimulatedSensor
+    from hdrcap.pipeline.calibration import save_calibration
+    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.params import Calibration
+    from hdrcap.planner.plan import Plan
 
     # a calibration that knows the mock camera's fixed patterns (seed 3), so z measures the merge alone
     sensor = SimulatedSensor(PRESETS["camera-B"], (48, 64), seed=3)

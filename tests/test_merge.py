@@ -13,11 +13,11 @@ import zlib
 import numpy as np
 import pytest
 
-from mock_camera.sensor import PRESETS, SimulatedSensor
-from pipeline.errors import InputError
-from pipeline.merge import MergeAccumulator, merge_arrays
-from pipeline.noise import exposure_variance
-from pipeline.params import Calibration, SensorParams
+from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.merge import MergeAccumulator, merge_arrays
+from hdrcap.pipeline.noise import exposure_variance
+from hdrcap.pipeline.params import Calibration, SensorParams
 
 TIMES = np.array([1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0])
 MARGIN = 3.0  # the merge's default saturation_sigmas
@@ -368,7 +368,7 @@ def test_bad_input_raises_input_error():
 
 
 def _emva_steps(emva_dir):
-    from pipeline.io import read_emva_descriptor, read_image16
+    from hdrcap.pipeline.io import read_emva_descriptor, read_image16
 
     ds = read_emva_descriptor(emva_dir / "EMVA1288_Data.txt")
     darks = {round(s.exposure_time, 9): s for s in ds.dark()}
@@ -449,7 +449,7 @@ def test_weights_precision_choice():
 def test_float32_weights_agree_with_float64_weights(cam, monkeypatch):
     """The float32 weights change the estimates by a negligible fraction of their sigma (the
     Monte Carlo tests above check the float32 path against the truth and the bound)."""
-    import pipeline.merge as pm
+    import hdrcap.pipeline.merge as pm
 
     spec = PRESETS[cam]
     sensor = SimulatedSensor(spec, (128, 128), seed=3)
@@ -470,7 +470,7 @@ def test_float32_weights_agree_with_float64_weights(cam, monkeypatch):
 def test_shared_division_equals_one_division_per_sample():
     """The iteration pass with one division for three samples gives the weights of one
     division per sample (relative 1e-13), dropped samples included."""
-    from pipeline.kernels import _iterate
+    from hdrcap.pipeline.kernels import _iterate
 
     rng = np.random.default_rng(9)
     n, W = 7, 300
@@ -495,7 +495,7 @@ def test_shared_division_equals_one_division_per_sample():
 def test_map_extrema_cached_per_array_and_pruned():
     """The float32-weights check scans a map once while it lives, and forgets dead arrays (no
     growth over weeks of unattended merges)."""
-    import pipeline.merge as pm
+    import hdrcap.pipeline.merge as pm
 
     maps = [np.full((4, 4), float(i), np.float32) for i in range(5)]
     assert [pm._extrema((m, True, 0.0)) for m in maps] == [(float(i), float(i)) for i in range(5)]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from acquire.cli import main as cli_main  # noqa: F401  (imported to fail early if the CLI breaks)
-from pipeline.io import read_exr
+from hdrcap.acquire.cli import main as cli_main  # noqa: F401  (imported to fail early if the CLI breaks)
+from hdrcap.pipeline.io import read_exr
 
 
 def test_merge_cli_knobs_recorded_and_accurate(tmp_path, cli):

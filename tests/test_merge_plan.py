@@ -10,8 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from acquire.cli import main
-from pipeline.io import read_exr, read_frame
+from hdrcap.acquire.cli import main
+from hdrcap.pipeline.io import read_exr, read_frame
 
 TIMES = [0.001, 0.004, 0.016, 0.064, 0.25, 1.0]
 MIXED = ["matched", "model", "matched", "model", "matched", "model"]
@@ -35,11 +35,11 @@ def data(tmp_path_factory):
     """A camera-B bracket with one dark frame per time, and a calibration that knows the
     sensor's fixed patterns (PRNU, dark-current map) with a dark library of N_LIB-frame
     master darks for all times but 0.25 s."""
-    from mock_camera import PRESETS
-    from mock_camera.sensor import SimulatedSensor
-    from pipeline.calibration import save_calibration
-    from pipeline.darklibrary import DarkLibrary
-    from pipeline.params import Calibration
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.sensor import SimulatedSensor
+    from hdrcap.pipeline.calibration import save_calibration
+    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.params import Calibration
 
     root = tmp_path_factory.mktemp("mergeplan")
     sim = root / "sim"

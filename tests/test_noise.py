@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.noise import cramer_rao_bound, exposure_variance, exposure_weight, merged_variance, snr
+from hdrcap.pipeline.noise import cramer_rao_bound, exposure_variance, exposure_weight, merged_variance, snr
 
 
 def test_matched_dark_equals_eq13():

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from acquire.cli import main
-from mock_camera.scenes import make_scene
-from mock_camera import PRESETS
-from pipeline.io import HdrImage, read_exr, write_exr
-from pipeline.params import THIRD_STOP_TIMES
+from hdrcap.acquire.cli import main
+from hdrcap.mock_camera.scenes import make_scene
+from hdrcap.mock_camera import PRESETS
+from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+from hdrcap.pipeline.params import THIRD_STOP_TIMES
 
 
 def _run(capsys, *args):

@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mock_camera import PRESETS, SimulatedSensor
-from mock_camera.scenes import make_scene
-from pipeline import merge as merge_mod
-from pipeline.io import RawFrame
-from pipeline.params import Calibration
-from planner import (
+from hdrcap.mock_camera import PRESETS, SimulatedSensor
+from hdrcap.mock_camera.scenes import make_scene
+from hdrcap.pipeline import merge as merge_mod
+from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.params import Calibration
+from hdrcap.planner import (
     SystematicErrors,
     irradiance_histogram,
     meter,
@@ -25,9 +25,9 @@ from planner import (
     predict_snr,
     systematic_errors_from_calibration,
 )
-from planner.ladder import THIRD_STOP_LADDER
-from planner.plan import DEFAULT_OVERHEAD_S
-from planner.predict import usable_fraction
+from hdrcap.planner.ladder import THIRD_STOP_LADDER
+from hdrcap.planner.plan import DEFAULT_OVERHEAD_S
+from hdrcap.planner.predict import usable_fraction
 
 CAM_B = PRESETS["camera-B"]
 CAL_B = Calibration(CAM_B.nominal_params())
@@ -447,7 +447,7 @@ def test_dark_error_model_matches_simulated_merge_without_dark_frames():
     ({"quantile": 1.5}, "quantile"),
 ])
 def test_bad_requests_raise_input_errors(kw, msg):
-    from pipeline.errors import InputError
+    from hdrcap.pipeline.errors import InputError
 
     args = {"target_snr_db": 20.0, **kw}
     target = args.pop("target_snr_db")

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.manifest import Manifest
-from acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
-from mock_camera.camera import MockCamera, MockFaults
-from pipeline.errors import InputError
-from pipeline.io import read_frame, sha256_file
+from hdrcap.acquire.manifest import Manifest
+from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
+from hdrcap.mock_camera.camera import MockCamera, MockFaults
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import read_frame, sha256_file
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
@@ -23,7 +23,7 @@ TIMES = [1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0]
 
 
 def _scene(shape=(32, 32), seed=0):
-    from mock_camera.scenes import make_scene
+    from hdrcap.mock_camera.scenes import make_scene
 
     return make_scene("hdr", shape, decades=3.0, x_max=2e4)
 
@@ -51,7 +51,7 @@ def _check_run(run_dir: Path, plan: CapturePlan) -> dict:
 
 
 def test_session_records_verified_frames_and_merges(tmp_path):
-    from acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.cliutil import resolve_calibration
 
     plan = CapturePlan.bracket(TIMES, _camera().allowed_exposure_times(), "matched")
     cam = _camera()
@@ -133,7 +133,7 @@ def test_lock_prevents_two_sessions(tmp_path, monkeypatch):
         with pytest.raises(SessionError, match="another hdrcap session"):
             CaptureSession(_camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:1]), progress=False).run()
     # the same camera from another run folder
-    from acquire.session import _identity, _lock_key
+    from hdrcap.acquire.session import _identity, _lock_key
 
     cam = _camera()
     with FileLock(str(tmp_path / "locks" / (_lock_key(_identity(cam)) + ".lock"))):
@@ -156,10 +156,10 @@ SOAK = r"""
 import sys, json
 from pathlib import Path
 sys.path.insert(0, sys.argv[1])
-from mock_camera.camera import MockCamera, MockFaults
-from mock_camera.scenes import make_scene
-from acquire.session import CapturePlan, CaptureSession, RetryPolicy
-from acquire.cliutil import resolve_calibration
+from hdrcap.mock_camera.camera import MockCamera, MockFaults
+from hdrcap.mock_camera.scenes import make_scene
+from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy
+from hdrcap.acquire.cliutil import resolve_calibration
 run, seed, kill = Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 faults = MockFaults(seed=seed, busy_rate=0.20, disconnect_rate=0.02, corrupt_rate=0.01, truncate_rate=0.005,
                     hang_rate=0.005, hang_s=0.01, kill_after=kill or None)
@@ -266,7 +266,7 @@ class _NoShape:
 
 
 def test_session_learns_the_size_from_the_first_frame(tmp_path):
-    from acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.cliutil import resolve_calibration
 
     plan = CapturePlan.bracket(TIMES[:3], None, "matched")
     res = CaptureSession(_NoShape(_camera()), tmp_path / "run", plan, calibration=resolve_calibration(None, "camera-B"),
@@ -276,7 +276,7 @@ def test_session_learns_the_size_from_the_first_frame(tmp_path):
 
 
 def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
-    from acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.cliutil import resolve_calibration
 
     # the library's masters: 8 dark frames per time averaged, taken earlier with the same sensor
     lib_cam = _camera()

@@ -4,8 +4,8 @@ clipping). Expected values are computed from the spec, never from the estimator.
 import numpy as np
 import pytest
 
-from mock_camera import PRESETS, SimulatedSensor, preset
-from mock_camera.scenes import SCENES, make_scene
+from hdrcap.mock_camera import PRESETS, SimulatedSensor, preset
+from hdrcap.mock_camera.scenes import SCENES, make_scene
 
 
 def _moments(frames):

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mock_camera import PRESETS, SimulatedSensor
-from pipeline.errors import InputError
-from pipeline.params import Calibration, SensorParams
-from pipeline.weighting import WEIGHTING_METHODS, merge_weighted, weights
+from hdrcap.mock_camera import PRESETS, SimulatedSensor
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.params import Calibration, SensorParams
+from hdrcap.pipeline.weighting import WEIGHTING_METHODS, merge_weighted, weights
 
 P = SensorParams(g=0.92, mu_R=32.0, sigma2_R=18.0, v_sat=1023.0, white_level=1023.0, dark_current=1.0)
 V = np.array([0.0, 5.0, 100.0, 495.5, 900.0, 991.0])

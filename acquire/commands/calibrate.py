@@ -8,8 +8,8 @@ from pathlib import Path
 
 import click
 
-from acquire.cliutil import echo_json, many_values
-from pipeline.errors import InputError, OutputExistsError
+from hdrcap.acquire.cliutil import echo_json, many_values
+from hdrcap.pipeline.errors import InputError, OutputExistsError
 
 
 class _LazyFrames:
@@ -21,7 +21,7 @@ class _LazyFrames:
         self.meta = meta
 
     def __iter__(self):
-        from pipeline.io import read_frame
+        from hdrcap.pipeline.io import read_frame
 
         for p, t in zip(self.paths, self.times):
             fr = read_frame(p, t)
@@ -48,7 +48,7 @@ def _check_paths(paths, what):
 
 def run_frames(bias, saturation, flat, dark, times, clip, gain_method, white_level, provenance, dark_library,
                force):
-    from pipeline.calibration import calibrate
+    from hdrcap.pipeline.calibration import calibrate
 
     groups = {"bias": list(bias), "saturation": list(saturation), "flat": list(flat), "dark": list(dark)}
     for what, paths in groups.items():
@@ -71,7 +71,7 @@ def run_frames(bias, saturation, flat, dark, times, clip, gain_method, white_lev
     lazy = {w: _LazyFrames(groups[w], split[w], meta) if groups[w] else None for w in groups}
     sink = None
     if dark_library is not None:
-        from pipeline.darklibrary import DarkLibrary
+        from hdrcap.pipeline.darklibrary import DarkLibrary
 
         lib = DarkLibrary(dark_library)
 
@@ -100,8 +100,8 @@ def run_frames(bias, saturation, flat, dark, times, clip, gain_method, white_lev
 
 
 def run_emva(descriptor, saturation_criterion, provenance):
-    from pipeline.emva import emva_calibration, emva_data, emva_results
-    from pipeline.io import read_emva_descriptor
+    from hdrcap.pipeline.emva import emva_calibration, emva_data, emva_results
+    from hdrcap.pipeline.io import read_emva_descriptor
 
     ds = read_emva_descriptor(descriptor)
     data = emva_data(ds)
@@ -143,8 +143,8 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     or the EMVA 1288 photon-transfer regression), the dark current from darks at >= 6 times.
     Or from an EMVA 1288 data set with --emva. Every estimate carries its standard error.
     """
-    from pipeline import __version__
-    from pipeline.calibration import calibration_summary, save_calibration
+    from hdrcap import __version__
+    from hdrcap.pipeline.calibration import calibration_summary, save_calibration
 
     t0 = time.perf_counter()
     prov = {"hdrcap_version": __version__,
@@ -165,7 +165,7 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     save_calibration(output, calib, force=force)
     plots = []
     if report is not None:
-        from pipeline.calibration_report import write_report
+        from hdrcap.pipeline.calibration_report import write_report
 
         plots = write_report(calib, report, force=force)
     summary = calibration_summary(calib)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from acquire.cliutil import echo_json
+from hdrcap.acquire.cliutil import echo_json
 
 
 @click.command("cameras")
@@ -12,10 +12,10 @@ from acquire.cliutil import echo_json
 def command(as_json):
     """List detected cameras (model and port, via libgphoto2) and the simulated camera presets
     usable as backend = "mock"."""
-    from mock_camera import PRESETS
+    from hdrcap.mock_camera import PRESETS
 
     try:
-        from acquire.gphoto2_camera import list_cameras
+        from hdrcap.acquire.gphoto2_camera import list_cameras
 
         found = list_cameras()
         problem = None

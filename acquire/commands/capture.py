@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from acquire.cliutil import echo_json, many_values
+from hdrcap.acquire.cliutil import echo_json, many_values
 
 
 @many_values("--times")
@@ -39,9 +39,9 @@ def command(camera, port, times, target_snr, dark_strategy, dark_count, block_li
             calibration, scene, size, seed, out, resume, force, progress, as_json):
     """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
     hash every frame into manifest.jsonl, and merge it to --out/hdr.exr."""
-    from acquire.commands.run import _describe
-    from acquire.job import job_from_dict, run_job
-    from pipeline.errors import InputError
+    from hdrcap.acquire.commands.run import _describe
+    from hdrcap.acquire.job import job_from_dict, run_job
+    from hdrcap.pipeline.errors import InputError
 
     backend, _, name = camera.partition(":")
     if backend not in ("mock", "gphoto2"):

@@ -8,17 +8,17 @@ from pathlib import Path
 
 import click
 
-from acquire.cliutil import echo_json
+from hdrcap.acquire.cliutil import echo_json
 
 DEMO_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
 
 def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bool, progress: bool = True,
              target_snr: float | None = None) -> dict:
-    from acquire.job import job_from_dict, run_job
-    from acquire.manifest import Manifest
-    from pipeline.errors import OutputExistsError
-    from pipeline.io import atomic_output
+    from hdrcap.acquire.job import job_from_dict, run_job
+    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.pipeline.errors import OutputExistsError
+    from hdrcap.pipeline.io import atomic_output
 
     out = Path(out)
     for name in ("demo.exr", "demo.png", "summary.txt"):

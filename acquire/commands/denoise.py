@@ -8,8 +8,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from acquire.cliutil import echo_json
-from pipeline.errors import InputError
+from hdrcap.acquire.cliutil import echo_json
+from hdrcap.pipeline.errors import InputError
 
 __all__ = ["command", "layout_from_attrs"]
 
@@ -51,10 +51,10 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
     noise propagated through the filter's weights (independent inputs); it does not include the
     bias the filter introduces. Photosites with nexp = 0 (saturated everywhere) are unchanged.
     """
-    from pipeline import __version__
-    from pipeline.denoise import (DEFAULT_RADIUS, DEFAULT_RANGE_SCALE, DEFAULT_SPATIAL_SIGMA, SIGMA_MEANING,
+    from hdrcap import __version__
+    from hdrcap.pipeline.denoise import (DEFAULT_RADIUS, DEFAULT_RANGE_SCALE, DEFAULT_SPATIAL_SIGMA, SIGMA_MEANING,
                                   DenoiseSettings, denoise)
-    from pipeline.io import HdrImage, read_exr, write_exr
+    from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
     t0 = time.perf_counter()
     if method == "adaptive" and bandwidth is not None:

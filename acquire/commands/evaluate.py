@@ -25,7 +25,7 @@ from typing import Sequence
 import click
 import numpy as np
 
-from pipeline.errors import HdrcapError, InputError
+from hdrcap.pipeline.errors import HdrcapError, InputError
 
 __all__ = ["EvalSetup", "evaluation_params", "make_setup", "TEN_X_READOUT", "ZERO_READOUT", "simulate_bracket_arrays", "merge_method", "snr_experiment",
            "qq_experiment", "run_evaluation", "BASELINES", "CURVES", "OPTIMAL_OPTIONS", "command"]
@@ -99,9 +99,9 @@ def make_setup(spec, shape=(64, 256), seed: int = 0, decades: float = 4.0, n_exp
                t_max: float = 1.0, fill: float = 0.8, params=None) -> EvalSetup:
     """Build the experiment of the module docstring for sensor ``spec``; ``params`` (a
     :class:`pipeline.params.SensorParams`) replaces :func:`evaluation_params` when given."""
-    from mock_camera import SimulatedSensor
-    from mock_camera.scenes import make_scene
-    from pipeline.params import Calibration
+    from hdrcap.mock_camera import SimulatedSensor
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.pipeline.params import Calibration
 
     p = evaluation_params(spec) if params is None else params
     times = tuple(float(t_max / ratio ** (n_exp - 1 - k)) for k in range(n_exp))
@@ -130,15 +130,15 @@ def merge_method(name: str, frames, darks, times, calibration, **options):
     ``optimal-defaults`` the same merge with its default options.
     ``optimal@observed`` is the registry's Eq. 13 at the observed value (one pass).
     """
-    from pipeline import merge as merge_mod
-    from pipeline.weighting import merge_weighted
+    from hdrcap.pipeline import merge as merge_mod
+    from hdrcap.pipeline.weighting import merge_weighted
 
     if name == "optimal-defaults":
         name, options = "optimal", {}
     if name == "optimal":
         if hasattr(merge_mod, "merge_arrays"):
             return merge_mod.merge_arrays(frames, list(times), calibration, darks=darks, **options)
-        from pipeline.io import RawFrame
+        from hdrcap.pipeline.io import RawFrame
 
         fr = [RawFrame(data=np.asarray(f), exposure_time=t) for f, t in zip(frames, times)]
         dk = [RawFrame(data=np.asarray(d), exposure_time=t) for d, t in zip(darks, times)] if darks else None
@@ -159,7 +159,7 @@ def snr_experiment(setup: EvalSetup, reps: int = 4, seed: int = 0, curves: Seque
     ``optimal`` (:func:`pipeline.evaluation.paired_difference`) and the merge time (s per
     megapixel). ``keep=True`` adds the stacked estimates under ``"estimates"`` (not JSON).
     """
-    from pipeline.evaluation import bound_variance, log_bins, paired_difference, snr_per_bin
+    from hdrcap.pipeline.evaluation import bound_variance, log_bins, paired_difference, snr_per_bin
 
     calib = setup.calibration
     p = calib.params
@@ -216,8 +216,8 @@ def qq_experiment(spec, n_frames: int = 36, n_pixels: int = 400, seed: int = 0, 
     standard deviations below v_sat). Per level: the Q-Q data of the first photosite and the
     rejection rate over ``n_pixels`` photosites (:func:`pipeline.evaluation.gaussianity`).
     """
-    from mock_camera import SimulatedSensor
-    from pipeline.evaluation import gaussianity, qq_data
+    from hdrcap.mock_camera import SimulatedSensor
+    from hdrcap.pipeline.evaluation import gaussianity, qq_data
 
     p = spec.nominal_params()
     sigma_r_e = np.sqrt(p.sigma2_R) / p.g
@@ -269,7 +269,7 @@ def _plot_snr(ax, res, title, key="snr_db"):
 
 
 def _save(fig, path: Path, force: bool):
-    from pipeline.io import atomic_output
+    from hdrcap.pipeline.io import atomic_output
 
     with atomic_output(path, force=force) as tmp:
         fig.savefig(tmp, dpi=72, format="png")
@@ -348,8 +348,8 @@ def write_plots(results: dict, out: Path, force: bool) -> list[str]:
 def run_evaluation(out: Path | None = None, quick: bool = False, seed: int = 0, force: bool = False,
                    progress=None) -> dict:
     """Run Sec. 7 on camera-A and camera-B; with ``out``, write ``evaluation.json`` and PNGs."""
-    from mock_camera import PRESETS
-    from pipeline.evaluation import weights_vs_output
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.pipeline.evaluation import weights_vs_output
 
     say = progress or (lambda msg: None)
     shape = (32, 192) if quick else (64, 768)
@@ -391,7 +391,7 @@ def run_evaluation(out: Path | None = None, quick: bool = False, seed: int = 0, 
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        from pipeline.io import atomic_output
+        from hdrcap.pipeline.io import atomic_output
 
         results["plots"] = write_plots(results, out, force)
         with atomic_output(out / "evaluation.json", force=force) as tmp:
@@ -447,7 +447,7 @@ def command(out, quick, seed, denoise, force, as_json):
     the zero and 10x readout-noise cases, weights against output value, normal Q-Q plots
     and the efficiency (bound / MSE) per irradiance bin.
     """
-    from acquire.cliutil import echo_json
+    from hdrcap.acquire.cliutil import echo_json
 
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -459,7 +459,7 @@ def command(out, quick, seed, denoise, force, as_json):
     evaluate_denoising = None
     if denoise:
         try:
-            from pipeline.denoise import evaluate_denoising
+            from hdrcap.pipeline.denoise import evaluate_denoising
         except ImportError as err:
             raise HdrcapError(f"--denoise needs pipeline.denoise.evaluate_denoising, which is not available ({err})")
     say = None if as_json else (lambda msg: click.echo(msg, err=True))

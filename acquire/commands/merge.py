@@ -11,8 +11,8 @@ from typing import Any
 import click
 import numpy as np
 
-from acquire.cliutil import echo_json, many_values, resolve_calibration
-from pipeline.errors import InputError
+from hdrcap.acquire.cliutil import echo_json, many_values, resolve_calibration
+from hdrcap.pipeline.errors import InputError
 
 
 def read_frames(paths, times=None, what="frame", progress=False):
@@ -22,8 +22,8 @@ def read_frames(paths, times=None, what="frame", progress=False):
 
 def build_hdr_image(result, frames, calibration, extra=None):
     """The EXR content of a merge: channels and header attributes."""
-    from pipeline import __version__
-    from pipeline.io import HdrImage
+    from hdrcap import __version__
+    from hdrcap.pipeline.io import HdrImage
 
     attrs = {
         "unit": "electrons per second per photosite",
@@ -70,7 +70,7 @@ def _read_parallel(paths, times, what, progress):
 
     from tqdm import tqdm
 
-    from pipeline.io import read_frame
+    from hdrcap.pipeline.io import read_frame
 
     paths = list(paths)
     if times:
@@ -139,7 +139,7 @@ class PlanFile:
 
 def plan_from_dict(d: dict):
     """A :class:`planner.plan.Plan` from its JSON form (the fields a merge needs)."""
-    from planner.plan import Plan
+    from hdrcap.planner.plan import Plan
 
     if hasattr(Plan, "from_dict"):
         return Plan.from_dict(d)
@@ -290,7 +290,7 @@ class DarkSources:
         """The library's master dark for the frame's exposure time, camera and ISO."""
         if not self.library_root:
             return None
-        from pipeline.darklibrary import DarkLibrary
+        from hdrcap.pipeline.darklibrary import DarkLibrary
 
         if self._library is None:
             self._library = DarkLibrary(self.library_root)
@@ -359,8 +359,8 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
     ``sources`` (default: ``dark_paths`` matched by exposure time). With a ``plan``, every plan
     exposure time must be among the frames. Returns (result, frames without pixel data kept,
     darks, per-frame dark sources)."""
-    from pipeline.io import check_frames
-    from pipeline.merge import MergeAccumulator
+    from hdrcap.pipeline.io import check_frames
+    from hdrcap.pipeline.merge import MergeAccumulator
 
     default = options.get("dark_strategy")
     darks = list(_read_parallel(dark_paths, None, "dark frame", progress)) if dark_paths else []
@@ -417,7 +417,7 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
 @click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).")
 @click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path), help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output EXR file.")
-@click.option("--weighting", default="optimal", show_default=True, help="Weighting: 'optimal' (iterative ML merge) or a baseline name from pipeline.weighting.")
+@click.option("--weighting", default="optimal", show_default=True, help="Weighting: 'optimal' (iterative ML merge) or a baseline name from hdrcap.pipeline.weighting.")
 @click.option("--iterations", type=click.IntRange(min=1), default=20, show_default=True, help="Maximum re-weighting steps per photosite.")
 @click.option("--tolerance", type=click.FloatRange(min=0), default=1e-6, show_default=True, help="Stop when the change is below this times max(|estimate|, sigma).")
 @click.option("--saturation", type=click.Choice(["threshold", "probabilistic"]), default="threshold", show_default=True, help="Saturation model: Eq. 11 plus the near-saturation rule, or the blended likelihood of Eq. 8-10.")
@@ -442,7 +442,7 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     """
     from click.core import ParameterSource
 
-    from pipeline.io import write_exr
+    from hdrcap.pipeline.io import write_exr
 
     def given(name):
         return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
@@ -469,7 +469,7 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     extra = {"weighting": weighting}
     if weighting != "optimal":
         try:
-            from pipeline.weighting import WEIGHTING_METHODS, merge_weighted
+            from hdrcap.pipeline.weighting import WEIGHTING_METHODS, merge_weighted
         except ImportError:
             raise InputError(f"--weighting {weighting}: baseline weightings are not available in this build; use 'optimal'") from None
         if weighting not in WEIGHTING_METHODS:
@@ -481,7 +481,7 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     else:
         md = None
         if master_dark:
-            from pipeline.io import read_frame
+            from hdrcap.pipeline.io import read_frame
 
             if master_dark.suffix.lower() in (".png", ".tif", ".tiff"):  # no exposure time: used as is
                 md = read_frame(master_dark, 1.0)

@@ -7,13 +7,13 @@ from pathlib import Path
 import click
 import numpy as np
 
-from acquire.cliutil import echo_json, many_values, resolve_calibration
-from pipeline.errors import HdrcapError, InputError
+from hdrcap.acquire.cliutil import echo_json, many_values, resolve_calibration
+from hdrcap.pipeline.errors import HdrcapError, InputError
 
 
 def load_irradiance(path: Path) -> np.ndarray:
     """An irradiance map (e-/s) from an EXR: channel ``irradiance`` (or ``Y``, ``R``, ``G``)."""
-    from pipeline.io import read_exr
+    from hdrcap.pipeline.io import read_exr
 
     img = read_exr(path)
     for name in ("irradiance", "Y", "R", "G"):
@@ -28,7 +28,7 @@ def load_irradiance(path: Path) -> np.ndarray:
 
 
 def _allowed(values) -> list[float] | None:
-    from planner.ladder import parse_time
+    from hdrcap.planner.ladder import parse_time
 
     if not values:
         return None
@@ -42,9 +42,9 @@ def _allowed(values) -> list[float] | None:
 
 
 def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, allowed, meter_frames, meter_max_time):
-    from acquire.commands.simulate import load_scene, parse_size
-    from mock_camera import PRESETS, SimulatedSensor
-    from planner import meter
+    from hdrcap.acquire.commands.simulate import load_scene, parse_size
+    from hdrcap.mock_camera import PRESETS, SimulatedSensor
+    from hdrcap.planner import meter
 
     if not camera:
         raise InputError("--meter needs a camera; `hdrcap plan` meters with the simulated camera only: give --camera PRESET")
@@ -109,9 +109,9 @@ def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_m
     merge iterations) with the figures that drove them. Infeasible requests are reported with
     the best achievable SNR (exit status 0; "feasible": false in the JSON).
     """
-    from planner import plan_exposures, systematic_errors_from_calibration
-    from planner.ladder import parse_time
-    from planner.plan import DEFAULT_HIGHLIGHT_FRACTION, DEFAULT_OVERHEAD_S
+    from hdrcap.planner import plan_exposures, systematic_errors_from_calibration
+    from hdrcap.planner.ladder import parse_time
+    from hdrcap.planner.plan import DEFAULT_HIGHLIGHT_FRACTION, DEFAULT_OVERHEAD_S
 
     overhead = DEFAULT_OVERHEAD_S if overhead is None else overhead
     highlight_fraction = DEFAULT_HIGHLIGHT_FRACTION if highlight_fraction is None else highlight_fraction
@@ -147,7 +147,7 @@ def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_m
                           overhead=overhead, quantile=quantile, errors=errors, dark_library=library or None,
                           uniform_darks=uniform_darks, highlight_fraction=highlight_fraction)
     if plot is not None:
-        from planner.plot import plot_plan
+        from hdrcap.planner.plot import plot_plan
 
         plot_plan(plan, cal, plot, force=force)
     if as_json:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from acquire.cliutil import echo_json
+from hdrcap.acquire.cliutil import echo_json
 
 
 @click.command("run")
@@ -29,7 +29,7 @@ def command(job_file, resume, repeat, every, run_dir, force, check, progress, as
     recorded in the run folder's manifest.jsonl, events go to events.jsonl. An interrupted
     run continues with --resume without duplicating or losing a frame.
     """
-    from acquire.job import check_job_against_camera, load_job, open_camera, run_schedule
+    from hdrcap.acquire.job import check_job_against_camera, load_job, open_camera, run_schedule
 
     job = load_job(job_file)
     if check:

@@ -8,8 +8,8 @@ from pathlib import Path
 import click
 import numpy as np
 
-from acquire.cliutil import echo_json, many_values
-from pipeline.errors import HdrcapError, InputError
+from hdrcap.acquire.cliutil import echo_json, many_values
+from hdrcap.pipeline.errors import HdrcapError, InputError
 
 
 def parse_size(text: str | None, default=(768, 1024)) -> tuple[int, int]:
@@ -26,7 +26,7 @@ def parse_size(text: str | None, default=(768, 1024)) -> tuple[int, int]:
 
 
 def load_scene(scene: str, shape, decades: float, x_max: float) -> np.ndarray:
-    from mock_camera.scenes import SCENES, load_scene_exr, make_scene
+    from hdrcap.mock_camera.scenes import SCENES, load_scene_exr, make_scene
 
     if scene.lower().endswith(".exr"):
         try:
@@ -48,10 +48,10 @@ def simulate_bracket(camera_name: str, scene: str, times, out: Path, darks: bool
     """Simulate a bracket into ``out``; return a description of what was written."""
     from tqdm import tqdm
 
-    from mock_camera import PRESETS
-    from mock_camera.backend import SimulatedCamera
-    from pipeline import __version__
-    from pipeline.io import HdrImage, atomic_output, write_exr
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap import __version__
+    from hdrcap.pipeline.io import HdrImage, atomic_output, write_exr
 
     if camera_name not in PRESETS:
         raise InputError(f"unknown camera preset {camera_name!r}; choose from {', '.join(PRESETS)}")
@@ -127,9 +127,9 @@ def simulate_calibration_set(camera_name: str, out: Path, shape, seed: int, temp
     ``calibration_set.json`` (file lists per kind and the true parameters)."""
     from tqdm import tqdm
 
-    from mock_camera import PRESETS
-    from mock_camera.backend import SimulatedCamera
-    from pipeline.io import atomic_output
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap.pipeline.io import atomic_output
 
     if camera_name not in PRESETS:
         raise InputError(f"unknown camera preset {camera_name!r}; choose from {', '.join(PRESETS)}")
