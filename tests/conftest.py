@@ -28,9 +28,8 @@ def emva_dir() -> Path:
 
 
 def run_cli(*args, cwd=None, check=False, timeout=600, env=None) -> subprocess.CompletedProcess:
-    """Run ``hdrcap ARGS`` in a subprocess (``python -m acquire.cli``) from the repository."""
+    """Run ``hdrcap ARGS`` in a subprocess (``python -m hdrcap``, the installed package)."""
     full_env = dict(os.environ)
-    full_env["PYTHONPATH"] = str(REPO) + os.pathsep + full_env.get("PYTHONPATH", "")
     if env:
         full_env.update(env)
     proc = subprocess.run(
