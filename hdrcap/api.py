@@ -263,6 +263,9 @@ def _as_calibration(calibration: CalibrationLike | None) -> Calibration:
     if isinstance(calibration, str) and calibration in PRESETS:
         return camera_calibration(calibration)
     if isinstance(calibration, (str, os.PathLike)):
+        if not Path(calibration).exists():
+            raise InputError(f"{calibration}: no such calibration file, and not a camera preset "
+                             f"({', '.join(PRESETS)})")
         return load_calibration(calibration)
     raise InputError(f"calibration: expected a Calibration, a file or a preset name, got {type(calibration).__name__}")
 

@@ -197,6 +197,8 @@ def test_merge_bad_input_gives_one_line_errors(sim, tmp_path):
         (lambda: hdrcap.merge(sim.frames, sim.times[:2], calibration=cal), "2 exposure times for 4 frames"),
         (lambda: hdrcap.merge(sim.frames, sim.times), "no camera model"),
         (lambda: hdrcap.merge(sim.frames, sim.times, calibration=tmp_path / "missing.cal"), "missing.cal"),
+        (lambda: hdrcap.merge(sim.frames, sim.times, calibration="camera-Z"), "not a camera preset"),
+        (lambda: hdrcap.merge(sim.frames, sim.times, calibration=ROOT / "README.md"), "calibration file"),
         (lambda: hdrcap.merge([], [], calibration=cal), "no frames"),
         (lambda: hdrcap.merge([sim.frames[0], sim.frames[1][:10]], [0.1, 0.2], calibration=cal), "differs"),
         (lambda: hdrcap.merge([sim.frames[0], sim.frames[0]], [0.1, 0.2], calibration=cal), "duplicate"),
