@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test venv bench docs clean
+.PHONY: demo test lint venv bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,12 +19,17 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/hdrcap demo --out out --force
 
-## Run the whole test suite
-test: $(STAMP)
+## Lint and format check (ruff, configured in pyproject.toml), then the whole test suite
+test: lint
 	$(BIN)/python -m pytest -n 2 -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 ## Benchmarks (install peers themselves; print JSON)
 bench: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
 	$(BIN)/python benchmarks/run_all.py
 
 clean:
