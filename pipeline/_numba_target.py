@@ -13,13 +13,14 @@ numba``), so :func:`configure` runs before their first compilation, and only in 
 compile (llvmlite's import costs ~70 ms, which commands that never compile should not pay).
 It must run before numba compiles or loads its first function in the process; it does
 nothing when the user has set ``NUMBA_CPU_NAME`` or ``NUMBA_CPU_FEATURES`` or when
-``HDRCAP_NUMBA_PREFER_256=1``, and nothing on CPUs without AVX-512.
+``HDRCAP_NUMBA_PREFER_256=1``, and nothing on CPUs without AVX-512. It sets numba's own
+configuration (``numba.core.config.CPU_FEATURES``), never ``os.environ``: child processes and
+other programs in the same process see the environment as the user left it.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 
 
 def configure() -> str | None:
@@ -38,18 +39,16 @@ def configure() -> str | None:
     if "+avx512f" not in features.split(","):
         return None
     features += ",-prefer-256-bit"
-    if "numba" in sys.modules:  # imported already, but (normally) nothing compiled yet
-        from numba.core import config
+    from numba.core import config  # numba reads the environment once, at import; we never write it
 
-        if config.CPU_FEATURES is None:
-            config.CPU_FEATURES = features
-    else:
-        os.environ["NUMBA_CPU_FEATURES"] = features
+    if config.CPU_FEATURES not in (None, features):  # set by the user through numba's own configuration
+        return None
+    config.CPU_FEATURES = features
     return features
 
 
 configure()
 
-import numba  # noqa: E402  (after configure(): nothing compiles before the target is set)
+import numba  # noqa: E402  (configure() imported numba.core.config; nothing compiled before the target is set)
 
 __all__ = ["configure", "numba"]
