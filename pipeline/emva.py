@@ -2,13 +2,14 @@
 
 Each stage is a separate, testable function, as in the EMVA 1288 reference implementation:
 
-1. parse: :func:`pipeline.io.read_emva_descriptor` (descriptor -> steps and image paths);
+1. parse: :func:`hdrcap.pipeline.io.read_emva_descriptor` (descriptor -> steps and image paths);
 2. data: :func:`emva_data` streams the images once and reduces them to numbers (temporal
    pair statistics per exposure time, spatial sums of the non-uniformity stacks);
 3. results: :func:`emva_results` computes the EMVA 1288 (Release 3.x) quantities: system
    gain K by the photon-transfer regression over 0-70 % of saturation, temporal dark noise,
    dark current, saturation, PRNU and DSNU;
-4. :func:`emva_calibration` turns them into a :class:`pipeline.params.Calibration`.
+4. :func:`emva_calibration` turns them into a :class:`hdrcap.pipeline.params.Calibration`;
+   :func:`calibrate_descriptor` runs the four stages on a descriptor file.
 
 Temporal steps are those with exactly two images (one pair); steps with more images are the
 spatial (non-uniformity) stacks. Like the standard, no outlier clipping is applied here.
@@ -17,17 +18,23 @@ Units: DN, DN^2, seconds, electrons; K in DN per electron.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from .calibration import PhotonTransferFit, fit_dark_current, pair_statistics, photon_transfer_gain
+from .calibration.dark import fit_dark_current
+from .calibration.gain import PhotonTransferFit, photon_transfer_gain
+from .calibration.stats import pair_statistics
 from .errors import InputError
-from .io import EmvaDataset, read_image16
+from .io import EmvaDataset, read_emva_descriptor, read_image16
 from .params import Calibration, SensorParams
+from .times import ExposureMap, unique_exposures
 
-__all__ = ["EmvaData", "EmvaResults", "emva_data", "emva_results", "emva_calibration", "QUANTISATION_VARIANCE"]
+__all__ = ["EmvaData", "EmvaResults", "emva_data", "emva_results", "emva_calibration", "calibrate_descriptor",
+           "QUANTISATION_VARIANCE"]
 
 #: Variance of a uniform quantiser with a 1 DN step, DN^2.
 QUANTISATION_VARIANCE = 1.0 / 12.0
@@ -89,9 +96,28 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
 
     Memory: a few float64 maps (per-pixel sums for the spatial stacks and the per-pixel dark
     regression), independent of the number of images.
+
+    Parameters
+    ----------
+    dataset : EmvaDataset
+        The parsed descriptor (steps with exposure times in s and image paths).
+    progress : callable, optional
+        Called with the number of images read after each step or image.
+
+    Returns
+    -------
+    EmvaData
+        Pair means (DN) and variances (DN^2) per exposure time, the non-uniformity sums and
+        the per-pixel dark slope (DN/s).
+
+    Raises
+    ------
+    InputError
+        A step with fewer than two images, duplicate steps, an exposure time without its
+        dark or bright pair, fewer than three temporal steps, or an image of the wrong size.
     """
     shape = (dataset.height, dataset.width)
-    temporal: dict[float, dict[str, Any]] = {}
+    temporal: ExposureMap[dict[str, Any]] = ExposureMap()
     spatial: dict[str, Any] = {}
     n_img = 0
     # per-pixel dark regression sums over the temporal dark pairs
@@ -231,6 +257,7 @@ class EmvaResults:
     DSNU1288: float = float("nan")
 
     def to_dict(self) -> dict:
+        """The scalar results and the fit range's first and last step, as plain JSON values."""
         out = {k: getattr(self, k) for k in ("K", "K_stderr", "index_u_ysat", "u_y_sat", "sigma_y_dark", "sigma_d",
                                              "u_I_mean", "u_I_mean_stderr", "R", "QE", "u_e_sat", "s2_y",
                                              "s2_y_dark", "PRNU1288", "DSNU1288")}
@@ -240,7 +267,20 @@ class EmvaResults:
 
 
 def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
-    """Compute the EMVA 1288 results from reduced data."""
+    """Compute the EMVA 1288 results from reduced data (the "results" stage).
+
+    Parameters
+    ----------
+    data : EmvaData
+        Output of :func:`emva_data`.
+    fit_fraction : float
+        Upper end of the photon-transfer fit range, fraction of saturation (0.7 in EMVA 1288).
+
+    Returns
+    -------
+    EmvaResults
+        K (DN/e-), dark noise (DN, e-), dark current (e-/s), saturation, PRNU (%), DSNU (e-).
+    """
     x = data.u_y - data.u_ydark
     y = data.s2_y - data.s2_ydark
     isat = int(np.argmax(data.s2_y))
@@ -250,14 +290,15 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
                                np.hypot(data.s2_y_stderr, data.s2_ydark_stderr))
     K = ptc.g
     # dark noise: extrapolate the dark variance to t = 0 when several times exist
-    if np.unique(data.texp).size >= 3:
+    n_times = len(unique_exposures(data.texp))
+    if n_times >= 3:
         slope, intercept = np.polyfit(data.texp, data.s2_ydark, 1)
         s2_dark0 = float(intercept)
     else:
         s2_dark0 = float(data.s2_ydark[0])
     sigma_y_dark = float(np.sqrt(max(s2_dark0, QUANTISATION_VARIANCE)))
     sigma_d = float(np.sqrt(max(s2_dark0 - QUANTISATION_VARIANCE, 0.0)) / K)
-    if np.unique(data.texp).size >= 6:
+    if n_times >= 6:
         df = fit_dark_current(data.texp, data.u_ydark)
         u_I, u_I_se = df.slope / K, df.slope_stderr / K
     else:
@@ -294,6 +335,28 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     criterion (``"emva"``: the mean at the maximum of the temporal variance); the PRNU map
     a_j (Eq. 14) from the non-uniformity stacks (bright minus dark, normalised to mean 1) with
     its standard error; the dark-current map from the per-pixel dark regression.
+
+    Parameters
+    ----------
+    data : EmvaData
+        Output of :func:`emva_data`.
+    results : EmvaResults
+        Output of :func:`emva_results`.
+    saturation : {"frame", "emva"}
+        The v_sat criterion.
+    provenance : mapping, optional
+        Recorded with the result.
+
+    Returns
+    -------
+    Calibration
+        g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), D (e-/s), their standard errors,
+        the PRNU, bias and dark-current maps.
+
+    Raises
+    ------
+    ValueError
+        Unknown ``saturation`` criterion.
     """
     if saturation not in ("frame", "emva"):
         raise ValueError("saturation must be 'frame' or 'emva'")
@@ -347,3 +410,31 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     }
     return Calibration(params=params, prnu=prnu, bias_map=bias_map, dark_current_map=dmap, stderr=stderr,
                        provenance=prov, prnu_stderr=prnu_se)
+
+
+def calibrate_descriptor(descriptor: str | os.PathLike[str], saturation: str = "frame",
+                         provenance: Mapping[str, Any] | None = None) -> tuple[Calibration, EmvaResults]:
+    """All four stages on an EMVA 1288 descriptor file: parse, data, results, calibration.
+
+    Parameters
+    ----------
+    descriptor : str or path-like
+        The descriptor (``EMVA1288_Data.txt``); image paths are relative to its folder.
+    saturation : {"frame", "emva"}
+        The v_sat criterion, as in :func:`emva_calibration`.
+    provenance : mapping, optional
+        Recorded with the result (the camera defaults to "EMVA 1288 data set").
+
+    Returns
+    -------
+    calibration : Calibration
+        The camera model (g in DN/e-, mu_R in DN, sigma2_R in DN^2, v_sat in DN, D in e-/s).
+    results : EmvaResults
+        The EMVA 1288 quantities.
+    """
+    data = emva_data(read_emva_descriptor(descriptor))
+    results = emva_results(data)
+    prov = dict(provenance or {})
+    prov.setdefault("camera", "EMVA 1288 data set")
+    prov["source"] = f"EMVA 1288 descriptor {descriptor}"
+    return emva_calibration(data, results, saturation=saturation, provenance=prov), results

@@ -12,104 +12,10 @@ from hdrcap.acquire.cliutil import echo_json, many_values
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 
 
-class _LazyFrames:
-    """Iterate over frame files, reading one at a time (memory-bounded streaming)."""
+def _calibrate_emva(descriptor, saturation_criterion, provenance):
+    from hdrcap.pipeline.emva import calibrate_descriptor
 
-    def __init__(self, paths, times, meta: dict):
-        self.paths = list(paths)
-        self.times = list(times) if times else [None] * len(self.paths)
-        self.meta = meta
-
-    def __iter__(self):
-        from hdrcap.pipeline.io import read_frame
-
-        for p, t in zip(self.paths, self.times):
-            fr = read_frame(p, t)
-            m = self.meta
-            m.setdefault("camera", fr.camera)
-            m.setdefault("iso", fr.iso)
-            m.setdefault("white_level", fr.white_level)
-            if fr.timestamp:
-                m["first_timestamp"] = min(m.get("first_timestamp") or fr.timestamp, fr.timestamp)
-                m["last_timestamp"] = max(m.get("last_timestamp") or fr.timestamp, fr.timestamp)
-            yield fr
-
-
-def _check_paths(paths, what):
-    seen = {}
-    for p in paths:
-        key = str(Path(p).resolve())
-        if key in seen:
-            raise InputError(f"{p}: the same {what} file is given twice")
-        seen[key] = p
-        if not Path(p).exists():
-            raise InputError(f"{p}: no such {what} file")
-
-
-def run_frames(bias, saturation, flat, dark, times, clip, gain_method, white_level, provenance, dark_library,
-               force):
-    from hdrcap.pipeline.calibration import calibrate
-
-    groups = {"bias": list(bias), "saturation": list(saturation), "flat": list(flat), "dark": list(dark)}
-    for what, paths in groups.items():
-        _check_paths(paths, what)
-    total = sum(len(v) for v in groups.values())
-    if times:
-        if len(times) != total:
-            raise InputError(f"--times gives {len(times)} exposure times for {total} frames "
-                             "(one per frame, in the order bias, saturation, flat, dark)")
-    tl = list(times) if times else None
-    split, i = {}, 0
-    for what, paths in groups.items():
-        split[what] = tl[i:i + len(paths)] if tl else None
-        i += len(paths)
-    if split["dark"]:  # darks are streamed one exposure time after the other
-        order = sorted(range(len(groups["dark"])), key=lambda k: split["dark"][k])
-        groups["dark"] = [groups["dark"][k] for k in order]
-        split["dark"] = [split["dark"][k] for k in order]
-    meta: dict = {}
-    lazy = {w: _LazyFrames(groups[w], split[w], meta) if groups[w] else None for w in groups}
-    sink = None
-    if dark_library is not None:
-        from hdrcap.pipeline.darklibrary import DarkLibrary
-
-        lib = DarkLibrary(dark_library)
-
-        def sink(master):
-            lib.add(master.data, master.n_frames, camera=str(meta.get("camera") or provenance.get("camera") or "unknown"),
-                    iso=meta.get("iso"), exposure_time=master.exposure_time,
-                    temperature=provenance.get("temperature"), force=force,
-                    created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-
-    if lazy["bias"] is None:
-        raise InputError("no bias frames given (--bias)")
-    calib = calibrate(lazy["bias"], lazy["saturation"], lazy["flat"], lazy["dark"], clip=clip,
-                      gain_method=gain_method, white_level=white_level, dark_sink=sink, provenance=provenance)
-    prov = dict(calib.provenance)
-    for key in ("camera", "iso", "first_timestamp", "last_timestamp"):
-        if meta.get(key) is not None and not prov.get(key):
-            prov[key] = meta[key]
-    prov["files"] = {w: [str(p) for p in v] for w, v in groups.items() if v}
-    wl = white_level or meta.get("white_level")
-    params = calib.params
-    if wl and wl >= params.v_sat:
-        params = params.replace(white_level=float(wl))
-    if prov.get("camera") and not params.name:
-        params = params.replace(name=str(prov["camera"]))
-    return calib.replace(provenance=prov, params=params, dark_library=None if dark_library is None else str(dark_library))
-
-
-def run_emva(descriptor, saturation_criterion, provenance):
-    from hdrcap.pipeline.emva import emva_calibration, emva_data, emva_results
-    from hdrcap.pipeline.io import read_emva_descriptor
-
-    ds = read_emva_descriptor(descriptor)
-    data = emva_data(ds)
-    res = emva_results(data)
-    prov = dict(provenance)
-    prov.setdefault("camera", "EMVA 1288 data set")
-    prov["source"] = f"EMVA 1288 descriptor {descriptor}"
-    return emva_calibration(data, res, saturation=saturation_criterion, provenance=prov), res
+    return calibrate_descriptor(descriptor, saturation_criterion, provenance)
 
 
 @many_values("--bias", "--saturation", "--flat", "--dark", "--times")
@@ -144,7 +50,7 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     Or from an EMVA 1288 data set with --emva. Every estimate carries its standard error.
     """
     from hdrcap import __version__
-    from hdrcap.pipeline.calibration import calibration_summary, save_calibration
+    from hdrcap.pipeline.calibration import calibrate_files, calibration_summary, save_calibration
 
     t0 = time.perf_counter()
     prov = {"hdrcap_version": __version__,
@@ -158,10 +64,11 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     if emva is not None:
         if bias or saturation or flat or dark:
             raise InputError("give either --emva or frame lists (--bias/--saturation/--flat/--dark), not both")
-        calib, emva_res = run_emva(emva, saturation_criterion, prov)
+        calib, emva_res = _calibrate_emva(emva, saturation_criterion, prov)
     else:
-        calib = run_frames(bias, saturation, flat, dark, times, None if no_clip else clip, gain_method,
-                           white_level, prov, dark_library, force)
+        calib = calibrate_files(bias, saturation, flat, dark, times, clip=None if no_clip else clip,
+                                gain_method=gain_method, white_level=white_level, provenance=prov,
+                                dark_library=dark_library, force=force)
     save_calibration(output, calib, force=force)
     plots = []
     if report is not None:
