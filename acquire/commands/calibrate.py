@@ -11,35 +11,48 @@ import click
 from hdrcap.acquire.cliutil import echo_json, many_values
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 
-
-def _calibrate_emva(descriptor, saturation_criterion, provenance):
-    from hdrcap.pipeline.emva import calibrate_descriptor
-
-    return calibrate_descriptor(descriptor, saturation_criterion, provenance)
+_FILE = click.Path(dir_okay=False, path_type=Path)
+_FOLDER = click.Path(file_okay=False, path_type=Path)
+_FRAMES = click.Path(path_type=Path)
 
 
 @many_values("--bias", "--saturation", "--flat", "--dark", "--times")
 @click.command("calibrate", short_help="Calibrate the camera noise model from bias, saturation, flat and dark frames.")
-@click.option("--bias", multiple=True, type=click.Path(path_type=Path), help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.")
-@click.option("--saturation", multiple=True, type=click.Path(path_type=Path), help="Saturation frame(s): every photosite at full well.")
-@click.option("--flat", multiple=True, type=click.Path(path_type=Path), help="Flat fields; consecutive frames at the same exposure time form pairs (gain). Pairs at >= 3 levels give the photon-transfer regression.")
-@click.option("--dark", multiple=True, type=click.Path(path_type=Path), help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.")
-@click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; needed for PNG/TIFF frames, override EXIF.")
-@click.option("--emva", "emva", type=click.Path(dir_okay=False, path_type=Path), help="EMVA 1288 descriptor file (EMVA1288_Data.txt) instead of frame lists.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Calibration file to write (.npz format, any name).")
-@click.option("--force", is_flag=True, help="Overwrite an existing output file (and report plots, dark-library entries).")
+@click.option("--bias", multiple=True, type=_FRAMES,
+              help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.")
+@click.option("--saturation", multiple=True, type=_FRAMES, help="Saturation frame(s): every photosite at full well.")
+@click.option("--flat", multiple=True, type=_FRAMES,
+              help="Flat fields; consecutive frames at the same exposure time form pairs (gain). "
+                   "Pairs at >= 3 levels give the photon-transfer regression.")
+@click.option("--dark", multiple=True, type=_FRAMES,
+              help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.")
+@click.option("--times", multiple=True, type=float,
+              help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; "
+                   "needed for PNG/TIFF frames, override EXIF.")
+@click.option("--emva", "emva", type=_FILE,
+              help="EMVA 1288 descriptor file (EMVA1288_Data.txt) instead of frame lists.")
+@click.option("-o", "--output", type=_FILE, required=True, help="Calibration file to write (.npz format, any name).")
+@click.option("--force", is_flag=True,
+              help="Overwrite an existing output file (and report plots, dark-library entries).")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-@click.option("--report", type=click.Path(file_okay=False, path_type=Path), help="Folder for PNG plots: photon transfer, PRNU histogram and map, dark-current fit.")
-@click.option("--dark-library", type=click.Path(file_okay=False, path_type=Path), help="Store the master darks (with their frame count) in this dark-library folder.")
-@click.option("--gain-method", type=click.Choice(["auto", "pairs", "ptc"]), default="auto", show_default=True, help="ptc: EMVA 1288 regression; pairs: Eq. 16 average; auto: ptc when >= 3 levels.")
-@click.option("--clip", type=float, default=5.0, show_default=True, help="Sigma-clipping threshold for hot pixels and cosmic rays.")
+@click.option("--report", type=_FOLDER,
+              help="Folder for PNG plots: photon transfer, PRNU histogram and map, dark-current fit.")
+@click.option("--dark-library", type=_FOLDER,
+              help="Store the master darks (with their frame count) in this dark-library folder.")
+@click.option("--gain-method", type=click.Choice(["auto", "pairs", "ptc"]), default="auto", show_default=True,
+              help="ptc: EMVA 1288 regression; pairs: Eq. 16 average; auto: ptc when >= 3 levels.")
+@click.option("--clip", type=float, default=5.0, show_default=True,
+              help="Sigma-clipping threshold for hot pixels and cosmic rays.")
 @click.option("--no-clip", is_flag=True, help="Disable all outlier rejection (for comparison only).")
-@click.option("--saturation-criterion", type=click.Choice(["frame", "emva"]), default="frame", show_default=True, help="For --emva: v_sat as mean - 3 std of the brightest frames (Sec. 6) or the EMVA 1288 saturation point.")
+@click.option("--saturation-criterion", type=click.Choice(["frame", "emva"]), default="frame", show_default=True,
+              help="For --emva: v_sat as mean - 3 std of the brightest frames (Sec. 6) "
+                   "or the EMVA 1288 saturation point.")
 @click.option("--white-level", type=float, help="ADC white level, DN (default: from the raw files).")
 @click.option("--camera-name", help="Camera model for the provenance (default: from the files).")
 @click.option("--serial", help="Camera serial number for the provenance.")
 @click.option("--iso", type=float, help="ISO for the provenance (default: from EXIF).")
-@click.option("--temperature", type=float, help="Sensor temperature, degrees C, for the provenance and the dark library.")
+@click.option("--temperature", type=float,
+              help="Sensor temperature, degrees C, for the provenance and the dark library.")
 def command(bias, saturation, flat, dark, times, emva, output, force, as_json, report, dark_library, gain_method,
             clip, no_clip, saturation_criterion, white_level, camera_name, serial, iso, temperature):
     """Calibrate the camera noise model (Sec. 6 of the paper, EMVA 1288) into a calibration file.
@@ -50,7 +63,7 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     Or from an EMVA 1288 data set with --emva. Every estimate carries its standard error.
     """
     from hdrcap import __version__
-    from hdrcap.pipeline.calibration import calibrate_files, calibration_summary, save_calibration
+    from hdrcap.pipeline.calibration import calibrate_files, calibration_summary, format_summary, save_calibration
 
     t0 = time.perf_counter()
     prov = {"hdrcap_version": __version__,
@@ -64,7 +77,9 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     if emva is not None:
         if bias or saturation or flat or dark:
             raise InputError("give either --emva or frame lists (--bias/--saturation/--flat/--dark), not both")
-        calib, emva_res = _calibrate_emva(emva, saturation_criterion, prov)
+        from hdrcap.pipeline.emva import calibrate_descriptor
+
+        calib, emva_res = calibrate_descriptor(emva, saturation_criterion, prov)
     else:
         calib = calibrate_files(bias, saturation, flat, dark, times, clip=None if no_clip else clip,
                                 gain_method=gain_method, white_level=white_level, provenance=prov,
@@ -75,18 +90,9 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
         from hdrcap.pipeline.calibration_report import write_report
 
         plots = write_report(calib, report, force=force)
-    summary = calibration_summary(calib)
-    summary["output"] = str(output)
-    summary["seconds"] = round(time.perf_counter() - t0, 3)
-    if emva_res is not None:
-        summary["emva1288"] = emva_res.to_dict()
-    if plots:
-        summary["report"] = [str(p) for p in plots]
+    summary = calibration_summary(calib, output=output, seconds=time.perf_counter() - t0, emva=emva_res, report=plots)
     if as_json:
         echo_json(summary)
     else:
-        s = summary
-        click.echo(f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
-                   f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-                   f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
-        click.echo(f"wrote {output} ({s['n_frames']} frames, {s['seconds']:.1f} s)")
+        click.echo(format_summary(summary))
+        click.echo(f"wrote {output} ({summary['n_frames']} frames, {summary['seconds']:.1f} s)")

@@ -47,7 +47,7 @@ from .gain import (
 from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
 from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
-from .workflow import GAIN_METHODS, calibrate, calibration_summary, with_file_metadata
+from .workflow import GAIN_METHODS, calibrate, calibration_summary, format_summary, with_file_metadata
 
 __all__ = [
     "FORMAT",
@@ -77,4 +77,5 @@ __all__ = [
     "save_calibration",
     "load_calibration",
     "calibration_summary",
+    "format_summary",
 ]

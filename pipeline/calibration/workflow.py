@@ -10,7 +10,8 @@ calibration's ``stderr`` and ``provenance["calibration"]``.
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Callable, Iterable, Mapping
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,7 +26,7 @@ from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
 from .stats import DEFAULT_CLIP
 
-__all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "with_file_metadata"]
+__all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
 
 #: Gain estimators :func:`calibrate` knows.
 GAIN_METHODS = ("auto", "pairs", "ptc")
@@ -299,19 +300,30 @@ def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level:
     return calib.replace(provenance=prov, params=params, **changes)
 
 
-def calibration_summary(calib: Calibration) -> dict[str, Any]:
+def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | None = None,
+                        seconds: float | None = None, emva: Any = None,
+                        report: Sequence[str | os.PathLike[str]] = ()) -> dict[str, Any]:
     """The summary printed by ``hdrcap calibrate`` (one JSON line with ``--json``).
 
     Parameters
     ----------
     calib : Calibration
         A calibration.
+    output : path, optional
+        The calibration file written (entry ``output``).
+    seconds : float, optional
+        Run time, s (entry ``seconds``, rounded to ms).
+    emva : EmvaResults, optional
+        EMVA 1288 results (entry ``emva1288``).
+    report : sequence of path
+        Plot files written (entry ``report`` when any).
 
     Returns
     -------
     dict
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
-        each scalar's standard error, the frame count and the gain method.
+        each scalar's standard error, the frame count and the gain method, then the entries
+        above that are given.
     """
     p = calib.params
     prov = calib.provenance
@@ -319,7 +331,7 @@ def calibration_summary(calib: Calibration) -> dict[str, Any]:
     prnu_std = prov.get("prnu_std")
     if prnu_std is None and calib.prnu is not None:
         prnu_std = float(np.std(calib.prnu))
-    return {
+    summary = {
         "g": p.g, "g_stderr": se.get("g"),
         "mu_R": p.mu_R, "mu_R_stderr": se.get("mu_R"),
         "sigma2_R": p.sigma2_R, "sigma2_R_stderr": se.get("sigma2_R"),
@@ -329,3 +341,30 @@ def calibration_summary(calib: Calibration) -> dict[str, Any]:
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
     }
+    if output is not None:
+        summary["output"] = str(output)
+    if seconds is not None:
+        summary["seconds"] = round(seconds, 3)
+    if emva is not None:
+        summary["emva1288"] = emva.to_dict()
+    if report:
+        summary["report"] = [str(r) for r in report]
+    return summary
+
+
+def format_summary(summary: Mapping[str, Any]) -> str:
+    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D and the PRNU.
+
+    Parameters
+    ----------
+    summary : mapping
+        Output of :func:`calibration_summary`.
+
+    Returns
+    -------
+    str
+    """
+    s = summary
+    return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
+            f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
+            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
