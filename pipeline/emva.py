@@ -119,59 +119,102 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
     shape = (dataset.height, dataset.width)
     temporal: ExposureMap[dict[str, Any]] = ExposureMap()
     spatial: dict[str, Any] = {}
+    dark = _DarkSums(shape)
     n_img = 0
-    # per-pixel dark regression sums over the temporal dark pairs
-    sy = sty = None
-    sn = st = stt = 0.0
     for step in dataset.steps:
         if len(step.images) < 2:
             raise InputError(f"{dataset.path}: step {step.kind} {step.exposure_time * 1e9:g} ns has "
                              f"{len(step.images)} image(s); every step needs at least two")
-        t = step.exposure_time
         if len(step.images) == 2:
-            a, b = (_read(p, shape) for p in step.images)
+            _add_pair(dataset, step, shape, temporal, dark)
             n_img += 2
-            ps = pair_statistics(a, b, clip=None, exposure_time=t)
-            entry = temporal.setdefault(t, {})
-            if step.kind in entry:
-                raise InputError(f"{dataset.path}: two {step.kind} pairs at {t * 1e9:g} ns")
-            entry[step.kind] = ps
-            if step.kind == "b":
-                entry["photons"] = step.photons if step.photons is not None else float("nan")
-            else:
-                m = 0.5 * (a.astype(np.float64) + b)
-                if sy is None:
-                    sy = np.zeros(shape)
-                    sty = np.zeros(shape)
-                sy += m
-                sty += t * m
-                sn += 1
-                st += t
-                stt += t * t
+            if progress:
+                progress(2)
         else:
             key = "bright" if step.kind == "b" else "dark"
             if key in spatial:
                 raise InputError(f"{dataset.path}: more than one {key} non-uniformity stack")
-            s = np.zeros(shape)
-            q = np.zeros(shape)
-            ref = None
-            for p in step.images:
-                x = _read(p, shape).astype(np.float64)
-                n_img += 1
-                if ref is None:
-                    ref = x.copy()
-                x -= ref
-                s += x
-                q += x * x
-                if progress:
-                    progress(1)
-            L = len(step.images)
-            mean_map = s / L + ref
-            var_map = (q - s * s / L) / (L - 1)
-            spatial[key] = {"L": L, "texp": t, "mean_map": mean_map, "var_map": var_map,
-                            "photons": step.photons}
-        if progress and len(step.images) == 2:
-            progress(2)
+            spatial[key] = _stack(step, shape, progress)
+            n_img += len(step.images)
+    times = _temporal_times(dataset, temporal)
+
+    def arr(kind, attr):
+        return np.array([getattr(temporal[t][kind], attr) if attr != "mean" else temporal[t][kind].mean
+                         for t in times])
+
+    return EmvaData(
+        texp=np.array(times), photons=np.array([temporal[t].get("photons", np.nan) for t in times], float),
+        u_y=arr("b", "mean"), s2_y=arr("b", "variance"), u_ydark=arr("d", "mean"), s2_ydark=arr("d", "variance"),
+        s2_y_stderr=arr("b", "variance_stderr"), s2_ydark_stderr=arr("d", "variance_stderr"),
+        spatial=_spatial_summary(spatial), dark_slope_map=dark.slope_map(), bits=dataset.bits, width=dataset.width,
+        height=dataset.height, n_images=n_img,
+    )
+
+
+class _DarkSums:
+    """Per-pixel straight-line regression sums of the dark pairs' mean against time."""
+
+    def __init__(self, shape: tuple[int, int]) -> None:
+        self.shape = shape
+        self.sy = self.sty = None
+        self.sn = self.st = self.stt = 0.0
+
+    def add(self, m: np.ndarray, t: float) -> None:
+        if self.sy is None:
+            self.sy = np.zeros(self.shape)
+            self.sty = np.zeros(self.shape)
+        self.sy += m
+        self.sty += t * m
+        self.sn += 1
+        self.st += t
+        self.stt += t * t
+
+    def slope_map(self) -> np.ndarray | None:
+        """Slope per photosite, DN/s (float32), or None with fewer than 3 dark pairs."""
+        if self.sy is None or self.sn < 3:
+            return None
+        return ((self.sn * self.sty - self.st * self.sy) / (self.sn * self.stt - self.st * self.st)).astype(np.float32)
+
+
+def _add_pair(dataset: EmvaDataset, step: Any, shape: tuple[int, int], temporal: ExposureMap,
+              dark: _DarkSums) -> None:
+    """Pair statistics of a temporal step (no clipping, as the standard); dark pairs also
+    feed the per-pixel dark regression."""
+    t = step.exposure_time
+    a, b = (_read(p, shape) for p in step.images)
+    ps = pair_statistics(a, b, clip=None, exposure_time=t)
+    entry = temporal.setdefault(t, {})
+    if step.kind in entry:
+        raise InputError(f"{dataset.path}: two {step.kind} pairs at {t * 1e9:g} ns")
+    entry[step.kind] = ps
+    if step.kind == "b":
+        entry["photons"] = step.photons if step.photons is not None else float("nan")
+    else:
+        dark.add(0.5 * (a.astype(np.float64) + b), t)
+
+
+def _stack(step: Any, shape: tuple[int, int], progress: Callable[[int], Any] | None) -> dict[str, Any]:
+    """Per-pixel mean (DN) and temporal variance (DN^2) of a non-uniformity stack."""
+    s = np.zeros(shape)
+    q = np.zeros(shape)
+    ref = None
+    for p in step.images:
+        x = _read(p, shape).astype(np.float64)
+        if ref is None:
+            ref = x.copy()
+        x -= ref
+        s += x
+        q += x * x
+        if progress:
+            progress(1)
+    L = len(step.images)
+    mean_map = s / L + ref
+    var_map = (q - s * s / L) / (L - 1)
+    return {"L": L, "texp": step.exposure_time, "mean_map": mean_map, "var_map": var_map, "photons": step.photons}
+
+
+def _temporal_times(dataset: EmvaDataset, temporal: ExposureMap) -> list[float]:
+    """The exposure times with both a bright and a dark pair, s, ascending (>= 3 of them)."""
     times = sorted(t for t, e in temporal.items() if "b" in e and "d" in e)
     missing = [t for t, e in temporal.items() if not ("b" in e and "d" in e)]
     if missing:
@@ -179,6 +222,11 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
                          f"{'dark' if 'b' in temporal[missing[0]] else 'bright'} pair")
     if len(times) < 3:
         raise InputError(f"{dataset.path}: {len(times)} temporal steps; the photon-transfer method needs >= 3")
+    return times
+
+
+def _spatial_summary(spatial: dict[str, Any]) -> dict[str, Any]:
+    """Spatial means and variances of the bright and dark stacks (both needed), DN, DN^2."""
     sp: dict[str, Any] = {}
     if "bright" in spatial and "dark" in spatial:
         for key, suffix in (("bright", ""), ("dark", "_dark")):
@@ -191,21 +239,7 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
             sp["mean_map" + suffix] = d["mean_map"]
             sp["var_map" + suffix] = d["var_map"]
         sp["photons"] = spatial["bright"]["photons"]
-    dark_slope = None
-    if sy is not None and sn >= 3:
-        dark_slope = ((sn * sty - st * sy) / (sn * stt - st * st)).astype(np.float32)
-
-    def arr(kind, attr):
-        return np.array([getattr(temporal[t][kind], attr) if attr != "mean" else temporal[t][kind].mean
-                         for t in times])
-
-    return EmvaData(
-        texp=np.array(times), photons=np.array([temporal[t].get("photons", np.nan) for t in times], float),
-        u_y=arr("b", "mean"), s2_y=arr("b", "variance"), u_ydark=arr("d", "mean"), s2_ydark=arr("d", "variance"),
-        s2_y_stderr=arr("b", "variance_stderr"), s2_ydark_stderr=arr("d", "variance_stderr"),
-        spatial=sp, dark_slope_map=dark_slope, bits=dataset.bits, width=dataset.width, height=dataset.height,
-        n_images=n_img,
-    )
+    return sp
 
 
 @dataclass
@@ -326,7 +360,7 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
 
 
 def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "frame",
-                     provenance: dict | None = None) -> Calibration:
+                     provenance: Mapping[str, Any] | None = None) -> Calibration:
     """The camera model of an EMVA 1288 data set as a :class:`Calibration`.
 
     g = K; mu_R and sigma2_R from the dark pair at the shortest exposure time (pair
@@ -388,8 +422,8 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     prov = dict(provenance or {})
     prov["n_frames"] = int(data.n_images)
     prov["prnu_std"] = prnu_std
-    prov["frame_counts"] = {"temporal_pairs": int(2 * data.texp.size), "spatial": int(sp.get("L", 0) + sp.get("L_dark", 0))
-                            if sp else 0}
+    n_spatial = int(sp.get("L", 0) + sp.get("L_dark", 0)) if sp else 0
+    prov["frame_counts"] = {"temporal_pairs": int(2 * data.texp.size), "spatial": n_spatial}
     prov["calibration"] = {
         "gain_method": "EMVA 1288 photon-transfer regression (0-70 % of saturation)",
         "v_sat_method": v_method,
