@@ -58,7 +58,13 @@ class CameraIdentity:
     port: str = ""
 
     def to_dict(self) -> dict[str, str]:
-        """The identity as a JSON object (backend, model, serial, port)."""
+        """The identity as a JSON object.
+
+        Returns
+        -------
+        dict
+            ``backend``, ``model``, ``serial``, ``port``.
+        """
         return {"backend": self.backend, "model": self.model, "serial": self.serial, "port": self.port}
 
 

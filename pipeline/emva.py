@@ -291,7 +291,13 @@ class EmvaResults:
     DSNU1288: float = float("nan")
 
     def to_dict(self) -> dict:
-        """The scalar results and the fit range's first and last step, as plain JSON values."""
+        """The scalar results and the fit range's first and last step, as plain JSON values.
+
+        Returns
+        -------
+        dict
+            Units as the attributes.
+        """
         out = {k: getattr(self, k) for k in ("K", "K_stderr", "index_u_ysat", "u_y_sat", "sigma_y_dark", "sigma_d",
                                              "u_I_mean", "u_I_mean_stderr", "R", "QE", "u_e_sat", "s2_y",
                                              "s2_y_dark", "PRNU1288", "DSNU1288")}

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ from hdrcap.acquire.camera import (
     nearest_allowed,
     parse_exposure_label,
 )
-from hdrcap.mock_camera.camera import STANDARD_TIMES, MockCamera, MockFaults
+from hdrcap.mock_camera.camera import MockCamera, MockFaults
 
 
 @pytest.mark.parametrize(
