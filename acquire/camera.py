@@ -1,26 +1,37 @@
 """The camera protocol every acquisition backend implements, camera errors, and the parsing
 of the cameras' own exposure-time labels.
 
-A backend (:class:`acquire.gphoto2_camera.Gphoto2Camera`, :class:`mock_camera.camera.MockCamera`)
-is any object with the methods of :class:`Camera`. Capture sessions
-(:mod:`acquire.session`) drive it and decide what to do on a failure from the failure's
+A backend (:class:`hdrcap.acquire.gphoto2_camera.Gphoto2Camera`,
+:class:`hdrcap.mock_camera.camera.MockCamera`) is any object with the methods of :class:`Camera`.
+Capture sessions (:mod:`hdrcap.acquire.session`) drive it and decide what to do on a failure from the failure's
 *kind* (:func:`fault_kind`): ``"busy"`` (wait and retry), ``"reconnect"`` (the connection is
 gone or hung: reconnect, then retry), ``"recapture"`` (the file is bad: take it again) or
 ``"fatal"`` (card full, camera gone: stop with a clear message). Errors carry their kind in
-the attribute ``camera_fault`` so that backends outside :mod:`acquire` (the simulator may not
-import acquire) can take part without sharing classes.
+the attribute ``camera_fault``. The identity, capture-result and error classes live in
+:mod:`hdrcap.pipeline.camera_types` (the simulator, which may not import acquire, raises the
+same classes) and are re-exported here.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import Protocol, Sequence, runtime_checkable
 
-from hdrcap.pipeline.errors import HdrcapError
+from hdrcap.pipeline.camera_types import (
+    FAULT_KINDS,
+    CameraBusyError,
+    CameraDisconnectedError,
+    CameraError,
+    CameraGoneError,
+    CameraIdentity,
+    CameraTimeoutError,
+    CaptureResult,
+    CorruptFrameError,
+    StorageFullError,
+)
 
 __all__ = [
     "Camera",
@@ -41,65 +52,6 @@ __all__ = [
     "dark_level",
     "frame_is_dark",
 ]
-
-#: Failure kinds a session knows how to handle, see :func:`fault_kind`.
-FAULT_KINDS = ("busy", "reconnect", "recapture", "fatal")
-
-
-@dataclass(frozen=True)
-class CameraIdentity:
-    """Who the camera is: recorded with every frame.
-
-    Attributes
-    ----------
-    backend : str
-        ``"gphoto2"`` or ``"mock"``.
-    model : str
-        Camera model as the camera reports it.
-    serial : str
-        Serial number ("" when the camera does not report one).
-    port : str
-        Where it is connected (``usb:001,004``; ``mock:`` for the simulator).
-    """
-
-    backend: str
-    model: str
-    serial: str = ""
-    port: str = ""
-
-    def to_dict(self) -> dict[str, str]:
-        return {"backend": self.backend, "model": self.model, "serial": self.serial, "port": self.port}
-
-
-@dataclass
-class CaptureResult:
-    """One downloaded frame.
-
-    Attributes
-    ----------
-    path : Path
-        Where the file was written on this computer.
-    requested_exposure_s : float
-        Exposure time asked for, s.
-    applied_exposure_s : float
-        Exposure time the camera reported after setting it (read back), s.
-    dark : bool
-        Whether the light was blocked.
-    settings : dict
-        Every setting read back from the camera at capture (name -> applied value).
-    camera_file : str
-        Name of the file on the camera ("" for the simulator).
-    temperature_c : float or None
-        Sensor temperature when the camera reports it, degrees C.
-    """
-
-    path: Path
-    requested_exposure_s: float
-    applied_exposure_s: float
-    dark: bool = False
-    settings: dict[str, Any] = field(default_factory=dict)
-    camera_file: str = ""
-    temperature_c: float | None = None
 
 
 @runtime_checkable
@@ -138,49 +90,6 @@ class Camera(Protocol):
 
     def close(self) -> None:
         """Release the camera."""
-
-
-class CameraError(HdrcapError):
-    """A camera failure; ``camera_fault`` says how a session handles it."""
-
-    camera_fault = "fatal"
-    exit_code = 4
-
-
-class CameraBusyError(CameraError):
-    """The camera is busy (libgphoto2 -110, PTP Device Busy): wait and retry."""
-
-    camera_fault = "busy"
-
-
-class CameraDisconnectedError(CameraError):
-    """The connection broke (I/O error, USB claim failure, mid-download loss): reconnect."""
-
-    camera_fault = "reconnect"
-
-
-class CameraTimeoutError(CameraError):
-    """The camera did not answer in time (hang): reconnect."""
-
-    camera_fault = "reconnect"
-
-
-class CorruptFrameError(CameraError):
-    """The downloaded file is truncated or unreadable, or its size or exposure is wrong."""
-
-    camera_fault = "recapture"
-
-
-class StorageFullError(CameraError):
-    """The camera's card (or memory) is full: the session stops."""
-
-    camera_fault = "fatal"
-
-
-class CameraGoneError(CameraError):
-    """The camera cannot be found any more (unplugged, switched off): the session stops."""
-
-    camera_fault = "fatal"
 
 
 def fault_kind(err: BaseException) -> str | None:

@@ -2,7 +2,7 @@
 
 Frames are generated on the fly, one at a time, as a capture session would deliver them
 (Gaussian approximation of the shot noise for speed: the point is the memory of the
-estimators, not the physics), and fed to :func:`pipeline.calibration.calibrate`.
+estimators, not the physics), and fed to :func:`hdrcap.pipeline.calibration.calibrate`.
 Prints one JSON object: peak resident memory (ru_maxrss and psutil's sampled peak), the
 baseline before calibration, timings and the gain error.
 

@@ -298,8 +298,27 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
 
 
 def save_calibration(path: str | os.PathLike[str], calibration: Calibration, *, force: bool = False) -> Path:
-    """Write ``calibration`` to ``path`` (atomically; an existing file is kept unless
-    ``force``). Returns the path."""
+    """Write ``calibration`` to ``path`` (atomically; an existing file is kept unless ``force``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (``.npz`` format, any name).
+    calibration : Calibration
+        The camera model.
+    force : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` exists and ``force`` is not given.
+    """
     from hdrcap.pipeline.calibration import save_calibration as _save
 
     return _save(path, calibration, force=force)
@@ -375,9 +394,10 @@ def calibrate(
         estimate, frames of the wrong kind (e.g. a bias frame with signal).
     """
     from hdrcap import __version__
+    from hdrcap.pipeline.calibration import GAIN_METHODS, with_file_metadata
     from hdrcap.pipeline.calibration import calibrate as _calibrate
 
-    if gain_method not in ("auto", "pairs", "ptc"):
+    if gain_method not in GAIN_METHODS:
         raise InputError(f"gain_method must be auto, pairs or ptc, got {gain_method!r}")
     meta: dict[str, Any] = {}
     groups: dict[str, Iterator[RawFrame] | None] = {}
@@ -394,17 +414,7 @@ def calibrate(
     calib = _calibrate(groups["bias frame"], groups["saturation frame"], groups["flat"], groups["dark frame"],
                        clip=clip, gain_method=gain_method, white_level=white_level, provenance=prov)
     # What the files said (camera, ISO, white level), as `hdrcap calibrate` records it.
-    prov = dict(calib.provenance)
-    for key in ("camera", "iso"):
-        if meta.get(key) is not None and not prov.get(key):
-            prov[key] = meta[key]
-    params = calib.params
-    wl = white_level or meta.get("white_level")
-    if wl and wl >= params.v_sat:
-        params = params.replace(white_level=float(wl))
-    if prov.get("camera") and not params.name:
-        params = params.replace(name=str(prov["camera"]))
-    return calib.replace(provenance=prov, params=params)
+    return with_file_metadata(calib, meta, white_level)
 
 
 # --------------------------------------------------------------------------- merge

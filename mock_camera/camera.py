@@ -1,16 +1,17 @@
-"""``MockCamera``: the acquisition :class:`acquire.camera.Camera` protocol on the simulated
+"""``MockCamera``: the acquisition :class:`hdrcap.acquire.camera.Camera` protocol on the simulated
 sensor, with injectable faults.
 
 It behaves like a tethered raw camera: a list of allowed exposure times (1/3-stop series),
 ``set_exposure`` coerces to the nearest allowed value and reports what it applied, ``capture``
-writes a DNG (:class:`mock_camera.backend.SimulatedCamera`) and hands it over. Faults
+writes a DNG (:class:`hdrcap.mock_camera.backend.SimulatedCamera`) and hands it over. Faults
 (:class:`MockFaults`) reproduce what real cameras do: busy, disconnect in the middle of a
 download (a partial file is left behind), hang until the timeout, a corrupted or truncated file
 reported as a success, a full card, and an abrupt process kill.
 
-This module must not import :mod:`acquire` (imports point down); its errors carry the
-attribute ``camera_fault`` (``busy``/``reconnect``/``fatal``) that sessions act on, and its
-results have the attributes of :class:`acquire.camera.CaptureResult`.
+This module must not import :mod:`hdrcap.acquire` (imports point down): it raises the camera
+errors of :mod:`hdrcap.pipeline.camera_types` (the classes the real camera raises; their
+``camera_fault`` tells a session how to react) and returns its
+:class:`~hdrcap.pipeline.camera_types.CaptureResult`.
 """
 
 from __future__ import annotations
@@ -18,54 +19,29 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from hdrcap.pipeline.camera_types import (
+    CameraBusyError,
+    CameraDisconnectedError,
+    CameraIdentity,
+    CameraTimeoutError,
+    CaptureResult,
+    StorageFullError,
+)
 from hdrcap.pipeline.params import THIRD_STOP_TIMES
 
 from .backend import SimulatedCamera
 from .sensor import PRESETS, SensorSpec
 
-__all__ = [
-    "MockCamera",
-    "MockFaults",
-    "MockIdentity",
-    "MockCapture",
-    "MockCameraError",
-    "MockBusyError",
-    "MockDisconnectedError",
-    "MockTimeoutError",
-    "MockStorageFullError",
-    "STANDARD_TIMES",
-]
+__all__ = ["MockCamera", "MockFaults", "STANDARD_TIMES"]
 
 #: The usual 1/3-stop shutter speeds of a DSLR, 1/8000 s .. 30 s, ascending.
 STANDARD_TIMES: tuple[float, ...] = THIRD_STOP_TIMES
-
-
-class MockCameraError(Exception):
-    """A simulated camera failure; ``camera_fault`` tells a session how to react."""
-
-    camera_fault = "fatal"
-
-
-class MockBusyError(MockCameraError):
-    camera_fault = "busy"
-
-
-class MockDisconnectedError(MockCameraError):
-    camera_fault = "reconnect"
-
-
-class MockTimeoutError(MockCameraError):
-    camera_fault = "reconnect"
-
-
-class MockStorageFullError(MockCameraError):
-    camera_fault = "fatal"
 
 
 @dataclass(frozen=True)
@@ -107,6 +83,13 @@ class MockFaults:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "MockFaults":
+        """Faults from a mapping of field names (a job file's ``[camera.faults]`` table).
+
+        Raises
+        ------
+        ValueError
+            An unknown fault name.
+        """
         known = set(cls.__dataclass_fields__)
         bad = set(d) - known
         if bad:
@@ -114,30 +97,8 @@ class MockFaults:
         return cls(**d)
 
 
-@dataclass(frozen=True)
-class MockIdentity:
-    backend: str
-    model: str
-    serial: str = ""
-    port: str = ""
-
-    def to_dict(self) -> dict[str, str]:
-        return {"backend": self.backend, "model": self.model, "serial": self.serial, "port": self.port}
-
-
-@dataclass
-class MockCapture:
-    path: Path
-    requested_exposure_s: float
-    applied_exposure_s: float
-    dark: bool = False
-    settings: dict[str, Any] = field(default_factory=dict)
-    camera_file: str = ""
-    temperature_c: float | None = None
-
-
 class MockCamera:
-    """A simulated tethered camera implementing :class:`acquire.camera.Camera`.
+    """A simulated tethered camera implementing :class:`hdrcap.acquire.camera.Camera`.
 
     Parameters
     ----------
@@ -179,7 +140,8 @@ class MockCamera:
         self.reconnects = 0
         self.fault_log: list[str] = []
         # the port names this object: two simulated cameras are never the same device
-        self.identity = MockIdentity("mock", spec.model, self.sim.serial, f"mock:{spec.name}:{os.getpid()}.{id(self):x}")
+        port = f"mock:{spec.name}:{os.getpid()}.{id(self):x}"
+        self.identity = CameraIdentity("mock", spec.model, self.sim.serial, port)
 
     # --- settings -------------------------------------------------------------------
     def allowed_exposure_times(self) -> list[float]:
@@ -199,9 +161,6 @@ class MockCamera:
         if not (t > 0 and math.isfinite(t)):
             raise ValueError(f"exposure time must be positive, got {t!r}")
         self._t = min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
-        return self._t
-
-    def get_exposure(self) -> float:
         return self._t
 
     # --- light, temperature, connection -------------------------------------------------
@@ -227,10 +186,10 @@ class MockCamera:
 
     def _check_connected(self) -> None:
         if not self._connected:
-            raise MockDisconnectedError("mock camera: not connected (reconnect first)")
+            raise CameraDisconnectedError("mock camera: not connected (reconnect first)")
 
     # --- capture --------------------------------------------------------------------------
-    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> MockCapture:
+    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> CaptureResult:
         """Expose for the applied time (light blocked when covered) and write a DNG at ``dest``.
 
         ``dark`` is what the caller intends; the light is blocked only by :meth:`cover`, as on
@@ -241,20 +200,20 @@ class MockCamera:
         self.calls += 1
         self._check_connected()
         if self._card_full:
-            raise MockStorageFullError("mock camera: card full")
+            raise StorageFullError("mock camera: card full")
         u = self._frng.random(6)
         if self.calls <= f.busy_first or u[0] < f.busy_rate:
             self.fault_log.append("busy")
-            raise MockBusyError("mock camera: busy [-110]")
+            raise CameraBusyError("mock camera: busy [-110]")
         if u[1] < f.hang_rate:
             self.fault_log.append("hang")
             time.sleep(min(f.hang_s, timeout) if timeout else f.hang_s)
             self._connected = False
-            raise MockTimeoutError("mock camera: no answer (timeout)")
+            raise CameraTimeoutError("mock camera: no answer (timeout)")
         if f.card_full_after is not None and self.downloads >= f.card_full_after:
             self._card_full = True
             self.fault_log.append("card_full")
-            raise MockStorageFullError("mock camera: card full")
+            raise StorageFullError("mock camera: card full")
         if dest.exists():
             raise FileExistsError(f"{dest}: exists")
         self.sim.capture_to(dest, self._t, dark=self._covered)
@@ -264,7 +223,7 @@ class MockCamera:
             with open(dest, "r+b") as fh:  # the download stopped half-way
                 fh.truncate(size // 2)
             self._connected = False
-            raise MockDisconnectedError("mock camera: disconnected during download [-7 I/O]")
+            raise CameraDisconnectedError("mock camera: disconnected during download [-7 I/O]")
         if u[3] < f.corrupt_rate:
             self.fault_log.append("corrupt")
             _corrupt(dest, self._frng)
@@ -276,7 +235,7 @@ class MockCamera:
         self.downloads += 1
         if f.kill_after is not None and self.downloads == f.kill_after:
             os._exit(137)
-        return MockCapture(
+        return CaptureResult(
             path=dest,
             requested_exposure_s=self._t,
             applied_exposure_s=self._t,

@@ -7,14 +7,16 @@ ExposureTime, FNumber and ISO both in IFD0 (TIFF/EP) and in the EXIF IFD (LibRaw
 ISO from the EXIF IFD to compute exposure values).
 
 No TIFF library writes an EXIF sub-IFD with DNG tags, so this is the one hand-written
-encoder of the project; :func:`pipeline.io.read_raw` reads the files back through rawpy.
+encoder of the project; :func:`hdrcap.pipeline.io.read_raw` reads the files back through rawpy.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import struct
+from dataclasses import dataclass
 from fractions import Fraction
+from typing import BinaryIO
 
 import numpy as np
 
@@ -101,8 +103,108 @@ class _IFD:
         return b"".join(head) + b"".join(tail)
 
 
+@dataclass(frozen=True)
+class _Capture:
+    """What the tags say about one capture (the values as written)."""
+
+    exposure: tuple[int, int]
+    f_number: tuple[int, int]
+    iso: int
+    timestamp: str
+
+
+def _check_mosaic(mosaic: np.ndarray) -> np.ndarray:
+    """A C-contiguous 2-D uint16 mosaic that LibRaw will read (>= MIN_SIDE a side)."""
+    mosaic = np.ascontiguousarray(mosaic)
+    if mosaic.ndim != 2 or mosaic.dtype != np.uint16:
+        raise ValueError("the mosaic must be a 2-D uint16 array")
+    h, w = mosaic.shape
+    if h < MIN_SIDE or w < MIN_SIDE:
+        raise ValueError(f"LibRaw reads no raw image under {MIN_SIDE} photosites a side, got {w}x{h}")
+    return mosaic
+
+
+def _image_tags(ifd: _IFD, h: int, w: int, cfa: str) -> None:
+    """TIFF baseline and TIFF/EP tags of one uncompressed 16-bit CFA strip (offset patched later)."""
+    ifd.add(254, _LONG, 0)  # NewSubFileType: main image
+    ifd.add(256, _LONG, w)
+    ifd.add(257, _LONG, h)
+    ifd.add(258, _SHORT, 16)  # BitsPerSample
+    ifd.add(259, _SHORT, 1)  # no compression
+    ifd.add(262, _SHORT, 32803)  # PhotometricInterpretation: CFA
+    ifd.add(273, _LONG, 0)  # StripOffsets, patched by _layout
+    ifd.add(274, _SHORT, 1)  # Orientation
+    ifd.add(277, _SHORT, 1)  # SamplesPerPixel
+    ifd.add(278, _LONG, h)  # RowsPerStrip
+    ifd.add(279, _LONG, h * w * 2)  # StripByteCounts
+    ifd.add(284, _SHORT, 1)  # PlanarConfiguration
+    ifd.add(33421, _SHORT, [2, 2])  # CFARepeatPatternDim
+    ifd.add(33422, _BYTE, [CFA_CODES[c] for c in cfa])  # CFAPattern
+
+
+def _camera_tags(ifd: _IFD, cap: _Capture, make: str, model: str, software: str, description: str) -> None:
+    """Who made the file and how it was exposed (IFD0; the EXIF IFD offset patched later)."""
+    if description:
+        ifd.add(270, _ASCII, description)
+    ifd.add(271, _ASCII, make)
+    ifd.add(272, _ASCII, model)
+    ifd.add(305, _ASCII, software)
+    ifd.add(306, _ASCII, cap.timestamp)
+    ifd.add(33434, _RATIONAL, [cap.exposure])
+    ifd.add(33437, _RATIONAL, [cap.f_number])
+    ifd.add(34665, _LONG, 0)  # ExifIFD offset, patched by _layout
+    ifd.add(34855, _SHORT, cap.iso)
+
+
+def _dng_tags(ifd: _IFD, unique_model: str, serial: str, black_level: float, white_level: int) -> None:
+    """DNG 1.4 tags: version, camera model, CFA layout, black and white levels, an identity
+    colour matrix, neutral white balance, serial number and the D65 illuminant."""
+    ifd.add(50706, _BYTE, [1, 4, 0, 0])  # DNGVersion
+    ifd.add(50707, _BYTE, [1, 1, 0, 0])  # DNGBackwardVersion
+    ifd.add(50708, _ASCII, unique_model)  # UniqueCameraModel
+    ifd.add(50710, _BYTE, [0, 1, 2])  # CFAPlaneColor
+    ifd.add(50711, _SHORT, 1)  # CFALayout: rectangular
+    ifd.add(50713, _SHORT, [1, 1])  # BlackLevelRepeatDim
+    ifd.add(50714, _RATIONAL, [_rational(black_level, 1000)])
+    ifd.add(50717, _LONG, int(white_level))
+    ifd.add(50721, _SRATIONAL, [(1, 1), (0, 1), (0, 1), (0, 1), (1, 1), (0, 1), (0, 1), (0, 1), (1, 1)])
+    ifd.add(50728, _RATIONAL, [(1, 1), (1, 1), (1, 1)])  # AsShotNeutral
+    ifd.add(50735, _ASCII, serial)  # CameraSerialNumber
+    ifd.add(50778, _SHORT, 21)  # CalibrationIlluminant1: D65
+
+
+def _exif_ifd(cap: _Capture) -> _IFD:
+    """The EXIF sub-IFD: exposure, aperture, ISO (LibRaw reads the ISO here), dates."""
+    exif = _IFD()
+    exif.add(33434, _RATIONAL, [cap.exposure])
+    exif.add(33437, _RATIONAL, [cap.f_number])
+    exif.add(34855, _SHORT, cap.iso)
+    exif.add(36864, _UNDEFINED, list(b"0230"))  # ExifVersion
+    exif.add(36867, _ASCII, cap.timestamp)  # DateTimeOriginal
+    exif.add(36868, _ASCII, cap.timestamp)  # DateTimeDigitized
+    return exif
+
+
+def _layout(ifd0: _IFD, exif: _IFD) -> bytes:
+    """Header (8 bytes) | IFD0 | EXIF IFD | image data, each 2-byte aligned: patch the EXIF
+    and strip offsets into IFD0 and return everything before the image data."""
+    ifd0_off = 8
+    exif_off = ifd0_off + ifd0.size()
+    exif_off += exif_off & 1
+    data_off = exif_off + exif.size()
+    data_off += data_off & 1
+    ifd0.add(34665, _LONG, exif_off)
+    ifd0.add(273, _LONG, data_off)
+    out = bytearray(b"II*\0" + struct.pack("<I", ifd0_off))
+    out += ifd0.encode(ifd0_off)
+    out += b"\0" * (exif_off - len(out))
+    out += exif.encode(exif_off)
+    out += b"\0" * (data_off - len(out))
+    return bytes(out)
+
+
 def write_dng(
-    fileobj,
+    fileobj: BinaryIO,
     mosaic: np.ndarray,
     *,
     exposure_time: float,
@@ -122,6 +224,10 @@ def write_dng(
 
     Parameters
     ----------
+    fileobj : binary file
+        Where the bytes go (written in two calls: the tags, then the image data).
+    mosaic : numpy.ndarray
+        2-D uint16 raw mosaic, DN, at least :data:`MIN_SIDE` photosites a side.
     exposure_time : float
         Seconds; written as the rational of :func:`exposure_rational`.
     iso : int
@@ -130,78 +236,28 @@ def write_dng(
         DN, written to BlackLevel and WhiteLevel.
     cfa : str
         Bayer pattern of the 2x2 tile, e.g. ``"RGGB"``.
+    make, model, serial, software, description : str
+        Written to Make, Model (and ``make model`` to UniqueCameraModel), CameraSerialNumber,
+        Software and ImageDescription (omitted when empty).
     timestamp : datetime
         Capture time (DateTime, DateTimeOriginal); defaults to now (UTC).
+    f_number : float
+        Aperture, written as a rational.
+
+    Raises
+    ------
+    ValueError
+        A mosaic that is not 2-D uint16 or is too small; an exposure time that is not a
+        positive finite rational.
     """
-    mosaic = np.ascontiguousarray(mosaic)
-    if mosaic.ndim != 2 or mosaic.dtype != np.uint16:
-        raise ValueError("the mosaic must be a 2-D uint16 array")
+    mosaic = _check_mosaic(mosaic)
     h, w = mosaic.shape
-    if h < MIN_SIDE or w < MIN_SIDE:
-        raise ValueError(f"LibRaw reads no raw image under {MIN_SIDE} photosites a side, got {w}x{h}")
-    ts = (timestamp or _dt.datetime.now(_dt.timezone.utc)).strftime("%Y:%m:%d %H:%M:%S")
-    exp = exposure_rational(exposure_time)
-    fnum = _rational(f_number, 100)
-    model_full = f"{make} {model}"
-
+    cap = _Capture(exposure=exposure_rational(exposure_time), f_number=_rational(f_number, 100),
+                   iso=min(int(iso), 65535),
+                   timestamp=(timestamp or _dt.datetime.now(_dt.timezone.utc)).strftime("%Y:%m:%d %H:%M:%S"))
     ifd0 = _IFD()
-    ifd0.add(254, _LONG, 0)
-    ifd0.add(256, _LONG, w)
-    ifd0.add(257, _LONG, h)
-    ifd0.add(258, _SHORT, 16)
-    ifd0.add(259, _SHORT, 1)
-    ifd0.add(262, _SHORT, 32803)  # CFA
-    if description:
-        ifd0.add(270, _ASCII, description)
-    ifd0.add(271, _ASCII, make)
-    ifd0.add(272, _ASCII, model)
-    ifd0.add(273, _LONG, 0)  # strip offset, patched below
-    ifd0.add(274, _SHORT, 1)
-    ifd0.add(277, _SHORT, 1)
-    ifd0.add(278, _LONG, h)
-    ifd0.add(279, _LONG, h * w * 2)
-    ifd0.add(284, _SHORT, 1)
-    ifd0.add(305, _ASCII, software)
-    ifd0.add(306, _ASCII, ts)
-    ifd0.add(33421, _SHORT, [2, 2])
-    ifd0.add(33422, _BYTE, [CFA_CODES[c] for c in cfa])
-    ifd0.add(33434, _RATIONAL, [exp])
-    ifd0.add(33437, _RATIONAL, [fnum])
-    ifd0.add(34665, _LONG, 0)  # EXIF IFD offset, patched below
-    ifd0.add(34855, _SHORT, min(int(iso), 65535))
-    ifd0.add(50706, _BYTE, [1, 4, 0, 0])
-    ifd0.add(50707, _BYTE, [1, 1, 0, 0])
-    ifd0.add(50708, _ASCII, model_full)
-    ifd0.add(50710, _BYTE, [0, 1, 2])
-    ifd0.add(50711, _SHORT, 1)
-    ifd0.add(50713, _SHORT, [1, 1])
-    ifd0.add(50714, _RATIONAL, [_rational(black_level, 1000)])
-    ifd0.add(50717, _LONG, int(white_level))
-    ifd0.add(50721, _SRATIONAL, [(1, 1), (0, 1), (0, 1), (0, 1), (1, 1), (0, 1), (0, 1), (0, 1), (1, 1)])
-    ifd0.add(50728, _RATIONAL, [(1, 1), (1, 1), (1, 1)])
-    ifd0.add(50735, _ASCII, serial)
-    ifd0.add(50778, _SHORT, 21)
-
-    exif = _IFD()
-    exif.add(33434, _RATIONAL, [exp])
-    exif.add(33437, _RATIONAL, [fnum])
-    exif.add(34855, _SHORT, min(int(iso), 65535))
-    exif.add(36864, _UNDEFINED, list(b"0230"))
-    exif.add(36867, _ASCII, ts)
-    exif.add(36868, _ASCII, ts)
-
-    # Layout: header (8) | IFD0 | EXIF IFD | image data (2-byte aligned).
-    ifd0_off = 8
-    exif_off = ifd0_off + ifd0.size()
-    exif_off += exif_off & 1
-    data_off = exif_off + exif.size()
-    data_off += data_off & 1
-    ifd0.add(34665, _LONG, exif_off)
-    ifd0.add(273, _LONG, data_off)
-    out = bytearray(b"II*\0" + struct.pack("<I", ifd0_off))
-    out += ifd0.encode(ifd0_off)
-    out += b"\0" * (exif_off - len(out))
-    out += exif.encode(exif_off)
-    out += b"\0" * (data_off - len(out))
-    fileobj.write(bytes(out))
+    _image_tags(ifd0, h, w, cfa)
+    _camera_tags(ifd0, cap, make, model, software, description)
+    _dng_tags(ifd0, f"{make} {model}", serial, black_level, white_level)
+    fileobj.write(_layout(ifd0, _exif_ifd(cap)))
     fileobj.write(mosaic.astype("<u2", copy=False).tobytes())

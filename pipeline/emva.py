@@ -2,13 +2,14 @@
 
 Each stage is a separate, testable function, as in the EMVA 1288 reference implementation:
 
-1. parse: :func:`pipeline.io.read_emva_descriptor` (descriptor -> steps and image paths);
+1. parse: :func:`hdrcap.pipeline.io.read_emva_descriptor` (descriptor -> steps and image paths);
 2. data: :func:`emva_data` streams the images once and reduces them to numbers (temporal
    pair statistics per exposure time, spatial sums of the non-uniformity stacks);
 3. results: :func:`emva_results` computes the EMVA 1288 (Release 3.x) quantities: system
    gain K by the photon-transfer regression over 0-70 % of saturation, temporal dark noise,
    dark current, saturation, PRNU and DSNU;
-4. :func:`emva_calibration` turns them into a :class:`pipeline.params.Calibration`.
+4. :func:`emva_calibration` turns them into a :class:`hdrcap.pipeline.params.Calibration`;
+   :func:`calibrate_descriptor` runs the four stages on a descriptor file.
 
 Temporal steps are those with exactly two images (one pair); steps with more images are the
 spatial (non-uniformity) stacks. Like the standard, no outlier clipping is applied here.
@@ -17,17 +18,23 @@ Units: DN, DN^2, seconds, electrons; K in DN per electron.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from .calibration import PhotonTransferFit, fit_dark_current, pair_statistics, photon_transfer_gain
+from .calibration.dark import fit_dark_current
+from .calibration.gain import PhotonTransferFit, photon_transfer_gain
+from .calibration.stats import pair_statistics
 from .errors import InputError
-from .io import EmvaDataset, read_image16
+from .io import EmvaDataset, read_emva_descriptor, read_image16
 from .params import Calibration, SensorParams
+from .times import ExposureMap, unique_exposures
 
-__all__ = ["EmvaData", "EmvaResults", "emva_data", "emva_results", "emva_calibration", "QUANTISATION_VARIANCE"]
+__all__ = ["EmvaData", "EmvaResults", "emva_data", "emva_results", "emva_calibration", "calibrate_descriptor",
+           "QUANTISATION_VARIANCE"]
 
 #: Variance of a uniform quantiser with a 1 DN step, DN^2.
 QUANTISATION_VARIANCE = 1.0 / 12.0
@@ -89,63 +96,125 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
 
     Memory: a few float64 maps (per-pixel sums for the spatial stacks and the per-pixel dark
     regression), independent of the number of images.
+
+    Parameters
+    ----------
+    dataset : EmvaDataset
+        The parsed descriptor (steps with exposure times in s and image paths).
+    progress : callable, optional
+        Called with the number of images read after each step or image.
+
+    Returns
+    -------
+    EmvaData
+        Pair means (DN) and variances (DN^2) per exposure time, the non-uniformity sums and
+        the per-pixel dark slope (DN/s).
+
+    Raises
+    ------
+    InputError
+        A step with fewer than two images, duplicate steps, an exposure time without its
+        dark or bright pair, fewer than three temporal steps, or an image of the wrong size.
     """
     shape = (dataset.height, dataset.width)
-    temporal: dict[float, dict[str, Any]] = {}
+    temporal: ExposureMap[dict[str, Any]] = ExposureMap()
     spatial: dict[str, Any] = {}
+    dark = _DarkSums(shape)
     n_img = 0
-    # per-pixel dark regression sums over the temporal dark pairs
-    sy = sty = None
-    sn = st = stt = 0.0
     for step in dataset.steps:
         if len(step.images) < 2:
             raise InputError(f"{dataset.path}: step {step.kind} {step.exposure_time * 1e9:g} ns has "
                              f"{len(step.images)} image(s); every step needs at least two")
-        t = step.exposure_time
         if len(step.images) == 2:
-            a, b = (_read(p, shape) for p in step.images)
+            _add_pair(dataset, step, shape, temporal, dark)
             n_img += 2
-            ps = pair_statistics(a, b, clip=None, exposure_time=t)
-            entry = temporal.setdefault(t, {})
-            if step.kind in entry:
-                raise InputError(f"{dataset.path}: two {step.kind} pairs at {t * 1e9:g} ns")
-            entry[step.kind] = ps
-            if step.kind == "b":
-                entry["photons"] = step.photons if step.photons is not None else float("nan")
-            else:
-                m = 0.5 * (a.astype(np.float64) + b)
-                if sy is None:
-                    sy = np.zeros(shape)
-                    sty = np.zeros(shape)
-                sy += m
-                sty += t * m
-                sn += 1
-                st += t
-                stt += t * t
+            if progress:
+                progress(2)
         else:
             key = "bright" if step.kind == "b" else "dark"
             if key in spatial:
                 raise InputError(f"{dataset.path}: more than one {key} non-uniformity stack")
-            s = np.zeros(shape)
-            q = np.zeros(shape)
-            ref = None
-            for p in step.images:
-                x = _read(p, shape).astype(np.float64)
-                n_img += 1
-                if ref is None:
-                    ref = x.copy()
-                x -= ref
-                s += x
-                q += x * x
-                if progress:
-                    progress(1)
-            L = len(step.images)
-            mean_map = s / L + ref
-            var_map = (q - s * s / L) / (L - 1)
-            spatial[key] = {"L": L, "texp": t, "mean_map": mean_map, "var_map": var_map,
-                            "photons": step.photons}
-        if progress and len(step.images) == 2:
-            progress(2)
+            spatial[key] = _stack(step, shape, progress)
+            n_img += len(step.images)
+    times = _temporal_times(dataset, temporal)
+
+    def arr(kind, attr):
+        return np.array([getattr(temporal[t][kind], attr) if attr != "mean" else temporal[t][kind].mean
+                         for t in times])
+
+    return EmvaData(
+        texp=np.array(times), photons=np.array([temporal[t].get("photons", np.nan) for t in times], float),
+        u_y=arr("b", "mean"), s2_y=arr("b", "variance"), u_ydark=arr("d", "mean"), s2_ydark=arr("d", "variance"),
+        s2_y_stderr=arr("b", "variance_stderr"), s2_ydark_stderr=arr("d", "variance_stderr"),
+        spatial=_spatial_summary(spatial), dark_slope_map=dark.slope_map(), bits=dataset.bits, width=dataset.width,
+        height=dataset.height, n_images=n_img,
+    )
+
+
+class _DarkSums:
+    """Per-pixel straight-line regression sums of the dark pairs' mean against time."""
+
+    def __init__(self, shape: tuple[int, int]) -> None:
+        self.shape = shape
+        self.sy = self.sty = None
+        self.sn = self.st = self.stt = 0.0
+
+    def add(self, m: np.ndarray, t: float) -> None:
+        if self.sy is None:
+            self.sy = np.zeros(self.shape)
+            self.sty = np.zeros(self.shape)
+        self.sy += m
+        self.sty += t * m
+        self.sn += 1
+        self.st += t
+        self.stt += t * t
+
+    def slope_map(self) -> np.ndarray | None:
+        """Slope per photosite, DN/s (float32), or None with fewer than 3 dark pairs."""
+        if self.sy is None or self.sn < 3:
+            return None
+        return ((self.sn * self.sty - self.st * self.sy) / (self.sn * self.stt - self.st * self.st)).astype(np.float32)
+
+
+def _add_pair(dataset: EmvaDataset, step: Any, shape: tuple[int, int], temporal: ExposureMap,
+              dark: _DarkSums) -> None:
+    """Pair statistics of a temporal step (no clipping, as the standard); dark pairs also
+    feed the per-pixel dark regression."""
+    t = step.exposure_time
+    a, b = (_read(p, shape) for p in step.images)
+    ps = pair_statistics(a, b, clip=None, exposure_time=t)
+    entry = temporal.setdefault(t, {})
+    if step.kind in entry:
+        raise InputError(f"{dataset.path}: two {step.kind} pairs at {t * 1e9:g} ns")
+    entry[step.kind] = ps
+    if step.kind == "b":
+        entry["photons"] = step.photons if step.photons is not None else float("nan")
+    else:
+        dark.add(0.5 * (a.astype(np.float64) + b), t)
+
+
+def _stack(step: Any, shape: tuple[int, int], progress: Callable[[int], Any] | None) -> dict[str, Any]:
+    """Per-pixel mean (DN) and temporal variance (DN^2) of a non-uniformity stack."""
+    s = np.zeros(shape)
+    q = np.zeros(shape)
+    ref = None
+    for p in step.images:
+        x = _read(p, shape).astype(np.float64)
+        if ref is None:
+            ref = x.copy()
+        x -= ref
+        s += x
+        q += x * x
+        if progress:
+            progress(1)
+    L = len(step.images)
+    mean_map = s / L + ref
+    var_map = (q - s * s / L) / (L - 1)
+    return {"L": L, "texp": step.exposure_time, "mean_map": mean_map, "var_map": var_map, "photons": step.photons}
+
+
+def _temporal_times(dataset: EmvaDataset, temporal: ExposureMap) -> list[float]:
+    """The exposure times with both a bright and a dark pair, s, ascending (>= 3 of them)."""
     times = sorted(t for t, e in temporal.items() if "b" in e and "d" in e)
     missing = [t for t, e in temporal.items() if not ("b" in e and "d" in e)]
     if missing:
@@ -153,6 +222,11 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
                          f"{'dark' if 'b' in temporal[missing[0]] else 'bright'} pair")
     if len(times) < 3:
         raise InputError(f"{dataset.path}: {len(times)} temporal steps; the photon-transfer method needs >= 3")
+    return times
+
+
+def _spatial_summary(spatial: dict[str, Any]) -> dict[str, Any]:
+    """Spatial means and variances of the bright and dark stacks (both needed), DN, DN^2."""
     sp: dict[str, Any] = {}
     if "bright" in spatial and "dark" in spatial:
         for key, suffix in (("bright", ""), ("dark", "_dark")):
@@ -165,21 +239,7 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
             sp["mean_map" + suffix] = d["mean_map"]
             sp["var_map" + suffix] = d["var_map"]
         sp["photons"] = spatial["bright"]["photons"]
-    dark_slope = None
-    if sy is not None and sn >= 3:
-        dark_slope = ((sn * sty - st * sy) / (sn * stt - st * st)).astype(np.float32)
-
-    def arr(kind, attr):
-        return np.array([getattr(temporal[t][kind], attr) if attr != "mean" else temporal[t][kind].mean
-                         for t in times])
-
-    return EmvaData(
-        texp=np.array(times), photons=np.array([temporal[t].get("photons", np.nan) for t in times], float),
-        u_y=arr("b", "mean"), s2_y=arr("b", "variance"), u_ydark=arr("d", "mean"), s2_ydark=arr("d", "variance"),
-        s2_y_stderr=arr("b", "variance_stderr"), s2_ydark_stderr=arr("d", "variance_stderr"),
-        spatial=sp, dark_slope_map=dark_slope, bits=dataset.bits, width=dataset.width, height=dataset.height,
-        n_images=n_img,
-    )
+    return sp
 
 
 @dataclass
@@ -231,6 +291,13 @@ class EmvaResults:
     DSNU1288: float = float("nan")
 
     def to_dict(self) -> dict:
+        """The scalar results and the fit range's first and last step, as plain JSON values.
+
+        Returns
+        -------
+        dict
+            Units as the attributes.
+        """
         out = {k: getattr(self, k) for k in ("K", "K_stderr", "index_u_ysat", "u_y_sat", "sigma_y_dark", "sigma_d",
                                              "u_I_mean", "u_I_mean_stderr", "R", "QE", "u_e_sat", "s2_y",
                                              "s2_y_dark", "PRNU1288", "DSNU1288")}
@@ -240,7 +307,20 @@ class EmvaResults:
 
 
 def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
-    """Compute the EMVA 1288 results from reduced data."""
+    """Compute the EMVA 1288 results from reduced data (the "results" stage).
+
+    Parameters
+    ----------
+    data : EmvaData
+        Output of :func:`emva_data`.
+    fit_fraction : float
+        Upper end of the photon-transfer fit range, fraction of saturation (0.7 in EMVA 1288).
+
+    Returns
+    -------
+    EmvaResults
+        K (DN/e-), dark noise (DN, e-), dark current (e-/s), saturation, PRNU (%), DSNU (e-).
+    """
     x = data.u_y - data.u_ydark
     y = data.s2_y - data.s2_ydark
     isat = int(np.argmax(data.s2_y))
@@ -250,14 +330,15 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
                                np.hypot(data.s2_y_stderr, data.s2_ydark_stderr))
     K = ptc.g
     # dark noise: extrapolate the dark variance to t = 0 when several times exist
-    if np.unique(data.texp).size >= 3:
+    n_times = len(unique_exposures(data.texp))
+    if n_times >= 3:
         slope, intercept = np.polyfit(data.texp, data.s2_ydark, 1)
         s2_dark0 = float(intercept)
     else:
         s2_dark0 = float(data.s2_ydark[0])
     sigma_y_dark = float(np.sqrt(max(s2_dark0, QUANTISATION_VARIANCE)))
     sigma_d = float(np.sqrt(max(s2_dark0 - QUANTISATION_VARIANCE, 0.0)) / K)
-    if np.unique(data.texp).size >= 6:
+    if n_times >= 6:
         df = fit_dark_current(data.texp, data.u_ydark)
         u_I, u_I_se = df.slope / K, df.slope_stderr / K
     else:
@@ -285,7 +366,7 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
 
 
 def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "frame",
-                     provenance: dict | None = None) -> Calibration:
+                     provenance: Mapping[str, Any] | None = None) -> Calibration:
     """The camera model of an EMVA 1288 data set as a :class:`Calibration`.
 
     g = K; mu_R and sigma2_R from the dark pair at the shortest exposure time (pair
@@ -294,6 +375,28 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     criterion (``"emva"``: the mean at the maximum of the temporal variance); the PRNU map
     a_j (Eq. 14) from the non-uniformity stacks (bright minus dark, normalised to mean 1) with
     its standard error; the dark-current map from the per-pixel dark regression.
+
+    Parameters
+    ----------
+    data : EmvaData
+        Output of :func:`emva_data`.
+    results : EmvaResults
+        Output of :func:`emva_results`.
+    saturation : {"frame", "emva"}
+        The v_sat criterion.
+    provenance : mapping, optional
+        Recorded with the result.
+
+    Returns
+    -------
+    Calibration
+        g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), D (e-/s), their standard errors,
+        the PRNU, bias and dark-current maps.
+
+    Raises
+    ------
+    ValueError
+        Unknown ``saturation`` criterion.
     """
     if saturation not in ("frame", "emva"):
         raise ValueError("saturation must be 'frame' or 'emva'")
@@ -325,8 +428,8 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     prov = dict(provenance or {})
     prov["n_frames"] = int(data.n_images)
     prov["prnu_std"] = prnu_std
-    prov["frame_counts"] = {"temporal_pairs": int(2 * data.texp.size), "spatial": int(sp.get("L", 0) + sp.get("L_dark", 0))
-                            if sp else 0}
+    n_spatial = int(sp.get("L", 0) + sp.get("L_dark", 0)) if sp else 0
+    prov["frame_counts"] = {"temporal_pairs": int(2 * data.texp.size), "spatial": n_spatial}
     prov["calibration"] = {
         "gain_method": "EMVA 1288 photon-transfer regression (0-70 % of saturation)",
         "v_sat_method": v_method,
@@ -347,3 +450,31 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     }
     return Calibration(params=params, prnu=prnu, bias_map=bias_map, dark_current_map=dmap, stderr=stderr,
                        provenance=prov, prnu_stderr=prnu_se)
+
+
+def calibrate_descriptor(descriptor: str | os.PathLike[str], saturation: str = "frame",
+                         provenance: Mapping[str, Any] | None = None) -> tuple[Calibration, EmvaResults]:
+    """All four stages on an EMVA 1288 descriptor file: parse, data, results, calibration.
+
+    Parameters
+    ----------
+    descriptor : str or path-like
+        The descriptor (``EMVA1288_Data.txt``); image paths are relative to its folder.
+    saturation : {"frame", "emva"}
+        The v_sat criterion, as in :func:`emva_calibration`.
+    provenance : mapping, optional
+        Recorded with the result (the camera defaults to "EMVA 1288 data set").
+
+    Returns
+    -------
+    calibration : Calibration
+        The camera model (g in DN/e-, mu_R in DN, sigma2_R in DN^2, v_sat in DN, D in e-/s).
+    results : EmvaResults
+        The EMVA 1288 quantities.
+    """
+    data = emva_data(read_emva_descriptor(descriptor))
+    results = emva_results(data)
+    prov = dict(provenance or {})
+    prov.setdefault("camera", "EMVA 1288 data set")
+    prov["source"] = f"EMVA 1288 descriptor {descriptor}"
+    return emva_calibration(data, results, saturation=saturation, provenance=prov), results

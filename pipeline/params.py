@@ -2,7 +2,7 @@
 
 Both ``pipeline`` (the estimator) and ``mock_camera`` (the physics) read these types; the
 simulator adds its own physical details (full well, hot pixels, temperature) on top.
-Units follow DESIGN.md: X in electrons per second per photosite, t in seconds, raw values
+Units: X in electrons per second per photosite, t in seconds, raw values
 in DN, g in DN per electron, sigma2_R in DN^2 (quantisation included), D in electrons per
 second.
 """
@@ -69,10 +69,26 @@ class SensorParams:
             )
 
     def replace(self, **changes: Any) -> "SensorParams":
-        """Return a copy with some fields changed."""
+        """A copy with some fields changed.
+
+        Parameters
+        ----------
+        **changes
+            Field names and new values (same units as the fields).
+
+        Returns
+        -------
+        SensorParams
+        """
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields as a JSON-ready dict (units as the fields).
+
+        Returns
+        -------
+        dict
+        """
         return dataclasses.asdict(self)
 
 
@@ -117,4 +133,15 @@ class Calibration:
     saturation_map: np.ndarray | None = None
 
     def replace(self, **changes: Any) -> "Calibration":
+        """A copy with some fields changed.
+
+        Parameters
+        ----------
+        **changes
+            Field names and new values.
+
+        Returns
+        -------
+        Calibration
+        """
         return dataclasses.replace(self, **changes)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ from hdrcap.acquire.camera import (
     nearest_allowed,
     parse_exposure_label,
 )
-from hdrcap.mock_camera.camera import STANDARD_TIMES, MockCamera, MockFaults
+from hdrcap.mock_camera.camera import MockCamera, MockFaults
 
 
 @pytest.mark.parametrize(
@@ -138,3 +137,18 @@ def test_mock_camera_bad_files_do_not_open(tmp_path, fault):
     res = cam.capture(tmp_path / "a.dng")  # reported as a success, as real transfers do
     with pytest.raises(InputError):
         read_frame(res.path)
+
+
+def test_mock_camera_shares_the_camera_types(tmp_path):
+    """The simulator raises and returns the classes the real camera uses (one set of types)."""
+    from hdrcap.acquire.camera import CameraDisconnectedError, CameraError, CameraIdentity, CaptureResult
+
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(busy_first=1, disconnect_rate=1.0))
+    assert isinstance(cam.identity, CameraIdentity) and cam.identity.backend == "mock"
+    with pytest.raises(CameraBusyError):
+        cam.capture(tmp_path / "a.dng")
+    with pytest.raises(CameraDisconnectedError) as e:
+        cam.capture(tmp_path / "b.dng")
+    assert isinstance(e.value, CameraError) and e.value.camera_fault == "reconnect"
+    ok = MockCamera("camera-B", _scene(), seed=1)
+    assert isinstance(ok.capture(tmp_path / "c.dng"), CaptureResult)

@@ -11,129 +11,48 @@ import click
 from hdrcap.acquire.cliutil import echo_json, many_values
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 
-
-class _LazyFrames:
-    """Iterate over frame files, reading one at a time (memory-bounded streaming)."""
-
-    def __init__(self, paths, times, meta: dict):
-        self.paths = list(paths)
-        self.times = list(times) if times else [None] * len(self.paths)
-        self.meta = meta
-
-    def __iter__(self):
-        from hdrcap.pipeline.io import read_frame
-
-        for p, t in zip(self.paths, self.times):
-            fr = read_frame(p, t)
-            m = self.meta
-            m.setdefault("camera", fr.camera)
-            m.setdefault("iso", fr.iso)
-            m.setdefault("white_level", fr.white_level)
-            if fr.timestamp:
-                m["first_timestamp"] = min(m.get("first_timestamp") or fr.timestamp, fr.timestamp)
-                m["last_timestamp"] = max(m.get("last_timestamp") or fr.timestamp, fr.timestamp)
-            yield fr
-
-
-def _check_paths(paths, what):
-    seen = {}
-    for p in paths:
-        key = str(Path(p).resolve())
-        if key in seen:
-            raise InputError(f"{p}: the same {what} file is given twice")
-        seen[key] = p
-        if not Path(p).exists():
-            raise InputError(f"{p}: no such {what} file")
-
-
-def run_frames(bias, saturation, flat, dark, times, clip, gain_method, white_level, provenance, dark_library,
-               force):
-    from hdrcap.pipeline.calibration import calibrate
-
-    groups = {"bias": list(bias), "saturation": list(saturation), "flat": list(flat), "dark": list(dark)}
-    for what, paths in groups.items():
-        _check_paths(paths, what)
-    total = sum(len(v) for v in groups.values())
-    if times:
-        if len(times) != total:
-            raise InputError(f"--times gives {len(times)} exposure times for {total} frames "
-                             "(one per frame, in the order bias, saturation, flat, dark)")
-    tl = list(times) if times else None
-    split, i = {}, 0
-    for what, paths in groups.items():
-        split[what] = tl[i:i + len(paths)] if tl else None
-        i += len(paths)
-    if split["dark"]:  # darks are streamed one exposure time after the other
-        order = sorted(range(len(groups["dark"])), key=lambda k: split["dark"][k])
-        groups["dark"] = [groups["dark"][k] for k in order]
-        split["dark"] = [split["dark"][k] for k in order]
-    meta: dict = {}
-    lazy = {w: _LazyFrames(groups[w], split[w], meta) if groups[w] else None for w in groups}
-    sink = None
-    if dark_library is not None:
-        from hdrcap.pipeline.darklibrary import DarkLibrary
-
-        lib = DarkLibrary(dark_library)
-
-        def sink(master):
-            lib.add(master.data, master.n_frames, camera=str(meta.get("camera") or provenance.get("camera") or "unknown"),
-                    iso=meta.get("iso"), exposure_time=master.exposure_time,
-                    temperature=provenance.get("temperature"), force=force,
-                    created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-
-    if lazy["bias"] is None:
-        raise InputError("no bias frames given (--bias)")
-    calib = calibrate(lazy["bias"], lazy["saturation"], lazy["flat"], lazy["dark"], clip=clip,
-                      gain_method=gain_method, white_level=white_level, dark_sink=sink, provenance=provenance)
-    prov = dict(calib.provenance)
-    for key in ("camera", "iso", "first_timestamp", "last_timestamp"):
-        if meta.get(key) is not None and not prov.get(key):
-            prov[key] = meta[key]
-    prov["files"] = {w: [str(p) for p in v] for w, v in groups.items() if v}
-    wl = white_level or meta.get("white_level")
-    params = calib.params
-    if wl and wl >= params.v_sat:
-        params = params.replace(white_level=float(wl))
-    if prov.get("camera") and not params.name:
-        params = params.replace(name=str(prov["camera"]))
-    return calib.replace(provenance=prov, params=params, dark_library=None if dark_library is None else str(dark_library))
-
-
-def run_emva(descriptor, saturation_criterion, provenance):
-    from hdrcap.pipeline.emva import emva_calibration, emva_data, emva_results
-    from hdrcap.pipeline.io import read_emva_descriptor
-
-    ds = read_emva_descriptor(descriptor)
-    data = emva_data(ds)
-    res = emva_results(data)
-    prov = dict(provenance)
-    prov.setdefault("camera", "EMVA 1288 data set")
-    prov["source"] = f"EMVA 1288 descriptor {descriptor}"
-    return emva_calibration(data, res, saturation=saturation_criterion, provenance=prov), res
+_FILE = click.Path(dir_okay=False, path_type=Path)
+_FOLDER = click.Path(file_okay=False, path_type=Path)
+_FRAMES = click.Path(path_type=Path)
 
 
 @many_values("--bias", "--saturation", "--flat", "--dark", "--times")
 @click.command("calibrate", short_help="Calibrate the camera noise model from bias, saturation, flat and dark frames.")
-@click.option("--bias", multiple=True, type=click.Path(path_type=Path), help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.")
-@click.option("--saturation", multiple=True, type=click.Path(path_type=Path), help="Saturation frame(s): every photosite at full well.")
-@click.option("--flat", multiple=True, type=click.Path(path_type=Path), help="Flat fields; consecutive frames at the same exposure time form pairs (gain). Pairs at >= 3 levels give the photon-transfer regression.")
-@click.option("--dark", multiple=True, type=click.Path(path_type=Path), help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.")
-@click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; needed for PNG/TIFF frames, override EXIF.")
-@click.option("--emva", "emva", type=click.Path(dir_okay=False, path_type=Path), help="EMVA 1288 descriptor file (EMVA1288_Data.txt) instead of frame lists.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Calibration file to write (.npz format, any name).")
-@click.option("--force", is_flag=True, help="Overwrite an existing output file (and report plots, dark-library entries).")
+@click.option("--bias", multiple=True, type=_FRAMES,
+              help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.")
+@click.option("--saturation", multiple=True, type=_FRAMES, help="Saturation frame(s): every photosite at full well.")
+@click.option("--flat", multiple=True, type=_FRAMES,
+              help="Flat fields; consecutive frames at the same exposure time form pairs (gain). "
+                   "Pairs at >= 3 levels give the photon-transfer regression.")
+@click.option("--dark", multiple=True, type=_FRAMES,
+              help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.")
+@click.option("--times", multiple=True, type=float,
+              help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; "
+                   "needed for PNG/TIFF frames, override EXIF.")
+@click.option("--emva", "emva", type=_FILE,
+              help="EMVA 1288 descriptor file (EMVA1288_Data.txt) instead of frame lists.")
+@click.option("-o", "--output", type=_FILE, required=True, help="Calibration file to write (.npz format, any name).")
+@click.option("--force", is_flag=True,
+              help="Overwrite an existing output file (and report plots, dark-library entries).")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-@click.option("--report", type=click.Path(file_okay=False, path_type=Path), help="Folder for PNG plots: photon transfer, PRNU histogram and map, dark-current fit.")
-@click.option("--dark-library", type=click.Path(file_okay=False, path_type=Path), help="Store the master darks (with their frame count) in this dark-library folder.")
-@click.option("--gain-method", type=click.Choice(["auto", "pairs", "ptc"]), default="auto", show_default=True, help="ptc: EMVA 1288 regression; pairs: Eq. 16 average; auto: ptc when >= 3 levels.")
-@click.option("--clip", type=float, default=5.0, show_default=True, help="Sigma-clipping threshold for hot pixels and cosmic rays.")
+@click.option("--report", type=_FOLDER,
+              help="Folder for PNG plots: photon transfer, PRNU histogram and map, dark-current fit.")
+@click.option("--dark-library", type=_FOLDER,
+              help="Store the master darks (with their frame count) in this dark-library folder.")
+@click.option("--gain-method", type=click.Choice(["auto", "pairs", "ptc"]), default="auto", show_default=True,
+              help="ptc: EMVA 1288 regression; pairs: Eq. 16 average; auto: ptc when >= 3 levels.")
+@click.option("--clip", type=float, default=5.0, show_default=True,
+              help="Sigma-clipping threshold for hot pixels and cosmic rays.")
 @click.option("--no-clip", is_flag=True, help="Disable all outlier rejection (for comparison only).")
-@click.option("--saturation-criterion", type=click.Choice(["frame", "emva"]), default="frame", show_default=True, help="For --emva: v_sat as mean - 3 std of the brightest frames (Sec. 6) or the EMVA 1288 saturation point.")
+@click.option("--saturation-criterion", type=click.Choice(["frame", "emva"]), default="frame", show_default=True,
+              help="For --emva: v_sat as mean - 3 std of the brightest frames (Sec. 6) "
+                   "or the EMVA 1288 saturation point.")
 @click.option("--white-level", type=float, help="ADC white level, DN (default: from the raw files).")
 @click.option("--camera-name", help="Camera model for the provenance (default: from the files).")
 @click.option("--serial", help="Camera serial number for the provenance.")
 @click.option("--iso", type=float, help="ISO for the provenance (default: from EXIF).")
-@click.option("--temperature", type=float, help="Sensor temperature, degrees C, for the provenance and the dark library.")
+@click.option("--temperature", type=float,
+              help="Sensor temperature, degrees C, for the provenance and the dark library.")
 def command(bias, saturation, flat, dark, times, emva, output, force, as_json, report, dark_library, gain_method,
             clip, no_clip, saturation_criterion, white_level, camera_name, serial, iso, temperature):
     """Calibrate the camera noise model (Sec. 6 of the paper, EMVA 1288) into a calibration file.
@@ -144,7 +63,7 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     Or from an EMVA 1288 data set with --emva. Every estimate carries its standard error.
     """
     from hdrcap import __version__
-    from hdrcap.pipeline.calibration import calibration_summary, save_calibration
+    from hdrcap.pipeline.calibration import calibrate_files, calibration_summary, format_summary, save_calibration
 
     t0 = time.perf_counter()
     prov = {"hdrcap_version": __version__,
@@ -158,28 +77,22 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     if emva is not None:
         if bias or saturation or flat or dark:
             raise InputError("give either --emva or frame lists (--bias/--saturation/--flat/--dark), not both")
-        calib, emva_res = run_emva(emva, saturation_criterion, prov)
+        from hdrcap.pipeline.emva import calibrate_descriptor
+
+        calib, emva_res = calibrate_descriptor(emva, saturation_criterion, prov)
     else:
-        calib = run_frames(bias, saturation, flat, dark, times, None if no_clip else clip, gain_method,
-                           white_level, prov, dark_library, force)
+        calib = calibrate_files(bias, saturation, flat, dark, times, clip=None if no_clip else clip,
+                                gain_method=gain_method, white_level=white_level, provenance=prov,
+                                dark_library=dark_library, force=force)
     save_calibration(output, calib, force=force)
     plots = []
     if report is not None:
         from hdrcap.pipeline.calibration_report import write_report
 
         plots = write_report(calib, report, force=force)
-    summary = calibration_summary(calib)
-    summary["output"] = str(output)
-    summary["seconds"] = round(time.perf_counter() - t0, 3)
-    if emva_res is not None:
-        summary["emva1288"] = emva_res.to_dict()
-    if plots:
-        summary["report"] = [str(p) for p in plots]
+    summary = calibration_summary(calib, output=output, seconds=time.perf_counter() - t0, emva=emva_res, report=plots)
     if as_json:
         echo_json(summary)
     else:
-        s = summary
-        click.echo(f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
-                   f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-                   f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
-        click.echo(f"wrote {output} ({s['n_frames']} frames, {s['seconds']:.1f} s)")
+        click.echo(format_summary(summary))
+        click.echo(f"wrote {output} ({summary['n_frames']} frames, {summary['seconds']:.1f} s)")

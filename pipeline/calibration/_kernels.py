@@ -1,13 +1,13 @@
 """Fused numba kernels for the streamed calibration (one pass, no full-size temporaries).
 
-Private to :mod:`pipeline.calibration`; every accumulation is float64.
+Private to :mod:`hdrcap.pipeline.calibration`; every accumulation is float64.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
+from .._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 
 __all__ = ["stack_add", "stack_add_equal", "masked_moments", "pair_keep", "pair_moments"]
 

@@ -1,0 +1,81 @@
+"""Camera calibration (Sec. 6 of the paper, with the EMVA 1288 photon-transfer method).
+
+Estimators for the noise model of :mod:`hdrcap.pipeline.params` from bias, saturation,
+flat-field and dark frames, each with its standard error, plus the calibration file:
+
+* readout noise mu_R, sigma2_R from bias frames; sigma2_R from the difference of two frames so
+  that the fixed pattern (DSNU) cancels; a per-photosite offset map from several frames;
+* saturation limit v_sat = mean - 3 std of a saturation frame (Sec. 6);
+* per-photosite gain a_j from dark-corrected flat fields averaged over many frames (Eq. 14);
+* camera gain g from flat pairs (Eq. 16, 17) and from the EMVA 1288 photon-transfer
+  regression of the pair variance on the mean over 0-70 % of saturation;
+* dark current D (mean and per photosite) from dark frames at >= 6 exposure times, and
+  master darks averaged over N frames.
+
+Frames are streamed: every estimator takes an iterable and holds at most a few float64 maps
+(sums, not frame stacks), so memory does not grow with the number of frames. Units: DN for raw
+values, DN^2 for variances, DN per electron for g, electrons per second for D, seconds for t.
+
+Modules:
+
+* :mod:`.stats` -- sigma-clipped spatial statistics, EMVA 1288 pair variances, the streaming
+  per-photosite stack;
+* :mod:`.frames` -- access to a frame's values, time and name; runs of one exposure time;
+* :mod:`.readout` -- mu_R, sigma2_R and the offset map from bias frames;
+* :mod:`.saturation` -- v_sat from saturation frames;
+* :mod:`.flats` -- the PRNU map (Eq. 14) and the flat pairs;
+* :mod:`.gain` -- g from pairs (Eq. 16, 17) and by the photon-transfer regression;
+* :mod:`.dark` -- master darks and the dark current;
+* :mod:`.workflow` -- :func:`calibrate`, the steps in order, and the summary;
+* :mod:`.files` -- :func:`calibrate_files`, the calibration of frame files (``hdrcap calibrate``);
+* :mod:`.archive` -- the calibration file (:func:`save_calibration`, :func:`load_calibration`).
+"""
+
+from __future__ import annotations
+
+from .archive import FORMAT, FORMAT_VERSION, load_calibration, save_calibration
+from .dark import DarkFit, MasterDark, fit_dark_current
+from .files import calibrate_files
+from .flats import FlatResult, estimate_flats
+from .gain import (
+    PhotonTransferFit,
+    gain_from_pair,
+    gain_from_pairs,
+    photon_transfer_gain,
+    prnu_correction_factor,
+)
+from .readout import ReadoutEstimate, estimate_readout
+from .saturation import estimate_saturation
+from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
+from .workflow import GAIN_METHODS, calibrate, calibration_summary, format_summary, with_file_metadata
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "DEFAULT_CLIP",
+    "GAIN_METHODS",
+    "robust_mean_std",
+    "PairStats",
+    "pair_statistics",
+    "PixelStack",
+    "ReadoutEstimate",
+    "estimate_readout",
+    "estimate_saturation",
+    "gain_from_pair",
+    "gain_from_pairs",
+    "PhotonTransferFit",
+    "photon_transfer_gain",
+    "prnu_correction_factor",
+    "DarkFit",
+    "fit_dark_current",
+    "MasterDark",
+    "FlatResult",
+    "estimate_flats",
+    "calibrate",
+    "calibrate_files",
+    "with_file_metadata",
+    "save_calibration",
+    "load_calibration",
+    "calibration_summary",
+    "format_summary",
+]

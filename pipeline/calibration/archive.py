@@ -1,0 +1,169 @@
+"""The calibration file: a compressed NumPy archive of float32 maps and JSON metadata.
+
+Format (docs/calibration.md): a ``.npz`` archive with the maps ``prnu``, ``prnu_stderr``,
+``bias_map``, ``dark_current_map``, ``saturation_map`` (each optional) and a ``metadata``
+entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``, ``stderr``,
+``provenance``, ``maps``, ``dark_library``.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import atomic_output
+from ..params import Calibration, SensorParams
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]
+
+#: Identifier and version of the calibration file format (see docs/calibration.md).
+FORMAT = "hdrcap-calibration"
+FORMAT_VERSION = 1
+
+_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "dark_current_map", "saturation_map")
+
+
+def _jsonable(obj):
+    """JSON form of the numpy scalars, arrays and paths found in the provenance."""
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot store {type(obj).__name__} in calibration metadata")
+
+
+def save_calibration(path: str | os.PathLike[str], calibration: Calibration, force: bool = False) -> Path:
+    """Write ``calibration`` to ``path`` atomically (never overwriting without ``force``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Output file (any name; the format is described in the module docstring).
+    calibration : Calibration
+        The camera model: scalars in DN, DN^2, DN/e-, e-/s; float32 maps of one shape.
+    force : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` exists and ``force`` is not given.
+    ValueError
+        Maps of different shapes.
+    """
+    from hdrcap import __version__
+
+    arrays = {}
+    shape = None
+    for name in _MAP_FIELDS:
+        arr = getattr(calibration, name, None)
+        if arr is None:
+            continue
+        arr = np.ascontiguousarray(arr, dtype=np.float32)
+        if shape is not None and arr.shape != shape:
+            raise ValueError(f"calibration map {name} has shape {arr.shape}, expected {shape}")
+        shape = arr.shape
+        arrays[name] = arr
+    prov = dict(calibration.provenance)
+    prov.setdefault("hdrcap_version", __version__)
+    meta = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "shape": list(shape) if shape else None,
+        "params": calibration.params.to_dict(),
+        "stderr": dict(calibration.stderr),
+        "provenance": prov,
+        "maps": sorted(arrays),
+        "dark_library": getattr(calibration, "dark_library", None),
+    }
+    text = json.dumps(meta, sort_keys=True, default=_jsonable, allow_nan=True)
+    arrays["metadata"] = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+    path = Path(path)
+    with atomic_output(path, force=force, suffix=".tmp") as tmp:
+        buf = _io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        tmp.write_bytes(buf.getvalue())
+    return path
+
+
+def load_calibration(path: str | os.PathLike[str]) -> Calibration:
+    """Read a calibration file written by :func:`save_calibration`.
+
+    Checks the format name, the version (files of a newer major version are refused) and that
+    every map has the recorded shape.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The calibration file.
+
+    Returns
+    -------
+    Calibration
+        Scalars g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), D (e-/s), their standard
+        errors, the maps and the provenance.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, not a calibration file, unsupported version, bad shape.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such calibration file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a calibration file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "metadata" not in z.files:
+                raise InputError(f"{path}: not an hdrcap calibration file (no metadata entry)")
+            meta = json.loads(bytes(z["metadata"]).decode("utf-8"))
+            maps = {name: z[name] for name in _MAP_FIELDS if name in z.files}
+    except InputError:
+        raise
+    except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError) as err:
+        raise InputError(f"{path}: not a readable hdrcap calibration file ({type(err).__name__})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"{path}: not an hdrcap calibration file (format {meta.get('format')!r})"
+                         if isinstance(meta, dict) else f"{path}: not an hdrcap calibration file")
+    version = meta.get("version")
+    if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
+        raise InputError(f"{path}: calibration format version {version!r} is not supported "
+                         f"(this hdrcap reads versions 1..{FORMAT_VERSION})")
+    shape = tuple(meta["shape"]) if meta.get("shape") else None
+    for name, arr in maps.items():
+        if arr.ndim != 2 or (shape is not None and arr.shape != shape):
+            raise InputError(f"{path}: map {name} has shape {arr.shape}, the file says {shape}")
+        if not np.all(np.isfinite(arr)):
+            raise InputError(f"{path}: map {name} holds NaN or infinite values")
+    try:
+        params = SensorParams(**meta["params"])
+    except (TypeError, ValueError, KeyError) as err:
+        raise InputError(f"{path}: bad camera parameters ({err})") from None
+    if "prnu" in maps and not np.all(maps["prnu"] > 0):
+        raise InputError(f"{path}: PRNU map has non-positive gains")
+    return Calibration(
+        params=params,
+        prnu=maps.get("prnu"),
+        bias_map=maps.get("bias_map"),
+        dark_current_map=maps.get("dark_current_map"),
+        stderr={k: float(v) for k, v in (meta.get("stderr") or {}).items() if v is not None},
+        provenance=dict(meta.get("provenance") or {}),
+        prnu_stderr=maps.get("prnu_stderr"),
+        saturation_map=maps.get("saturation_map"),
+        dark_library=meta.get("dark_library"),
+    )

@@ -1,0 +1,177 @@
+"""Flat fields: the per-photosite gain map a_j (PRNU, Eq. 14) and the flat pairs for the gain.
+
+Each flat is dark-corrected, normalised by its clipped spatial mean and accumulated with a
+weight proportional to its level; consecutive flats of one exposure time form the pairs of
+Eq. 16 and of the photon-transfer regression. Units: DN, DN/s, s; a_j is dimensionless.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ..times import same_exposure
+from .frames import check_shape, frame_data, frame_name, frame_time
+from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
+
+__all__ = ["FlatResult", "estimate_flats"]
+
+
+@dataclass
+class FlatResult:
+    """Everything the flat fields give: PRNU map (Eq. 14), pairs for the gain.
+
+    Attributes
+    ----------
+    prnu : numpy.ndarray (float32)
+        a_j, mean 1.
+    prnu_stderr : numpy.ndarray (float32)
+        Estimated standard error of each a_j (scatter of the frames, floored by the median).
+    prnu_std : float
+        Spatial standard deviation of a_j after removing the estimation noise.
+    pairs : list of PairStats
+        Consecutive frames with the same exposure time.
+    levels : list of (time, level above dark in DN, name)
+    n_frames, n_prnu_frames, n_rejected : int
+    mean_level : float
+        Mean level above dark of the frames in the PRNU map, DN.
+    """
+
+    prnu: np.ndarray
+    prnu_stderr: np.ndarray | None
+    prnu_std: float
+    pairs: list
+    levels: list
+    n_frames: int
+    n_prnu_frames: int
+    n_rejected: int
+    mean_level: float = float("nan")
+
+
+def _check_not_saturated(data: np.ndarray, v_sat: float, name: str) -> None:
+    """Refuse a flat with more than 1 % of its photosites at or above ``v_sat`` (DN)."""
+    sat_frac = float(np.count_nonzero(data >= v_sat)) / data.size
+    if sat_frac > 1e-2:
+        raise InputError(f"{name}: flat field is saturated ({100 * sat_frac:.1f} % of photosites at or above "
+                         f"v_sat = {v_sat:.1f} DN); lower the exposure")
+
+
+def _dark_corrected(data: np.ndarray, dark_reference, dark_rate_map: np.ndarray | None, t: float) -> np.ndarray:
+    """The flat minus its dark signal: the bias (map or level, DN) plus the dark rate (DN/s)
+    times ``t`` (s); float32 (an image; the stack accumulates in float64)."""
+    corr = data.astype(np.float32)
+    corr -= dark_reference
+    if dark_rate_map is not None and t > 0:
+        corr -= dark_rate_map * t
+    return corr
+
+
+def _prnu_weight(level: float) -> float:
+    """Weight of a flat at ``level`` DN: ~ level (inverse relative shot-noise variance),
+    quantised to 1/16 octave so that flats at one level share one weight (no weight maps)."""
+    return float(2.0 ** (np.round(np.log2(level) * 16) / 16))
+
+
+def _prnu_map(mean_map: np.ndarray, err_map: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """Eq. 14: the clipped weighted mean of the normalised flats renormalised to mean 1 (in
+    place), its standard-error map, and the PRNU spread without the estimation noise."""
+    norm = float(mean_map.mean())
+    mean_map /= np.float32(norm)
+    prnu = mean_map
+    if err_map is not None:
+        err_map /= np.float32(norm)
+        spatial = float(np.var(prnu, dtype=np.float64))
+        noise = float(np.mean(np.square(err_map, dtype=np.float64)))
+        prnu_std = float(np.sqrt(max(spatial - noise, 0.0)))
+    else:
+        prnu_std = float(np.std(prnu, dtype=np.float64))
+    return prnu, err_map, prnu_std
+
+
+def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: float, sigma2_R: float,
+                   clip: float | None = DEFAULT_CLIP, dark_rate_map: np.ndarray | None = None,
+                   prnu_max_fraction: float = 0.9, mu_R: float | None = None) -> FlatResult:
+    """Stream flat fields: the dark-corrected PRNU map a_j (Eq. 14) and the flat pairs.
+
+    Each flat f_i is dark-corrected with ``dark_reference`` plus ``dark_rate_map`` * t when
+    given, normalised by its clipped spatial mean, and accumulated with weight proportional to
+    its level (inverse of its relative shot-noise variance); the clipped weighted mean over
+    frames is renormalised to mean 1 (Eq. 14). Frames above ``prnu_max_fraction`` of
+    saturation only serve the gain.
+
+    Parameters
+    ----------
+    frames : iterable of frames
+        Flat fields (``data`` in DN, ``exposure_time`` in s), consumed once.
+    dark_reference : numpy.ndarray or float
+        The bias map or mu_R, DN.
+    v_sat : float
+        Saturation limit, DN.
+    sigma2_R : float
+        Readout variance, DN^2 (a flat below 3 sigma_R above the bias is refused).
+    clip : float or None
+        Sigma-clipping threshold, standard deviations; None disables outlier rejection.
+    dark_rate_map : numpy.ndarray, optional
+        Per-photosite dark signal rate, DN/s.
+    prnu_max_fraction : float
+        Flats above this fraction of the span from bias to saturation are left out of a_j.
+    mu_R : float, optional
+        Bias level, DN (default: the mean of ``dark_reference``).
+
+    Returns
+    -------
+    FlatResult
+        a_j and its standard error, the flat pairs and the level (DN) of every flat.
+
+    Raises
+    ------
+    InputError
+        Mixed sizes, a flat that is dark (level below 3 sigma_R above the bias) or saturated
+        (more than 1 % of photosites at or above v_sat), or no usable flat.
+    """
+    shape = first = None
+    stack = None
+    pairs: list[PairStats] = []
+    levels = []
+    pending = None
+    n = 0
+    prnu_levels: list[float] = []
+    sat_span = v_sat - (mu_R if mu_R is not None else float(np.mean(dark_reference)))
+    for i, fr in enumerate(frames):
+        data = frame_data(fr)
+        name = frame_name(fr, "flat", i)
+        check_shape(data, shape, name, first)
+        if stack is None:
+            shape, first = data.shape, name
+            stack = PixelStack(shape)
+        t = frame_time(fr)
+        _check_not_saturated(data, v_sat, name)
+        corr = _dark_corrected(data, dark_reference, dark_rate_map, t)
+        level, _, _ = robust_mean_std(corr, clip)
+        if level < 3.0 * np.sqrt(sigma2_R):
+            raise InputError(f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
+                             f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)")
+        levels.append((t, float(level), name))
+        if level <= prnu_max_fraction * sat_span:
+            prnu_levels.append(level)
+            corr /= level
+            stack.add(corr, weight=_prnu_weight(level))
+        del corr
+        if pending is not None and same_exposure(pending[1], t):
+            pairs.append(pair_statistics(pending[0], data, clip, t))
+            pending = None
+        else:
+            pending = (data, t)
+        n += 1
+    if n == 0:
+        raise InputError("no flat fields given")
+    if stack.n == 0:
+        raise InputError(f"every flat field is above {prnu_max_fraction:.0%} of saturation; none can give the PRNU map")
+    mean_map, err_map, rejected = stack.result(clip)
+    n_prnu = stack.n
+    del stack  # free the sums before building the maps
+    prnu, err_map, prnu_std = _prnu_map(mean_map, err_map)
+    return FlatResult(prnu, err_map, prnu_std, pairs, levels, n, n_prnu, rejected, float(np.mean(prnu_levels)))

@@ -1,0 +1,194 @@
+"""The camera gain g, DN per electron: from flat pairs (Eq. 16, 17) and by the EMVA 1288
+photon-transfer regression of the pair variance on the mean over 0-70 % of saturation."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .stats import PairStats
+
+__all__ = ["prnu_correction_factor", "gain_from_pair", "gain_from_pairs", "PhotonTransferFit",
+           "photon_transfer_gain"]
+
+
+def prnu_correction_factor(mu_X: float, sigma2_a: float, mu_D: float = 0.0) -> float:
+    """Eq. 17: k = (mu_X (1 + sigma_a^2) + mu_D) / (mu_X + mu_D).
+
+    Parameters
+    ----------
+    mu_X : float
+        Mean light signal of the flats (e.g. DN or electrons).
+    sigma2_a : float
+        Spatial variance of the per-photosite gain a_j, dimensionless.
+    mu_D : float
+        Mean dark signal of the flats, same unit as ``mu_X``.
+
+    Returns
+    -------
+    float
+        k, dimensionless (>= 1).
+    """
+    return (mu_X * (1.0 + sigma2_a) + mu_D) / (mu_X + mu_D)
+
+
+def gain_from_pair(pair: PairStats, mu_R: float, sigma2_R: float, k: float = 1.0) -> tuple[float, float]:
+    """Camera gain from one flat pair, Eq. 16: g = (1/k) (var - sigma2_R) / (mean - mu_R).
+
+    Parameters
+    ----------
+    pair : PairStats
+        The flat pair (its ``variance`` is half the variance of the difference), DN, DN^2.
+    mu_R : float
+        Bias level, DN.
+    sigma2_R : float
+        Readout variance, DN^2.
+    k : float
+        Eq. 17 correction for the PRNU and the dark signal, dimensionless.
+
+    Returns
+    -------
+    g, stderr : float
+        DN per electron; the error comes from the pair variance's fourth-moment standard error.
+
+    Raises
+    ------
+    ValueError
+        The pair lies at or below the bias level.
+    """
+    signal = pair.mean - mu_R
+    if signal <= 0:
+        raise ValueError("flat pair at or below the bias level")
+    g = (pair.variance - sigma2_R) / signal / k
+    return float(g), float(pair.variance_stderr / signal / k)
+
+
+def gain_from_pairs(pairs: list[PairStats], mu_R: float, sigma2_R: float, k: float = 1.0,
+                    sigma2_R_stderr: float = 0.0) -> tuple[float, float, list[float]]:
+    """Inverse-variance weighted average of Eq. 16 over several flat pairs.
+
+    Sec. 6: "several gain estimates obtained from distinct flat frame differences should be
+    averaged".
+
+    Parameters
+    ----------
+    pairs : list of PairStats
+        Flat pairs, DN, DN^2.
+    mu_R : float
+        Bias level, DN.
+    sigma2_R : float
+        Readout variance, DN^2.
+    k : float
+        Eq. 17 correction, dimensionless.
+    sigma2_R_stderr : float
+        Standard error of ``sigma2_R``, DN^2 (common to every pair).
+
+    Returns
+    -------
+    g, stderr : float
+        DN per electron; the error includes the common error of sigma2_R.
+    per_pair_gains : list of float
+        Eq. 16 of each pair, DN per electron.
+
+    Raises
+    ------
+    ValueError
+        No pairs, or a pair at or below the bias level.
+    """
+    if not pairs:
+        raise ValueError("no flat pairs")
+    est = [gain_from_pair(p, mu_R, sigma2_R, k) for p in pairs]
+    g_i = np.array([e[0] for e in est])
+    s_i = np.array([e[1] for e in est])
+    w = 1.0 / np.maximum(s_i, 1e-300) ** 2
+    g = float(np.sum(w * g_i) / w.sum())
+    se = 1.0 / np.sqrt(w.sum())
+    mean_signal_inv = float(np.sum(w / np.array([p.mean - mu_R for p in pairs])) / w.sum())
+    se = float(np.hypot(se, sigma2_R_stderr * mean_signal_inv / k))
+    return g, se, g_i.tolist()
+
+
+@dataclass(frozen=True)
+class PhotonTransferFit:
+    """EMVA 1288 photon-transfer regression: variance above dark against mean above dark.
+
+    Attributes
+    ----------
+    g, g_stderr : float
+        Slope through the origin (the system gain K), DN per electron, and its standard error
+        from the fit residuals.
+    means, variances : numpy.ndarray
+        mu_y - mu_y.dark (DN) and sigma^2_y - sigma^2_y.dark (DN^2) of every level.
+    used : numpy.ndarray of bool
+        Levels inside the fit range (0 to ``fit_fraction`` of saturation).
+    saturation : float
+        Saturation level above dark used for the range, DN.
+    """
+
+    g: float
+    g_stderr: float
+    means: np.ndarray
+    variances: np.ndarray
+    used: np.ndarray
+    saturation: float
+
+
+def photon_transfer_gain(means: Sequence[float] | np.ndarray, variances: Sequence[float] | np.ndarray,
+                         saturation: float, fit_fraction: float = 0.7,
+                         variance_stderr: Sequence[float] | np.ndarray | None = None,
+                         common_stderr: float = 0.0) -> PhotonTransferFit:
+    """System gain K by the EMVA 1288 photon-transfer method.
+
+    Least-squares slope through the origin of sigma^2_y - sigma^2_y.dark against
+    mu_y - mu_y.dark over the levels with mu_y - mu_y.dark <= ``fit_fraction`` * saturation
+    (EMVA 1288: 0-70 % of saturation). The pair variance of each level is
+    (1/2NM) sum (y_A - y_B)^2 - 1/2 (mu_A - mu_B)^2 (:func:`pair_statistics`).
+
+    The standard error is the larger of the one from the fit residuals and the propagated one:
+    sqrt(sum x_k^2 s_k^2) / sum x_k^2 from the per-level ``variance_stderr`` s_k (the variance
+    error grows with the level, so residuals alone understate it), plus the error
+    ``common_stderr`` of a dark variance subtracted from every level (it shifts all points
+    together: sum x_k / sum x_k^2 times it).
+
+    Parameters
+    ----------
+    means : array_like
+        Mean above dark of each level, DN.
+    variances : array_like
+        Temporal variance above dark of each level, DN^2.
+    saturation : float
+        Saturation level above dark, DN.
+    fit_fraction : float
+        Upper end of the fit range, fraction of ``saturation``.
+    variance_stderr : array_like, optional
+        Standard error of each level's variance, DN^2.
+    common_stderr : float
+        Standard error of the dark variance subtracted from every level, DN^2.
+
+    Returns
+    -------
+    PhotonTransferFit
+        K (DN per electron), its standard error and the points.
+
+    Raises
+    ------
+    ValueError
+        Fewer than three levels inside the fit range.
+    """
+    x = np.asarray(means, float)
+    y = np.asarray(variances, float)
+    used = (x <= fit_fraction * saturation) & (x > 0)
+    if used.sum() < 3:
+        raise ValueError(f"only {int(used.sum())} levels within {fit_fraction:.0%} of saturation; need >= 3")
+    xu, yu = x[used], y[used]
+    sxx = float(np.sum(xu * xu))
+    g = float(np.sum(xu * yu) / sxx)
+    resid = yu - g * xu
+    se = float(np.sqrt(np.sum(resid**2) / (xu.size - 1) / sxx))
+    if variance_stderr is not None:
+        sk = np.asarray(variance_stderr, float)[used]
+        model = np.hypot(np.sqrt(np.sum(xu**2 * sk**2)) / sxx, common_stderr * np.sum(xu) / sxx)
+        se = max(se, float(model))
+    return PhotonTransferFit(g, se, x, y, used, float(saturation))

@@ -1,0 +1,307 @@
+"""Robust statistics of raw frames: sigma-clipped means, EMVA 1288 pair variances, and a
+streaming, sigma-clipped per-photosite mean of many frames.
+
+Outliers (cosmic rays, hot and dead pixels) are rejected by sigma clipping: spatially (robust
+median/MAD clip of each frame and of each pair difference) and temporally (per-photosite
+rejection of the extreme sample, :class:`PixelStack`). Every accumulation is float64; memory
+holds a few maps, never a stack of frames. Units: DN, DN^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _kernels as _k
+
+__all__ = ["DEFAULT_CLIP", "robust_mean_std", "PairStats", "pair_statistics", "PixelStack"]
+
+#: Default clipping threshold, in standard deviations.
+DEFAULT_CLIP = 5.0
+
+_MAD_TO_SIGMA = 1.4826
+
+
+# --------------------------------------------------------------------------- spatial statistics
+
+
+def _subsample(x: np.ndarray, n: int = 200_003) -> np.ndarray:
+    """A regular subsample of at most about ``n`` values of ``x`` (flattened)."""
+    flat = x.ravel()
+    if flat.size <= n:
+        return flat
+    step = flat.size // n
+    return flat[::step]
+
+
+def robust_mean_std(x: np.ndarray, clip: float | None = DEFAULT_CLIP,
+                    mask: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
+    """Sigma-clipped spatial mean and standard deviation of ``x``.
+
+    The clip interval is median +- ``clip`` robust sigmas (1.4826 MAD, taken from a regular
+    subsample for speed; the sample standard deviation when the MAD is zero).
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Values, DN (any real dtype).
+    clip : float or None
+        Clipping threshold, robust standard deviations; None disables clipping.
+    mask : numpy.ndarray of bool, optional
+        Photosites to consider (all by default).
+
+    Returns
+    -------
+    mean, std : float
+        Mean and standard deviation (ddof 1) of the kept values, float64 accumulation.
+    keep : numpy.ndarray of bool
+        The kept photosites.
+    """
+    x = np.asarray(x)
+    if clip is None:
+        keep = np.ones(x.shape, dtype=bool) if mask is None else mask.copy()
+    else:
+        lo, hi = _clip_bounds(_subsample(x if mask is None else x[mask]), clip)
+        keep = (x >= lo) & (x <= hi)
+        if mask is not None:
+            keep &= mask
+    shift = float(x.flat[0])
+    n, mean, m2 = _k.masked_moments(x, keep, shift)
+    if n < 2:
+        raise ValueError("fewer than two photosites survive clipping")
+    return float(mean), float(np.sqrt(max(m2, 0.0) / (n - 1))), keep
+
+
+def _clip_bounds(sub: np.ndarray, clip: float) -> tuple[float, float]:
+    """median +- clip robust sigmas (1.4826 MAD; the standard deviation when the MAD is 0)."""
+    sub = sub.astype(np.float64)
+    med = float(np.median(sub))
+    scale = _MAD_TO_SIGMA * float(np.median(np.abs(sub - med)))
+    if scale == 0.0:
+        scale = float(np.std(sub))
+    return med - clip * scale, med + clip * scale
+
+
+@dataclass(frozen=True)
+class PairStats:
+    """Statistics of two frames taken under identical conditions (EMVA 1288 pair).
+
+    Attributes
+    ----------
+    mean_a, mean_b : float
+        Spatial means of the two frames over the kept photosites, DN.
+    variance : float
+        Temporal variance per frame, DN^2:
+        (1/2NM) sum (y_A - y_B)^2 - 1/2 (mu_A - mu_B)^2 over the kept photosites.
+    variance_stderr : float
+        Standard error of ``variance`` from the fourth moment of the difference, DN^2.
+    n_used, n_rejected : int
+        Photosites kept and rejected by the clip.
+    exposure_time : float
+        Seconds.
+    """
+
+    mean_a: float
+    mean_b: float
+    variance: float
+    variance_stderr: float
+    n_used: int
+    n_rejected: int
+    exposure_time: float = 0.0
+
+    @property
+    def mean(self) -> float:
+        """Mean of the two frames' means, DN."""
+        return 0.5 * (self.mean_a + self.mean_b)
+
+
+def pair_statistics(a: np.ndarray, b: np.ndarray, clip: float | None = DEFAULT_CLIP,
+                    exposure_time: float = 0.0) -> PairStats:
+    """EMVA 1288 temporal variance of a pair of frames, with outliers clipped.
+
+    sigma^2 = (1/2NM) sum_j (y_A,j - y_B,j)^2 - 1/2 (mu_A - mu_B)^2, where the sum runs over
+    the photosites kept by a robust ``clip``-sigma clip of the difference y_A - y_B (a cosmic
+    ray or a hot pixel hit in one frame) and of each frame (hot or dead photosites). The fixed
+    pattern (DSNU, PRNU) cancels in the difference.
+
+    Parameters
+    ----------
+    a, b : numpy.ndarray
+        The two frames, DN, same shape.
+    clip : float or None
+        Clipping threshold, robust standard deviations; None keeps every photosite.
+    exposure_time : float
+        Exposure time of the pair, s (recorded in the result).
+
+    Returns
+    -------
+    PairStats
+        Means (DN), variance and its standard error (DN^2), photosites kept and rejected.
+
+    Raises
+    ------
+    ValueError
+        Frames of different shapes, or fewer than 16 photosites left after clipping.
+    """
+    a = np.asarray(a)
+    b = np.asarray(b)
+    if a.shape != b.shape:
+        raise ValueError(f"pair of frames with different shapes {a.shape} and {b.shape}")
+    if clip is None:
+        keep = np.ones(a.shape, dtype=bool)
+    else:
+        sa, sb = _subsample(a).astype(np.float64), _subsample(b).astype(np.float64)
+        keep = _k.pair_keep(a, b, *_clip_bounds(sa, clip), *_clip_bounds(sb, clip), *_clip_bounds(sa - sb, clip))
+    # (1/2n) sum d^2 - 1/2 (mu_A - mu_B)^2 == 1/2 mean of (d - (mu_A - mu_B))^2 over the kept photosites
+    n, mu_a, mu_b, s2, m4 = _k.pair_moments(a, b, keep)
+    if n < 16:
+        raise ValueError("fewer than 16 photosites survive clipping")
+    var = 0.5 * s2
+    var_stderr = 0.5 * np.sqrt(max(m4 - s2 * s2, 0.0) / n)
+    d = a.size
+    return PairStats(float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time))
+
+
+# --------------------------------------------------------------------------- per-photosite stacks
+
+
+class PixelStack:
+    """Streaming, sigma-clipped per-photosite weighted mean of many frames.
+
+    Holds float64 sums (weighted sum and sum of squares, relative to the first frame) and the
+    extreme sample of every photosite with its weight: memory does not grow with the number of
+    frames. At the end, the largest and the smallest sample of a photosite are rejected when
+    they lie more than ``clip`` standard deviations from the weighted mean of the other
+    samples (the standard deviation is the photosite's own, floored by the median over the
+    frame, so that two or three frames are enough). A single cosmic-ray hit per photosite and
+    stack is removed; a stable hot pixel is kept (it is real signal).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Frame shape.
+    """
+
+    def __init__(self, shape: tuple[int, ...]) -> None:
+        self.shape = tuple(shape)
+        self.n = 0
+        self.sw = 0.0
+        self._ref: np.ndarray | None = None
+        self._s = np.zeros(self.shape, np.float64)
+        self._q = np.zeros(self.shape, np.float64)
+        self._max = np.full(self.shape, -np.inf, np.float32)
+        self._min = np.full(self.shape, np.inf, np.float32)
+        # weights of the extreme samples: allocated only once the weights differ
+        self._w0: float | None = None
+        self._wmax: np.ndarray | None = None
+        self._wmin: np.ndarray | None = None
+
+    def add(self, values: np.ndarray, weight: float = 1.0) -> None:
+        """Add one frame.
+
+        Parameters
+        ----------
+        values : numpy.ndarray
+            The frame (any real dtype), DN or any unit common to the stack.
+        weight : float
+            Scalar weight of the frame (inverse relative variance), dimensionless.
+        """
+        values = np.asarray(values)
+        if values.shape != self.shape:
+            raise ValueError(f"frame shape {values.shape} differs from the stack's {self.shape}")
+        if self._ref is None:
+            self._ref = np.array(values, dtype=np.float32, copy=True)
+            self._w0 = float(weight)
+        w = float(weight)
+        values = np.ascontiguousarray(values)
+        if self._wmax is None and w != self._w0:
+            self._wmax = np.full(self.shape, self._w0, np.float32)
+            self._wmin = np.full(self.shape, self._w0, np.float32)
+        if self._wmax is None:
+            _k.stack_add_equal(values, self._ref, w, self._s, self._q, self._max, self._min)
+        else:
+            _k.stack_add(values, self._ref, w, self._s, self._q, self._max, self._min, self._wmax, self._wmin)
+        self.n += 1
+        self.sw += w
+
+    def result(self, clip: float | None = DEFAULT_CLIP,
+               block_rows: int = 256) -> tuple[np.ndarray, np.ndarray | None, int]:
+        """Clipped weighted mean map and its standard error map.
+
+        Parameters
+        ----------
+        clip : float or None
+            Rejection threshold, standard deviations; None keeps every sample.
+        block_rows : int
+            Rows computed at a time, so that the memory stays a few maps.
+
+        Returns
+        -------
+        mean : numpy.ndarray (float32)
+            Per-photosite weighted mean, unit of the frames.
+        stderr : numpy.ndarray (float32) or None
+            Standard error of ``mean`` from the photosite's scatter (floored by the median
+            scatter over the frame); None with a single frame.
+        n_rejected : int
+            Samples rejected over the whole stack.
+        """
+        if self.n == 0:
+            raise ValueError("empty stack")
+        if self.n == 1:
+            return self._ref.copy(), None, 0
+        do_max = clip is not None and self.n >= 3
+        do_min = clip is not None and self.n >= 4
+        # the floors (median scatter) come from a regular subsample of photosites
+        idx = np.arange(0, self._s.size, max(1, self._s.size // 200_003))
+        sub = self._block(idx, None, clip, do_max, do_min, None)
+        floors = sub[3]
+        mean = np.empty(self.shape, np.float32)
+        err = np.empty(self.shape, np.float32)
+        rejected = 0
+        for r0 in range(0, self.shape[0], block_rows):
+            rows = slice(r0, min(r0 + block_rows, self.shape[0]))
+            m, e, nrej, _ = self._block(None, rows, clip, do_max, do_min, floors)
+            mean[rows] = m
+            err[rows] = e
+            rejected += nrej
+        return mean, err, rejected
+
+    def _block(self, idx, rows, clip, do_max, do_min, floors):
+        """Statistics of a subsample (flat indices ``idx``) or of a block of ``rows``."""
+
+        def get(a):
+            if a is None:  # all weights equal
+                a = np.broadcast_to(np.float32(self._w0), self.shape)
+            return a.ravel()[idx].astype(np.float64) if idx is not None else a[rows].astype(np.float64)
+
+        s, q = get(self._s), get(self._q)
+        sw = np.full(s.shape, self.sw)
+        cnt = np.full(s.shape, float(self.n))
+        new_floors = {}
+        nrej = 0
+        for key, on, sign, va, wa in (("max", do_max, +1, self._max, self._wmax),
+                                       ("min", do_min, -1, self._min, self._wmin)):
+            if not on:
+                continue
+            v, w = get(va), get(wa)
+            s_o = s - w * v
+            sw_o = sw - w
+            mean_o = s_o / sw_o
+            var_o = np.maximum(q - w * v * v - sw_o * mean_o**2, 0.0) / np.maximum(cnt - 2, 1)
+            floor = float(np.median(var_o)) if floors is None else floors[key]
+            new_floors[key] = floor
+            dev = sign * (v - mean_o)
+            rej = dev * dev * w > clip * clip * np.maximum(var_o, floor) * (1.0 + w / sw_o)
+            s[rej] -= (w * v)[rej]
+            q[rej] -= (w * v * v)[rej]
+            sw[rej] -= w[rej]
+            cnt[rej] -= 1
+            nrej += int(rej.sum())
+        mean_rel = s / sw
+        var1 = np.maximum(q - sw * mean_rel**2, 0.0) / np.maximum(cnt - 1, 1)  # per unit weight
+        floor = float(np.median(var1)) if floors is None else floors["var"]
+        new_floors["var"] = floor
+        err = np.sqrt(np.maximum(var1, floor) / sw)
+        ref = get(self._ref)
+        return mean_rel + ref, err, nrej, new_floors

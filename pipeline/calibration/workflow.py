@@ -1,0 +1,370 @@
+"""The whole Sec. 6 calibration from streamed frames, as a sequence of named steps.
+
+Order: bias (mu_R, sigma2_R, offset map) -> darks (master darks, dark current) -> saturation
+(v_sat) -> flats (PRNU map Eq. 14) -> gain (pairs Eq. 16-17, photon-transfer regression) ->
+dark current in electrons per second -> :class:`~hdrcap.pipeline.params.Calibration`. Each
+step records its standard errors, methods and plot data in a :class:`_Record` that becomes the
+calibration's ``stderr`` and ``provenance["calibration"]``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..params import Calibration, SensorParams
+from .dark import DarkFit, DarkSeries, MasterDark, stream_master_darks
+from .flats import FlatResult, estimate_flats
+from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
+from .readout import ReadoutEstimate, estimate_readout
+from .saturation import estimate_saturation
+from .stats import DEFAULT_CLIP
+
+__all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
+
+#: Gain estimators :func:`calibrate` knows.
+GAIN_METHODS = ("auto", "pairs", "ptc")
+
+_PTC_METHOD = "EMVA 1288 photon-transfer regression (0-70 % of saturation)"
+
+
+@dataclass
+class _Record:
+    """What the steps report: frame counts, standard errors of the scalars and the
+    ``provenance["calibration"]`` entry (methods, series for the plots)."""
+
+    counts: dict[str, int] = field(default_factory=lambda: {"bias": 0, "saturation": 0, "flat": 0, "dark": 0})
+    stderr: dict[str, float] = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _readout_step(bias: Iterable, clip: float | None, white_level: float | None, rec: _Record) -> ReadoutEstimate:
+    ro = estimate_readout(bias, clip, white_level)
+    rec.counts["bias"] = ro.n_frames
+    rec.stderr.update(mu_R=ro.mu_R_stderr, sigma2_R=ro.sigma2_R_stderr)
+    rec.info.update(sigma2_R_method=ro.method, bias_exposure_time=ro.exposure_time, bias_dsnu_DN=ro.dsnu,
+                    clip_sigma=clip)
+    return ro
+
+
+def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
+               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, np.ndarray | None]:
+    """Master darks per exposure time (each handed to ``dark_sink``), then the dark-current
+    fit and the per-photosite slope map (DN/s) when the series has >= 6 exposure times."""
+    if darks is None:
+        return None, None
+    shape = None if ro.bias_map is None else ro.bias_map.shape
+    series = DarkSeries()
+    for master in stream_master_darks(darks, clip, shape):
+        series.add(master)
+        rec.counts["dark"] += master.n_frames
+        if dark_sink is not None:
+            dark_sink(master)
+    if not series.times:
+        return None, None
+    rec.info["dark_series"] = series.to_dict()
+    if series.n_times() >= 6:
+        return series.fit(), series.slope_map()
+    if dark_sink is None:
+        raise InputError(f"dark current needs dark frames at >= 6 exposure times, got {len(series.times)} "
+                         "(or give a dark library to store master darks only)")
+    return None, None
+
+
+def _saturation_step(saturation: Iterable | None, white_level: float | None, ro: ReadoutEstimate,
+                     clip: float | None, rec: _Record) -> tuple[float, np.ndarray | None]:
+    """v_sat (DN) from saturation frames (Sec. 6) or, without any, the white level."""
+    sat_map = None
+    if saturation is not None:
+        v_sat, v_sat_se, sat_mean, sat_std, n_sat, sat_map = estimate_saturation(saturation, clip)
+        rec.counts["saturation"] = n_sat
+        rec.info["saturation_frame"] = {"mean": sat_mean, "std": sat_std}
+        rec.stderr["v_sat"] = v_sat_se
+        rec.info["v_sat_method"] = "saturation frame: mean - 3 std (Sec. 6)"
+    else:
+        if white_level is None:
+            raise InputError("no saturation frame and no white level: cannot set v_sat")
+        v_sat = float(white_level)
+        rec.stderr["v_sat"] = 0.0
+        rec.info["v_sat_method"] = "white level (no saturation frame given)"
+    if v_sat <= ro.mu_R:
+        raise InputError(f"saturation limit {v_sat:.1f} DN is not above the bias level {ro.mu_R:.1f} DN; "
+                         "is the saturation frame a dark or bias frame?")
+    return v_sat, sat_map
+
+
+def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: float | None,
+               dark_slope_map: np.ndarray | None, rec: _Record) -> tuple[FlatResult, np.ndarray | None]:
+    """The PRNU map (Eq. 14) and the flat pairs; the a_j error map includes the offset map's
+    own noise (sigma2_R / n_bias, common to every flat)."""
+    if flats is None:
+        raise InputError("no flat fields given: the gain g and the PRNU map need flat fields")
+    dark_ref = ro.bias_map if ro.bias_map is not None else ro.mu_R
+    fl = estimate_flats(flats, dark_ref, v_sat, ro.sigma2_R, clip, dark_slope_map, mu_R=ro.mu_R)
+    rec.counts["flat"] = fl.n_frames
+    prnu_stderr = fl.prnu_stderr
+    if prnu_stderr is not None and ro.bias_map is not None:
+        prnu_stderr = np.square(prnu_stderr)
+        prnu_stderr += np.float32(ro.sigma2_R / ro.n_frames / fl.mean_level**2)
+        np.sqrt(prnu_stderr, out=prnu_stderr)
+    if not fl.pairs:
+        raise InputError("the gain needs at least two flat fields at the same exposure time (a pair, Eq. 16)")
+    return fl, prnu_stderr
+
+
+def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None) -> tuple[np.ndarray, np.ndarray]:
+    """Photon-transfer points of the flat pairs: mean above dark (DN; the dark signal at each
+    pair's time removed when known) and variance above the readout variance (DN^2)."""
+    x = np.array([p.mean - ro.mu_R for p in fl.pairs])
+    y = np.array([p.variance - ro.sigma2_R for p in fl.pairs])
+    if dark_fit is not None:
+        x = x - np.array([dark_fit.slope * p.exposure_time for p in fl.pairs])
+    return x, y
+
+
+def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: DarkFit | None, gain_method: str,
+               fit_fraction: float, rec: _Record) -> tuple[float, float]:
+    """g and its standard error, DN per electron: the Eq. 16 average over the flat pairs below
+    80 % of saturation (with the Eq. 17 factor k from the flats' dark/light signal ratio) and
+    the photon-transfer regression over the levels within ``fit_fraction`` of saturation."""
+    t_flat = float(np.mean([p.exposure_time for p in fl.pairs]))
+    dark_dn = dark_fit.slope * t_flat if dark_fit is not None else 0.0
+    k = prnu_correction_factor(fl.mean_level, fl.prnu_std**2, max(dark_dn, 0.0))
+    sat_span = v_sat - ro.mu_R
+    g_pairs, g_pairs_se, per_pair = None, None, []
+    ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.8 * sat_span]
+    if ok_pairs:
+        g_pairs, g_pairs_se, per_pair = gain_from_pairs(ok_pairs, ro.mu_R, ro.sigma2_R, k, ro.sigma2_R_stderr)
+    x, y = _ptc_points(fl, ro, dark_fit)
+    n_levels = int(np.unique(np.round(x[(x > 0) & (x <= fit_fraction * sat_span)], 6)).size)
+    ptc = None
+    if n_levels >= 3:
+        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, [p.variance_stderr for p in fl.pairs],
+                                   ro.sigma2_R_stderr)
+    if gain_method == "ptc" and ptc is None:
+        raise InputError(f"the photon-transfer regression needs flat pairs at >= 3 levels within "
+                         f"{fit_fraction:.0%} of saturation; got {n_levels}")
+    if gain_method == "pairs" and g_pairs is None:
+        raise InputError("no flat pair below 80 % of saturation for Eq. 16")
+    if gain_method == "ptc" or (gain_method == "auto" and ptc is not None):
+        g, g_se, g_method = ptc.g, ptc.g_stderr, _PTC_METHOD
+    else:
+        if g_pairs is None:
+            raise InputError("no flat pair below 80 % of saturation for the gain (Eq. 16)")
+        g, g_se, g_method = g_pairs, g_pairs_se, f"flat pairs, Eq. 16-17 (k = {k:.6f}), {len(ok_pairs)} pairs"
+    if not (np.isfinite(g) and g > 0):
+        raise InputError(f"gain estimate {g!r} is not positive: are the flats really flat and unsaturated?")
+    rec.stderr["g"] = g_se
+    rec.info["gain_method"] = g_method
+    rec.info["gain_pairs"] = {"g": g_pairs, "g_stderr": g_pairs_se, "per_pair": per_pair, "k_eq17": k}
+    rec.info["ptc"] = _ptc_info(ptc, x, y, sat_span)
+    rec.info["flat_levels"] = [{"t": t, "level": lv, "file": nm} for t, lv, nm in fl.levels]
+    rec.info["prnu_frames"] = fl.n_prnu_frames
+    rec.info["prnu_rejected_samples"] = fl.n_rejected
+    return g, g_se
+
+
+def _ptc_info(ptc: PhotonTransferFit | None, x: np.ndarray, y: np.ndarray, sat_span: float) -> dict[str, Any]:
+    """The photon-transfer points for the report (the fit's when there is one)."""
+    if ptc is None:
+        return {"means": x.tolist(), "variances": y.tolist(), "used": [False] * len(x), "saturation": sat_span}
+    return {"g": ptc.g, "g_stderr": ptc.g_stderr, "means": ptc.means.tolist(), "variances": ptc.variances.tolist(),
+            "used": ptc.used.tolist(), "saturation": ptc.saturation}
+
+
+def _dark_current_step(dark_fit: DarkFit | None, dark_slope_map: np.ndarray | None, g: float, g_se: float,
+                       rec: _Record) -> tuple[float, np.ndarray | None]:
+    """D in electrons per second (clipped at 0) and the per-photosite map, from the DN/s fit."""
+    if dark_fit is None:
+        return 0.0, None
+    D = max(dark_fit.slope / g, 0.0)
+    rec.stderr["dark_current"] = float(np.hypot(dark_fit.slope_stderr / g, D * g_se / g))
+    rec.info["dark_fit"] = {"slope_DN_per_s": dark_fit.slope, "slope_stderr": dark_fit.slope_stderr,
+                            "intercept_DN": dark_fit.intercept, "D_raw_e_per_s": dark_fit.slope / g}
+    return D, (dark_slope_map / g).astype(np.float32)
+
+
+def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterable | None = None,
+              darks: Iterable | None = None, *, clip: float | None = DEFAULT_CLIP, gain_method: str = "auto",
+              white_level: float | None = None, fit_fraction: float = 0.7,
+              dark_sink: Callable[[MasterDark], Any] | None = None,
+              provenance: Mapping[str, Any] | None = None) -> Calibration:
+    """Full Sec. 6 calibration from streamed frames.
+
+    Order: bias (mu_R, sigma2_R, offset map) -> darks (master darks, dark current) ->
+    saturation (v_sat) -> flats (PRNU map Eq. 14, gain from pairs Eq. 16-17 and from the
+    photon-transfer regression). Each iterable is consumed once.
+
+    Parameters
+    ----------
+    bias, saturation, flats, darks : iterable of frames
+        Objects with ``data`` (2-D raw mosaic, DN), ``exposure_time`` (s) and optional
+        ``path``/``white_level``, e.g. :class:`hdrcap.pipeline.io.RawFrame`. Saturation
+        frames and darks are optional; darks at >= 6 exposure times, ordered by time.
+    clip : float or None
+        Sigma-clipping threshold, standard deviations; None disables all outlier rejection.
+    gain_method : {"auto", "pairs", "ptc"}
+        ``auto``: the photon-transfer regression when the flats cover >= 3 exposure levels
+        within ``fit_fraction`` of saturation, else the Eq. 16 pair average.
+    white_level : float, optional
+        ADC white level, DN: v_sat without a saturation frame; bias frames above a quarter of
+        it are refused.
+    fit_fraction : float
+        Upper end of the photon-transfer fit range, fraction of the span bias..saturation.
+    dark_sink : callable, optional
+        Called as ``dark_sink(master_dark)`` for every master dark (e.g. to store it in a
+        dark library) so that the masters need not stay in memory.
+    provenance : mapping, optional
+        Recorded with the result (camera, ISO, temperature, ...).
+
+    Returns
+    -------
+    Calibration
+        params (g DN/e-, mu_R DN, sigma2_R DN^2, v_sat DN, D e-/s), maps, ``stderr`` of every
+        scalar and ``provenance`` (methods, frame counts, the photon-transfer and dark-series
+        points for plots).
+
+    Raises
+    ------
+    ValueError
+        Unknown ``gain_method``.
+    InputError
+        Missing, inconsistent or unsuitable frames (the message names the frame).
+    """
+    if gain_method not in GAIN_METHODS:
+        raise ValueError(f"gain_method must be auto, pairs or ptc, got {gain_method!r}")
+    rec = _Record()
+    ro = _readout_step(bias, clip, white_level, rec)
+    dark_fit, dark_slope_map = _dark_step(darks, ro, clip, dark_sink, rec)
+    v_sat, sat_map = _saturation_step(saturation, white_level, ro, clip, rec)
+    fl, prnu_stderr = _flat_step(flats, ro, v_sat, clip, dark_slope_map, rec)
+    g, g_se = _gain_step(fl, ro, v_sat, dark_fit, gain_method, fit_fraction, rec)
+    D, dmap = _dark_current_step(dark_fit, dark_slope_map, g, g_se, rec)
+    if fl.prnu_stderr is not None:
+        rec.stderr["prnu_std"] = float(fl.prnu_std / np.sqrt(2 * fl.prnu.size)) if fl.prnu_std > 0 else 0.0
+    prov: dict[str, Any] = dict(provenance or {})
+    wl = float(white_level) if white_level is not None else float(max(v_sat, 1.0))
+    params = SensorParams(g=float(g), mu_R=float(ro.mu_R), sigma2_R=float(ro.sigma2_R), v_sat=float(v_sat),
+                          white_level=max(wl, float(v_sat)), dark_current=float(D),
+                          name=str(prov.get("camera", "") or ""))
+    prov.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    prov["frame_counts"] = rec.counts
+    prov["n_frames"] = int(sum(rec.counts.values()))
+    prov["prnu_std"] = fl.prnu_std
+    prov["calibration"] = rec.info
+    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map, dark_current_map=dmap,
+                       stderr={k: float(v) for k, v in rec.stderr.items()}, provenance=prov,
+                       prnu_stderr=prnu_stderr, saturation_map=sat_map)
+
+
+def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None,
+                       **changes: Any) -> Calibration:
+    """Complete a calibration with what the frame files said.
+
+    Copies the camera model, ISO and capture timestamps the files recorded into the
+    provenance (where it has none), takes the files' white level when it is above v_sat, and
+    names the camera parameters after the camera.
+
+    Parameters
+    ----------
+    calib : Calibration
+        Result of :func:`calibrate`.
+    meta : mapping
+        ``camera``, ``iso``, ``first_timestamp``, ``last_timestamp``, ``white_level`` (DN),
+        as read from the files (missing keys are ignored).
+    white_level : float, optional
+        White level given by the user, DN (wins over the files').
+    **changes
+        Further :class:`Calibration` fields to set.
+
+    Returns
+    -------
+    Calibration
+    """
+    prov = dict(calib.provenance)
+    for key in ("camera", "iso", "first_timestamp", "last_timestamp"):
+        if meta.get(key) is not None and not prov.get(key):
+            prov[key] = meta[key]
+    params = calib.params
+    wl = white_level or meta.get("white_level")
+    if wl and wl >= params.v_sat:
+        params = params.replace(white_level=float(wl))
+    if prov.get("camera") and not params.name:
+        params = params.replace(name=str(prov["camera"]))
+    return calib.replace(provenance=prov, params=params, **changes)
+
+
+def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | None = None,
+                        seconds: float | None = None, emva: Any = None,
+                        report: Sequence[str | os.PathLike[str]] = ()) -> dict[str, Any]:
+    """The summary printed by ``hdrcap calibrate`` (one JSON line with ``--json``).
+
+    Parameters
+    ----------
+    calib : Calibration
+        A calibration.
+    output : path, optional
+        The calibration file written (entry ``output``).
+    seconds : float, optional
+        Run time, s (entry ``seconds``, rounded to ms).
+    emva : EmvaResults, optional
+        EMVA 1288 results (entry ``emva1288``).
+    report : sequence of path
+        Plot files written (entry ``report`` when any).
+
+    Returns
+    -------
+    dict
+        g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
+        each scalar's standard error, the frame count and the gain method, then the entries
+        above that are given.
+    """
+    p = calib.params
+    prov = calib.provenance
+    se = calib.stderr
+    prnu_std = prov.get("prnu_std")
+    if prnu_std is None and calib.prnu is not None:
+        prnu_std = float(np.std(calib.prnu))
+    summary = {
+        "g": p.g, "g_stderr": se.get("g"),
+        "mu_R": p.mu_R, "mu_R_stderr": se.get("mu_R"),
+        "sigma2_R": p.sigma2_R, "sigma2_R_stderr": se.get("sigma2_R"),
+        "v_sat": p.v_sat, "v_sat_stderr": se.get("v_sat"),
+        "prnu_std": prnu_std,
+        "dark_current": p.dark_current, "dark_current_stderr": se.get("dark_current"),
+        "n_frames": prov.get("n_frames"),
+        "gain_method": prov.get("calibration", {}).get("gain_method"),
+    }
+    if output is not None:
+        summary["output"] = str(output)
+    if seconds is not None:
+        summary["seconds"] = round(seconds, 3)
+    if emva is not None:
+        summary["emva1288"] = emva.to_dict()
+    if report:
+        summary["report"] = [str(r) for r in report]
+    return summary
+
+
+def format_summary(summary: Mapping[str, Any]) -> str:
+    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D and the PRNU.
+
+    Parameters
+    ----------
+    summary : mapping
+        Output of :func:`calibration_summary`.
+
+    Returns
+    -------
+    str
+    """
+    s = summary
+    return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
+            f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
+            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
