@@ -22,7 +22,7 @@ from hdrcap.pipeline.noise import exposure_variance
 from hdrcap.pipeline.params import Calibration
 
 from .ladder import THIRD_STOP_LADDER
-from .predict import K_SIGMA, usable_fraction
+from .predict import K_SIGMA
 
 __all__ = ["MeterReport", "meter"]
 

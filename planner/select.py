@@ -23,7 +23,6 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
 
 from __future__ import annotations
 
-from typing import Any
 
 import numpy as np
 
