@@ -196,6 +196,23 @@ class Plan:
                 out["n_dark"] = int(self.n_dark[0])
         return out
 
+    def explain(self) -> str:
+        """The message and each model decision with the figure that drove it, one per line.
+
+        Returns
+        -------
+        str
+            Text for people (``hdrcap plan --explain``).
+        """
+        lines = [self.message, "decisions:"]
+        for name, d in self.decisions.items():
+            fig = d.get("figure")
+            if isinstance(fig, float):
+                fig = f"{fig:.4g}"
+            lines.append(f"  {name}: {d['choice']}  [{fig} {d.get('unit', '')}]".rstrip())
+            lines.append(f"      {d['reason']}")
+        return "\n".join(lines)
+
     def to_dict(self, curve: bool = False) -> dict[str, Any]:
         """The plan as JSON-ready data (the schema of ``hdrcap plan --json``, docs/planner.md)."""
         out = {
