@@ -76,10 +76,18 @@ class MeterReport:
     status: np.ndarray | None = None
 
     def to_dict(self) -> dict:
+        """The report as JSON-ready data.
+
+        Returns
+        -------
+        dict
+            Every field but the per-photosite ``status`` map.
+        """
         return {
             "times": self.times, "n_pixels": self.n_pixels, "n_saturated": self.n_saturated,
             "bright_limit": self.bright_limit, "n_dark": self.n_dark, "dark_limit": self.dark_limit,
-            "n_coarse": self.n_coarse, "n_gap": self.n_gap, "metered_range": list(self.metered_range) if self.metered_range else None,
+            "n_coarse": self.n_coarse, "n_gap": self.n_gap,
+            "metered_range": list(self.metered_range) if self.metered_range else None,
             "message": self.message,
         }
 
@@ -229,7 +237,8 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
         parts.append(f"{100 * dark.mean():.3g} % of pixels below the detection limit {dark_limit:.4g} e-/s: "
                      "not metered, the limit kept")
     if gap.any():
-        parts.append(f"{100 * gap.mean():.3g} % of pixels only bounded ({np.min(X[gap]):.4g}..{np.max(X[gap]):.4g} e-/s: "
+        parts.append(f"{100 * gap.mean():.3g} % of pixels only bounded "
+                     f"({np.min(X[gap]):.4g}..{np.max(X[gap]):.4g} e-/s: "
                      "saturated in a longer frame, undetected in a shorter one), spread over the bounds")
     if coarse.any():
         parts.append(f"{100 * coarse.mean():.3g} % of pixels metered coarsely (error > {100 / meter_snr:g} %)")

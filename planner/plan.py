@@ -92,7 +92,24 @@ class IrradianceHistogram:
 
 
 def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
-    """Weighted histogram of log10(irradiance) over the pixels with X > 0."""
+    """Weighted histogram of log10(irradiance) over the pixels with X > 0.
+
+    Parameters
+    ----------
+    irradiance : array_like
+        Irradiance map or sample, e-/s per photosite.
+    bins : int
+        Number of log-irradiance bins.
+
+    Returns
+    -------
+    IrradianceHistogram
+
+    Raises
+    ------
+    InputError
+        An empty map or NaN or infinite values.
+    """
     x = np.asarray(irradiance, dtype=np.float64).ravel()
     if x.size == 0:
         raise InputError("the irradiance map is empty")
@@ -180,7 +197,13 @@ class Plan:
         "probabilistic"), ``saturation_sigmas`` (the margin the plan assumed), ``prnu``
         ("map" | "scalar"); and, only when every exposure has the same dark strategy,
         ``dark_strategy`` (plus ``n_dark`` when that is "master" with one frame count). The
-        per-exposure strategies and frame counts are :attr:`darks` and :attr:`n_dark`."""
+        per-exposure strategies and frame counts are :attr:`darks` and :attr:`n_dark`.
+
+        Returns
+        -------
+        dict
+            Keyword options of the merge.
+        """
         out: dict[str, Any] = {}
         d = self.decisions
         if "iterations" in d:
@@ -214,7 +237,17 @@ class Plan:
         return "\n".join(lines)
 
     def to_dict(self, curve: bool = False) -> dict[str, Any]:
-        """The plan as JSON-ready data (the schema of ``hdrcap plan --json``, docs/planner.md)."""
+        """The plan as JSON-ready data (the schema of ``hdrcap plan --json``, docs/planner.md).
+
+        Parameters
+        ----------
+        curve : bool
+            Include the predicted SNR curve.
+
+        Returns
+        -------
+        dict
+        """
         out = {
             "exposures": list(self.exposures),
             "darks": list(self.darks),
@@ -315,7 +348,24 @@ class _Context:
 
 
 def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
-    """Pixels with signal that are usable (not predicted saturated) at the shortest time."""
+    """Pixels with signal that are usable (not predicted saturated) at the shortest time.
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    t_min : float
+        Shortest allowed exposure time, s.
+    calibration : Calibration
+        Camera model.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean mask.
+    """
     X = np.asarray(X, dtype=np.float64)
     return (X > 0) & (usable_fraction(X, t_min, calibration, "threshold", k_sigma) > 0)
 
@@ -329,6 +379,24 @@ def bulk_irradiance(irradiance, t_min: float, calibration: Calibration,
     ``floor(highlight_fraction * N)`` (N = number of eligible pixels). Saturation is monotone in
     the irradiance, so an exposure saturates at most that fraction of the eligible pixels exactly
     when it does not saturate the returned value. None when no pixel is eligible.
+
+    Parameters
+    ----------
+    irradiance : array_like
+        Irradiance map or sample, e-/s.
+    t_min : float
+        Shortest allowed exposure time, s.
+    calibration : Calibration
+        Camera model.
+    highlight_fraction : float
+        Fraction of the eligible pixels left out as highlights.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    float or None
+        The bulk's brightest irradiance, e-/s.
     """
     x = np.asarray(irradiance, dtype=np.float64).ravel()
     x = x[eligible_mask(x, t_min, calibration, k_sigma)]
@@ -343,7 +411,24 @@ def first_exposure(x_bulk: float, times: Sequence[float], calibration: Calibrati
                    k_sigma: float = K_SIGMA) -> float:
     """The first exposure of a plan: the longest of ``times`` that does not saturate ``x_bulk``
     (e-/s) under the merge's near-saturation rule (Eq. 11 extended: the predicted value plus
-    ``k_sigma`` of its own standard deviation stays below v_sat); the shortest time when none does."""
+    ``k_sigma`` of its own standard deviation stays below v_sat); the shortest time when none does.
+
+    Parameters
+    ----------
+    x_bulk : float
+        Brightest irradiance of the bulk, e-/s (:func:`bulk_irradiance`).
+    times : sequence of float
+        Allowed exposure times, s.
+    calibration : Calibration
+        Camera model.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    float
+        The first exposure time, s.
+    """
     times = sorted(float(t) for t in times)
     ok = [t for t in times if usable_fraction(x_bulk, t, calibration, "threshold", k_sigma) > 0]
     return ok[-1] if ok else times[0]
@@ -717,11 +802,13 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
     seq = ", ".join(_fmt_t(t) for t in exposures)
     parts = []
     if ok:
-        parts.append(f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB on {where}: "
+        parts.append(f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB "
+                     f"on {where}: "
                      f"predicted {min_db:.2f} dB, total capture time {total:.4g} s.")
     else:
         why = {
-            "max_exposures": f"the limit of {max_exposures if max_exposures is not None else DEFAULT_MAX_EXPOSURES} exposures",
+            "max_exposures": f"the limit of {DEFAULT_MAX_EXPOSURES if max_exposures is None else max_exposures} "
+                             "exposures",
             "time_budget": f"the time budget of {budget:g} s" if budget is not None else "the time budget",
             "no_gain": "the allowed exposure times (no further exposure improves the darkest pixels)",
         }.get(limit, "the constraints")
@@ -736,7 +823,8 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
         if failing.any():
             xs = ctx.X[failing]
             frac = ctx.w_elig[failing].sum() / max(ctx.w_elig.sum(), 1e-300)
-            parts.append(f"Below target: {100 * frac:.3g} % of eligible pixels, irradiance {xs.min():.4g}..{xs.max():.4g} e-/s.")
+            parts.append(f"Below target: {100 * frac:.3g} % of eligible pixels, "
+                         f"irradiance {xs.min():.4g}..{xs.max():.4g} e-/s.")
     elig = decisions.get("eligibility", {})
     if elig.get("figure", 0) and elig["figure"] > 0:
         parts.append(elig["reason"] + ".")
@@ -754,7 +842,40 @@ def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, 
     the sequence with the least total capture time that reaches the target (reference for the
     greedy planner). ``first``: only sequences that hold this time (one of the candidates), as
     the planner's sequences hold the bulk exposure. Returns (times, total_time_s), or None when
-    nothing reaches the target."""
+    nothing reaches the target.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model.
+    irradiance : array_like
+        Irradiance map or sample, e-/s.
+    target_snr_db : float
+        Required SNR, dB.
+    candidate_times : sequence of float
+        Exposure times to combine, s.
+    max_exposures : int
+        Largest sequence.
+    overhead : float
+        Per-frame overhead, s.
+    quantile : float, optional
+        Fraction of eligible pixels that must reach the target (default 1).
+    errors : SystematicErrors, optional
+        Systematic errors (default: none).
+    darks : str
+        Dark strategy of every exposure.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+    bins : int
+        Number of log-irradiance bins.
+    first : float, optional
+        A time every sequence holds, s.
+
+    Returns
+    -------
+    (list of float, float) or None
+        The times, s, and the total capture time, s; None when nothing reaches the target.
+    """
     times = _check_request(target_snr_db, candidate_times, max_exposures, None, overhead, quantile)
     errors = errors if errors is not None else SystematicErrors()
     hist = irradiance_histogram(irradiance, bins)
@@ -787,6 +908,36 @@ def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, ste
     even the longest allowed time does not suffice, the whole bracket is repeated. Times are
     the exact powers of two (not snapped to a ladder). Returns (times, total_time_s) with the
     least total time over the bracket lengths tried, or None.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model.
+    irradiance : array_like
+        Irradiance map or sample, e-/s.
+    target_snr_db : float
+        Required SNR, dB.
+    step_ev : float
+        Bracket step, EV (factor 2^step_ev between times).
+    allowed_times : sequence of float, optional
+        Allowed exposure times, s (default: the 1/3-EV ladder); the bracket spans their range.
+    overhead : float
+        Per-frame overhead, s.
+    errors : SystematicErrors, optional
+        Systematic errors (default: none).
+    darks : str
+        Dark strategy of every exposure.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+    max_frames : int
+        Most frames of the repeated bracket.
+    bins : int
+        Number of log-irradiance bins.
+
+    Returns
+    -------
+    (list of float, float) or None
+        The times, s, and the total capture time, s; None when nothing reaches the target.
     """
     allowed = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
                              None, None, overhead, None)
