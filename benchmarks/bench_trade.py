@@ -62,7 +62,7 @@ CONFIGS = {
 
 
 def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bins: int) -> dict:
-    from hdrcap.acquire.commands.evaluate import make_setup, simulate_bracket_arrays
+    from hdrcap.experiments import make_setup, simulate_bracket_arrays
     from hdrcap.mock_camera import PRESETS
     from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
     from hdrcap.pipeline.merge import merge_arrays

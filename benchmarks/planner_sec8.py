@@ -16,20 +16,16 @@ import numpy as np
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline import merge as merge_mod
-from hdrcap.pipeline.io import RawFrame
 from hdrcap.pipeline.params import Calibration
 from hdrcap.planner import (SystematicErrors, plan_bracket, plan_exhaustive, plan_exposures, predict_snr,
-                     systematic_errors_from_calibration)
+                            systematic_errors_from_calibration)
 from hdrcap.planner.plan import DEFAULT_OVERHEAD_S
 from hdrcap.planner.ladder import THIRD_STOP_LADDER
 from hdrcap.planner.predict import usable_fraction
 
 
 def _merge(values, times, cal, **options):
-    merge_arrays = getattr(merge_mod, "merge_arrays", None)
-    if merge_arrays is not None:
-        return merge_arrays(values, times, cal, **options), "merge_arrays"
-    return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal, **options), "merge_frames"
+    return merge_mod.merge_arrays(values, times, cal, **options), "merge_arrays"
 
 
 def bulk_time(X, spec, highlight_fraction=0.05, k_sigma=3.0):

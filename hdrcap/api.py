@@ -608,14 +608,6 @@ def plan(
 # --------------------------------------------------------------------------- denoise
 
 
-def _layout(metadata: Mapping[str, Any]) -> str:
-    """``"cfa"`` when the metadata names a 2x2 Bayer pattern, else ``"mono"``."""
-    cfa = metadata.get("cfa_pattern")
-    if isinstance(cfa, str) and len(cfa) == 4 and set(cfa) <= set("RGBE") and len(set(cfa)) > 1:
-        return "cfa"
-    return "mono"
-
-
 def denoise(
     hdr: HdrResult,
     *,
@@ -667,25 +659,13 @@ def denoise(
         raise InputError(f"denoise: expected an HdrResult (from merge or read_exr), got {type(hdr).__name__}")
     if layout not in ("auto", "cfa", "mono"):
         raise InputError(f"layout must be auto, cfa or mono, got {layout!r}")
-    settings = _dn.DenoiseSettings(
-        method=method,
-        range_scale=_dn.DEFAULT_RANGE_SCALE if range_scale is None else range_scale,
-        bandwidth=bandwidth,
-        radius=_dn.DEFAULT_RADIUS if radius is None else radius,
-        spatial_sigma=_dn.DEFAULT_SPATIAL_SIGMA if spatial_sigma is None else spatial_sigma,
-        layout=_layout(hdr.metadata) if layout == "auto" else layout,
-    )
+    settings = _dn.settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma,
+                                         _dn.layout_from_metadata(hdr.metadata) if layout == "auto" else layout)
     res = _dn.denoise(hdr.irradiance, hdr.sigma, hdr.nexp, settings, name="denoise input")
     meta = dict(hdr.metadata)
     meta["sigma"] = _dn.SIGMA_MEANING
-    meta["denoise"] = {
-        "filter": "bilateral, range bandwidth from the predicted uncertainty (Granados et al., Sec. 9)",
-        "settings": settings.to_dict(),
-        "layout_source": "metadata cfa_pattern" if layout == "auto" else "layout argument",
-        "input_sigma": hdr.metadata.get("sigma", _SIGMA),
-        "unchanged_nexp0": res.info["unchanged_nexp0"],
-        "hdrcap_version": __version__,
-    }
+    source = "metadata cfa_pattern" if layout == "auto" else "layout argument"
+    meta["denoise"] = _dn.denoise_header(settings, res, source, hdr.metadata.get("sigma", _SIGMA), __version__)
     return HdrResult(res.irradiance, res.sigma, np.asarray(hdr.nexp, np.float32), meta, dict(hdr.extra_channels))
 
 

@@ -4,8 +4,8 @@ Pure functions for the paper's evaluation (Sec. 7): SNR and efficiency (Cramér-
 MSE) per irradiance bin from Monte-Carlo merges against the simulator's truth, paired
 comparisons between two merges of the same data, normal Q-Q data (Fig. 6) and the weights of
 every Table 1 method against the output value at constant irradiance (Fig. 2). The
-Monte-Carlo driver that draws the frames lives with the command line
-(:mod:`acquire.commands.evaluate`): this module knows nothing of cameras.
+Monte-Carlo driver that draws the frames from the simulator is :mod:`hdrcap.experiments.snr`:
+this module knows nothing of cameras.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .noise import exposure_weight, merged_variance
 from .params import SensorParams
@@ -32,9 +33,23 @@ __all__ = [
 def error_against_truth(estimate: np.ndarray, sigma: np.ndarray, nexp: np.ndarray, truth: np.ndarray) -> dict:
     """Summarise the error of ``estimate`` against ``truth`` where some exposure was usable.
 
-    Returns the median absolute relative error, the mean and standard deviation of the
-    z-scores (estimate - truth) / sigma (1 for an honest sigma), the fraction of |z| > 3 and
-    > 6, and how many photosites were saturated everywhere (excluded).
+    Parameters
+    ----------
+    estimate, sigma : numpy.ndarray
+        Merged irradiance and its standard deviation, e-/s.
+    nexp : numpy.ndarray
+        Unsaturated exposures per photosite (0: excluded).
+    truth : numpy.ndarray
+        True irradiance, e-/s.
+
+    Returns
+    -------
+    dict
+        ``n_used`` and ``saturated_everywhere`` (photosites), ``median_abs_relative_error`` and
+        ``rms_relative_error`` (dimensionless), ``z_mean`` and ``z_std`` of the z-scores
+        (estimate - truth) / sigma (1 for an honest sigma), ``fraction_abs_z_gt_3`` and
+        ``fraction_abs_z_gt_6``, ``median_snr_db`` (dB). Only the two counts when no photosite
+        was usable.
     """
     est = np.asarray(estimate, dtype=np.float64)
     sig = np.asarray(sigma, dtype=np.float64)
@@ -59,7 +74,25 @@ def error_against_truth(estimate: np.ndarray, sigma: np.ndarray, nexp: np.ndarra
 
 
 def log_bins(truth: np.ndarray, n_bins: int) -> np.ndarray:
-    """``n_bins + 1`` logarithmically spaced bin edges spanning ``truth`` (e-/s, > 0)."""
+    """Logarithmically spaced bin edges spanning ``truth``.
+
+    Parameters
+    ----------
+    truth : numpy.ndarray
+        True irradiance, e-/s, > 0 with some range.
+    n_bins : int
+        Number of bins.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``n_bins + 1`` edges, e-/s; the last lies just above the maximum so that it is binned.
+
+    Raises
+    ------
+    ValueError
+        A truth that is not positive or has no range.
+    """
     tru = np.asarray(truth, dtype=np.float64)
     lo, hi = float(tru.min()), float(tru.max())
     if not (lo > 0 and hi > lo):
@@ -69,13 +102,34 @@ def log_bins(truth: np.ndarray, n_bins: int) -> np.ndarray:
     return edges
 
 
-def bound_variance(truth, times: Sequence[float], params: SensorParams, a=1.0, D=None, dark="matched",
-                   n_dark=1) -> np.ndarray:
+def bound_variance(truth: ArrayLike, times: Sequence[float], params: SensorParams, a: ArrayLike = 1.0,
+                   D: ArrayLike | None = None, dark: str = "matched", n_dark: int = 1) -> np.ndarray:
     """The practical Cramér-Rao bound 1 / sum_i w_i(X) (Eq. 12, 13) at the true irradiance.
 
     An exposure counts when its expected raw value mu_R + g t (a X + D) lies below v_sat;
-    w_i is :func:`pipeline.noise.exposure_weight` (Eq. 13 for ``dark="matched"``). Returns
-    the variance in (e-/s)^2, ``inf`` where every exposure saturates.
+    w_i is :func:`pipeline.noise.exposure_weight` (Eq. 13 for ``dark="matched"``).
+
+    Parameters
+    ----------
+    truth : array_like
+        True irradiance X, e-/s.
+    times : sequence of float
+        Exposure times, s.
+    params : SensorParams
+        Sensor parameters (g in DN/e-, sigma2_R in DN^2, mu_R and v_sat in DN).
+    a : array_like
+        PRNU factor (scalar or map), dimensionless.
+    D : array_like, optional
+        Dark current, e-/s (default ``params.dark_current``).
+    dark : str
+        Dark strategy of the merge (``"matched"``: Eq. 13).
+    n_dark : int
+        Dark frames behind each dark subtraction.
+
+    Returns
+    -------
+    numpy.ndarray
+        The variance, (e-/s)^2; ``inf`` where every exposure saturates.
     """
     X = np.asarray(truth, dtype=np.float64)
     D = params.dark_current if D is None else D
@@ -155,8 +209,24 @@ def paired_difference(est_a: np.ndarray, est_b: np.ndarray, truth: np.ndarray, e
 
     d = e_a^2 - e_b^2 with e = (estimate - X)/X; per bin the mean of d and its standard error
     (photosites and repetitions treated as independent samples). A negative mean means ``a``
-    has the lower mean squared error. Returns lists ``center``, ``mean``, ``se``, ``ratio``
-    (MSE_a / MSE_b).
+    has the lower mean squared error.
+
+    Parameters
+    ----------
+    est_a, est_b : numpy.ndarray
+        The two merges, e-/s, shape (n_repetitions, ...) or the truth's shape.
+    truth : numpy.ndarray
+        True irradiance, e-/s.
+    edges : numpy.ndarray
+        Bin edges, e-/s (e.g. :func:`log_bins`).
+    valid : numpy.ndarray, optional
+        Boolean mask of photosites to use.
+
+    Returns
+    -------
+    dict
+        Lists per bin: ``center`` (e-/s), ``mean`` and ``se`` of d (dimensionless), ``ratio``
+        (MSE_a / MSE_b); None for bins with fewer than two samples.
     """
     tru = np.asarray(truth, dtype=np.float64)
     a = np.asarray(est_a, dtype=np.float64)
@@ -181,9 +251,21 @@ def paired_difference(est_a: np.ndarray, est_b: np.ndarray, truth: np.ndarray, e
     return out
 
 
-def qq_data(samples) -> dict:
-    """Normal Q-Q data of one sample (Fig. 6): theoretical normal quantiles against the
-    standardised ordered sample, the Q-Q correlation r and the Shapiro-Wilk p-value."""
+def qq_data(samples: ArrayLike) -> dict:
+    """Normal Q-Q data of one sample (Fig. 6).
+
+    Parameters
+    ----------
+    samples : array_like
+        One sample (any unit, e.g. DN), flattened.
+
+    Returns
+    -------
+    dict
+        ``theoretical`` normal quantiles against the standardised ordered sample
+        (``ordered``), the Q-Q correlation ``r``, the Shapiro-Wilk p-value ``shapiro_p``, and
+        ``mean``, ``std`` (the sample's unit) and ``n``.
+    """
     from scipy import stats
 
     x = np.asarray(samples, dtype=np.float64).ravel()
@@ -200,8 +282,20 @@ def gaussianity(samples: np.ndarray, alpha: float = 0.05) -> dict:
 
     Under a Gaussian model the fraction of photosites rejected at level ``alpha`` is
     ``alpha`` (binomial spread); a clearly larger fraction shows the approximation breaks.
-    Returns ``rejection_rate``, its binomial standard error under the Gaussian hypothesis,
-    ``n_pixels``, ``n_samples`` and ``alpha``.
+
+    Parameters
+    ----------
+    samples : numpy.ndarray
+        (photosites, frames) raw values, any unit (e.g. DN).
+    alpha : float
+        Level of the test.
+
+    Returns
+    -------
+    dict
+        ``rejection_rate`` (fraction), its binomial standard error under the Gaussian
+        hypothesis ``rate_se_if_gaussian``, ``n_pixels``, ``n_samples``, ``alpha`` and
+        ``constant_pixels`` (photosites with zero spread, counted as rejected).
     """
     from scipy import stats
 
@@ -225,6 +319,25 @@ def weights_vs_output(params: SensorParams, X: float, methods: Sequence[str] | N
     from 1 DN to v_sat - mu_R; each method's weight is evaluated at that (noise-free) output
     and normalised to a maximum of 1. ``optimal`` is Eq. 13 at the true X
     (:func:`pipeline.noise.exposure_weight`, matched dark frame).
+
+    Parameters
+    ----------
+    params : SensorParams
+        Sensor parameters.
+    X : float
+        The constant irradiance, e-/s.
+    methods : sequence of str, optional
+        Methods of :data:`pipeline.weighting.WEIGHTING_METHODS` (default: all).
+    n : int
+        Number of output values.
+    D : float, optional
+        Dark current, e-/s (default ``params.dark_current``).
+
+    Returns
+    -------
+    dict
+        ``v`` (output above black, DN), ``t`` (exposure times, s), ``X`` (e-/s), ``sigma2_R``
+        (DN^2) and ``weights`` (method -> normalised weights).
     """
     from .weighting import WEIGHTING_METHODS
 

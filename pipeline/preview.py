@@ -14,7 +14,19 @@ __all__ = ["mosaic_to_rgb", "tonemap_log", "write_preview_png"]
 def mosaic_to_rgb(mosaic: np.ndarray, cfa: str | None) -> np.ndarray:
     """Half-resolution RGB from a Bayer mosaic by 2x2 binning (greens averaged).
 
-    Without a CFA pattern the single channel is repeated into grey.
+    Parameters
+    ----------
+    mosaic : numpy.ndarray
+        (H, W) values, any unit (e.g. irradiance, e-/s).
+    cfa : str or None
+        2x2 pattern read row by row (e.g. ``"RGGB"``); without one the single channel is
+        repeated into grey at full resolution.
+
+    Returns
+    -------
+    numpy.ndarray
+        (H/2, W/2, 3) float64 RGB in the mosaic's unit (odd last row/column dropped), or
+        (H, W, 3) grey.
     """
     m = np.asarray(mosaic, dtype=np.float64)
     if not cfa or len(cfa) != 4:
@@ -31,7 +43,20 @@ def mosaic_to_rgb(mosaic: np.ndarray, cfa: str | None) -> np.ndarray:
 
 
 def tonemap_log(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> np.ndarray:
-    """Logarithmic tone map to 8 bit between two percentiles of the positive values."""
+    """Logarithmic tone map to 8 bit between two percentiles of the positive values.
+
+    Parameters
+    ----------
+    rgb : numpy.ndarray
+        (..., 3) linear values, any unit.
+    lo_pct, hi_pct : float
+        Percentiles of the positive mean values mapped to black and white, %.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 image of ``rgb``'s shape (log scale, gamma 1/1.2); all black without positive values.
+    """
     lum = rgb.mean(axis=-1)
     pos = lum[lum > 0]
     if pos.size == 0:
@@ -42,8 +67,25 @@ def tonemap_log(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> n
     return np.round(255 * np.clip(val, 0, 1) ** (1 / 1.2)).astype(np.uint8)
 
 
-def write_preview_png(path, irradiance: np.ndarray, cfa: str | None, force: bool = False) -> Path:
-    """Write a log tone-mapped PNG preview of an irradiance mosaic."""
+def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None, force: bool = False) -> Path:
+    """Write a log tone-mapped PNG preview of an irradiance mosaic (for looking at only).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output PNG.
+    irradiance : numpy.ndarray
+        (H, W) irradiance mosaic, e-/s.
+    cfa : str or None
+        2x2 CFA pattern of the mosaic (None: grey).
+    force : bool
+        Replace an existing file.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     from PIL import Image
 
     img = tonemap_log(mosaic_to_rgb(irradiance, cfa))

@@ -13,6 +13,7 @@ error above 1/``meter_snr``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
@@ -20,11 +21,12 @@ import numpy as np
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import exposure_variance
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.times import unique_exposures
 
 from .ladder import THIRD_STOP_LADDER
-from .predict import K_SIGMA, usable_fraction
+from .predict import K_SIGMA
 
-__all__ = ["MeterReport", "meter"]
+__all__ = ["MeterReport", "meter", "read_irradiance_map"]
 
 
 @dataclass(frozen=True)
@@ -74,10 +76,18 @@ class MeterReport:
     status: np.ndarray | None = None
 
     def to_dict(self) -> dict:
+        """The report as JSON-ready data.
+
+        Returns
+        -------
+        dict
+            Every field but the per-photosite ``status`` map.
+        """
         return {
             "times": self.times, "n_pixels": self.n_pixels, "n_saturated": self.n_saturated,
             "bright_limit": self.bright_limit, "n_dark": self.n_dark, "dark_limit": self.dark_limit,
-            "n_coarse": self.n_coarse, "n_gap": self.n_gap, "metered_range": list(self.metered_range) if self.metered_range else None,
+            "n_coarse": self.n_coarse, "n_gap": self.n_gap,
+            "metered_range": list(self.metered_range) if self.metered_range else None,
             "message": self.message,
         }
 
@@ -177,7 +187,8 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
         The irradiance map (float64, e-/s; lower bounds where saturated at the shortest time,
         the detection limit where below it).
     """
-    times = sorted(set(float(t) for t in (allowed_times if allowed_times is not None else THIRD_STOP_LADDER)))
+    times = sorted(unique_exposures(float(t) for t in (allowed_times if allowed_times is not None
+                                                       else THIRD_STOP_LADDER)))
     if not times or times[0] <= 0:
         raise InputError("metering needs positive allowed exposure times")
     if int(max_frames) < 1:
@@ -226,7 +237,8 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
         parts.append(f"{100 * dark.mean():.3g} % of pixels below the detection limit {dark_limit:.4g} e-/s: "
                      "not metered, the limit kept")
     if gap.any():
-        parts.append(f"{100 * gap.mean():.3g} % of pixels only bounded ({np.min(X[gap]):.4g}..{np.max(X[gap]):.4g} e-/s: "
+        parts.append(f"{100 * gap.mean():.3g} % of pixels only bounded "
+                     f"({np.min(X[gap]):.4g}..{np.max(X[gap]):.4g} e-/s: "
                      "saturated in a longer frame, undetected in a shorter one), spread over the bounds")
     if coarse.any():
         parts.append(f"{100 * coarse.mean():.3g} % of pixels metered coarsely (error > {100 / meter_snr:g} %)")
@@ -236,3 +248,35 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
         n_coarse=int(coarse.sum()), n_gap=int(gap.sum()), status=status, metered_range=rng, message="; ".join(parts),
     )
     return (X, report) if return_report else X
+
+
+def read_irradiance_map(path: str | Path) -> np.ndarray:
+    """A scene's irradiance map from an EXR instead of metering (e.g. a previous merge or a truth).
+
+    Parameters
+    ----------
+    path : str or Path
+        EXR file with a channel ``irradiance`` (or ``Y``, ``R``, ``G``), e-/s per photosite.
+
+    Returns
+    -------
+    numpy.ndarray
+        The map, float64, e-/s.
+
+    Raises
+    ------
+    InputError
+        No such channel, or NaN or infinite values.
+    """
+    from hdrcap.pipeline.io import read_exr
+
+    img = read_exr(path)
+    for name in ("irradiance", "Y", "R", "G"):
+        if name in img.channels:
+            data = np.asarray(img.channels[name], dtype=np.float64)
+            break
+    else:
+        raise InputError(f"{path}: no irradiance, Y, R or G channel (has {', '.join(img.channels)})")
+    if not np.all(np.isfinite(data)):
+        raise InputError(f"{path}: the irradiance map holds NaN or infinite values")
+    return data

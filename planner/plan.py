@@ -34,6 +34,7 @@ import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.times import find_exposure, same_exposure, unique_exposures
 
 from . import select
 from .ladder import THIRD_STOP_LADDER
@@ -42,7 +43,6 @@ from .predict import (
     SystematicErrors,
     combine_terms,
     exposure_terms,
-    predict_snr,
     systematic_errors_from_calibration,
     to_db,
     usable_fraction,
@@ -92,7 +92,24 @@ class IrradianceHistogram:
 
 
 def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
-    """Weighted histogram of log10(irradiance) over the pixels with X > 0."""
+    """Weighted histogram of log10(irradiance) over the pixels with X > 0.
+
+    Parameters
+    ----------
+    irradiance : array_like
+        Irradiance map or sample, e-/s per photosite.
+    bins : int
+        Number of log-irradiance bins.
+
+    Returns
+    -------
+    IrradianceHistogram
+
+    Raises
+    ------
+    InputError
+        An empty map or NaN or infinite values.
+    """
     x = np.asarray(irradiance, dtype=np.float64).ravel()
     if x.size == 0:
         raise InputError("the irradiance map is empty")
@@ -123,7 +140,7 @@ def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
 
 @dataclass
 class Plan:
-    """An exposure plan (contract of DESIGN.md / BRIEF: issue 7).
+    """An exposure plan: what to capture, how to subtract the dark signal, how to merge.
 
     Attributes
     ----------
@@ -180,7 +197,13 @@ class Plan:
         "probabilistic"), ``saturation_sigmas`` (the margin the plan assumed), ``prnu``
         ("map" | "scalar"); and, only when every exposure has the same dark strategy,
         ``dark_strategy`` (plus ``n_dark`` when that is "master" with one frame count). The
-        per-exposure strategies and frame counts are :attr:`darks` and :attr:`n_dark`."""
+        per-exposure strategies and frame counts are :attr:`darks` and :attr:`n_dark`.
+
+        Returns
+        -------
+        dict
+            Keyword options of the merge.
+        """
         out: dict[str, Any] = {}
         d = self.decisions
         if "iterations" in d:
@@ -196,8 +219,35 @@ class Plan:
                 out["n_dark"] = int(self.n_dark[0])
         return out
 
+    def explain(self) -> str:
+        """The message and each model decision with the figure that drove it, one per line.
+
+        Returns
+        -------
+        str
+            Text for people (``hdrcap plan --explain``).
+        """
+        lines = [self.message, "decisions:"]
+        for name, d in self.decisions.items():
+            fig = d.get("figure")
+            if isinstance(fig, float):
+                fig = f"{fig:.4g}"
+            lines.append(f"  {name}: {d['choice']}  [{fig} {d.get('unit', '')}]".rstrip())
+            lines.append(f"      {d['reason']}")
+        return "\n".join(lines)
+
     def to_dict(self, curve: bool = False) -> dict[str, Any]:
-        """The plan as JSON-ready data (the schema of ``hdrcap plan --json``, docs/planner.md)."""
+        """The plan as JSON-ready data (the schema of ``hdrcap plan --json``, docs/planner.md).
+
+        Parameters
+        ----------
+        curve : bool
+            Include the predicted SNR curve.
+
+        Returns
+        -------
+        dict
+        """
         out = {
             "exposures": list(self.exposures),
             "darks": list(self.darks),
@@ -252,7 +302,7 @@ class _Context:
                                    for t, d in zip(self.cand, self.darks)])
         # candidates of one exposure time with another dark strategy: a plan gives each time
         # one strategy (the merge matches frames to the plan by exposure time)
-        self.rival = np.array([[a == b and da != db for b, db in zip(self.cand, self.darks)]
+        self.rival = np.array([[same_exposure(a, b) and da != db for b, db in zip(self.cand, self.darks)]
                                for a, da in zip(self.cand, self.darks)], dtype=bool).reshape(len(self.cand), -1)
 
     def excluded(self, idx) -> np.ndarray:
@@ -298,7 +348,24 @@ class _Context:
 
 
 def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
-    """Pixels with signal that are usable (not predicted saturated) at the shortest time."""
+    """Pixels with signal that are usable (not predicted saturated) at the shortest time.
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    t_min : float
+        Shortest allowed exposure time, s.
+    calibration : Calibration
+        Camera model.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean mask.
+    """
     X = np.asarray(X, dtype=np.float64)
     return (X > 0) & (usable_fraction(X, t_min, calibration, "threshold", k_sigma) > 0)
 
@@ -312,6 +379,24 @@ def bulk_irradiance(irradiance, t_min: float, calibration: Calibration,
     ``floor(highlight_fraction * N)`` (N = number of eligible pixels). Saturation is monotone in
     the irradiance, so an exposure saturates at most that fraction of the eligible pixels exactly
     when it does not saturate the returned value. None when no pixel is eligible.
+
+    Parameters
+    ----------
+    irradiance : array_like
+        Irradiance map or sample, e-/s.
+    t_min : float
+        Shortest allowed exposure time, s.
+    calibration : Calibration
+        Camera model.
+    highlight_fraction : float
+        Fraction of the eligible pixels left out as highlights.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    float or None
+        The bulk's brightest irradiance, e-/s.
     """
     x = np.asarray(irradiance, dtype=np.float64).ravel()
     x = x[eligible_mask(x, t_min, calibration, k_sigma)]
@@ -325,8 +410,25 @@ def bulk_irradiance(irradiance, t_min: float, calibration: Calibration,
 def first_exposure(x_bulk: float, times: Sequence[float], calibration: Calibration,
                    k_sigma: float = K_SIGMA) -> float:
     """The first exposure of a plan: the longest of ``times`` that does not saturate ``x_bulk``
-    (e-/s) under the merge's near-saturation rule (predicted value + ``k_sigma`` of its own
-    standard deviation below v_sat, Eq. 11 and DESIGN.md); the shortest time when none does."""
+    (e-/s) under the merge's near-saturation rule (Eq. 11 extended: the predicted value plus
+    ``k_sigma`` of its own standard deviation stays below v_sat); the shortest time when none does.
+
+    Parameters
+    ----------
+    x_bulk : float
+        Brightest irradiance of the bulk, e-/s (:func:`bulk_irradiance`).
+    times : sequence of float
+        Allowed exposure times, s.
+    calibration : Calibration
+        Camera model.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    float
+        The first exposure time, s.
+    """
     times = sorted(float(t) for t in times)
     ok = [t for t in times if usable_fraction(x_bulk, t, calibration, "threshold", k_sigma) > 0]
     return ok[-1] if ok else times[0]
@@ -338,7 +440,7 @@ def first_exposure(x_bulk: float, times: Sequence[float], calibration: Calibrati
 def _check_request(target_snr_db, allowed_times, max_exposures, time_budget, overhead, quantile):
     if not np.isfinite(target_snr_db):
         raise InputError(f"target SNR must be a finite number of dB, got {target_snr_db!r}")
-    times = sorted(set(float(t) for t in allowed_times))
+    times = sorted(unique_exposures(float(t) for t in allowed_times))
     if not times:
         raise InputError("no allowed exposure times")
     if any(not (np.isfinite(t) and t > 0) for t in times):
@@ -355,12 +457,12 @@ def _check_request(target_snr_db, allowed_times, max_exposures, time_budget, ove
 
 
 def _library_n(dark_library: Mapping[float, int] | None, t: float) -> int:
+    """Frame count of the library's master dark for exposure time ``t`` (s); 0 when there is none."""
     if not dark_library:
         return 0
-    for lt, n in dark_library.items():
-        if abs(float(lt) - t) <= 1e-6 * t + 1e-9:
-            return int(n)
-    return 0
+    keys = list(dark_library)
+    i = find_exposure(t, keys)
+    return 0 if i is None else int(dark_library[keys[i]])
 
 
 # --------------------------------------------------------------------------- planning
@@ -429,36 +531,70 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     q = 1.0 if quantile is None else float(quantile)
     errors = errors if errors is not None else systematic_errors_from_calibration(calibration)
     hist = irradiance_histogram(irradiance, bins)
-    target_lin = 10.0 ** (target_snr_db / 20.0)
     elig = eligible_mask(hist.X, times[0], calibration, k_sigma) if hist.X.size else np.zeros(0, bool)
-
-    decisions: dict[str, dict[str, Any]] = {}
-    decisions["eligibility"] = select.eligibility_decision(hist, elig, times[0], calibration)
+    decisions: dict[str, dict[str, Any]] = {"eligibility": select.eligibility_decision(hist, elig, times[0],
+                                                                                       calibration)}
     if not elig.any():
         msg = decisions["eligibility"]["reason"] + "; nothing to plan"
         return Plan([], [], float("nan"), 0.0, decisions, False, msg, float(target_snr_db), q, [], {},
                     float(k_sigma), float(overhead))
 
+    # 1. model selection before planning: PRNU model and each allowed time's dark strategy
     Xe = hist.X[elig]
+    target_lin = 10.0 ** (target_snr_db / 20.0)
     decisions["prnu"] = select.prnu_decision(errors, target_lin, calibration, tolerance_db)
-    prnu = decisions["prnu"]["choice"]
     t_best = select.longest_usable_time(Xe, times, calibration, k_sigma)
-    cap = int(max_exposures) if max_exposures is not None else (DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6)
-    # the first exposure: the longest that does not saturate the scene's bulk (Sec. 8)
-    x_bulk = bulk_irradiance(irradiance, times[0], calibration, highlight_fraction, k_sigma)
-    t_first = first_exposure(x_bulk, times, calibration, k_sigma)
     dark_choice = [select.dark_decision_for_time(Xe, t, calibration, errors, target_lin, _library_n(dark_library, t),
                                                  overhead, tolerance_db, k_sigma, t_best) for t in times]
-    if uniform_darks and len({d["choice"] for d in dark_choice}) > 1:
-        forced = "master" if all(_library_n(dark_library, t) for t in times) else "matched"
-        for d in dark_choice:
-            if d["choice"] != forced:
-                d["reason"] = f"{forced} (one strategy for all exposures was asked; alone: {d['choice']})"
-                d["choice"] = forced
-    # Candidates: each allowed time with its decided dark strategy and, where that is a dark
-    # frame, also without one: the greedy then pays for a dark frame only when the SNR it buys
-    # is cheaper in capture time than more exposures (the systematic error of the dark model is
-    # part of the predicted SNR, so the target still holds).
+    if uniform_darks:
+        _force_one_dark_strategy(dark_choice, times, dark_library)
+    cand_t, cand_dec = _candidates(times, dark_choice, uniform_darks)
+    darks = [d["choice"] for d in cand_dec]
+    ctx = _Context(calibration, hist, target_snr_db, cand_t, darks, _dark_counts(cand_t, darks, dark_library),
+                   overhead, errors, decisions["prnu"]["choice"], q, k_sigma)
+    # 2. the first exposure: the longest that does not saturate the scene's bulk (Sec. 8)
+    x_bulk = bulk_irradiance(irradiance, times[0], calibration, highlight_fraction, k_sigma)
+    t_first = first_exposure(x_bulk, times, calibration, k_sigma)
+    t_seed, seeds = _seeds(ctx, t_first, time_budget, bulk_first)
+    # 3. Eq. 18's greedy from each seed, polished; 4. the models of the merge
+    chosen, limit, ok = _search(ctx, seeds, _exposure_cap(max_exposures, time_budget), time_budget, polish)
+    if bulk_first:
+        decisions["first_exposure"] = _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx, k_sigma)
+    decisions["dark_strategy"] = select.summarise_dark_decisions([cand_dec[i] for i in chosen],
+                                                                 [float(ctx.cand[i]) for i in chosen])
+    if chosen:
+        decisions.update(_merge_model_decisions(ctx, chosen, tolerance_db, k_sigma))
+    return _make_plan(ctx, chosen, ok, limit, decisions, max_exposures, time_budget, k_sigma)
+
+
+def _exposure_cap(max_exposures: int | None, time_budget: float | None) -> int:
+    """Most exposures the search may choose: the request's limit, else a default unless a budget limits."""
+    if max_exposures is not None:
+        return int(max_exposures)
+    return DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6
+
+
+def _force_one_dark_strategy(dark_choice: list[dict], times: Sequence[float],
+                             dark_library: Mapping[float, int] | None) -> None:
+    """When the per-exposure decisions mix strategies, give every time dark frames (master darks
+    when the library has one for every time, else matched); the decisions are changed in place."""
+    if len({d["choice"] for d in dark_choice}) <= 1:
+        return
+    forced = "master" if all(_library_n(dark_library, t) for t in times) else "matched"
+    for d in dark_choice:
+        if d["choice"] != forced:
+            d["reason"] = f"{forced} (one strategy for all exposures was asked; alone: {d['choice']})"
+            d["choice"] = forced
+
+
+def _candidates(times: Sequence[float], dark_choice: list[dict], uniform_darks: bool) -> tuple[list[float], list[dict]]:
+    """Candidates of the search: each allowed time with its decided dark strategy and, where that
+    is a dark frame, also without one.
+
+    The greedy then pays for a dark frame only when the SNR it buys is cheaper in capture time
+    than more exposures (the systematic error of the dark model is part of the predicted SNR, so
+    the target still holds).
+    """
     cand_t, cand_dec = [], []
     for t, dec in zip(times, dark_choice):
         if dec["choice"] != "model" and not uniform_darks:
@@ -468,16 +604,33 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
                 f"target for less capture time without it (the alternative: {dec['choice']})")})
         cand_t.append(t)
         cand_dec.append(dec)
-    darks = [d["choice"] for d in cand_dec]
-    n_dark = [_library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0)
-              for t, d in zip(cand_t, darks)]
-    ctx = _Context(calibration, hist, target_snr_db, cand_t, darks, n_dark, overhead, errors, prnu, q, k_sigma)
-    # the seed: the bulk exposure (with and without a dark frame when both are candidates); a
-    # time budget too small for it moves it down the ladder
+    return cand_t, cand_dec
+
+
+def _dark_counts(cand_t: Sequence[float], darks: Sequence[str], dark_library: Mapping[float, int] | None) -> list[int]:
+    """Dark frames behind each candidate's dark subtraction (master: the library's count)."""
+    return [_library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0)
+            for t, d in zip(cand_t, darks)]
+
+
+def _seeds(ctx: _Context, t_first: float, time_budget: float | None,
+           bulk_first: bool) -> tuple[float | None, list[list[int]]]:
+    """The seed of the search: the bulk exposure (with and without a dark frame when both are
+    candidates); a time budget too small for it moves it down the ladder. Returns the seed time
+    (None when nothing fits) and the seeds (candidate indices; one empty seed without bulk_first)."""
+    cand_t = ctx.cand
     fits = [i for i in range(len(cand_t)) if time_budget is None or ctx.cost_time[i] <= time_budget * (1 + 1e-12)]
-    t_seed = max((cand_t[i] for i in fits if cand_t[i] <= t_first), default=None)
-    seeds = [[i] for i in fits if cand_t[i] == t_seed] if bulk_first and t_seed is not None else [[]]
-    # Eq. 18's greedy; and the same per second of capture time: the faster feasible plan wins
+    t_seed = max((float(cand_t[i]) for i in fits if cand_t[i] <= t_first), default=None)
+    if not bulk_first or t_seed is None:
+        return t_seed, [[]]
+    return t_seed, [[i] for i in fits if same_exposure(cand_t[i], t_seed)]
+
+
+def _search(ctx: _Context, seeds: list[list[int]], cap: int, time_budget: float | None,
+            polish: bool) -> tuple[list[int], str, bool]:
+    """Eq. 18's greedy from each seed, and the same per second of capture time; the fastest
+    feasible plan wins, else the one with the least penalty. Returns the chosen candidates, why
+    the search stopped short ("" when the target holds) and whether it holds."""
     runs = []
     for seed in seeds:
         for per_second in ((False, True) if polish else (False,)):
@@ -485,36 +638,44 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
             ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
             if ok and polish:
                 chosen = _capture_order(ctx, _polish(ctx, chosen, len(seed)), len(seed))
-            runs.append((not ok, ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen))), per_second,
-                         chosen, limit, ok))
+            score = ctx.time(chosen) if ok else ctx.penalty(ctx.snr(*ctx.sums(chosen)))
+            runs.append((not ok, score, chosen, limit, ok))
     runs.sort(key=lambda r: (r[0], r[1]))
-    _, _, per_second, chosen, limit, ok = runs[0]
-    if bulk_first:
-        decisions["first_exposure"] = _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx, k_sigma)
-    snr_lin = ctx.snr(*ctx.sums(chosen))
+    _, _, chosen, limit, ok = runs[0]
+    return chosen, limit, ok
 
+
+def _merge_model_decisions(ctx: _Context, chosen: list[int], tolerance_db: float, k_sigma: float) -> dict:
+    """The saturation model and the merge iterations the chosen sequence needs."""
     exposures = [float(ctx.cand[i]) for i in chosen]
-    plan_darks = [darks[i] for i in chosen]
-    plan_ndark = [n_dark[i] for i in chosen]
-    decisions["dark_strategy"] = select.summarise_dark_decisions([cand_dec[i] for i in chosen], exposures)
-    if chosen:
-        decisions["saturation"] = select.saturation_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
-                                                             calibration, errors, prnu, tolerance_db, k_sigma)
-        decisions["iterations"] = select.iterations_decision(ctx.X[ctx.elig], exposures, plan_darks, plan_ndark,
-                                                             calibration, errors, prnu, tolerance_db, k_sigma,
-                                                             decisions["saturation"]["choice"])
+    darks = [ctx.darks[i] for i in chosen]
+    n_dark = [ctx.n_dark[i] for i in chosen]
+    Xe = ctx.X[ctx.elig]
+    saturation = select.saturation_decision(Xe, exposures, darks, n_dark, ctx.cal, ctx.errors, ctx.prnu,
+                                            tolerance_db, k_sigma)
+    iterations = select.iterations_decision(Xe, exposures, darks, n_dark, ctx.cal, ctx.errors, ctx.prnu,
+                                            tolerance_db, k_sigma, saturation["choice"])
+    return {"saturation": saturation, "iterations": iterations}
+
+
+def _make_plan(ctx: _Context, chosen: list[int], ok: bool, limit: str, decisions: dict,
+               max_exposures: int | None, time_budget: float | None, k_sigma: float) -> Plan:
+    """The :class:`Plan` of the chosen candidates: predicted figures, message and SNR curve."""
+    snr_lin = ctx.snr(*ctx.sums(chosen))
+    plan_darks = [ctx.darks[i] for i in chosen]
     min_db = ctx.quantile_db(snr_lin) if chosen else float("-inf")
     total = ctx.time(chosen)
-    msg = _message(ok, target_snr_db, q, min_db, chosen, plan_darks, total, limit, decisions, max_exposures,
-                   time_budget, ctx)
+    msg = _message(ok, ctx.target_db, ctx.quantile, min_db, chosen, plan_darks, total, limit, decisions,
+                   max_exposures, time_budget, ctx)
     curve = {
-        "irradiance": hist.X.tolist(),
-        "snr_db": [(_finite(v)) for v in to_db(snr_lin)],
-        "weight": hist.weight.tolist(),
-        "eligible": elig.tolist(),
+        "irradiance": ctx.hist.X.tolist(),
+        "snr_db": [_finite(v) for v in to_db(snr_lin)],
+        "weight": ctx.hist.weight.tolist(),
+        "eligible": ctx.elig.tolist(),
     }
-    return Plan(exposures, plan_darks, float(min_db), float(total), decisions, ok, msg, float(target_snr_db), q,
-                plan_ndark, curve, float(k_sigma), float(overhead))
+    return Plan([float(ctx.cand[i]) for i in chosen], plan_darks, float(min_db), float(total), decisions, ok, msg,
+                ctx.target_db, ctx.quantile, [ctx.n_dark[i] for i in chosen], curve, float(k_sigma),
+                float(ctx.overhead))
 
 
 def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = False, seed=()):
@@ -641,11 +802,13 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
     seq = ", ".join(_fmt_t(t) for t in exposures)
     parts = []
     if ok:
-        parts.append(f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB on {where}: "
+        parts.append(f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB "
+                     f"on {where}: "
                      f"predicted {min_db:.2f} dB, total capture time {total:.4g} s.")
     else:
         why = {
-            "max_exposures": f"the limit of {max_exposures if max_exposures is not None else DEFAULT_MAX_EXPOSURES} exposures",
+            "max_exposures": f"the limit of {DEFAULT_MAX_EXPOSURES if max_exposures is None else max_exposures} "
+                             "exposures",
             "time_budget": f"the time budget of {budget:g} s" if budget is not None else "the time budget",
             "no_gain": "the allowed exposure times (no further exposure improves the darkest pixels)",
         }.get(limit, "the constraints")
@@ -660,7 +823,8 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
         if failing.any():
             xs = ctx.X[failing]
             frac = ctx.w_elig[failing].sum() / max(ctx.w_elig.sum(), 1e-300)
-            parts.append(f"Below target: {100 * frac:.3g} % of eligible pixels, irradiance {xs.min():.4g}..{xs.max():.4g} e-/s.")
+            parts.append(f"Below target: {100 * frac:.3g} % of eligible pixels, "
+                         f"irradiance {xs.min():.4g}..{xs.max():.4g} e-/s.")
     elig = decisions.get("eligibility", {})
     if elig.get("figure", 0) and elig["figure"] > 0:
         parts.append(elig["reason"] + ".")
@@ -678,7 +842,40 @@ def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, 
     the sequence with the least total capture time that reaches the target (reference for the
     greedy planner). ``first``: only sequences that hold this time (one of the candidates), as
     the planner's sequences hold the bulk exposure. Returns (times, total_time_s), or None when
-    nothing reaches the target."""
+    nothing reaches the target.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model.
+    irradiance : array_like
+        Irradiance map or sample, e-/s.
+    target_snr_db : float
+        Required SNR, dB.
+    candidate_times : sequence of float
+        Exposure times to combine, s.
+    max_exposures : int
+        Largest sequence.
+    overhead : float
+        Per-frame overhead, s.
+    quantile : float, optional
+        Fraction of eligible pixels that must reach the target (default 1).
+    errors : SystematicErrors, optional
+        Systematic errors (default: none).
+    darks : str
+        Dark strategy of every exposure.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+    bins : int
+        Number of log-irradiance bins.
+    first : float, optional
+        A time every sequence holds, s.
+
+    Returns
+    -------
+    (list of float, float) or None
+        The times, s, and the total capture time, s; None when nothing reaches the target.
+    """
     times = _check_request(target_snr_db, candidate_times, max_exposures, None, overhead, quantile)
     errors = errors if errors is not None else SystematicErrors()
     hist = irradiance_histogram(irradiance, bins)
@@ -711,6 +908,36 @@ def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, ste
     even the longest allowed time does not suffice, the whole bracket is repeated. Times are
     the exact powers of two (not snapped to a ladder). Returns (times, total_time_s) with the
     least total time over the bracket lengths tried, or None.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model.
+    irradiance : array_like
+        Irradiance map or sample, e-/s.
+    target_snr_db : float
+        Required SNR, dB.
+    step_ev : float
+        Bracket step, EV (factor 2^step_ev between times).
+    allowed_times : sequence of float, optional
+        Allowed exposure times, s (default: the 1/3-EV ladder); the bracket spans their range.
+    overhead : float
+        Per-frame overhead, s.
+    errors : SystematicErrors, optional
+        Systematic errors (default: none).
+    darks : str
+        Dark strategy of every exposure.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+    max_frames : int
+        Most frames of the repeated bracket.
+    bins : int
+        Number of log-irradiance bins.
+
+    Returns
+    -------
+    (list of float, float) or None
+        The times, s, and the total capture time, s; None when nothing reaches the target.
     """
     allowed = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
                              None, None, overhead, None)

@@ -1,14 +1,15 @@
 """Figure 7 of the paper for a plan: the planned sequence over the irradiance histogram and
-the predicted SNR curve (matplotlib, Agg backend; an I/O function)."""
+the predicted SNR curve (drawn with :mod:`hdrcap.pipeline.plotting`; an I/O function)."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
-from hdrcap.pipeline.io import atomic_output
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.plotting import new_figure, save_figure
 
 from .plan import Plan
 from .predict import K_SIGMA, predict_snr, usable_fraction
@@ -16,8 +17,26 @@ from .predict import K_SIGMA, predict_snr, usable_fraction
 __all__ = ["exposure_ranges", "plot_plan"]
 
 
-def exposure_ranges(times, calibration: Calibration, x_lo: float, x_hi: float, k_sigma: float = K_SIGMA):
-    """Irradiance range (e-/s) each exposure measures: from SNR 1 (0 dB) to saturation."""
+def exposure_ranges(times: Sequence[float], calibration: Calibration, x_lo: float, x_hi: float,
+                    k_sigma: float = K_SIGMA) -> list[tuple[float, float]]:
+    """Irradiance range each exposure measures: from SNR 1 (0 dB) to saturation.
+
+    Parameters
+    ----------
+    times : sequence of float
+        Exposure times, s.
+    calibration : Calibration
+        Camera model.
+    x_lo, x_hi : float
+        The scene's irradiance range, e-/s; the search grid extends one decade beyond it.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    list of (float, float)
+        Per exposure the lowest and highest irradiance it measures, e-/s (NaN when none).
+    """
     grid = np.logspace(np.log10(x_lo) - 1, np.log10(x_hi) + 1, 2000)
     out = []
     for t in times:
@@ -27,20 +46,36 @@ def exposure_ranges(times, calibration: Calibration, x_lo: float, x_hi: float, k
     return out
 
 
-def plot_plan(plan: Plan, calibration: Calibration, path, force: bool = False, title: str | None = None) -> Path:
-    """Write the plan's figure to ``path`` (PNG): (a) irradiance histogram with the planned
-    exposures' ranges in capture order, (b) predicted SNR (dB) against irradiance with the
-    target."""
-    import matplotlib
+def plot_plan(plan: Plan, calibration: Calibration, path: str | Path, force: bool = False,
+              title: str | None = None) -> Path:
+    """Write the plan's figure (Fig. 7) as PNG.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    (a) The irradiance histogram with the planned exposures' ranges in capture order, (b) the
+    predicted SNR against irradiance with the target.
 
+    Parameters
+    ----------
+    plan : Plan
+        The plan (its ``curve`` holds the histogram and the predicted SNR).
+    calibration : Calibration
+        Camera model the plan was made for.
+    path : str or Path
+        Output PNG.
+    force : bool
+        Replace an existing file.
+    title : str, optional
+        Title of panel (a) (default: the sequence's length and total time).
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     X = np.asarray(plan.curve.get("irradiance", []), dtype=np.float64)
     w = np.asarray(plan.curve.get("weight", []), dtype=np.float64)
     snr = np.array([np.nan if v is None else v for v in plan.curve.get("snr_db", [])], dtype=np.float64)
     elig = np.asarray(plan.curve.get("eligible", []), dtype=bool)
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 7), sharex=True, gridspec_kw={"height_ratios": [1.2, 1]})
+    fig, (ax1, ax2) = new_figure(2, 1, figsize=(8, 7), sharex=True, gridspec_kw={"height_ratios": [1.2, 1]})
     if X.size:
         edges = np.logspace(np.log10(X.min()) - 0.01, np.log10(X.max()) + 0.01, 65)
         ax1.hist(X, bins=edges, weights=w, color="0.75", label="pixels")
@@ -61,7 +96,8 @@ def plot_plan(plan: Plan, calibration: Calibration, path, force: bool = False, t
         order = np.argsort(X)
         ax2.plot(X[order], snr[order], color="tab:green", lw=1.2, label="predicted SNR")
         if (~elig).any():
-            ax2.plot(X[~elig], np.zeros((~elig).sum()), "x", color="tab:red", ms=3, label="not eligible (saturated at the shortest time)")
+            ax2.plot(X[~elig], np.zeros((~elig).sum()), "x", color="tab:red", ms=3,
+                     label="not eligible (saturated at the shortest time)")
         ax2.axhline(plan.target_snr_db, color="k", ls="--", lw=0.8, label=f"target {plan.target_snr_db:g} dB")
         ax2.set_xscale("log")
         ax2.set_ylabel("predicted SNR, dB")
@@ -74,8 +110,4 @@ def plot_plan(plan: Plan, calibration: Calibration, path, force: bool = False, t
     state = "feasible" if plan.feasible else "INFEASIBLE"
     fig.text(0.01, 0.005, f"{state}: predicted min {plan.predicted_min_snr_db:.2f} dB", fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_output(path, force=force, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, force=force, dpi=110)

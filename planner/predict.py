@@ -4,8 +4,8 @@ The variance of every exposure comes from :mod:`pipeline.noise` (``exposure_vari
 ``exposure_weight``): this module never writes the noise formula itself. It adds what the
 planner needs on top:
 
-* which samples the merge will use: the threshold rule of Eq. 11 extended as in DESIGN.md
-  (a sample is dropped when its value predicted from the irradiance lies within ``k_sigma``
+* which samples the merge will use: the threshold rule of Eq. 11 extended by the merge's
+  near-saturation rule (a sample is dropped when its value predicted from the irradiance lies within ``k_sigma``
   of its own standard deviation of ``v_sat``), or, for the probabilistic saturation model
   (Eq. 8-10), the probability that the sample is not saturated;
 * the *systematic* per-photosite errors a simpler model leaves in the estimate (dark current
@@ -13,7 +13,7 @@ planner needs on top:
   out over exposures, so the predicted SNR is X / sqrt(Var + bias^2) ("total-error SNR");
 * weights evaluated at a wrong irradiance (a merge stopped after few iterations).
 
-Units: X in e-/s per photosite, t in s, values in DN (DESIGN.md).
+Units: X in e-/s per photosite, t in s, values in DN.
 """
 
 from __future__ import annotations
@@ -43,12 +43,23 @@ __all__ = [
 ]
 
 #: Samples whose predicted value lies within this many of their own standard deviations of
-#: v_sat are treated as saturated (DESIGN.md, the extension of Eq. 11).
+#: v_sat are treated as saturated (the merge's near-saturation rule, an extension of Eq. 11).
 K_SIGMA = 3.0
 
 
 def to_db(snr_linear):
-    """20 log10(SNR); -inf where the SNR is 0."""
+    """20 log10(SNR); -inf where the SNR is 0.
+
+    Parameters
+    ----------
+    snr_linear : array_like
+        SNR, linear (X / standard deviation).
+
+    Returns
+    -------
+    numpy.ndarray
+        SNR, dB.
+    """
     with np.errstate(divide="ignore"):
         return 20.0 * np.log10(np.asarray(snr_linear, dtype=np.float64))
 
@@ -82,13 +93,25 @@ class SystematicErrors:
 
 
 def mean_dark_current(calibration: Calibration) -> float:
-    """Mean dark current of the calibration, e-/s (the map's mean when there is a map)."""
+    """Mean dark current of the calibration, e-/s (the map's mean when there is a map).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model.
+
+    Returns
+    -------
+    float
+        Mean dark current, e-/s.
+    """
     if calibration.dark_current_map is not None:
         return float(np.mean(calibration.dark_current_map))
     return float(calibration.params.dark_current)
 
 
-def systematic_errors_from_calibration(calibration: Calibration, dark_rel_error: float | None = None) -> SystematicErrors:
+def systematic_errors_from_calibration(calibration: Calibration,
+                                       dark_rel_error: float | None = None) -> SystematicErrors:
     """Default :class:`SystematicErrors` of a calibration.
 
     * dark current: the standard error of the calibrated D combined with a relative error
@@ -97,6 +120,17 @@ def systematic_errors_from_calibration(calibration: Calibration, dark_rel_error:
       ignores the dark-current non-uniformity, typically tens of percent);
     * bias: the standard error of mu_R (a bias map is assumed exact);
     * PRNU: the spread of the calibration's PRNU map (0 without a map: nothing to choose).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model (its standard errors, maps and parameters).
+    dark_rel_error : float, optional
+        Relative error of the mean dark current (default as above).
+
+    Returns
+    -------
+    SystematicErrors
     """
     D = mean_dark_current(calibration)
     if dark_rel_error is None:
@@ -109,9 +143,25 @@ def systematic_errors_from_calibration(calibration: Calibration, dark_rel_error:
 
 
 def predicted_value(X, t, calibration: Calibration):
-    """Mean raw value mu_R + g t (X + D) of a photosite of irradiance X at time t, DN (Eq. 2)."""
+    """Mean raw value mu_R + g t (X + D) of a photosite of irradiance X at time t, DN (Eq. 2).
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    t : array_like
+        Exposure time, s.
+    calibration : Calibration
+        Camera model (mean dark current).
+
+    Returns
+    -------
+    numpy.ndarray
+        Mean raw value, DN.
+    """
     p = calibration.params
-    return p.mu_R + p.g * np.asarray(t, dtype=np.float64) * (np.asarray(X, dtype=np.float64) + mean_dark_current(calibration))
+    X = np.asarray(X, dtype=np.float64)
+    return p.mu_R + p.g * np.asarray(t, dtype=np.float64) * (X + mean_dark_current(calibration))
 
 
 def _value_sigma(X, t, calibration: Calibration):
@@ -127,10 +177,29 @@ def usable_fraction(X, t, calibration: Calibration, saturation: str = "threshold
     """Fraction of a sample's information the merge keeps, in [0, 1].
 
     ``"threshold"``: 1 where the predicted value plus ``k_sigma`` of its standard deviation is
-    below v_sat, else 0 (Eq. 11 with the predicted-within-k-sigma rule of DESIGN.md).
+    below v_sat, else 0 (Eq. 11 with the merge's near-saturation rule: predicted within k sigma of
+    v_sat counts as saturated).
     ``"probabilistic"``: the probability that the sample is not saturated, Phi((v_sat - v)/s)
     (the non-saturated part of the mixture of Eq. 8-10; an approximation of the information a
     censored sample carries).
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    t : array_like
+        Exposure time, s.
+    calibration : Calibration
+        Camera model.
+    saturation : {"threshold", "probabilistic"}
+        Saturation model.
+    k_sigma : float
+        Margin of the threshold rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    numpy.ndarray
+        Usable fraction in [0, 1].
     """
     v = predicted_value(X, t, calibration)
     s = _value_sigma(X, t, calibration)
@@ -162,6 +231,29 @@ def exposure_terms(X, t, calibration: Calibration, dark: str = "model", n_dark: 
     The weight is the optimal weight of Eq. 13 (from :func:`pipeline.noise.exposure_weight`)
     evaluated at ``weight_at`` (default: the true irradiance ``X``), times the usable fraction.
     ``variance`` is the true Var(x_i) at ``X``.
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    t : float
+        Exposure time, s.
+    calibration : Calibration
+        Camera model.
+    dark : str
+        Dark strategy ("matched", "master", "model").
+    n_dark : float
+        Frames behind the dark subtraction.
+    saturation : {"threshold", "probabilistic"}
+        Saturation model.
+    k_sigma : float
+        Margin of the threshold rule, standard deviations of the raw value.
+    weight_at : array_like, optional
+        Irradiance at which the weight is evaluated, e-/s.
+
+    Returns
+    -------
+    ExposureTerms
     """
     p = calibration.params
     X = np.asarray(X, dtype=np.float64)
@@ -192,13 +284,35 @@ class SnrPrediction:
 
     @property
     def snr_db(self) -> np.ndarray:
+        """The SNR, dB (:func:`to_db`)."""
         return to_db(self.snr)
 
 
 def combine_terms(X, sum_w, sum_cd, sum_cb, errors: SystematicErrors, prnu: str = "map", sum_w2v=None) -> SnrPrediction:
     """Merged variance 1/sum W (Eq. 12), or sum W^2 Var / (sum W)^2 when the weights are
     not the inverse variances (``sum_w2v``), the systematic error of the weighted mean, and the
-    total-error SNR."""
+    total-error SNR.
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    sum_w : numpy.ndarray
+        Sum of the usable weights, (e-/s)^-2.
+    sum_cd, sum_cb : numpy.ndarray
+        Sums of the weighted dark (dimensionless) and bias (e-/s per DN) error coefficients.
+    errors : SystematicErrors
+        Systematic errors of the simpler models.
+    prnu : {"map", "scalar"}
+        The PRNU model (a scalar gain adds ``errors.prnu * X``).
+    sum_w2v : numpy.ndarray, optional
+        Sum of W^2 Var(x_i), when the weights are not the inverse variances.
+
+    Returns
+    -------
+    SnrPrediction
+        ``n_usable`` is left at 0 (the caller knows it).
+    """
     X = np.asarray(X, dtype=np.float64)
     ok = sum_w > 0
     safe = np.where(ok, sum_w, 1.0)

@@ -23,7 +23,6 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
 
 from __future__ import annotations
 
-from typing import Any
 
 import numpy as np
 
@@ -55,7 +54,22 @@ CONVERGED_ITERATIONS = 20
 
 def target_loss_db(bias, X, target_lin: float):
     """SNR lost at the target level by a systematic error ``bias`` (e-/s) at irradiance X, dB:
-    10 log10(1 + T^2 bias^2 / X^2)."""
+    10 log10(1 + T^2 bias^2 / X^2).
+
+    Parameters
+    ----------
+    bias : array_like
+        RMS systematic error, e-/s.
+    X : array_like
+        Irradiance, e-/s.
+    target_lin : float
+        Target SNR, linear.
+
+    Returns
+    -------
+    numpy.ndarray
+        The loss, dB.
+    """
     X = np.asarray(X, dtype=np.float64)
     return 10.0 * np.log10(1.0 + (target_lin * np.asarray(bias, dtype=np.float64) / X) ** 2)
 
@@ -68,7 +82,24 @@ RELEVANCE_FACTOR = 8.0
 
 def longest_usable_time(Xe, times, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
     """For each irradiance, the longest of ``times`` at which it is not predicted saturated
-    (0 where none is)."""
+    (0 where none is).
+
+    Parameters
+    ----------
+    Xe : array_like
+        Irradiances, e-/s.
+    times : sequence of float
+        Exposure times, s.
+    calibration : Calibration
+        Camera model.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    numpy.ndarray
+        Per irradiance the longest usable time, s (0 where none is).
+    """
     Xe = np.asarray(Xe, dtype=np.float64)
     best = np.zeros_like(Xe)
     for t in sorted(times):
@@ -84,6 +115,35 @@ def dark_decision_for_time(Xe, t: float, calibration: Calibration, errors: Syste
     The cost of skipping the dark frame is evaluated where the exposure matters: where it is
     usable and within a factor :data:`RELEVANCE_FACTOR` of the longest usable time
     ``t_best`` (per irradiance; default: everywhere it is usable).
+
+    Parameters
+    ----------
+    Xe : numpy.ndarray
+        Eligible irradiances, e-/s.
+    t : float
+        Exposure time, s.
+    calibration : Calibration
+        Camera model.
+    errors : SystematicErrors
+        Systematic errors of the dark model.
+    target_lin : float
+        Target SNR, linear.
+    n_library : int
+        Frames of the library's master dark for ``t`` (0: none).
+    overhead : float
+        Per-frame overhead, s (the cost of a matched dark frame is t + overhead).
+    tolerance_db : float
+        SNR loss the dark model may cost, dB.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+    t_best : array_like, optional
+        Per irradiance the longest usable time, s (:func:`longest_usable_time`).
+
+    Returns
+    -------
+    dict
+        ``choice`` ("model", "master" or "matched"), ``reason``, ``figure`` (dB lost without a
+        dark frame) and ``time`` (s).
     """
     p = calibration.params
     use = usable_fraction(Xe, t, calibration, "threshold", k_sigma) > 0
@@ -102,7 +162,20 @@ def dark_decision_for_time(Xe, t: float, calibration: Calibration, errors: Syste
 
 
 def summarise_dark_decisions(per_exposure: list[dict], exposures: list[float]) -> dict:
-    """One decision entry for the dark strategies of the planned exposures."""
+    """One decision entry for the dark strategies of the planned exposures.
+
+    Parameters
+    ----------
+    per_exposure : list of dict
+        The dark decision of each planned exposure (:func:`dark_decision_for_time`).
+    exposures : list of float
+        The planned exposure times, s.
+
+    Returns
+    -------
+    dict
+        The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
+    """
     reasons = [f"{t:.6g} s: {d['reason']}" for t, d in zip(exposures, per_exposure)]
     return {
         "choice": [d["choice"] for d in per_exposure],
@@ -113,7 +186,24 @@ def summarise_dark_decisions(per_exposure: list[dict], exposures: list[float]) -
 
 
 def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Calibration, tolerance_db: float) -> dict:
-    """Per-photosite PRNU map or a scalar gain."""
+    """Per-photosite PRNU map or a scalar gain.
+
+    Parameters
+    ----------
+    errors : SystematicErrors
+        Its ``prnu`` is the relative PRNU spread.
+    target_lin : float
+        Target SNR, linear.
+    calibration : Calibration
+        Camera model (without a PRNU map the choice is "scalar").
+    tolerance_db : float
+        SNR loss a scalar gain may cost, dB.
+
+    Returns
+    -------
+    dict
+        The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
+    """
     loss = float(10.0 * np.log10(1.0 + (target_lin * errors.prnu) ** 2))
     if calibration.prnu is None:
         return {"choice": "scalar", "reason": "the calibration has no PRNU map", "figure": loss,
@@ -129,7 +219,17 @@ def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Cali
 
 def full_well_clips_first(calibration: Calibration) -> bool:
     """Whether the full well, not the ADC, limits the raw values: v_sat lies more than 3 read-noise
-    sigma below the ADC's largest value (camera-A: 3709 against 4095 DN; camera-B: 1023 = 1023)."""
+    sigma below the ADC's largest value (camera-A: 3709 against 4095 DN; camera-B: 1023 = 1023).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Camera model (v_sat, white level in DN; sigma2_R in DN^2).
+
+    Returns
+    -------
+    bool
+    """
     p = calibration.params
     return bool(p.white_level - p.v_sat > 3.0 * np.sqrt(p.sigma2_R))
 
@@ -140,10 +240,38 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     The merge's probabilistic model (Eq. 8-10) takes the saturated values that slip under v_sat
     where the full well clips before the ADC into account (P_nsat given the current estimate),
     so it is chosen on any camera when it gains more than ``tolerance_db`` (measured: camera-A,
-    no photosite beyond 6 sigma just above any exposure's clip)."""
+    no photosite beyond 6 sigma just above any exposure's clip).
+
+    Parameters
+    ----------
+    Xe : numpy.ndarray
+        Eligible irradiances, e-/s (histogram points).
+    exposures : sequence of float
+        The planned exposure times, s.
+    darks : sequence of str
+        Dark strategy per exposure.
+    n_dark : sequence of int
+        Dark frames behind each exposure's dark subtraction (0 counts as 1).
+    calibration : Calibration
+        Camera model.
+    errors : SystematicErrors
+        Systematic errors of the simpler models.
+    prnu : {"map", "scalar"}
+        The PRNU model.
+    tolerance_db : float
+        SNR loss a simpler model may cost, dB.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+
+    Returns
+    -------
+    dict
+        The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
+    """
     kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
     thr = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="threshold", **kw).snr_db
-    prob = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic", **kw).snr_db
+    prob = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic",
+                       **kw).snr_db
     gain = np.where(np.isfinite(thr), prob - thr, np.where(np.isfinite(prob), np.inf, 0.0))
     g = float(gain.max()) if gain.size else 0.0
     frac = float(np.mean(gain > tolerance_db)) if gain.size else 0.0
@@ -204,6 +332,34 @@ def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     converged ones up to 3); :data:`CONVERGED_ITERATIONS` with the probabilistic saturation
     model (its Newton steps must converge; the merge stops each photosite at its tolerance, so
     this costs time only where needed).
+
+    Parameters
+    ----------
+    Xe : numpy.ndarray
+        Eligible irradiances, e-/s (histogram points).
+    exposures : sequence of float
+        The planned exposure times, s.
+    darks : sequence of str
+        Dark strategy per exposure.
+    n_dark : sequence of int
+        Dark frames behind each exposure's dark subtraction (0 counts as 1).
+    calibration : Calibration
+        Camera model.
+    errors : SystematicErrors
+        Systematic errors of the simpler models.
+    prnu : {"map", "scalar"}
+        The PRNU model.
+    tolerance_db : float
+        SNR loss a simpler model may cost, dB.
+    k_sigma : float
+        Margin of the near-saturation rule, standard deviations of the raw value.
+    saturation : {"threshold", "probabilistic"}
+        The saturation model chosen.
+
+    Returns
+    -------
+    dict
+        The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
     """
     losses = _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k_sigma)
     k = next((i + 1 for i, loss in enumerate(losses) if loss <= tolerance_db), MAX_ITERATIONS)
@@ -228,15 +384,33 @@ def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
 
 
 def eligibility_decision(hist, elig, t_min: float, calibration: Calibration) -> dict:
-    """Which pixels the target applies to, and which the camera cannot measure."""
+    """Which pixels the target applies to, and which the camera cannot measure.
+
+    Parameters
+    ----------
+    hist : IrradianceHistogram
+        The scene.
+    elig : numpy.ndarray
+        Boolean mask of the eligible histogram points.
+    t_min : float
+        Shortest allowed exposure time, s.
+    calibration : Calibration
+        Camera model.
+
+    Returns
+    -------
+    dict
+        The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
+    """
     inelig = ~elig & (hist.X > 0)
     n_sat = float(hist.weight[inelig].sum())
     n = max(hist.n_pixels, 1)
     parts = [f"{hist.n_pixels - n_sat - hist.n_nosignal:.0f} of {hist.n_pixels} pixels eligible"]
     if n_sat > 0:
         x_lim = float(hist.X[inelig].min())
-        parts.append(f"{100 * n_sat / n:.3g} % of pixels ({n_sat:.0f}) are brighter than the shortest allowed exposure "
-                     f"({t_min:.4g} s) can measure (X >= {x_lim:.4g} e-/s): excluded, the merge reports lower bounds there")
+        parts.append(f"{100 * n_sat / n:.3g} % of pixels ({n_sat:.0f}) are brighter than the shortest allowed "
+                     f"exposure ({t_min:.4g} s) can measure (X >= {x_lim:.4g} e-/s): excluded, the merge reports "
+                     "lower bounds there")
     if hist.n_nosignal:
         parts.append(f"{hist.n_nosignal} pixels without signal (X <= 0) excluded")
     return {"choice": "not saturated at the shortest time", "reason": "; ".join(parts), "figure": n_sat / n,

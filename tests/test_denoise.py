@@ -12,15 +12,12 @@ import numpy as np
 import pytest
 
 from hdrcap.acquire.cli import main
+from hdrcap.experiments import CONTROL_SCENES, EVAL_SCENES, evaluate_denoising, simulate_merged_scene
 from hdrcap.pipeline.denoise import (
-    CONTROL_SCENES,
-    EVAL_SCENES,
     DenoiseSettings,
-    _simulate_scene,
     bilateral_adaptive,
     bilateral_constant,
     denoise,
-    evaluate_denoising,
     normalised_mse,
 )
 from hdrcap.pipeline.errors import InputError
@@ -114,7 +111,7 @@ def test_step_edge_keeps_position_and_height():
     """camera-B 'edges' scene: the vertical step 200 -> 2000 e-/s at column 64 (about 100 sigma)
     must keep its height (column means within the stated per-photosite sigma of the truth) and
     its position; a plain Gaussian (infinite bandwidth) fails the same check."""
-    truth, merged = _simulate_scene("edges", (128, 128), seed=1)
+    truth, merged = simulate_merged_scene("edges", (128, 128), seed=1)
     rows, cols = slice(24, 120), np.arange(60, 69)
     lo, hi = truth[40, 60], truth[40, 68]
     assert hi / lo == pytest.approx(10.0) and np.all(truth[rows, 60:64] == lo) and np.all(truth[rows, 64:69] == hi)

@@ -12,16 +12,11 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.acquire.commands.evaluate import (BASELINES, TEN_X_READOUT, ZERO_READOUT, make_setup, qq_experiment,
-                                       snr_experiment)
+from hdrcap.experiments import BASELINES, TEN_X_READOUT, ZERO_READOUT, make_setup, qq_experiment, snr_experiment
 from hdrcap.mock_camera import PRESETS
-from hdrcap.pipeline import merge as merge_mod
 from hdrcap.pipeline.evaluation import (bound_variance, log_bins, paired_difference, qq_data, snr_per_bin,
-                                 weights_vs_output)
+                                        weights_vs_output)
 from hdrcap.pipeline.params import SensorParams
-
-needs_ml_merge = pytest.mark.skipif(not hasattr(merge_mod, "merge_arrays"),
-                                    reason="needs the maximum-likelihood merge_arrays (optimal-merge issue)")
 
 _CACHE: dict = {}
 
@@ -101,7 +96,6 @@ def test_mitsunaga_nayar_weights_are_optimal_without_readout_noise():
 # ------------------------------------------------------------------------- the paper's claims
 
 
-@needs_ml_merge
 @pytest.mark.parametrize("label", ["A", "B"])
 def test_optimal_is_at_least_every_baseline_in_every_bin(label):
     res = experiment(label)
@@ -189,13 +183,3 @@ def test_evaluate_command_quick(tmp_path, cli):
     # never overwritten without --force
     again = cli("evaluate", "--out", out, "--quick")
     assert again.returncode != 0 and "exists; use --force" in again.stderr and "Traceback" not in again.stderr
-
-
-def test_evaluate_denoise_without_module_is_a_clear_error(tmp_path, cli):
-    try:
-        import hdrcap.pipeline.denoise  # noqa: F401
-    except ImportError:
-        proc = cli("evaluate", "--out", tmp_path / "x", "--quick", "--denoise")
-        assert proc.returncode != 0 and "hdrcap: error: --denoise needs pipeline.denoise" in proc.stderr
-    else:
-        pytest.skip("pipeline.denoise is present")

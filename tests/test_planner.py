@@ -35,11 +35,8 @@ NO_ERR = SystematicErrors()
 
 
 def _merge(values, times, cal, **options):
-    """The project's merge: merge_arrays when it exists (issue 4), else merge_frames."""
-    merge_arrays = getattr(merge_mod, "merge_arrays", None)
-    if merge_arrays is not None:
-        return merge_arrays(values, times, cal, **options)
-    return merge_mod.merge_frames([RawFrame(v, t) for v, t in zip(values, times)], cal, **options)
+    """The project's maximum-likelihood merge of arrays."""
+    return merge_mod.merge_arrays(values, times, cal, **options)
 
 
 def _bulk_scene(seed=5, n=8000):
@@ -468,8 +465,6 @@ def _measured_db(sensor, X, times, cal, seeds=8, **options):
 
 
 def test_saturation_and_iteration_decisions_match_the_real_merge():
-    if getattr(merge_mod, "merge_arrays", None) is None:
-        pytest.skip("needs the ML merge (merge_arrays, issue 4)")
     H, W = 32, 128
     X = make_scene("gradient", (H, W), decades=3, x_max=1e5)
     sensor = SimulatedSensor(CAM_B, (H, W), seed=3)
@@ -551,8 +546,6 @@ def test_dark_frames_only_where_the_target_needs_them_simulated():
     model leaves ~3 e-/s per photosite. At 20 dB the plan reaches the target without dark
     frames (the error is part of the predicted SNR) and the simulator confirms it on every
     level; at 23 dB the dimmest level (cap 24.4 dB) needs a dark frame and gets one."""
-    if getattr(merge_mod, "merge_arrays", None) is None:
-        pytest.skip("needs the ML merge (merge_arrays, issue 4)")
     spec = CAM_B.replace(dark_current=10.0, dcnu=0.3, prnu=0.0)
     levels = np.array([50.0, 150.0, 500.0, 2000.0])
     X = np.repeat(levels, 32 * 32).reshape(64, 64)
@@ -592,8 +585,6 @@ def test_merge_options_of_the_plan_give_no_gross_errors_on_camera_a():
     plan's merge options must leave no photosite beyond 6 sigma of the truth (simulator). Measured
     with other options on this sequence: threshold with 1 step 140, probabilistic with 2 steps
     17, probabilistic converged 16 of 12288."""
-    if getattr(merge_mod, "merge_arrays", None) is None:
-        pytest.skip("needs the ML merge (merge_arrays, issue 4)")
     spec = PRESETS["camera-A"]
     X = make_scene("hdr", (96, 128), decades=3, x_max=2e5)
     sensor = SimulatedSensor(spec, X.shape, seed=2)

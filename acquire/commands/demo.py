@@ -15,10 +15,12 @@ DEMO_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
 def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bool, progress: bool = True,
              target_snr: float | None = None) -> dict:
+    """Capture, merge and summarise the demo into ``out``; returns the summary text and paths."""
     from hdrcap.acquire.job import job_from_dict, run_job
     from hdrcap.acquire.manifest import Manifest
     from hdrcap.pipeline.errors import OutputExistsError
     from hdrcap.pipeline.io import atomic_output
+    from hdrcap.pipeline.times import unique_exposures
 
     out = Path(out)
     for name in ("demo.exr", "demo.png", "summary.txt"):
@@ -47,7 +49,7 @@ def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bo
                            png_path=out / "demo.png", return_result=True, echo=lambda s: click.echo(s, err=True))
     err = res["error_vs_truth"]
     m = session.merge
-    times = sorted({r["file_exposure_s"] for r in session.frames.values() if r["kind"] == "light"})
+    times = sorted(unique_exposures(r["file_exposure_s"] for r in session.frames.values() if r["kind"] == "light"))
     n_dark = sum(r["kind"] == "dark" for r in session.frames.values())
     lines = [
         "hdrcap demo: simulated camera -> capture session (bracket + dark frames) -> merge",
