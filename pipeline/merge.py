@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import weakref
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -145,25 +144,15 @@ def _map_arg(arr, shape, scalar, what):
 # MergeAccumulator._single_precision_safe); False forces float64 (tests compare the two).
 SINGLE_PRECISION_WEIGHTS = True
 
-_EXTREMA: dict = {}
-
-
 def _extrema(map_arg) -> tuple[float, float]:
-    """(min, max) of a kernel map argument (array, is_map, scalar); maps are scanned once and
-    remembered while the array lives (non-finite values give (nan, nan))."""
+    """(min, max) of a kernel map argument (array, is_map, scalar); non-finite values give
+    (nan, nan). Maps are scanned on every call (about 3 % of a merge with two 4-megapixel
+    maps), so a map changed in place is seen as it is now."""
     arr, is_map, scalar = map_arg
     if not is_map:
         return float(scalar), float(scalar)
-    key = id(arr)
-    hit = _EXTREMA.get(key)
-    if hit is not None and hit[0]() is arr:
-        return hit[1]
     lo, hi = float(np.min(arr)), float(np.max(arr))
-    ext = (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else (math.nan, math.nan)
-    for dead in [k for k, (ref, _) in _EXTREMA.items() if ref() is None]:  # no growth over weeks of merges
-        del _EXTREMA[dead]
-    _EXTREMA[key] = (weakref.ref(arr), ext)
-    return ext
+    return (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else (math.nan, math.nan)
 
 
 class MergeAccumulator:
@@ -288,15 +277,11 @@ class MergeAccumulator:
             if self._values[0].dtype != np.float32:
                 self._values = [x.astype(np.float32) for x in self._values]
         if self.stream:
-            from .kernels import first_pass_kernel
+            from .kernels import MapArg, first_pass_kernel
 
-            if kind == 2:
-                base = (self.master_dark.astype(np.float32, copy=False), True, 0.0)
-            else:
-                base = self._bias
-            first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), kind,
-                              base[0], base[1], base[2], coef, t, p.g, p.v_sat,
-                              *self._D, *self._a[:2], self._sum, self._cnt)
+            base = (self.master_dark.astype(np.float32, copy=False), True, 0.0) if kind == 2 else self._bias
+            first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), kind, MapArg(*base), coef, t,
+                              float(p.g), float(p.v_sat), MapArg(*self._D), MapArg(*self._a), self._sum, self._cnt)
         self._values.append(v)
         self._darks.append(d)
         self._times.append(t)
@@ -347,7 +332,8 @@ class MergeAccumulator:
 
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
-        from .kernels import merge_kernel  # first: it configures numba's compile target
+        from .kernels import (CameraConstants, FrameTable, IterationOptions, MapArg, MapSet, MergeOutputs,
+                              StartSums, merge_kernel)  # first: it configures numba's compile target
 
         import numba
 
@@ -375,12 +361,15 @@ class MergeAccumulator:
         stats = np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), 3))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
-            merge_kernel(values, darks, np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
-                         np.asarray(self._ks, np.float64), times, p.g, p.sigma2_R, p.v_sat, p.white_level,
-                         master, has_master, *self._bias, *self._D, *self._a[:2],
-                         self._sum, self._cnt, self.stream, int(opts.iterations), float(opts.tolerance),
-                         float(opts.saturation_sigmas), opts.saturation == "probabilistic",
-                         irr, sig, nexp, iters, stats, np.zeros(1, np.float32 if single else np.float64))
+            merge_kernel(values, darks,
+                         FrameTable(np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
+                                    np.asarray(self._ks, np.float64), times),
+                         CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
+                         MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
+                         StartSums(self._sum, self._cnt, self.stream),
+                         IterationOptions(int(opts.iterations), float(opts.tolerance), float(opts.saturation_sigmas),
+                                          opts.saturation == "probabilistic"),
+                         MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
         sat = int(stats[:, 0].sum())
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
