@@ -18,6 +18,7 @@ import numpy as np
 
 from .errors import InputError
 from .io import atomic_output
+from .times import EXPOSURE_RTOL, same_exposure, unique_exposures
 
 __all__ = ["DarkEntry", "DarkLibrary", "LIBRARY_FORMAT", "LIBRARY_VERSION", "same_camera"]
 
@@ -124,7 +125,7 @@ class DarkLibrary:
         return entry
 
     def find(self, *, camera: str | None, iso: float | None, exposure_time: float, temperature: float | None = None,
-             temperature_tolerance: float = 1.0, rtol: float = 1e-3) -> DarkEntry | None:
+             temperature_tolerance: float = 1.0, rtol: float = EXPOSURE_RTOL) -> DarkEntry | None:
         """The entry matching camera (:func:`same_camera`; None: any), ISO (when both are
         known) and exposure time (relative tolerance ``rtol``) whose temperature is closest and
         within ``temperature_tolerance`` degrees C (any temperature when either is unknown);
@@ -137,7 +138,7 @@ class DarkLibrary:
         for e in entries:
             if not same_camera(camera, e.camera) or (iso is not None and e.iso is not None and abs(e.iso - iso) > 0.5):
                 continue
-            if not np.isclose(e.exposure_time, exposure_time, rtol=rtol, atol=0):
+            if not same_exposure(e.exposure_time, exposure_time, rtol):
                 continue
             dt = 0.0
             if temperature is not None and e.temperature is not None:
@@ -151,14 +152,14 @@ class DarkLibrary:
 
     def masters(self, times, *, camera: str | None = None, iso: float | None = None,
                 temperature: float | None = None, temperature_tolerance: float = 1.0,
-                rtol: float = 1e-3, load: bool = True) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
+                rtol: float = EXPOSURE_RTOL, load: bool = True) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
         """Master darks for the exposure ``times`` (s) that the library holds, matched as in
         :meth:`find`: t -> (float32 master dark in DN, its frame count N, its entry); the data
         is None unless ``load``. Times without a master are absent; an absent library gives an
         empty dict."""
         entries = self.entries()
         out = {}
-        for t in sorted({float(t) for t in times}):
+        for t in sorted(unique_exposures(times, rtol)):
             e = self._find(entries, camera, iso, t, temperature, temperature_tolerance, rtol)
             if e is not None:
                 out[t] = (*self.load(e), e) if load else (None, e.n_frames, e)

@@ -37,11 +37,19 @@ __all__ = [
 
 
 class DarkStrategy(str, Enum):
-    """How the dark level is obtained for an exposure (see module docstring)."""
+    """How the dark level is obtained for an exposure (see module docstring). A str enum: its
+    members equal, print and serialise (JSON) as their values ``"matched"``, ``"master"`` and
+    ``"model"``."""
 
     MATCHED = "matched"
     MASTER = "master"
     MODEL = "model"
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
 
 
 def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
@@ -55,8 +63,6 @@ def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
         return 1.0 / float(n_dark)
     return 0.0
 
-
-_dark_factor = dark_factor
 
 
 def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
