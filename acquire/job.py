@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.noise import DarkStrategy
 
 from .camera import nearest_allowed
 
@@ -58,7 +59,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
                "long_exposure_s": 1.0},
     "scene": {"name": "hdr", "decades": 4.0, "x_max": 2e5},
     "exposure": {"mode": "bracket", "times": [], "repeats": 1},
-    "darks": {"strategy": "matched", "count": 1, "block_light": "mock", "check": 0.05},
+    "darks": {"strategy": DarkStrategy.MATCHED.value, "count": 1, "block_light": "mock", "check": 0.05},
     "calibration": {"series": []},
     "output": {"folder": "runs/{job}-{date}", "exr": "hdr.exr", "png": "preview.png", "force": False},
     "schedule": {"repeat": 1, "every_s": 0.0},
@@ -173,7 +174,7 @@ def _check_values(job: Job) -> None:
         if cam["preset"] not in PRESETS:
             raise job.error("camera", "preset", f"unknown simulator preset {cam['preset']!r}; choose from "
                                                f"{', '.join(PRESETS)}")
-        from hdrcap.acquire.commands.simulate import parse_size
+        from hdrcap.mock_camera.scenes import parse_size
 
         try:
             parse_size(cam["size"])
@@ -203,13 +204,13 @@ def _check_values(job: Job) -> None:
         raise job.error("exposure", "target_snr_db", "mode = \"snr\" needs target_snr_db")
     if exp["repeats"] < 1:
         raise job.error("exposure", "repeats", "must be >= 1")
-    if darks["strategy"] not in ("matched", "master", "model"):
+    if darks["strategy"] not in set(DarkStrategy):
         raise job.error("darks", "strategy", f"must be matched, master or model, got {darks['strategy']!r}")
     if darks["count"] < 1:
         raise job.error("darks", "count", "must be >= 1")
     if darks["block_light"] not in ("mock", "prompt", "command", "none"):
         raise job.error("darks", "block_light", f"must be mock, prompt, command or none, got {darks['block_light']!r}")
-    if darks["block_light"] == "mock" and cam["backend"] != "mock" and darks["strategy"] != "model":
+    if darks["block_light"] == "mock" and cam["backend"] != "mock" and darks["strategy"] != DarkStrategy.MODEL:
         raise job.error("darks", "block_light", "a real camera cannot block its light itself: use prompt, "
                                                 "command (cover_command/uncover_command) or none")
     if darks["block_light"] == "command":
@@ -280,7 +281,7 @@ def open_camera(job: Job, n: int = 0):
     """The job's camera (for the mock backend: with the job's scene; seed + n per repetition)."""
     cam = job["camera"]
     if cam["backend"] == "mock":
-        from hdrcap.acquire.commands.simulate import load_scene, parse_size
+        from hdrcap.mock_camera.scenes import load_scene, parse_size
         from hdrcap.mock_camera.camera import MockCamera, MockFaults
 
         sc = job["scene"]
@@ -370,7 +371,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
                  f"{len(times)} exposures: {', '.join(f'{t:g}' for t in times)} s")
     snapped = [nearest_allowed(t, allowed) for t in times]
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
-    master_times = [t for t, s in zip(snapped, per) if s == "master"]
+    master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
     masters = library_masters(_library_root(job, calibration), camera, master_times, load=False) if master_times else {}
     if masters:
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
@@ -488,7 +489,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         result = session.run()
         header = None
         if planned:
-            from hdrcap.acquire.commands.merge import planner_attribute
+            from hdrcap.planner.planfile import planner_attribute
 
             header = planner_attribute(planned, None, None, options, info.get("plan_overridden"),
                                        source="hdrcap run (planned from metering)")
@@ -517,7 +518,7 @@ def _plan_merge_options(planned: dict) -> dict:
     """The merge options the planner decided (recorded in the manifest's planning record)."""
     if not planned:
         return {}
-    from hdrcap.acquire.commands.merge import PLAN_OPTIONS, check_plan
+    from hdrcap.planner.planfile import PLAN_OPTIONS, check_plan
 
     decided = check_plan(planned, "planner").merge_options()
     return {k: v for k, v in decided.items() if k in PLAN_OPTIONS}
@@ -525,7 +526,7 @@ def _plan_merge_options(planned: dict) -> dict:
 
 def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force,
                    planner_header: dict | None = None) -> dict:
-    from hdrcap.acquire.commands.merge import build_hdr_image
+    from hdrcap.acquire.filemerge import build_hdr_image
     from hdrcap.pipeline.io import RawFrame, write_exr
     from hdrcap.pipeline.preview import write_preview_png
 

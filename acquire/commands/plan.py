@@ -42,7 +42,7 @@ def _allowed(values) -> list[float] | None:
 
 
 def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, allowed, meter_frames, meter_max_time):
-    from hdrcap.acquire.commands.simulate import load_scene, parse_size
+    from hdrcap.mock_camera.scenes import load_scene, parse_size
     from hdrcap.mock_camera import PRESETS, SimulatedSensor
     from hdrcap.planner import meter
 
