@@ -143,7 +143,7 @@ def _observed_variance(v, t, params: SensorParams) -> np.ndarray:
     Equals (g v + sigma2_R) / (t g)^2."""
     t = np.asarray(t, dtype=np.float64)
     x_obs = np.asarray(v, dtype=np.float64) / (t * params.g)
-    return exposure_variance(x_obs, t, params.g, params.sigma2_R, D=0.0, a=1.0, dark="model")
+    return exposure_variance(x_obs, t, params.g, params.sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MODEL)
 
 
 def weighting_function_Tsin(v, t, params: SensorParams, **model) -> np.ndarray:
@@ -170,7 +170,7 @@ def weighting_function_KirkAndersen(v, t, params: SensorParams, **model) -> np.n
     return 1.0 / _observed_variance(v, t, params)
 
 
-def weighting_function_Optimal(v, t, params: SensorParams, *, a=1.0, D=None, dark="matched", n_dark=1,
+def weighting_function_Optimal(v, t, params: SensorParams, *, a=1.0, D=None, dark=DarkStrategy.MATCHED, n_dark=1,
                                **model) -> np.ndarray:
     """Granados et al. (2010), Eq. 13, evaluated at the OBSERVED value (single pass):
 
@@ -213,7 +213,26 @@ WEIGHTING_METHODS: dict[str, Callable[..., np.ndarray]] = {
 
 
 def weights(method: str, v, t, params: SensorParams, **model) -> np.ndarray:
-    """Weight of registered ``method`` for output value(s) ``v`` (DN above black) at time(s) ``t``."""
+    """Weight of a registered method (Table 1).
+
+    Parameters
+    ----------
+    method : str
+        A name of :data:`WEIGHTING_METHODS`.
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model.
+    **model
+        Further model inputs of the method (``a``, ``D``, ``dark``, ``n_dark``).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights (unit of the method), float64.
+    """
     try:
         fn = WEIGHTING_METHODS[method]
     except KeyError:

@@ -9,6 +9,7 @@ import click
 
 from hdrcap.acquire.cliutil import echo_json, many_values, resolve_calibration
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.noise import DarkStrategy
 
 
 @many_values("--darks", "--times")
@@ -26,7 +27,7 @@ from hdrcap.pipeline.errors import InputError
 @click.option("--saturation", type=click.Choice(["threshold", "probabilistic"]), default="threshold", show_default=True, help="Saturation model: Eq. 11 plus the near-saturation rule, or the blended likelihood of Eq. 8-10.")
 @click.option("--saturation-sigmas", type=click.FloatRange(min=0), default=3.0, show_default=True, help="Drop samples predicted within this many sigma of v_sat (0: off).")
 @click.option("--prnu", type=click.Choice(["map", "scalar"]), default="map", show_default=True, help="Per-photosite gain map from the calibration, or a = 1.")
-@click.option("--dark-strategy", type=click.Choice(["matched", "master", "model"]), default=None, help="For every exposure (overrides a --plan's). Default: the plan's per exposure; else matched with --darks, master with --master-dark, model otherwise. master without --darks/--master-dark: the calibration's dark library.")
+@click.option("--dark-strategy", type=click.Choice([s.value for s in DarkStrategy]), default=None, help="For every exposure (overrides a --plan's). Default: the plan's per exposure; else matched with --darks, master with --master-dark, model otherwise. master without --darks/--master-dark: the calibration's dark library.")
 @click.option("--master-dark", type=click.Path(path_type=Path), help="One master dark frame (raw file or 16-bit image) for the master exposures.")
 @click.option("--master-dark-frames", type=click.FloatRange(min=1), default=None, help="Number of frames averaged into each master dark file given here (N; library masters carry their own).")
 @click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip", show_default=True, help="EXR compression (none/rle write fastest, zip is about a third smaller; zstd is smaller and faster but needs OpenEXR >= 3.4 to read).")
@@ -58,16 +59,16 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     plan = read_plan(plan_file) if plan_file else None
     if plan is not None and weighting != "optimal":
         raise InputError(f"--plan works with --weighting optimal, not {weighting}")
-    if dark_strategy == "matched" and not darks:
+    if dark_strategy == DarkStrategy.MATCHED and not darks:
         raise InputError("--dark-strategy matched needs dark frames (--darks)")
     if master_dark and darks and plan is None:
         raise InputError("give either --darks or --master-dark, not both (both only with --plan)")
-    if master_dark and dark_strategy not in (None, "master"):
+    if master_dark and dark_strategy not in (None, DarkStrategy.MASTER):
         raise InputError(f"--master-dark needs --dark-strategy master, not {dark_strategy}")
     t0 = time.perf_counter()
     calib = resolve_calibration(str(calibration) if calibration else None, camera)
     lib_root = library_root(calib, calibration)
-    if dark_strategy == "master" and not (darks or master_dark or lib_root):
+    if dark_strategy == DarkStrategy.MASTER and not (darks or master_dark or lib_root):
         raise InputError("--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
                          "or a calibration with a dark library (--calibration)")
     if weighting != "optimal" and weighting not in WEIGHTING_METHODS:
