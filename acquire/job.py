@@ -328,8 +328,7 @@ def job_calibration(job: Job):
 
 # --------------------------------------------------------------------------- planning
 def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str], None]):
-    """The capture plan: a fixed bracket, or meter + planner for a target SNR (falls back to
-    the job's bracket, or a 2-stop bracket over the camera's range, when the planner is absent).
+    """The capture plan: a fixed bracket, or meter + planner for a target SNR.
 
     The planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
     dark frames are captured only for matched and master exposures, and not for master
@@ -343,32 +342,24 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     strategy: str | list[str] = darks["strategy"]
     info: dict[str, Any] = {"mode": exp["mode"]}
     if exp["mode"] == "snr":
-        try:
-            from hdrcap import planner
+        from hdrcap import planner
 
-            irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
-            root = _library_root(job, calibration)
-            library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False).items()}
-            plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
-                                          max_exposures=exp.get("max_exposures"),
-                                          time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
-                                          dark_library=library or None)
-            times = list(plan.exposures)
-            info.update(planner=True, predicted_min_snr_db=plan.predicted_min_snr_db, feasible=plan.feasible,
-                        message=plan.message, plan=_plan_record(plan))
-            if getattr(plan, "darks", None):
-                if "strategy" not in job.given.get("darks", ()):
-                    strategy = list(plan.darks)
-                elif set(plan.darks) != {strategy}:
-                    info["plan_overridden"] = {"darks": {"plan": list(plan.darks), "used": strategy}}
-            echo(f"plan: {plan.message}")
-        except (ImportError, AttributeError) as err:
-            if not times:
-                ladder = sorted(allowed)
-                times = ladder[::6][:8]  # every 2 stops from the shortest time
-            info.update(planner=False, fallback=f"planner not available ({err}); fixed bracket")
-            echo(f"hdrcap: planner not available ({type(err).__name__}); using a fixed bracket of "
-                 f"{len(times)} exposures: {', '.join(f'{t:g}' for t in times)} s")
+        irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
+        root = _library_root(job, calibration)
+        library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False).items()}
+        plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
+                                      max_exposures=exp.get("max_exposures"),
+                                      time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
+                                      dark_library=library or None)
+        times = list(plan.exposures)
+        info.update(planner=True, predicted_min_snr_db=plan.predicted_min_snr_db, feasible=plan.feasible,
+                    message=plan.message, plan=_plan_record(plan))
+        if plan.darks:
+            if "strategy" not in job.given.get("darks", ()):
+                strategy = list(plan.darks)
+            elif set(plan.darks) != {strategy}:
+                info["plan_overridden"] = {"darks": {"plan": list(plan.darks), "used": strategy}}
+        echo(f"plan: {plan.message}")
     snapped = [nearest_allowed(t, allowed) for t in times]
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
     master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
@@ -384,10 +375,9 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
 def _plan_record(plan) -> dict:
     """What the manifest keeps of a planner's plan (JSON): the plan without its SNR curve, and
     the merge options that follow its decisions."""
-    d = plan.to_dict() if hasattr(plan, "to_dict") else {}
+    d = plan.to_dict()
     d.pop("curve", None)
-    if "merge_options" not in d and hasattr(plan, "merge_options"):
-        d["merge_options"] = plan.merge_options()
+    d.setdefault("merge_options", plan.merge_options())
     return _json_safe(d)
 
 
@@ -508,7 +498,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         "adopted": result.adopted,
         "retries": result.retries,
         "elapsed_s": round(result.elapsed_s, 3),
-        "streamed_merge": bool(result.merge is not None and "note" not in result.merge.info),
+        "streamed_merge": result.merge is not None,
         **outputs,
     }
     return (summary, result) if return_result else summary
