@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.noise import DarkStrategy
 
 from .camera import nearest_allowed
 
@@ -58,7 +59,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
                "long_exposure_s": 1.0},
     "scene": {"name": "hdr", "decades": 4.0, "x_max": 2e5},
     "exposure": {"mode": "bracket", "times": [], "repeats": 1},
-    "darks": {"strategy": "matched", "count": 1, "block_light": "mock", "check": 0.05},
+    "darks": {"strategy": DarkStrategy.MATCHED.value, "count": 1, "block_light": "mock", "check": 0.05},
     "calibration": {"series": []},
     "output": {"folder": "runs/{job}-{date}", "exr": "hdr.exr", "png": "preview.png", "force": False},
     "schedule": {"repeat": 1, "every_s": 0.0},
@@ -173,7 +174,7 @@ def _check_values(job: Job) -> None:
         if cam["preset"] not in PRESETS:
             raise job.error("camera", "preset", f"unknown simulator preset {cam['preset']!r}; choose from "
                                                f"{', '.join(PRESETS)}")
-        from hdrcap.acquire.commands.simulate import parse_size
+        from hdrcap.mock_camera.scenes import parse_size
 
         try:
             parse_size(cam["size"])
@@ -203,13 +204,13 @@ def _check_values(job: Job) -> None:
         raise job.error("exposure", "target_snr_db", "mode = \"snr\" needs target_snr_db")
     if exp["repeats"] < 1:
         raise job.error("exposure", "repeats", "must be >= 1")
-    if darks["strategy"] not in ("matched", "master", "model"):
+    if darks["strategy"] not in set(DarkStrategy):
         raise job.error("darks", "strategy", f"must be matched, master or model, got {darks['strategy']!r}")
     if darks["count"] < 1:
         raise job.error("darks", "count", "must be >= 1")
     if darks["block_light"] not in ("mock", "prompt", "command", "none"):
         raise job.error("darks", "block_light", f"must be mock, prompt, command or none, got {darks['block_light']!r}")
-    if darks["block_light"] == "mock" and cam["backend"] != "mock" and darks["strategy"] != "model":
+    if darks["block_light"] == "mock" and cam["backend"] != "mock" and darks["strategy"] != DarkStrategy.MODEL:
         raise job.error("darks", "block_light", "a real camera cannot block its light itself: use prompt, "
                                                 "command (cover_command/uncover_command) or none")
     if darks["block_light"] == "command":
@@ -280,7 +281,7 @@ def open_camera(job: Job, n: int = 0):
     """The job's camera (for the mock backend: with the job's scene; seed + n per repetition)."""
     cam = job["camera"]
     if cam["backend"] == "mock":
-        from hdrcap.acquire.commands.simulate import load_scene, parse_size
+        from hdrcap.mock_camera.scenes import load_scene, parse_size
         from hdrcap.mock_camera.camera import MockCamera, MockFaults
 
         sc = job["scene"]
@@ -327,8 +328,7 @@ def job_calibration(job: Job):
 
 # --------------------------------------------------------------------------- planning
 def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str], None]):
-    """The capture plan: a fixed bracket, or meter + planner for a target SNR (falls back to
-    the job's bracket, or a 2-stop bracket over the camera's range, when the planner is absent).
+    """The capture plan: a fixed bracket, or meter + planner for a target SNR.
 
     The planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
     dark frames are captured only for matched and master exposures, and not for master
@@ -342,35 +342,27 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     strategy: str | list[str] = darks["strategy"]
     info: dict[str, Any] = {"mode": exp["mode"]}
     if exp["mode"] == "snr":
-        try:
-            from hdrcap import planner
+        from hdrcap import planner
 
-            irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
-            root = _library_root(job, calibration)
-            library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False).items()}
-            plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
-                                          max_exposures=exp.get("max_exposures"),
-                                          time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
-                                          dark_library=library or None)
-            times = list(plan.exposures)
-            info.update(planner=True, predicted_min_snr_db=plan.predicted_min_snr_db, feasible=plan.feasible,
-                        message=plan.message, plan=_plan_record(plan))
-            if getattr(plan, "darks", None):
-                if "strategy" not in job.given.get("darks", ()):
-                    strategy = list(plan.darks)
-                elif set(plan.darks) != {strategy}:
-                    info["plan_overridden"] = {"darks": {"plan": list(plan.darks), "used": strategy}}
-            echo(f"plan: {plan.message}")
-        except (ImportError, AttributeError) as err:
-            if not times:
-                ladder = sorted(allowed)
-                times = ladder[::6][:8]  # every 2 stops from the shortest time
-            info.update(planner=False, fallback=f"planner not available ({err}); fixed bracket")
-            echo(f"hdrcap: planner not available ({type(err).__name__}); using a fixed bracket of "
-                 f"{len(times)} exposures: {', '.join(f'{t:g}' for t in times)} s")
+        irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
+        root = _library_root(job, calibration)
+        library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False).items()}
+        plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
+                                      max_exposures=exp.get("max_exposures"),
+                                      time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
+                                      dark_library=library or None)
+        times = list(plan.exposures)
+        info.update(planner=True, predicted_min_snr_db=plan.predicted_min_snr_db, feasible=plan.feasible,
+                    message=plan.message, plan=_plan_record(plan))
+        if plan.darks:
+            if "strategy" not in job.given.get("darks", ()):
+                strategy = list(plan.darks)
+            elif set(plan.darks) != {strategy}:
+                info["plan_overridden"] = {"darks": {"plan": list(plan.darks), "used": strategy}}
+        echo(f"plan: {plan.message}")
     snapped = [nearest_allowed(t, allowed) for t in times]
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
-    master_times = [t for t, s in zip(snapped, per) if s == "master"]
+    master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
     masters = library_masters(_library_root(job, calibration), camera, master_times, load=False) if master_times else {}
     if masters:
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
@@ -383,10 +375,9 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
 def _plan_record(plan) -> dict:
     """What the manifest keeps of a planner's plan (JSON): the plan without its SNR curve, and
     the merge options that follow its decisions."""
-    d = plan.to_dict() if hasattr(plan, "to_dict") else {}
+    d = plan.to_dict()
     d.pop("curve", None)
-    if "merge_options" not in d and hasattr(plan, "merge_options"):
-        d["merge_options"] = plan.merge_options()
+    d.setdefault("merge_options", plan.merge_options())
     return _json_safe(d)
 
 
@@ -488,7 +479,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         result = session.run()
         header = None
         if planned:
-            from hdrcap.acquire.commands.merge import planner_attribute
+            from hdrcap.planner.planfile import planner_attribute
 
             header = planner_attribute(planned, None, None, options, info.get("plan_overridden"),
                                        source="hdrcap run (planned from metering)")
@@ -507,7 +498,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         "adopted": result.adopted,
         "retries": result.retries,
         "elapsed_s": round(result.elapsed_s, 3),
-        "streamed_merge": bool(result.merge is not None and "note" not in result.merge.info),
+        "streamed_merge": result.merge is not None,
         **outputs,
     }
     return (summary, result) if return_result else summary
@@ -517,7 +508,7 @@ def _plan_merge_options(planned: dict) -> dict:
     """The merge options the planner decided (recorded in the manifest's planning record)."""
     if not planned:
         return {}
-    from hdrcap.acquire.commands.merge import PLAN_OPTIONS, check_plan
+    from hdrcap.planner.planfile import PLAN_OPTIONS, check_plan
 
     decided = check_plan(planned, "planner").merge_options()
     return {k: v for k, v in decided.items() if k in PLAN_OPTIONS}
@@ -525,7 +516,7 @@ def _plan_merge_options(planned: dict) -> dict:
 
 def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force,
                    planner_header: dict | None = None) -> dict:
-    from hdrcap.acquire.commands.merge import build_hdr_image
+    from hdrcap.acquire.filemerge import build_hdr_image
     from hdrcap.pipeline.io import RawFrame, write_exr
     from hdrcap.pipeline.preview import write_preview_png
 

@@ -17,7 +17,6 @@ import os
 from pathlib import Path
 from typing import Any, Iterator
 
-from hdrcap.pipeline.errors import InputError
 
 __all__ = ["Manifest", "EventLog", "utc_now", "MANIFEST_NAME", "EVENTS_NAME"]
 
@@ -133,10 +132,3 @@ class EventLog:
             return []
         return [r for _n, r in _read_lines(self.path) if r is not None]
 
-
-def load_manifest(run_dir) -> Manifest:
-    """The manifest of an existing run folder (InputError when there is none)."""
-    m = Manifest(run_dir)
-    if not m.exists():
-        raise InputError(f"{m.path}: no manifest (not a run folder)")
-    return m

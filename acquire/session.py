@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import shutil
 import subprocess
@@ -37,7 +36,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from hdrcap.pipeline.darks import DarkResolver
 from hdrcap.pipeline.errors import HdrcapError, InputError
+from hdrcap.pipeline.noise import DarkStrategy
+from hdrcap.pipeline.times import ExposureMap, find_exposure, same_exposure
 
 from .camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
 from .manifest import EventLog, Manifest, utc_now
@@ -95,7 +97,39 @@ def frame_stem(index: int, spec: FrameSpec) -> str:
     return f"{index:04d}_{spec.kind}_{spec.exposure_s:.6g}s"
 
 
-DARK_STRATEGIES = ("matched", "master", "model")
+def _strategies_by_time(times: list[float], dark_strategy) -> ExposureMap[DarkStrategy]:
+    """Exposure time (s) -> its dark strategy, from one strategy for all or one per time."""
+    per = [dark_strategy] * len(times) if isinstance(dark_strategy, str) else list(dark_strategy)
+    if len(per) != len(times):
+        raise InputError(f"{len(per)} dark strategies for {len(times)} exposure times")
+    by_time: ExposureMap[DarkStrategy] = ExposureMap()
+    for t, s in zip(times, per):
+        s = _strategy(s)
+        if by_time.setdefault(t, s) is not s:
+            raise InputError(f"exposure {t:g} s has two dark strategies ({by_time[t]} and {s})")
+    return by_time
+
+
+def _frame_specs(frames: list[tuple[str, float, int]]) -> tuple[FrameSpec, ...]:
+    """FrameSpecs of (kind, exposure time, repetition) in order, keyed ``kind-time-n``."""
+    out, seen = [], {}
+    for kind, t, _j in frames:
+        base = f"{kind}-{t:.6g}"
+        n = seen.get(base, 0)
+        seen[base] = n + 1
+        out.append(FrameSpec(key=f"{base}-{n}", kind=kind, exposure_s=t))
+    return tuple(out)
+
+
+def _strategy(value) -> DarkStrategy:
+    try:
+        return DarkStrategy(value)
+    except ValueError:
+        raise InputError(f"dark strategy must be matched, master or model, got {value!r}") from None
+
+
+#: Dark frames captured per exposure time for each dark strategy (master: ``n_dark``).
+_DARK_FRAMES = {DarkStrategy.MATCHED: 1, DarkStrategy.MODEL: 0}
 
 
 @dataclass(frozen=True)
@@ -110,14 +144,14 @@ class CapturePlan:
     """
 
     frames: tuple[FrameSpec, ...]
-    dark_strategy: str = "matched"
+    dark_strategy: str = DarkStrategy.MATCHED.value
     n_dark: int = 1
     library_times: tuple[float, ...] = ()
     time_strategies: tuple[tuple[float, str], ...] = ()
 
     @classmethod
     def bracket(cls, times: Sequence[float], allowed: Sequence[float] | None = None,
-                dark_strategy: str | Sequence[str] = "matched", n_dark: int = 1, repeats: int = 1,
+                dark_strategy: str | Sequence[str] = DarkStrategy.MATCHED, n_dark: int = 1, repeats: int = 1,
                 series: Sequence[dict] = (), library_times: Sequence[float] = ()) -> "CapturePlan":
         """A bracket of ``times`` (each snapped to the nearest ``allowed`` time), ``repeats``
         frames per time, dark frames per dark strategy and calibration ``series`` (dicts with
@@ -128,60 +162,37 @@ class CapturePlan:
         only ``master`` times qualify)."""
         snap = (lambda t: nearest_allowed(t, allowed)) if allowed else float
         times = [snap(float(t)) for t in times]
-        per = [dark_strategy] * len(times) if isinstance(dark_strategy, str) else list(dark_strategy)
-        if len(per) != len(times):
-            raise InputError(f"{len(per)} dark strategies for {len(times)} exposure times")
-        by_time: dict[float, str] = {}
-        for t, s in zip(times, per):
-            if s not in DARK_STRATEGIES:
-                raise InputError(f"dark strategy must be matched, master or model, got {s!r}")
-            if by_time.setdefault(round(t, 12), s) != s:
-                raise InputError(f"exposure {t:g} s has two dark strategies ({by_time[round(t, 12)]} and {s})")
-        uniq = sorted(set(times))
-        nd = {"matched": 1, "master": max(1, int(n_dark)), "model": 0}
-        lib = {round(float(t), 12) for t in library_times}
-        lib = {k for k in lib if by_time.get(k) == "master"}
-        dark_frames, light_frames = [], []
-        for t in uniq:
-            if round(t, 12) in lib:
-                continue
-            for j in range(nd[by_time[round(t, 12)]]):
-                dark_frames.append(("dark", t, j))
-        for j in range(max(1, int(repeats))):
-            for t in times:
-                light_frames.append(("light", t, j))
-        for s in series:
-            kind = s["kind"]
+        by_time = _strategies_by_time(times, dark_strategy)
+        uniq = sorted(by_time)
+        lib = [t for t in uniq if by_time[t] is DarkStrategy.MASTER and find_exposure(t, library_times) is not None]
+        per_time = dict(_DARK_FRAMES, **{DarkStrategy.MASTER: max(1, int(n_dark))})
+        dark_frames = [("dark", t, j) for t in uniq if t not in lib for j in range(per_time[by_time[t]])]
+        light_frames = [("light", t, j) for j in range(max(1, int(repeats))) for t in times]
+        for sr in series:
+            kind = sr["kind"]
             if kind not in KINDS[2:]:
                 raise InputError(f"calibration series kind must be one of {', '.join(KINDS[2:])}, got {kind!r}")
-            for t in s["times"]:
-                for j in range(int(s.get("count", 1))):
+            for t in sr["times"]:
+                for j in range(int(sr.get("count", 1))):
                     (dark_frames if kind in DARK_KINDS else light_frames).append((kind, snap(float(t)), j))
-        frames, seen = [], {}
-        for kind, t, _j in dark_frames + light_frames:
-            base = f"{kind}-{t:.6g}"
-            n = seen.get(base, 0)
-            seen[base] = n + 1
-            frames.append(FrameSpec(key=f"{base}-{n}", kind=kind, exposure_s=t))
-        used = {dark_strategy} if isinstance(dark_strategy, str) else set(by_time.values()) or {"matched"}
-        uniform = used.pop() if len(used) == 1 else "mixed"
-        if uniform not in DARK_STRATEGIES + ("mixed",):
-            raise InputError(f"dark strategy must be matched, master or model, got {uniform!r}")
-        pairs = () if uniform != "mixed" else tuple((t, by_time[round(t, 12)]) for t in uniq)
-        n_used = max(1, int(n_dark)) if "master" in by_time.values() or uniform == "master" else 1
-        return cls(frames=tuple(frames), dark_strategy=uniform, n_dark=n_used,
-                   library_times=tuple(sorted(t for t in uniq if round(t, 12) in lib)), time_strategies=pairs)
+        used = {_strategy(dark_strategy)} if isinstance(dark_strategy, str) else set(by_time.values())
+        used = used or {DarkStrategy.MATCHED}
+        uniform = used.pop().value if len(used) == 1 else "mixed"
+        pairs = () if uniform != "mixed" else tuple((t, by_time[t].value) for t in uniq)
+        master = DarkStrategy.MASTER in by_time.values() or uniform == DarkStrategy.MASTER
+        return cls(frames=_frame_specs(dark_frames + light_frames), dark_strategy=uniform,
+                   n_dark=max(1, int(n_dark)) if master else 1, library_times=tuple(lib), time_strategies=pairs)
 
-    def strategy_for(self, t: float) -> str:
+    def strategy_for(self, t: float) -> DarkStrategy:
         """The dark strategy of exposure time ``t`` (s)."""
         if not self.time_strategies:
-            return self.dark_strategy
-        for pt, s in self.time_strategies:
-            if math.isclose(pt, t, rel_tol=1e-3):
-                return s
-        raise SessionError(f"exposure {t:g} s is not in the plan")
+            return DarkStrategy(self.dark_strategy)
+        i = find_exposure(t, [pt for pt, _s in self.time_strategies])
+        if i is None:
+            raise SessionError(f"exposure {t:g} s is not in the plan")
+        return DarkStrategy(self.time_strategies[i][1])
 
-    def strategies(self) -> dict[float, str]:
+    def strategies(self) -> dict[float, DarkStrategy]:
         """Exposure time (s) -> dark strategy, for every exposure time of the light frames."""
         return {f.exposure_s: self.strategy_for(f.exposure_s) for f in self.frames if f.kind == "light"}
 
@@ -300,71 +311,54 @@ class StreamingMerge:
     """Feeds verified frames to the merge as they land.
 
     Uses ``pipeline.merge.MergeAccumulator``; each light frame is added with the dark
-    strategy of its exposure time (``strategy_for``): ``matched`` with the dark frame of that
-    time, ``master`` with the average of the dark frames of that time (N = their number) or the
-    library's master dark (its N), ``model`` without a dark frame. Dark frames come before the
-    light frames in a plan, so each light frame has its dark frame(s) when it lands.
+    strategy of its exposure time (``strategy_for``) and the dark level that
+    :class:`pipeline.darks.DarkResolver` serves it: ``matched`` the dark frame of that time,
+    ``master`` the average of the dark frames of that time (N = their number) or the library's
+    master dark (its N), ``model`` none. Dark frames come before the light frames in a plan,
+    so each light frame has its dark frame(s) when it lands.
 
     Parameters
     ----------
     calibration : pipeline.params.Calibration
     shape : (int, int)
     strategy_for : callable or str
-        Exposure time (s) -> "matched" | "master" | "model"; a string: one for all.
+        Exposure time (s) -> DarkStrategy (or its name); a string: one for all.
     options : dict, optional
         Further :class:`pipeline.merge.MergeOptions` fields (iterations, saturation, prnu, ...).
     """
 
-    def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = "matched",
+    def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = DarkStrategy.MATCHED,
                  options: dict | None = None):
         from hdrcap.pipeline.merge import MergeAccumulator
 
         self.calibration = calibration
         self.shape = tuple(shape)
         self.strategy_for = (lambda _t, s=strategy_for: s) if isinstance(strategy_for, str) else strategy_for
-        self._dark_sum: dict[float, np.ndarray] = {}
-        self._dark_n: dict[float, int] = {}
-        self._averaged: dict[float, int] = {}
-        self._library: dict[float, tuple[np.ndarray, int]] = {}
+        self._darks = DarkResolver()
         self.streamed = True
         opts = {k: v for k, v in (options or {}).items() if k not in ("dark_strategy", "n_dark")}
         uniform = strategy_for if isinstance(strategy_for, str) and strategy_for != "mixed" else None
         self._acc = MergeAccumulator(calibration, self.shape, dark_strategy=uniform, **opts)
 
-    def _dark_for(self, t: float, strategy: str) -> tuple[np.ndarray | None, int | None]:
-        """(dark level in DN, frames averaged in it for ``master``) of exposure ``t``."""
-        if strategy == "model":
-            return None, None
-        k = round(t, 12)
-        if strategy == "master" and k in self._library:
-            return self._library[k]
-        if k not in self._dark_sum:
-            raise SessionError(f"no dark frame for exposure {t:g} s ({strategy} dark strategy) before its light frame")
-        n = self._dark_n[k]
-        if n > 1:  # average once (the dark frames of a time all come before its light frames)
-            self._dark_sum[k], self._dark_n[k] = (self._dark_sum[k] / n).astype(np.float32), 1
-            self._averaged[k] = n
-        n = self._averaged.get(k, n)
-        return self._dark_sum[k], (n if strategy == "master" else None)
-
     def add_dark(self, values: np.ndarray, t: float) -> None:
-        k = round(t, 12)
-        if k in self._averaged:
-            raise SessionError(f"a dark frame for exposure {t:g} s came after its light frames")
-        if k in self._dark_sum:  # a master dark: sum in float64
-            self._dark_sum[k] = self._dark_sum[k] + values.astype(np.float64)
-            self._dark_n[k] += 1
-        else:
-            self._dark_sum[k], self._dark_n[k] = values, 1
+        """A dark frame (DN) of exposure ``t`` (s)."""
+        try:
+            self._darks.add_dark(values, t)
+        except InputError as err:  # after its light frames
+            raise SessionError(str(err)) from None
 
     def add_master(self, values: np.ndarray, t: float, n_frames: int = 1) -> None:
         """A master dark (DN) for exposure ``t`` from the dark library, averaged from ``n_frames``."""
-        self._library[round(t, 12)] = (np.asarray(values, np.float32), int(n_frames))
+        self._darks.add_master(values, t, int(n_frames))
 
     def add_light(self, values: np.ndarray, t: float) -> None:
-        strategy = self.strategy_for(t)
-        dark, n = self._dark_for(t, strategy)
-        self._acc.add(values, t, dark, strategy=strategy, n_dark=n)
+        """A light frame (DN) of exposure ``t`` (s), merged with the dark level that serves it."""
+        strategy = DarkStrategy(self.strategy_for(t))
+        src = self._darks.resolve(t, strategy)
+        if src is None:
+            raise SessionError(f"no dark frame for exposure {t:g} s ({strategy} dark strategy) before its light frame")
+        self._acc.add(values, t, src.data, strategy=strategy,
+                      n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None)
 
     def result(self):
         """The :class:`pipeline.merge.MergeResult` of everything added."""
@@ -385,9 +379,6 @@ class SessionResult:
     retries: dict[str, int] = field(default_factory=dict)
     merge: Any = None
     elapsed_s: float = 0.0
-
-    def light_files(self) -> list[Path]:
-        return [self.run_dir / r["file"] for r in self.frames.values() if r["kind"] == "light"]
 
 
 class CaptureSession:
@@ -437,9 +428,9 @@ class CaptureSession:
         self.meta = meta or {}
         self.sleep = sleep
         self.check_dark = check_dark
-        self.master_darks = {round(float(t), 12): v for t, v in (master_darks or {}).items()}
+        self.master_darks: ExposureMap[tuple] = ExposureMap((float(t), v) for t, v in (master_darks or {}).items())
         self.merge_options = dict(merge_options or {})
-        missing = [t for t in plan.library_times if round(t, 12) not in self.master_darks]
+        missing = [t for t in plan.library_times if t not in self.master_darks]
         if missing:
             raise SessionError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
         self.retries: dict[str, int] = {}
@@ -478,48 +469,60 @@ class CaptureSession:
 
     # ------------------------------------------------------------------ internals
     def _run_locked(self, ident: dict, t0: float) -> SessionResult:
-        from tqdm import tqdm
-
-        from hdrcap.pipeline.io import read_frame
-
         manifest = Manifest(self.run_dir)
         log = EventLog(self.run_dir)
         frames_dir = self.run_dir / "frames"
         partial_dir = self.run_dir / ".partial"
         frames_dir.mkdir(exist_ok=True)
-        fp = self.plan.fingerprint()
-        done: dict[str, dict] = {}
-        resumed = adopted = 0
-        if manifest.exists():
-            if not self.resume:
-                raise SessionError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
-                                   "to continue it or choose another run folder")
-            head = manifest.header()
-            if head is not None and head.get("plan_fingerprint") != fp:
-                raise SessionError(f"{self.run_dir}: the run there was made from a different plan; "
-                                   "resume with the same job or choose another run folder")
-            done = manifest.frames()
-            bad = manifest.verify_hashes()
-            for key in bad:
-                rec = done.pop(key)
-                self._quarantine(self.run_dir / rec["file"], "hash mismatch or missing")
-                manifest.append({"type": "void", "key": key, "reason": "file missing or hash mismatch",
-                                 "time": utc_now()})
-                log.emit("void", key=key, file=rec["file"])
-            resumed = len(done)
-            log.emit("resume", frames_done=resumed, torn_manifest_lines=manifest.torn_lines, voided=len(bad))
-        else:
-            manifest.append({"type": "run", "time": utc_now(), "plan_fingerprint": fp, "camera": ident,
-                             "plan": self.plan.to_dict(), **self.meta})
-            log.emit("start", frames=len(self.plan.frames), camera=ident, run_dir=str(self.run_dir))
+        done, resumed = self._open_manifest(manifest, log, ident)
         if partial_dir.exists():  # downloads that never finished
             shutil.rmtree(partial_dir)
         partial_dir.mkdir()
+        adopted = self._adopt_landed(done, frames_dir, ident, manifest, log)
+        merger = self._replay(done)
+        captured, merger = self._capture_missing(done, merger, ident, manifest, log, partial_dir, frames_dir)
+        result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
+        if merger is not None:
+            result.merge = merger.result()
+            log.emit("merged", streamed=merger.streamed, info=_jsonable(result.merge.info))
+        shutil.rmtree(partial_dir, ignore_errors=True)
+        result.elapsed_s = time.monotonic() - t0
+        log.emit("done", captured=captured, resumed=resumed, adopted=adopted, retries=self.retries,
+                 elapsed_s=round(result.elapsed_s, 3))
+        return result
 
-        merger = None
-        order = list(enumerate(self.plan.frames))
-        # adopt frames whose file landed but whose manifest line was never written
-        for i, spec in order:
+    def _open_manifest(self, manifest: Manifest, log: EventLog, ident: dict) -> tuple[dict[str, dict], int]:
+        """Start the manifest, or (resume) check it was made from this plan and void the frames
+        whose file is missing or changed. Returns (frames recorded by key, their number)."""
+        fp = self.plan.fingerprint()
+        if not manifest.exists():
+            manifest.append({"type": "run", "time": utc_now(), "plan_fingerprint": fp, "camera": ident,
+                             "plan": self.plan.to_dict(), **self.meta})
+            log.emit("start", frames=len(self.plan.frames), camera=ident, run_dir=str(self.run_dir))
+            return {}, 0
+        if not self.resume:
+            raise SessionError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
+                               "to continue it or choose another run folder")
+        head = manifest.header()
+        if head is not None and head.get("plan_fingerprint") != fp:
+            raise SessionError(f"{self.run_dir}: the run there was made from a different plan; "
+                               "resume with the same job or choose another run folder")
+        done = manifest.frames()
+        bad = manifest.verify_hashes()
+        for key in bad:
+            rec = done.pop(key)
+            self._quarantine(self.run_dir / rec["file"], "hash mismatch or missing")
+            manifest.append({"type": "void", "key": key, "reason": "file missing or hash mismatch",
+                             "time": utc_now()})
+            log.emit("void", key=key, file=rec["file"])
+        log.emit("resume", frames_done=len(done), torn_manifest_lines=manifest.torn_lines, voided=len(bad))
+        return done, len(done)
+
+    def _adopt_landed(self, done: dict, frames_dir: Path, ident: dict, manifest: Manifest, log: EventLog) -> int:
+        """Verify and record the frames whose file landed but whose manifest line was never
+        written (bad ones are quarantined); returns how many were adopted."""
+        adopted = 0
+        for i, spec in enumerate(self.plan.frames):
             if spec.key in done:
                 continue
             for f in sorted(frames_dir.glob(frame_stem(i, spec) + ".*")):
@@ -532,15 +535,29 @@ class CaptureSession:
                 done[spec.key] = rec
                 adopted += 1
                 log.emit("adopt", key=spec.key, file=rec["file"])
+        return adopted
+
+    def _replay(self, done: dict) -> StreamingMerge | None:
+        """The merge of the frames recorded before a resume, in capture order."""
+        from hdrcap.pipeline.io import read_frame
+
+        merger = None
         if self.calibration is not None:
-            for rec in sorted(done.values(), key=lambda r: r["index"]):  # frames from before a resume
+            for rec in sorted(done.values(), key=lambda r: r["index"]):
                 if rec["kind"] in ("light", "dark"):
                     merger = self._feed(merger, rec, read_frame(self.run_dir / rec["file"]).data)
+        return merger
 
-        todo = [(i, s) for i, s in order if s.key not in done]
+    def _capture_missing(self, done: dict, merger: StreamingMerge | None, ident: dict, manifest: Manifest,
+                         log: EventLog, partial_dir: Path, frames_dir: Path) -> tuple[int, StreamingMerge | None]:
+        """Capture every planned frame not yet done (light blocked as each needs), feeding the
+        merge; a stop is logged with its reason. Returns (frames captured, the merge)."""
+        from tqdm import tqdm
+
+        todo = [(i, s) for i, s in enumerate(self.plan.frames) if s.key not in done]
         show = self.progress if self.progress is not None else sys.stderr.isatty()
-        bar = tqdm(total=len(order), initial=len(order) - len(todo), desc="capture", unit="frame",
-                   disable=not show, dynamic_ncols=True)
+        bar = tqdm(total=len(self.plan.frames), initial=len(self.plan.frames) - len(todo), desc="capture",
+                   unit="frame", disable=not show, dynamic_ncols=True)
         captured = 0
         try:
             for i, spec in todo:
@@ -568,15 +585,7 @@ class CaptureSession:
             raise
         finally:
             bar.close()
-        result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
-        if merger is not None:
-            result.merge = merger.result()
-            log.emit("merged", streamed=merger.streamed, info=_jsonable(result.merge.info))
-        shutil.rmtree(partial_dir, ignore_errors=True)
-        result.elapsed_s = time.monotonic() - t0
-        log.emit("done", captured=captured, resumed=resumed, adopted=adopted, retries=self.retries,
-                 elapsed_s=round(result.elapsed_s, 3))
-        return result
+        return captured, merger
 
     def _feed(self, merger: StreamingMerge | None, rec: dict, values: np.ndarray) -> StreamingMerge | None:
         """Hand a verified frame to the merge (created with the first frame: its size)."""
@@ -669,7 +678,7 @@ class CaptureSession:
             if level > self.check_dark:
                 raise SessionError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
                                    f"range); check the light blocking ({self.light.method}) and run again with --resume")
-        if not math.isclose(frame.exposure_time, applied, rel_tol=1e-3):
+        if not same_exposure(frame.exposure_time, applied):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
                                     f"camera reported {applied:g} s")
         rec = {

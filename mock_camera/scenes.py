@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SCENES", "make_scene", "load_scene_exr"]
+from hdrcap.pipeline.errors import InputError
+
+__all__ = ["SCENES", "make_scene", "load_scene_exr", "load_scene", "parse_size"]
 
 SCENES = ("hdr", "gradient", "patches", "edges", "flat")
 
@@ -98,3 +100,70 @@ def load_scene_exr(path) -> np.ndarray:
     if not np.all(np.isfinite(data)) or np.any(data < 0):
         raise ValueError(f"{path}: scene irradiance must be finite and >= 0")
     return data
+
+
+def load_scene(scene: str, shape, decades: float, x_max: float) -> np.ndarray:
+    """The irradiance map (e-/s per photosite) of a scene named on the command line or in a job.
+
+    Parameters
+    ----------
+    scene : str
+        One of :data:`SCENES`, or an EXR file (its size is the scene's).
+    shape : (int, int)
+        Height and width of a synthetic scene, photosites.
+    decades : float
+        Dynamic range of a synthetic scene, orders of magnitude.
+    x_max : float
+        Brightest irradiance of a synthetic scene, e-/s.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 irradiance, e-/s.
+
+    Raises
+    ------
+    InputError
+        Unknown scene name or unreadable EXR file.
+    """
+    if scene.lower().endswith(".exr"):
+        try:
+            return load_scene_exr(scene)
+        except (OSError, ValueError, RuntimeError) as err:
+            raise InputError(f"{scene}: cannot load scene ({err})") from None
+    if scene not in SCENES:
+        raise InputError(f"unknown scene {scene!r}; choose from {', '.join(SCENES)} or give an .exr file")
+    return make_scene(scene, shape, decades=decades, x_max=x_max)
+
+
+def parse_size(text: str | None, default=(768, 1024)) -> tuple[int, int]:
+    """Mosaic size from ``'WIDTHxHEIGHT'``.
+
+    Parameters
+    ----------
+    text : str or None
+        E.g. ``"1024x768"``; None or empty gives ``default``.
+    default : (int, int)
+        (height, width) without ``text``.
+
+    Returns
+    -------
+    (int, int)
+        (height, width), photosites: even and at least 22 (whole Bayer tiles; LibRaw reads
+        nothing smaller).
+
+    Raises
+    ------
+    InputError
+        Malformed, odd or too small sizes.
+    """
+    if not text:
+        return default
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--size must look like 1024x768, got {text!r}") from None
+    if w < 22 or h < 22 or w % 2 or h % 2:
+        raise InputError(f"--size needs even width and height >= 22 (whole Bayer tiles; LibRaw reads nothing "
+                         f"smaller), got {text!r}")
+    return h, w

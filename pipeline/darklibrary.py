@@ -18,6 +18,7 @@ import numpy as np
 
 from .errors import InputError
 from .io import atomic_output
+from .times import EXPOSURE_RTOL, same_exposure, unique_exposures
 
 __all__ = ["DarkEntry", "DarkLibrary", "LIBRARY_FORMAT", "LIBRARY_VERSION", "same_camera"]
 
@@ -57,8 +58,19 @@ class DarkEntry:
 
 
 def same_camera(a: str | None, b: str | None) -> bool:
-    """Whether two camera names denote the same camera: equal, or one contains the other
-    ("Nikon D750" and "D750"); an empty or unknown name matches any."""
+    """Whether two camera names denote the same camera.
+
+    Parameters
+    ----------
+    a, b : str or None
+        Camera names.
+
+    Returns
+    -------
+    bool
+        Equal, or one contains the other ("Nikon D750" and "D750"); an empty or unknown name
+        matches any.
+    """
     a, b = (a or "").strip(), (b or "").strip()
     return not a or not b or a == b or a in b or b in a
 
@@ -78,7 +90,13 @@ class DarkLibrary:
         return self.root / "index.json"
 
     def entries(self) -> list[DarkEntry]:
-        """All entries of the index (empty when the library does not exist yet)."""
+        """All entries of the index.
+
+        Returns
+        -------
+        list of DarkEntry
+            Empty when the library does not exist yet.
+        """
         if not self.index_path.exists():
             return []
         try:
@@ -91,9 +109,30 @@ class DarkLibrary:
 
     def add(self, data: np.ndarray, n_frames: int, *, camera: str, iso: float | None, exposure_time: float,
             temperature: float | None = None, force: bool = False, created: str = "") -> DarkEntry:
-        """Store a master dark averaged over ``n_frames`` frames; return its entry.
+        """Store a master dark; an entry with the same key is replaced only with ``force``.
 
-        An entry with the same key is replaced only with ``force``.
+        Parameters
+        ----------
+        data : numpy.ndarray
+            Master dark, DN (bias included).
+        n_frames : int
+            Frames averaged into it, N.
+        camera : str
+            Camera name.
+        iso : float or None
+            ISO speed.
+        exposure_time : float
+            Exposure time, s.
+        temperature : float, optional
+            Sensor temperature, degrees C.
+        force : bool
+            Replace an entry with the same key.
+        created : str
+            Creation time (ISO 8601), recorded.
+
+        Returns
+        -------
+        DarkEntry
         """
         from filelock import FileLock
 
@@ -124,11 +163,29 @@ class DarkLibrary:
         return entry
 
     def find(self, *, camera: str | None, iso: float | None, exposure_time: float, temperature: float | None = None,
-             temperature_tolerance: float = 1.0, rtol: float = 1e-3) -> DarkEntry | None:
-        """The entry matching camera (:func:`same_camera`; None: any), ISO (when both are
-        known) and exposure time (relative tolerance ``rtol``) whose temperature is closest and
-        within ``temperature_tolerance`` degrees C (any temperature when either is unknown);
-        the one with most frames on ties."""
+             temperature_tolerance: float = 1.0, rtol: float = EXPOSURE_RTOL) -> DarkEntry | None:
+        """The entry for a camera, ISO, exposure time and temperature.
+
+        Parameters
+        ----------
+        camera : str or None
+            Camera name (:func:`same_camera`; None: any).
+        iso : float or None
+            ISO speed (compared when both are known).
+        exposure_time : float
+            Exposure time, s (:func:`pipeline.times.same_exposure` with ``rtol``).
+        temperature : float, optional
+            Sensor temperature, degrees C (any temperature when either is unknown).
+        temperature_tolerance : float
+            Largest temperature difference, degrees C.
+        rtol : float
+            Relative tolerance of the exposure time.
+
+        Returns
+        -------
+        DarkEntry or None
+            The closest temperature, the most frames on ties; None when none matches.
+        """
         return self._find(self.entries(), camera, iso, exposure_time, temperature, temperature_tolerance, rtol)
 
     @staticmethod
@@ -137,7 +194,7 @@ class DarkLibrary:
         for e in entries:
             if not same_camera(camera, e.camera) or (iso is not None and e.iso is not None and abs(e.iso - iso) > 0.5):
                 continue
-            if not np.isclose(e.exposure_time, exposure_time, rtol=rtol, atol=0):
+            if not same_exposure(e.exposure_time, exposure_time, rtol):
                 continue
             dt = 0.0
             if temperature is not None and e.temperature is not None:
@@ -151,21 +208,45 @@ class DarkLibrary:
 
     def masters(self, times, *, camera: str | None = None, iso: float | None = None,
                 temperature: float | None = None, temperature_tolerance: float = 1.0,
-                rtol: float = 1e-3, load: bool = True) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
-        """Master darks for the exposure ``times`` (s) that the library holds, matched as in
-        :meth:`find`: t -> (float32 master dark in DN, its frame count N, its entry); the data
-        is None unless ``load``. Times without a master are absent; an absent library gives an
-        empty dict."""
+                rtol: float = EXPOSURE_RTOL, load: bool = True) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
+        """Master darks for the exposure ``times`` that the library holds, matched as in
+        :meth:`find`.
+
+        Parameters
+        ----------
+        times : iterable of float
+            Exposure times, s.
+        camera, iso, temperature, temperature_tolerance, rtol
+            As :meth:`find`.
+        load : bool
+            Load the data (else None).
+
+        Returns
+        -------
+        dict
+            t (s) -> (float32 master dark in DN or None, its frame count N, its entry). Times
+            without a master are absent; an absent library gives an empty dict.
+        """
         entries = self.entries()
         out = {}
-        for t in sorted({float(t) for t in times}):
+        for t in sorted(unique_exposures(times, rtol)):
             e = self._find(entries, camera, iso, t, temperature, temperature_tolerance, rtol)
             if e is not None:
                 out[t] = (*self.load(e), e) if load else (None, e.n_frames, e)
         return out
 
     def load(self, entry: DarkEntry) -> tuple[np.ndarray, int]:
-        """The master dark (float32, DN) and its frame count N."""
+        """The master dark of an entry.
+
+        Parameters
+        ----------
+        entry : DarkEntry
+
+        Returns
+        -------
+        (numpy.ndarray, int)
+            The master dark (float32, DN) and its frame count N.
+        """
         path = self.root / entry.file
         try:
             with np.load(path, allow_pickle=False) as z:

@@ -28,13 +28,17 @@ per-frame arrays
     ``coefs[i] = g (t_i - t_ref)`` or 0). ``ks[i]``: the dark-level variance factor k of
     :func:`pipeline.noise.dark_factor` (1 matched, 1/N master, 0 model).
 maps
-    ``(array, is_map, scalar)``: a float32 map of the image's shape when ``is_map``, else the
-    float64 ``scalar`` (PRNU gain a, dark current D in e-/s, bias in DN).
+    :class:`MapArg` ``(array, is_map, scalar)``: a float32 map of the image's shape when
+    ``is_map``, else the float64 ``scalar`` (PRNU gain a, dark current D in e-/s, bias in DN).
+
+The kernels take their inputs grouped into the named tuples below (numba compiles named tuples
+of arrays and scalars in nopython mode); they are unpacked once at the top of each kernel.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import prange
@@ -42,12 +46,88 @@ from numba import prange
 from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 from .noise import difference_variance
 
-__all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX"]
+__all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX", "MapArg", "FrameTable", "CameraConstants", "MapSet",
+           "StartSums", "IterationOptions", "MergeOutputs"]
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 _FM = {"contract", "arcp", "nsz"}
 _dvar = numba.njit(inline="always", cache=True)(difference_variance)
+
+
+
+class MapArg(NamedTuple):
+    """A per-photosite quantity: a float32 ``array`` of the image's shape when ``is_map``, else
+    ``scalar`` (float; the array is then a 1x1 placeholder)."""
+
+    array: np.ndarray
+    is_map: bool
+    scalar: float
+
+
+class FrameTable(NamedTuple):
+    """Per-frame arrays, aligned with the frames: ``kinds`` (int64: 0 own dark frame, 1 bias
+    plus dark current, 2 master dark plus dark current), ``coefs`` (float64, DN per e-/s: the
+    factor of D in the dark level), ``ks`` (float64: dark-level variance factor k) and
+    ``times`` (float64, s)."""
+
+    kinds: np.ndarray
+    coefs: np.ndarray
+    ks: np.ndarray
+    times: np.ndarray
+
+
+class CameraConstants(NamedTuple):
+    """The camera model's scalars: gain ``g`` (DN/e-), readout variance ``sigma2_R`` (DN^2),
+    saturation limit ``v_sat`` (DN) and the ADC's ``white`` level (DN)."""
+
+    g: float
+    sigma2_R: float
+    v_sat: float
+    white: float
+
+
+class MapSet(NamedTuple):
+    """The maps of the merge, each a :class:`MapArg`: ``bias`` (DN), ``dark_current`` (e-/s),
+    ``prnu`` (gain a, mean 1) and ``master`` (one master dark, DN; ``is_map`` False when
+    there is none)."""
+
+    bias: MapArg
+    dark_current: MapArg
+    prnu: MapArg
+    master: MapArg
+
+
+class StartSums(NamedTuple):
+    """Sums of the starting average from the streaming first pass: ``total`` (float64, e-/s)
+    and ``count`` (int32) per photosite; used instead of the kernel's own when ``use``."""
+
+    total: np.ndarray
+    count: np.ndarray
+    use: bool
+
+
+class IterationOptions(NamedTuple):
+    """``max_iter`` (int), relative ``tol``, ``sat_sigmas`` (the near-saturation margin in
+    standard deviations of the raw value) and ``probabilistic`` (Eq. 8-10) of the merge."""
+
+    max_iter: int
+    tol: float
+    sat_sigmas: float
+    probabilistic: bool
+
+
+class MergeOutputs(NamedTuple):
+    """Output arrays of :func:`merge_kernel`: float32 ``irradiance`` and ``sigma`` (e-/s),
+    float32 ``nexp``, uint8 ``iterations`` (image shape) and float64 ``stats`` (one row per
+    chunk of rows: photosites with nexp = 0, sum and maximum of the iteration counts)."""
+
+    irradiance: np.ndarray
+    sigma: np.ndarray
+    nexp: np.ndarray
+    iterations: np.ndarray
+    stats: np.ndarray
+
 
 _SQRT2 = math.sqrt(2.0)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -322,13 +402,15 @@ def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, white, r, c, mu, sig, a, D,
-                   bl, base_c, master_c, max_iter, tol):
+def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, max_iter, tol):
     """Eq. 8-10: blend of the unclipped Gaussian and a uniform density by P_nsat; Newton
     steps on the log-likelihood (EM step where not concave), damped to one sigma, from ``mu``.
     Samples at or above v_sat are saturated (Eq. 11); below, P_nsat is the probability that the
     observed value is not saturated given the current estimate (see the comment in the loop).
-    Returns (mu, sigma, n used, steps, flagged)."""
+    ``bl`` is the photosite's bias level and ``master_c`` its master dark, DN. Returns (mu,
+    sigma, n used, steps, flagged)."""
+    kinds, coefs, ks, times = frames
+    g, sigma2_R, v_sat, white = camera
     sigma_R = math.sqrt(sigma2_R)
     full_well = white - v_sat > 3.0 * sigma_R
     v_clip = v_sat + 3.0 * sigma_R
@@ -350,7 +432,7 @@ def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, w
             if kind == 0:
                 b = float(darks[i][r, c])
             elif kind == 1:
-                b = base_c + coefs[i] * D
+                b = bl + coefs[i] * D
             else:
                 b = master_c + coefs[i] * D
             x = (v - b) / tga
@@ -402,14 +484,30 @@ def _probabilistic(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, w
 
 # ------------------------------------------------------------------------------- kernels
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FM)
-def first_pass_kernel(v_arr, d_arr, kind, base, base_is_map, base_scalar, coef, t, g, v_sat,
-                      D_map, D_is_map, D_scalar, a_map, a_is_map, init_sum, init_cnt):
+def first_pass_kernel(v_arr, d_arr, kind, base, coef, t, g, v_sat, dark_current, prnu, init_sum, init_cnt):
     """Streaming first pass: add one frame's usable x_i to the non-saturated average.
 
     Computes x_i exactly as :func:`merge_kernel` does, so that a merge started from these
-    sums equals the batch merge bit for bit when the frames come in the same order. ``kind``
-    0: dark level ``d_arr``; otherwise ``base + coef * D`` (bias or master dark map/scalar).
+    sums equals the batch merge bit for bit when the frames come in the same order.
+
+    Parameters
+    ----------
+    v_arr, d_arr : 2-D arrays
+        The frame and (``kind`` 0) its dark frame, DN.
+    kind : int
+        0: dark level ``d_arr``; otherwise ``base + coef * D``.
+    base, dark_current, prnu : MapArg
+        Bias or master dark (DN), dark current D (e-/s) and PRNU gain.
+    coef : float
+        Factor of D in the dark level, DN per e-/s.
+    t, g, v_sat : float
+        Exposure time (s), gain (DN/e-) and saturation limit (DN).
+    init_sum, init_cnt : 2-D arrays
+        Sums (float64, e-/s) and counts (int32) of the starting average, added to in place.
     """
+    base, base_is_map, base_scalar = base
+    D_map, D_is_map, D_scalar = dark_current
+    a_map, a_is_map, _a_scalar = prnu
     H, W = v_arr.shape
     inv_tg = 1.0 / (t * g)
     for r in prange(H):
@@ -426,13 +524,8 @@ def first_pass_kernel(v_arr, d_arr, kind, base, base_is_map, base_scalar, coef, 
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FM)
-def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, white,
-                 master, has_master, bias, bias_is_map, bias_scalar,
-                 D_map, D_is_map, D_scalar, a_map, a_is_map,
-                 init_sum, init_cnt, use_init,
-                 max_iter, tol, sat_sigmas, probabilistic,
-                 out_irr, out_sig, out_nexp, out_iter, stats, proto):
-    """The ML merge of every photosite (Eq. 6, 8-13, Fig. 3); results into ``out_*``.
+def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto):
+    """The ML merge of every photosite (Eq. 6, 8-13, Fig. 3); results into ``out``.
 
     Per photosite: x_i (Eq. 6); start from the non-saturated average (Eq. 11 usable set);
     iterate w_i = 1/Var(x_i) at max(mu, 0) (Eq. 13) and mu = sum w x / sum w, sigma^2 =
@@ -449,7 +542,35 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
     The weights and their sums are computed in the precision of ``proto`` (a 1-element array,
     float64 or float32; the caller picks float32 only where every quantity provably stays
     inside its range). The samples x_i are computed, and the estimates updated, in float64.
+
+    Parameters
+    ----------
+    values, darks : lists of 2-D arrays
+        The frames and their dark frames (a 1x1 placeholder where a frame has none), DN.
+    frames : FrameTable
+        Per-frame kinds, coefficients, dark-variance factors and exposure times (s).
+    camera : CameraConstants
+        g (DN/e-), sigma2_R (DN^2), v_sat and white level (DN).
+    maps : MapSet
+        Bias (DN), dark current (e-/s), PRNU gain and the single master dark (DN).
+    start : StartSums
+        The streaming first pass's sums of the starting average.
+    options : IterationOptions
+        Iteration limit, tolerance, near-saturation margin, saturation model.
+    out : MergeOutputs
+        Arrays the results are written into.
+    proto : 1-element array
+        Its dtype is the precision of the weights.
     """
+    kinds, coefs, ks, times = frames
+    g, sigma2_R, v_sat, white = camera
+    bias, bias_is_map, bias_scalar = maps.bias
+    D_map, D_is_map, D_scalar = maps.dark_current
+    a_map, a_is_map, _a_scalar = maps.prnu
+    master, has_master, _m_scalar = maps.master
+    init_sum, init_cnt, use_init = start
+    max_iter, tol, sat_sigmas, probabilistic = options
+    out_irr, out_sig, out_nexp, out_iter, stats = out
     n = len(values)
     H, W = values[0].shape
     tmin = times[0]
@@ -590,8 +711,8 @@ def merge_kernel(values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, whi
                         if FLAG[c] != 0.0:
                             continue
                         mu, sg, nu, steps, flagged = _probabilistic(
-                            values, darks, kinds, coefs, ks, times, g, sigma2_R, v_sat, white, r, c, MU[c],
-                            math.sqrt(SIG[c]), A[c], DD[c], BL[c], BL[c], MB[c], max_iter, tol)
+                            values, darks, frames, camera, r, c, MU[c], math.sqrt(SIG[c]), A[c], DD[c], BL[c],
+                            MB[c], max_iter, tol)
                         MU[c] = mu
                         SIG[c] = sg * sg
                         ITER[c] += steps

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import weakref
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -37,13 +36,39 @@ import numpy as np
 
 from .errors import InputError
 from .io import RawFrame, check_exposure_time, check_frames
+from .darks import DarkResolver, default_strategy
 from .noise import DarkStrategy, dark_factor
 from .params import Calibration
 
-__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames"]
+__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy"]
 
 _SATURATION_MODELS = ("threshold", "probabilistic")
 _PRNU_MODES = ("map", "scalar")
+
+
+def as_strategy(value: DarkStrategy | str | None) -> DarkStrategy | None:
+    """A dark strategy from its name (None stays None).
+
+    Parameters
+    ----------
+    value : DarkStrategy, str or None
+        ``"matched"``, ``"master"`` or ``"model"``.
+
+    Returns
+    -------
+    DarkStrategy or None
+
+    Raises
+    ------
+    InputError
+        Any other value.
+    """
+    if value is None:
+        return None
+    try:
+        return DarkStrategy(value)
+    except ValueError:
+        raise InputError(f"dark strategy must be matched, master or model, got {value!r}") from None
 
 
 @dataclass
@@ -91,7 +116,7 @@ class MergeOptions:
     saturation: str = "threshold"
     saturation_sigmas: float = 3.0
     prnu: str = "map"
-    dark_strategy: str | None = None
+    dark_strategy: DarkStrategy | None = None
     n_dark: float = 1
     master_dark_time: float | None = None
 
@@ -106,15 +131,17 @@ class MergeOptions:
             raise InputError(f"saturation_sigmas must be finite and >= 0, got {self.saturation_sigmas!r}")
         if self.prnu not in _PRNU_MODES:
             raise InputError(f"prnu must be one of {', '.join(_PRNU_MODES)}, got {self.prnu!r}")
-        if self.dark_strategy is not None and self.dark_strategy not in {d.value for d in DarkStrategy}:
-            raise InputError(f"dark strategy must be matched, master or model, got {self.dark_strategy!r}")
+        object.__setattr__(self, "dark_strategy", as_strategy(self.dark_strategy))
         if not (np.isfinite(self.n_dark) and self.n_dark >= 1):
             raise InputError(f"n_dark (frames in the master dark) must be >= 1, got {self.n_dark!r}")
         if self.master_dark_time is not None and not (np.isfinite(self.master_dark_time) and self.master_dark_time >= 0):
             raise InputError(f"master dark exposure time must be finite and >= 0, got {self.master_dark_time!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The options as JSON-ready data (the dark strategy by its name)."""
+        out = dataclasses.asdict(self)
+        out["dark_strategy"] = None if self.dark_strategy is None else self.dark_strategy.value
+        return out
 
 
 def _as_frame(arr, shape, what) -> np.ndarray:
@@ -145,25 +172,15 @@ def _map_arg(arr, shape, scalar, what):
 # MergeAccumulator._single_precision_safe); False forces float64 (tests compare the two).
 SINGLE_PRECISION_WEIGHTS = True
 
-_EXTREMA: dict = {}
-
-
 def _extrema(map_arg) -> tuple[float, float]:
-    """(min, max) of a kernel map argument (array, is_map, scalar); maps are scanned once and
-    remembered while the array lives (non-finite values give (nan, nan))."""
+    """(min, max) of a kernel map argument (array, is_map, scalar); non-finite values give
+    (nan, nan). Maps are scanned on every call (about 3 % of a merge with two 4-megapixel
+    maps), so a map changed in place is seen as it is now."""
     arr, is_map, scalar = map_arg
     if not is_map:
         return float(scalar), float(scalar)
-    key = id(arr)
-    hit = _EXTREMA.get(key)
-    if hit is not None and hit[0]() is arr:
-        return hit[1]
     lo, hi = float(np.min(arr)), float(np.max(arr))
-    ext = (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else (math.nan, math.nan)
-    for dead in [k for k, (ref, _) in _EXTREMA.items() if ref() is None]:  # no growth over weeks of merges
-        del _EXTREMA[dead]
-    _EXTREMA[key] = (weakref.ref(arr), ext)
-    return ext
+    return (lo, hi) if np.isfinite(lo) and np.isfinite(hi) else (math.nan, math.nan)
 
 
 class MergeAccumulator:
@@ -205,10 +222,10 @@ class MergeAccumulator:
         self.master_dark = None if master_dark is None else _as_frame(master_dark, self.shape, "master dark")
         strategy = opts.dark_strategy
         if strategy is None and self.master_dark is not None:
-            strategy = "master"
+            strategy = DarkStrategy.MASTER
         self._strategy = strategy  # may still be None: decided by the first add()
-        if self.master_dark is not None and strategy != "master":
-            raise InputError(f"a master dark was given but the dark strategy is {strategy!r}")
+        if self.master_dark is not None and strategy is not DarkStrategy.MASTER:
+            raise InputError(f"a master dark was given but the dark strategy is {strategy.value!r}")
         use_map = opts.prnu == "map" and calibration.prnu is not None
         self._a = _map_arg(calibration.prnu if use_map else None, self.shape, 1.0, "PRNU")
         if use_map and not np.all(np.isfinite(self._a[0]) & (self._a[0] > 0)):
@@ -222,7 +239,7 @@ class MergeAccumulator:
         self._kinds: list[int] = []
         self._coefs: list[float] = []
         self._ks: list[float] = []
-        self._strats: list[str] = []
+        self._strats: list[DarkStrategy] = []
         self._ndark: list[float] = []
         self.stream = bool(stream)
         init_shape = self.shape if self.stream else (1, 1)
@@ -236,16 +253,14 @@ class MergeAccumulator:
         used = set(self._strats)
         if len(used) > 1:
             return "mixed"
-        return used.pop() if used else (self._strategy or "model")
+        return (used.pop() if used else (self._strategy or DarkStrategy.MODEL)).value
 
-    def _frame_strategy(self, strategy, dark) -> str:
+    def _frame_strategy(self, strategy, dark) -> DarkStrategy:
         if strategy is None:
             if self._strategy is None:
-                self._strategy = "matched" if dark is not None else "model"
+                self._strategy = default_strategy(dark is not None)
             return self._strategy
-        if strategy not in {d.value for d in DarkStrategy}:
-            raise InputError(f"dark strategy must be matched, master or model, got {strategy!r}")
-        return strategy
+        return as_strategy(strategy)
 
     def add(self, values, t, dark=None, *, strategy=None, n_dark=None) -> None:
         """Add one exposure: raw mosaic ``values`` (DN), exposure time ``t`` (s) and its dark
@@ -264,14 +279,14 @@ class MergeAccumulator:
         s = self._frame_strategy(strategy, dark)
         p = self.calibration.params
         n = self.options.n_dark if n_dark is None else n_dark
-        if s == "model":
+        if s is DarkStrategy.MODEL:
             if dark is not None:
                 raise InputError(f"{what}: a dark frame was given but the dark strategy is model")
             kind, coef, d = 1, p.g * t, None
         elif dark is not None:
             kind, coef = 0, 0.0
             d = _as_frame(dark, self.shape, f"dark frame for t={t:g} s")
-        elif s == "master" and self.master_dark is not None:
+        elif s is DarkStrategy.MASTER and self.master_dark is not None:
             t_ref = self.options.master_dark_time
             kind, coef, d = 2, (0.0 if t_ref is None else p.g * (t - t_ref)), None
         else:
@@ -288,15 +303,11 @@ class MergeAccumulator:
             if self._values[0].dtype != np.float32:
                 self._values = [x.astype(np.float32) for x in self._values]
         if self.stream:
-            from .kernels import first_pass_kernel
+            from .kernels import MapArg, first_pass_kernel
 
-            if kind == 2:
-                base = (self.master_dark.astype(np.float32, copy=False), True, 0.0)
-            else:
-                base = self._bias
-            first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), kind,
-                              base[0], base[1], base[2], coef, t, p.g, p.v_sat,
-                              *self._D, *self._a[:2], self._sum, self._cnt)
+            base = (self.master_dark.astype(np.float32, copy=False), True, 0.0) if kind == 2 else self._bias
+            first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), kind, MapArg(*base), coef, t,
+                              float(p.g), float(p.v_sat), MapArg(*self._D), MapArg(*self._a), self._sum, self._cnt)
         self._values.append(v)
         self._darks.append(d)
         self._times.append(t)
@@ -304,7 +315,7 @@ class MergeAccumulator:
         self._coefs.append(coef)
         self._ks.append(k)
         self._strats.append(s)
-        self._ndark.append(float(n) if s == "master" else (1.0 if s == "matched" else 0.0))
+        self._ndark.append(float(n) if s is DarkStrategy.MASTER else (1.0 if s is DarkStrategy.MATCHED else 0.0))
 
     def __len__(self) -> int:
         return len(self._values)
@@ -347,7 +358,8 @@ class MergeAccumulator:
 
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
-        from .kernels import merge_kernel  # first: it configures numba's compile target
+        from .kernels import (CameraConstants, FrameTable, IterationOptions, MapArg, MapSet, MergeOutputs,
+                              StartSums, merge_kernel)  # first: it configures numba's compile target
 
         import numba
 
@@ -375,19 +387,22 @@ class MergeAccumulator:
         stats = np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), 3))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
-            merge_kernel(values, darks, np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
-                         np.asarray(self._ks, np.float64), times, p.g, p.sigma2_R, p.v_sat, p.white_level,
-                         master, has_master, *self._bias, *self._D, *self._a[:2],
-                         self._sum, self._cnt, self.stream, int(opts.iterations), float(opts.tolerance),
-                         float(opts.saturation_sigmas), opts.saturation == "probabilistic",
-                         irr, sig, nexp, iters, stats, np.zeros(1, np.float32 if single else np.float64))
+            merge_kernel(values, darks,
+                         FrameTable(np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
+                                    np.asarray(self._ks, np.float64), times),
+                         CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
+                         MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
+                         StartSums(self._sum, self._cnt, self.stream),
+                         IterationOptions(int(opts.iterations), float(opts.tolerance), float(opts.saturation_sigmas),
+                                          opts.saturation == "probabilistic"),
+                         MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
         sat = int(stats[:, 0].sum())
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
             **opts.to_dict(),
             "dark_strategy": strategy,
-            "n_dark": float(opts.n_dark) if strategy == "master" else None,
-            "dark_strategies": list(self._strats),
+            "n_dark": float(opts.n_dark) if strategy == DarkStrategy.MASTER else None,
+            "dark_strategies": [s.value for s in self._strats],
             "n_dark_per_frame": list(self._ndark),
             "master_dark": self.master_dark is not None,
             "prnu": self.prnu_used,
@@ -444,26 +459,30 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_st
     shape = np.shape(values[0])
     if len(shape) != 2:
         raise InputError(f"frame 1: expected a 2-D mosaic, got shape {shape}")
-    strategies = _per_frame(dark_strategies, len(values), "dark strategies")
-    ndarks = _per_frame(n_darks, len(values), "master-dark frame counts")
+    strategies = [as_strategy(s) for s in _per_frame(dark_strategies, len(values), "dark strategies")]
     master = None
     per_frame = [None] * len(values)
     if darks is not None:
         if isinstance(darks, np.ndarray) and darks.ndim == 2:
             master = darks
-            options.setdefault("dark_strategy", "master")
+            options.setdefault("dark_strategy", DarkStrategy.MASTER)
         else:
-            darks = list(darks)
-            if len(darks) != len(values):
-                raise InputError(f"{len(darks)} dark frames for {len(values)} frames")
-            per_frame = darks
-    elif options.get("dark_strategy") in ("matched", "master") and not all(strategies):
-        raise InputError(f"the {options['dark_strategy']} dark strategy needs dark frames")
-    default = options.get("dark_strategy")
+            per_frame = list(darks)
+            if len(per_frame) != len(values):
+                raise InputError(f"{len(per_frame)} dark frames for {len(values)} frames")
+    default = as_strategy(options.get("dark_strategy"))
+    if darks is None and default in (DarkStrategy.MATCHED, DarkStrategy.MASTER) and not all(strategies):
+        raise InputError(f"the {default} dark strategy needs dark frames")
     # Frames merged with the model strategy ignore any dark frame given for them.
-    per_frame = [None if (s or default) == "model" else d for d, s in zip(per_frame, strategies)]
+    per_frame = [None if (s or default) is DarkStrategy.MODEL else d for d, s in zip(per_frame, strategies)]
+    return _accumulate(calibration, shape, master, values, times, per_frame, strategies,
+                       _per_frame(n_darks, len(values), "master-dark frame counts"), options)
+
+
+def _accumulate(calibration, shape, master, values, times, darks, strategies, n_darks, options) -> MergeResult:
+    """The batch merge of aligned per-frame inputs (one pass, :class:`MergeAccumulator`)."""
     acc = MergeAccumulator(calibration, shape, master_dark=master, stream=False, **options)
-    for v, t, d, s, n in zip(values, times, per_frame, strategies, ndarks):
+    for v, t, d, s, n in zip(values, times, darks, strategies, n_darks):
         acc.add(v, t, d, strategy=s, n_dark=n)
     return acc.result()
 
@@ -483,11 +502,14 @@ def merge_frames(
     darks: Sequence[RawFrame] | None = None,
     master_dark: RawFrame | None = None,
     *,
-    dark_strategies: Sequence[str | None] | None = None,
+    dark_strategies: Sequence[DarkStrategy | str | None] | None = None,
     n_darks: Sequence[float | None] | None = None,
     **options,
 ) -> MergeResult:
     """Merge a bracket of raw frames into irradiance and uncertainty (Eq. 6, 8-13).
+
+    Each frame's dark level is the one :class:`pipeline.darks.DarkResolver` serves its
+    exposure time and dark strategy.
 
     Parameters
     ----------
@@ -496,10 +518,11 @@ def merge_frames(
     calibration : Calibration
         Camera model (g, mu_R, sigma2_R, v_sat, D; optional PRNU and dark-current maps).
     darks : sequence of RawFrame, optional
-        Dark frames matched to the exposures by exposure time (one per time; with
-        ``dark_strategy="master"`` each is a master dark of ``n_dark`` frames). Without darks
-        (and without ``master_dark``) the bias level and the calibrated dark current are
-        subtracted (``model``). Frames merged with the ``model`` strategy need none.
+        Dark frames matched to the exposures by exposure time (``matched``: the first of that
+        time; ``master``: those of that time averaged, each a master dark of ``n_dark``
+        frames). Without darks (and without ``master_dark``) the bias level and the calibrated
+        dark current are subtracted (``model``). Frames merged with the ``model`` strategy
+        need none.
     master_dark : RawFrame, optional
         One master dark for all exposures (averaged from ``n_dark`` frames); its exposure time
         is used as ``master_dark_time`` unless given.
@@ -507,39 +530,47 @@ def merge_frames(
         Per-frame dark strategy and master-dark frame count (see :func:`merge_arrays`).
     **options
         Fields of :class:`MergeOptions`.
+
+    Returns
+    -------
+    MergeResult
+        As :func:`merge_arrays`.
     """
     frames = check_frames(frames)
     shape = frames[0].shape
-    strategies = _per_frame(dark_strategies, len(frames), "dark strategies")
-    default = options.get("dark_strategy")
-    per_frame = None
-    if darks and default != "model" or (darks and any(s not in (None, "model") for s in strategies)):
-        darks = check_frames(darks, "dark frame")
-        if darks[0].shape != shape:
-            raise InputError(f"{darks[0].path}: dark frame size differs from the bracket's")
-        by_time: dict[float, RawFrame] = {}
-        for d in darks:
-            by_time.setdefault(round(d.exposure_time, 12), d)
-        per_frame = []
-        for f, s in zip(frames, strategies):
-            if (s or default) == "model":
-                per_frame.append(None)
-                continue
-            d = by_time.get(round(f.exposure_time, 12))
-            if d is None and not ((s or default) == "master" and master_dark is not None):
-                raise InputError(f"{f.path}: no dark frame with exposure time {f.exposure_time:g} s")
-            per_frame.append(None if d is None else d.data)
+    n = len(frames)
+    strategies = [as_strategy(s) for s in _per_frame(dark_strategies, n, "dark strategies")]
+    n_darks = _per_frame(n_darks, n, "master-dark frame counts")
+    asked = as_strategy(options.get("dark_strategy"))
+    uses_darks = bool(darks) and (asked is not DarkStrategy.MODEL
+                                  or any(s not in (None, DarkStrategy.MODEL) for s in strategies))
+    if not darks and master_dark is None and asked in (DarkStrategy.MATCHED, DarkStrategy.MASTER) \
+            and not all(strategies):
+        raise InputError(f"the {asked} dark strategy needs dark frames")
+    if uses_darks and master_dark is not None and all(s is None for s in strategies):
+        raise InputError("give either dark frames or a master dark, not both")
     if master_dark is not None:
-        if per_frame is not None and all(s is None for s in strategies):
-            raise InputError("give either dark frames or a master dark, not both")
         if master_dark.shape != shape:
             raise InputError(f"{master_dark.path}: master dark size differs from the bracket's")
         options.setdefault("master_dark_time", master_dark.exposure_time)
-        options.setdefault("dark_strategy", "master")
-        acc = MergeAccumulator(calibration, shape, master_dark=np.asarray(master_dark.data), stream=False, **options)
-        for f, d, s, n in zip(frames, per_frame or [None] * len(frames), strategies,
-                              _per_frame(n_darks, len(frames), "master-dark frame counts")):
-            acc.add(f.data, f.exposure_time, d, strategy=s, n_dark=n)
-        return acc.result()
-    return merge_arrays([f.data for f in frames], [f.exposure_time for f in frames], calibration, per_frame,
-                        dark_strategies=strategies, n_darks=n_darks, **options)
+        options.setdefault("dark_strategy", DarkStrategy.MASTER)
+    resolver = DarkResolver(frames_per_dark=options.get("n_dark"),
+                            master_dark=None if master_dark is None else str(master_dark.path))
+    if uses_darks:
+        darks = check_frames(darks, "dark frame")
+        if darks[0].shape != shape:
+            raise InputError(f"{darks[0].path}: dark frame size differs from the bracket's")
+        for d in darks:
+            resolver.add_dark(d.data, d.exposure_time, str(d.path))
+    default = as_strategy(options.get("dark_strategy")) or default_strategy(uses_darks, master_dark is not None)
+    per_frame = []
+    for i, (f, s) in enumerate(zip(frames, strategies)):
+        src = resolver.resolve(f.exposure_time, s or default)
+        if src is None:
+            raise InputError(f"{f.path}: no dark frame with exposure time {f.exposure_time:g} s")
+        per_frame.append(src.data)
+        if n_darks[i] is None and src.origin == "frames" and src.strategy is DarkStrategy.MASTER:
+            n_darks[i] = src.n_frames
+    return _accumulate(calibration, shape, None if master_dark is None else np.asarray(master_dark.data),
+                       [f.data for f in frames], [f.exposure_time for f in frames], per_frame, strategies, n_darks,
+                       options)

@@ -37,15 +37,36 @@ __all__ = [
 
 
 class DarkStrategy(str, Enum):
-    """How the dark level is obtained for an exposure (see module docstring)."""
+    """How the dark level is obtained for an exposure (see module docstring). A str enum: its
+    members equal, print and serialise (JSON) as their values ``"matched"``, ``"master"`` and
+    ``"model"``."""
 
     MATCHED = "matched"
     MASTER = "master"
     MODEL = "model"
 
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
 
 def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
-    """The factor k of the dark-level variance: 1 (matched), 1/n_dark (master), 0 (model)."""
+    """The factor k of the dark-level variance in Var(v_i - b_i) (Eq. 5).
+
+    Parameters
+    ----------
+    dark : DarkStrategy or str
+        Dark strategy.
+    n_dark : float
+        Frames averaged into the master dark (``master`` only; >= 1).
+
+    Returns
+    -------
+    float
+        1 (matched), 1/n_dark (master), 0 (model); dimensionless.
+    """
     dark = DarkStrategy(dark)
     if dark is DarkStrategy.MATCHED:
         return 1.0
@@ -56,29 +77,59 @@ def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
     return 0.0
 
 
-_dark_factor = dark_factor
-
 
 def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
-    """Var(v_i - b_i), DN^2: the raw value's variance (Eq. 3) plus k times the dark level's
-    (Eq. 5). The one place the formula is written.
+    """Var(v_i - b_i): the raw value's variance (Eq. 3) plus k times the dark level's (Eq. 5).
+    The one place the formula is written.
 
     Plain arithmetic only, so that it works on numpy arrays and, compiled by numba, on scalars
-    inside the merge kernel (:mod:`pipeline.kernels`). ``k`` is :func:`dark_factor` (0 gives
-    the variance of the raw value alone); ``mu_pos`` must already be ``max(mu, 0)``, e-/s.
+    inside the merge kernel (:mod:`pipeline.kernels`).
+
+    Parameters
+    ----------
+    mu_pos : array_like
+        Irradiance estimate already clipped at 0, ``max(mu, 0)``, e-/s.
+    t : array_like
+        Exposure time, s.
+    g : float
+        Gain, DN/e-.
+    sigma2_R : array_like
+        Readout variance, DN^2.
+    D : array_like
+        Dark current, e-/s.
+    a : array_like
+        PRNU gain (mean 1).
+    k : float
+        :func:`dark_factor` (0: the variance of the raw value alone).
+
+    Returns
+    -------
+    array_like
+        Variance, DN^2.
     """
     g2t = g * g * t
     return g2t * (a * mu_pos + D) + sigma2_R + k * (g2t * D + sigma2_R)
 
 
 def variance_core(mu_pos, t, g, sigma2_R, D, a, k):
-    """Var(x_i) = Var(v_i - b_i) / (t g a)^2, (e-/s)^2 (Eq. 6), for ``mu_pos = max(mu, 0)``;
-    scalar- and array-compatible like :func:`difference_variance`."""
+    """Var(x_i) = Var(v_i - b_i) / (t g a)^2 (Eq. 6); scalar- and array-compatible like
+    :func:`difference_variance`.
+
+    Parameters
+    ----------
+    mu_pos, t, g, sigma2_R, D, a, k
+        As :func:`difference_variance` (e-/s, s, DN/e-, DN^2, e-/s, 1, 1).
+
+    Returns
+    -------
+    array_like
+        Variance of the single-exposure estimate, (e-/s)^2.
+    """
     tga = t * g * a
     return difference_variance(mu_pos, t, g, sigma2_R, D, a, k) / (tga * tga)
 
 
-def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
+def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1):
     """Variance of the single-exposure estimate x_i, (e-/s)^2 (Eq. 3, 5, 6, 13).
 
     Var(x_i) = [g^2 t (a mu + D) + s_R^2 + k (g^2 t D + s_R^2)] / (t g a)^2, with k = 1 for a
@@ -118,18 +169,40 @@ def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1
     return np.asarray(variance_core(mu, t, g, sigma2_R, D, a, k), dtype=np.float64)
 
 
-def exposure_weight(mu, t, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1):
-    """Optimal weight w_i = 1 / Var(x_i) (Eq. 13), (e-/s)^-2. Same parameters as
-    :func:`exposure_variance`."""
+def exposure_weight(mu, t, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1):
+    """Optimal weight w_i = 1 / Var(x_i) (Eq. 13).
+
+    Parameters
+    ----------
+    mu, t, g, sigma2_R, D, a, dark, n_dark
+        As :func:`exposure_variance`.
+
+    Returns
+    -------
+    numpy.ndarray
+        Weight, (e-/s)^-2, float64.
+    """
     return 1.0 / exposure_variance(mu, t, g, sigma2_R, D, a, dark, n_dark)
 
 
-def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1, usable=None):
+def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1, usable=None):
     """Variance of the ML estimate, 1 / sum_i w_i over the usable exposures (Eq. 12).
 
-    ``times`` has the exposures along its first axis; ``usable`` (same shape as the broadcast
-    of ``times`` and ``mu``) marks the unsaturated samples. Returns ``inf`` where no exposure
-    is usable.
+    Parameters
+    ----------
+    mu : array_like
+        Irradiance, e-/s.
+    times : array_like
+        Exposure times, s, along the first axis.
+    g, sigma2_R, D, a, dark, n_dark
+        As :func:`exposure_variance`.
+    usable : array_like of bool, optional
+        Unsaturated samples, shape of the broadcast of ``times`` and ``mu`` (default: all).
+
+    Returns
+    -------
+    numpy.ndarray
+        Variance, (e-/s)^2; ``inf`` where no exposure is usable.
     """
     times = np.asarray(times, dtype=np.float64)
     mu = np.asarray(mu, dtype=np.float64)
@@ -142,25 +215,67 @@ def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark
         return np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), np.inf)
 
 
-def snr(mu, times, g, sigma2_R, D=0.0, a=1.0, dark="matched", n_dark=1, usable=None):
-    """SNR(X) = X sqrt(sum_i w_i(X)) (DESIGN.md, Sec. 8), linear ratio."""
+def snr(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1, usable=None):
+    """SNR(X) = X sqrt(sum_i w_i(X)) (Sec. 8).
+
+    Parameters
+    ----------
+    mu, times, g, sigma2_R, D, a, dark, n_dark, usable
+        As :func:`merged_variance`.
+
+    Returns
+    -------
+    numpy.ndarray
+        Signal-to-noise ratio, linear (0 where no exposure is usable).
+    """
     var = merged_variance(mu, times, g, sigma2_R, D, a, dark, n_dark, usable)
     mu = np.asarray(mu, dtype=np.float64)
     return np.where(np.isfinite(var), mu / np.sqrt(var), 0.0)
 
 
 def snr_db(*args, **kwargs):
-    """SNR in decibels, 20 log10(SNR); -inf where the SNR is 0."""
+    """SNR in decibels, 20 log10(SNR).
+
+    Parameters
+    ----------
+    *args, **kwargs
+        As :func:`snr`.
+
+    Returns
+    -------
+    numpy.ndarray
+        SNR, dB; -inf where the SNR is 0.
+    """
     s = snr(*args, **kwargs)
     with np.errstate(divide="ignore"):
         return 20.0 * np.log10(s)
 
 
 def fisher_information(X, t, g, sigma2_R, D=0.0, a=1.0):
-    """Fisher information of one unsaturated exposure about X (DESIGN.md).
+    """Fisher information of one unsaturated exposure about X.
 
     With s^2 = g^2 t (a X + D) + s_R^2 (dark level known exactly):
     I(X) = (g t a)^2 / s^2 + 1/2 (g^2 t a)^2 / s^4.
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s (negative values treated as 0).
+    t : array_like
+        Exposure time, s.
+    g : float
+        Gain, DN/e-.
+    sigma2_R : array_like
+        Readout variance, DN^2.
+    D : array_like
+        Dark current, e-/s.
+    a : array_like
+        PRNU gain (mean 1).
+
+    Returns
+    -------
+    numpy.ndarray
+        Fisher information, (e-/s)^-2.
     """
     X = np.maximum(np.asarray(X, dtype=np.float64), 0.0)
     t = np.asarray(t, dtype=np.float64)
@@ -169,7 +284,22 @@ def fisher_information(X, t, g, sigma2_R, D=0.0, a=1.0):
 
 
 def cramer_rao_bound(X, times, g, sigma2_R, D=0.0, a=1.0):
-    """Cramér-Rao lower bound 1 / sum_i I_i(X) on Var(X_hat) for unsaturated exposures."""
+    """Cramér-Rao lower bound 1 / sum_i I_i(X) on Var(X_hat) for unsaturated exposures.
+
+    Parameters
+    ----------
+    X : array_like
+        Irradiance, e-/s.
+    times : array_like
+        Exposure times, s, along the first axis.
+    g, sigma2_R, D, a
+        As :func:`fisher_information`.
+
+    Returns
+    -------
+    numpy.ndarray
+        Lower bound of the variance, (e-/s)^2.
+    """
     times = np.asarray(times, dtype=np.float64)
     X = np.asarray(X, dtype=np.float64)
     t = times.reshape(times.shape + (1,) * X.ndim)

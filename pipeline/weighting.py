@@ -30,8 +30,9 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .errors import InputError
+from .darks import DarkResolver
 from .merge import MergeResult
-from .noise import exposure_variance
+from .noise import DarkStrategy, exposure_variance
 from .params import Calibration, SensorParams
 
 __all__ = [
@@ -142,7 +143,7 @@ def _observed_variance(v, t, params: SensorParams) -> np.ndarray:
     Equals (g v + sigma2_R) / (t g)^2."""
     t = np.asarray(t, dtype=np.float64)
     x_obs = np.asarray(v, dtype=np.float64) / (t * params.g)
-    return exposure_variance(x_obs, t, params.g, params.sigma2_R, D=0.0, a=1.0, dark="model")
+    return exposure_variance(x_obs, t, params.g, params.sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MODEL)
 
 
 def weighting_function_Tsin(v, t, params: SensorParams, **model) -> np.ndarray:
@@ -169,7 +170,7 @@ def weighting_function_KirkAndersen(v, t, params: SensorParams, **model) -> np.n
     return 1.0 / _observed_variance(v, t, params)
 
 
-def weighting_function_Optimal(v, t, params: SensorParams, *, a=1.0, D=None, dark="matched", n_dark=1,
+def weighting_function_Optimal(v, t, params: SensorParams, *, a=1.0, D=None, dark=DarkStrategy.MATCHED, n_dark=1,
                                **model) -> np.ndarray:
     """Granados et al. (2010), Eq. 13, evaluated at the OBSERVED value (single pass):
 
@@ -212,7 +213,26 @@ WEIGHTING_METHODS: dict[str, Callable[..., np.ndarray]] = {
 
 
 def weights(method: str, v, t, params: SensorParams, **model) -> np.ndarray:
-    """Weight of registered ``method`` for output value(s) ``v`` (DN above black) at time(s) ``t``."""
+    """Weight of a registered method (Table 1).
+
+    Parameters
+    ----------
+    method : str
+        A name of :data:`WEIGHTING_METHODS`.
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model.
+    **model
+        Further model inputs of the method (``a``, ``D``, ``dark``, ``n_dark``).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights (unit of the method), float64.
+    """
     try:
         fn = WEIGHTING_METHODS[method]
     except KeyError:
@@ -222,22 +242,93 @@ def weights(method: str, v, t, params: SensorParams, **model) -> np.ndarray:
     return fn(v, t, params, **model)
 
 
-def _dark_levels(values, times, calibration: Calibration, darks, n_dark):
-    """Per-exposure dark level b_i (DN) and the dark strategy."""
+def _model_maps(calibration: Calibration):
+    """(PRNU gain a, dark current D in e-/s, bias in DN) of the calibration: maps where it has
+    them, else its scalars."""
     p = calibration.params
-    bias = calibration.bias_map if calibration.bias_map is not None else p.mu_R
+    a = calibration.prnu if calibration.prnu is not None else 1.0
     D = calibration.dark_current_map if calibration.dark_current_map is not None else p.dark_current
+    bias = calibration.bias_map if calibration.bias_map is not None else p.mu_R
+    return a, D, bias
+
+
+def _dark_levels(values, times, calibration: Calibration, darks, n_dark) -> tuple[list, DarkStrategy]:
+    """Per-exposure dark level b_i (DN) and the dark strategy: the bias plus the calibrated
+    dark current without darks (``model``), else the dark frame that
+    :class:`pipeline.darks.DarkResolver` serves each exposure time (``matched``; ``master``
+    when each dark averages ``n_dark`` > 1 frames)."""
+    p = calibration.params
+    _a, D, bias = _model_maps(calibration)
     if darks is None:
-        return [bias + t * p.g * D for t in times], "model"
+        return [bias + t * p.g * D for t in times], DarkStrategy.MODEL
     if isinstance(darks, np.ndarray) and darks.ndim == 2:
         darks = [darks] * len(times)
     darks = list(darks)
     if len(darks) != len(times):
         raise InputError(f"{len(darks)} dark frames for {len(times)} exposures: give one per exposure")
-    for d in darks:
+    resolver = DarkResolver(frames_per_dark=n_dark)
+    for d, t in zip(darks, times):
         if np.shape(d) != np.shape(values[0]):
             raise InputError(f"dark frame of shape {np.shape(d)} does not match the frames' {np.shape(values[0])}")
-    return [np.asarray(d, dtype=np.float64) for d in darks], ("matched" if n_dark == 1 else "master")
+        resolver.add_dark(d, t)
+    strategy = DarkStrategy.MATCHED if n_dark == 1 else DarkStrategy.MASTER
+    return [np.asarray(resolver.resolve(t, strategy).data, dtype=np.float64) for t in times], strategy
+
+
+def _check_bracket(values, times, method: str) -> tuple[list, list[float], tuple]:
+    """The bracket as lists (frames, exposure times in s) and its shape; InputError when the
+    method is unknown, the lengths differ, a time is not positive or the sizes differ."""
+    if method not in WEIGHTING_METHODS:
+        raise InputError(f"unknown weighting {method!r}; choose from {', '.join(WEIGHTING_METHODS)}")
+    values = list(values)
+    times = [float(t) for t in times]
+    if not values or len(values) != len(times):
+        raise InputError(f"{len(values)} frames for {len(times)} exposure times")
+    if any(not (t > 0 and np.isfinite(t)) for t in times):
+        raise InputError(f"exposure times must be finite and > 0, got {times}")
+    shape = np.shape(values[0])
+    if any(np.shape(v) != shape for v in values):
+        raise InputError("frames of the bracket differ in size")
+    return values, times, shape
+
+
+def _weighted_mean(values, times, blacks, weigh, params: SensorParams, a, bias, shape):
+    """Eq. 1 over the usable samples (raw value below v_sat, Eq. 11): the estimate (e-/s; the
+    plain mean where every usable weight is 0, 0 where nothing is usable), the weights and
+    usable masks per exposure, and the number of usable samples per photosite."""
+    sw = np.zeros(shape)
+    swx = np.zeros(shape)
+    sx = np.zeros(shape)
+    n_ok = np.zeros(shape)
+    ws, oks = [], []
+    for raw, t, b in zip(values, times, blacks):
+        raw = np.asarray(raw, dtype=np.float64)
+        ok = raw < params.v_sat
+        x = (raw - b) / (t * params.g * a)
+        w = np.where(ok, weigh(raw - bias, t), 0.0)
+        sw += w
+        swx += w * np.where(ok, x, 0.0)
+        sx += np.where(ok, x, 0.0)
+        n_ok += ok
+        ws.append(w)
+        oks.append(ok)
+    has_w = sw > 0
+    plain = n_ok > 0
+    irr = np.where(has_w, swx / np.where(has_w, sw, 1.0), np.where(plain, sx / np.maximum(n_ok, 1), 0.0))
+    return irr, ws, oks, has_w, n_ok
+
+
+def _propagated_sigma(ws, oks, has_w, times, mu_var, params: SensorParams, D, a, strategy, n_dark):
+    """Standard deviation of the weighted mean, e-/s: sqrt(sum w_i^2 s_i^2) / sum w_i with
+    s_i^2 the model's variance at ``mu_var`` (the plain-mean fallback uses w = 1)."""
+    num = np.zeros(np.shape(mu_var))
+    den = np.zeros(np.shape(mu_var))
+    for w, ok, t in zip(ws, oks, times):
+        wi = np.where(has_w, w, ok.astype(np.float64))
+        s2 = exposure_variance(mu_var, t, params.g, params.sigma2_R, D, a, strategy, n_dark)
+        num += wi * wi * s2
+        den += wi
+    return np.where(den > 0, np.sqrt(num / np.where(den > 0, den, 1.0) ** 2), 0.0)
 
 
 def merge_weighted(
@@ -289,65 +380,24 @@ def merge_weighted(
         float32 irradiance (e-/s), sigma (e-/s) and nexp; saturated-everywhere photosites
         get the lower bound (v_sat - bias)/(t_min g a) with nexp = 0 and sigma = 0.
     """
-    if method not in WEIGHTING_METHODS:
-        raise InputError(f"unknown weighting {method!r}; choose from {', '.join(WEIGHTING_METHODS)}")
-    values = list(values)
-    times = [float(t) for t in times]
-    if not values or len(values) != len(times):
-        raise InputError(f"{len(values)} frames for {len(times)} exposure times")
-    if any(not (t > 0 and np.isfinite(t)) for t in times):
-        raise InputError(f"exposure times must be finite and > 0, got {times}")
-    shape = np.shape(values[0])
-    if any(np.shape(v) != shape for v in values):
-        raise InputError("frames of the bracket differ in size")
+    values, times, shape = _check_bracket(values, times, method)
     p = calibration.params
-    a = calibration.prnu if calibration.prnu is not None else 1.0
-    D = calibration.dark_current_map if calibration.dark_current_map is not None else p.dark_current
-    bias = calibration.bias_map if calibration.bias_map is not None else p.mu_R
+    a, D, bias = _model_maps(calibration)
     blacks, strategy = _dark_levels(values, times, calibration, darks, n_dark)
     model = {"a": a, "D": D, "dark": strategy, "n_dark": n_dark}
     fn = WEIGHTING_METHODS[method]
-
-    sw = np.zeros(shape)
-    swx = np.zeros(shape)
-    sx = np.zeros(shape)
-    n_ok = np.zeros(shape)
-    ws, xs, oks = [], [], []
-    for raw, t, b in zip(values, times, blacks):
-        raw = np.asarray(raw, dtype=np.float64)
-        ok = raw < p.v_sat
-        x = (raw - b) / (t * p.g * a)
-        w = np.where(ok, fn(raw - bias, t, p, **model), 0.0)
-        sw += w
-        swx += w * np.where(ok, x, 0.0)
-        sx += np.where(ok, x, 0.0)
-        n_ok += ok
-        ws.append(w)
-        xs.append(x)
-        oks.append(ok)
-    has_w = sw > 0
-    plain = n_ok > 0
-    irr = np.where(has_w, swx / np.where(has_w, sw, 1.0), np.where(plain, sx / np.maximum(n_ok, 1), 0.0))
-
+    irr, ws, oks, has_w, n_ok = _weighted_mean(values, times, blacks, lambda v, t: fn(v, t, p, **model), p, a, bias,
+                                                shape)
     mu_var = irr if variance_at is None else np.broadcast_to(np.asarray(variance_at, dtype=np.float64), shape)
-    num = np.zeros(shape)
-    den = np.zeros(shape)
-    for w, ok, t in zip(ws, oks, times):
-        wi = np.where(has_w, w, ok.astype(np.float64))  # plain-mean fallback uses w = 1
-        s2 = exposure_variance(mu_var, t, p.g, p.sigma2_R, D, a, strategy, n_dark)
-        num += wi * wi * s2
-        den += wi
-    sigma = np.where(den > 0, np.sqrt(num / np.where(den > 0, den, 1.0) ** 2), 0.0)
-
-    sat = ~plain
-    if np.any(sat):
-        t_min = min(times)
-        irr = np.where(sat, (p.v_sat - bias) / (t_min * p.g * a), irr)
+    sigma = _propagated_sigma(ws, oks, has_w, times, mu_var, p, D, a, strategy, n_dark)
+    sat = n_ok == 0
+    if np.any(sat):  # the lower bound of the shortest exposure at v_sat
+        irr = np.where(sat, (p.v_sat - bias) / (min(times) * p.g * a), irr)
         sigma = np.where(sat, 0.0, sigma)
     info = {
         "method": f"weighted mean, {method} weighting (Table 1)",
         "weighting": method,
-        "dark_strategy": strategy,
+        "dark_strategy": strategy.value,
         "n_dark": n_dark,
         "exposure_times": times,
         "n_frames": len(values),

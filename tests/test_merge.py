@@ -492,18 +492,30 @@ def test_shared_division_equals_one_division_per_sample():
     np.testing.assert_allclose(out[0][2], out[1][2], rtol=1e-12, atol=1e-12 * np.abs(out[1][2]).max())
 
 
-def test_map_extrema_cached_per_array_and_pruned():
-    """The float32-weights check scans a map once while it lives, and forgets dead arrays (no
-    growth over weeks of unattended merges)."""
+def test_map_extrema_follow_in_place_changes():
+    """The float32-weights check sees a map as it is now: a map changed in place gives its new
+    extrema (no stale cache), non-finite maps give NaN, scalars their value."""
     import hdrcap.pipeline.merge as pm
 
     maps = [np.full((4, 4), float(i), np.float32) for i in range(5)]
     assert [pm._extrema((m, True, 0.0)) for m in maps] == [(float(i), float(i)) for i in range(5)]
-    maps[0][0, 0] = 100.0  # cached: a map is not rescanned while it lives
-    assert pm._extrema((maps[0], True, 0.0)) == (0.0, 0.0)
-    ids = {id(m) for m in maps}
-    del maps
+    maps[0][0, 0] = 100.0  # changed in place: the new extrema
+    assert pm._extrema((maps[0], True, 0.0)) == (0.0, 100.0)
+    maps[0][1, 1] = -1.0
+    assert pm._extrema((maps[0], True, 0.0)) == (-1.0, 100.0)
     fresh = np.array([[np.inf]], np.float32)
     assert all(np.isnan(pm._extrema((fresh, True, 0.0))))
-    assert not ids & set(pm._EXTREMA) - {id(fresh)}
     assert pm._extrema((None, False, 2.5)) == (2.5, 2.5)
+
+
+def test_weights_precision_follows_a_calibration_map_changed_in_place():
+    """A PRNU map changed in place between two merges is seen by the float32-weights check."""
+    from hdrcap.api import simulate
+
+    sim = simulate("camera-A", "hdr", [0.004, 0.064, 1.0], seed=2, shape=(32, 48), darks=True)
+    cal = sim.calibration
+    first = merge_arrays(sim.frames, sim.times, cal, sim.darks)
+    assert first.info["weights_precision"] == "float32"
+    cal.prnu[0, 0] = 1e-20  # in place: float32 bounds no longer hold
+    second = merge_arrays(sim.frames, sim.times, cal, sim.darks)
+    assert second.info["weights_precision"] == "float64"

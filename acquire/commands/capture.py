@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from hdrcap.acquire.cliutil import echo_json, many_values
+from hdrcap.pipeline.noise import DarkStrategy
 
 
 @many_values("--times")
@@ -17,7 +18,7 @@ from hdrcap.acquire.cliutil import echo_json, many_values
 @click.option("--port", default=None, help="gphoto2 port of the camera (usb:001,004).")
 @click.option("--times", multiple=True, type=float, help="Exposure times, s (a fixed bracket; several after one flag).")
 @click.option("--target-snr", type=float, default=None, help="Plan the exposures for this SNR, dB (meter + planner).")
-@click.option("--darks", "dark_strategy", type=click.Choice(["matched", "master", "model"]), default=None,
+@click.option("--darks", "dark_strategy", type=click.Choice([s.value for s in DarkStrategy]), default=None,
               help="Dark frames: one per exposure, N averaged per exposure, or none (model).  "
                    "[default: matched; with --target-snr the planner's choice]")
 @click.option("--dark-count", type=click.IntRange(min=1), default=1, show_default=True,

@@ -15,7 +15,7 @@ from hdrcap.pipeline.errors import HdrcapError, InputError
 def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, allowed, meter_frames,
                         meter_max_time):
     """The scene metered with quick frames of the simulated camera: (irradiance, MeterReport)."""
-    from hdrcap.acquire.commands.simulate import load_scene, parse_size
+    from hdrcap.mock_camera.scenes import load_scene, parse_size
     from hdrcap.mock_camera import PRESETS, SimulatedSensor
     from hdrcap.planner import meter
 

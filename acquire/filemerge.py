@@ -1,0 +1,294 @@
+"""Merging raw files into an EXR: the library behind ``hdrcap merge`` and ``hdrcap run``.
+
+:func:`merge_files` reads a bracket (in parallel threads), gives every frame the dark level
+that :class:`pipeline.darks.DarkResolver` serves its exposure (dark frames given, one master
+dark, or the calibration's dark library), applies a plan file's per-exposure dark strategies
+and decided options, and merges (optimal, streamed into a ``MergeAccumulator``, or a baseline
+weighting). :func:`build_hdr_image` is the EXR content of a merge, :func:`summary` its
+one-line figures.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+
+from hdrcap.pipeline.darks import DarkResolver, default_strategy
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.noise import DarkStrategy
+from hdrcap.planner.planfile import PlanFile, apply_plan_options, planner_attribute
+
+__all__ = ["FileMerge", "merge_files", "streamed_merge", "read_frames", "build_hdr_image", "summary",
+           "merge_options", "library_root"]
+
+
+def _warn(message: str) -> None:
+    print(f"hdrcap: warning: {message}", file=sys.stderr)
+
+
+def read_frames(paths, times=None, what="frame", progress=False) -> list[RawFrame]:
+    """Read raw files / 16-bit images; ``times`` (seconds, one per path) override EXIF."""
+    return list(_read_parallel(paths, times, what, progress))
+
+
+def _read_parallel(paths, times, what, progress) -> Iterator[RawFrame]:
+    """Decode raw files in a thread pool (LibRaw releases the GIL), yielding frames in order."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tqdm import tqdm
+
+    from hdrcap.pipeline.io import read_frame
+
+    paths = list(paths)
+    if times:
+        if len(times) != len(paths):
+            raise InputError(f"--times gives {len(times)} exposure times for {len(paths)} {what}s")
+    else:
+        times = [None] * len(paths)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        futures = [pool.submit(read_frame, p, t) for p, t in zip(paths, times)]
+        for fut in tqdm(futures, desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False):
+            yield fut.result()
+
+
+def build_hdr_image(result, frames, calibration, extra=None):
+    """The EXR content of a merge: channels and header attributes."""
+    from hdrcap import __version__
+    from hdrcap.pipeline.io import HdrImage
+
+    attrs = {
+        "unit": "electrons per second per photosite",
+        "sigma": "standard deviation of irradiance, same unit",
+        "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
+        "cfa_pattern": frames[0].cfa_pattern or "none",
+        "exposure_times": [fr.exposure_time for fr in frames],
+        "source_files": [fr.path for fr in frames],
+        "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
+        "hdrcap_version": __version__,
+        "merge": result.info,
+    }
+    if extra:
+        attrs.update(extra)
+    return HdrImage({"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}, attrs)
+
+
+def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
+    """Median of sigma/|irradiance| over usable photosites (a regular subsample of at most
+    ``max_samples`` of them on large images)."""
+    step = max(1, irr.size // max_samples)
+    i, s, o = irr.ravel()[::step], sig.ravel()[::step], ok.ravel()[::step]
+    if not o.any():
+        return None
+    return float(np.median(s[o] / np.maximum(np.abs(i[o]), 1e-30)))
+
+
+def summary(result) -> dict:
+    """Figures of a merge: shape, irradiance range (e-/s), median relative sigma, photosites
+    saturated everywhere, whether everything is finite."""
+    irr, sig, nexp = result.irradiance, result.sigma, result.nexp
+    ok = nexp > 0
+    return {
+        "shape": list(irr.shape),
+        "irradiance_min": float(irr.min()),
+        "irradiance_max": float(irr.max()),
+        "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
+        "saturated_everywhere": int((~ok).sum()),
+        "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
+    }
+
+
+def merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas):
+    """Keyword options of :func:`pipeline.merge.merge_arrays` from the command-line knobs."""
+    opts = {"iterations": iterations, "tolerance": tolerance, "saturation": saturation, "prnu": prnu,
+            "saturation_sigmas": saturation_sigmas}
+    if dark_strategy:
+        opts["dark_strategy"] = DarkStrategy(dark_strategy)
+    if master_dark_frames is not None:
+        opts["n_dark"] = master_dark_frames
+    return opts
+
+
+def library_root(calib, calibration_path=None) -> str | None:
+    """The calibration's dark library folder (a relative path is tried from the working
+    folder, then from the calibration file's folder)."""
+    root = getattr(calib, "dark_library", None)
+    if not root:
+        return None
+    p = Path(root)
+    if not p.is_absolute() and not p.exists() and calibration_path:
+        alt = Path(calibration_path).parent / p
+        if alt.exists():
+            p = alt
+    return str(p)
+
+
+def _missing_dark(fr: RawFrame, strategy: DarkStrategy, resolver: DarkResolver) -> InputError:
+    t = fr.exposure_time
+    if strategy is DarkStrategy.MATCHED:
+        return InputError(f"{fr.path}: no dark frame with exposure time {t:g} s for its matched dark "
+                          "strategy; give one with --darks")
+    root = None if resolver.library is None else resolver.library.root
+    where = f"the dark library {root} holds none for this camera" if root else "the calibration has no dark library"
+    return InputError(f"{fr.path}: no master dark for exposure {t:g} s: none in --darks, no --master-dark, "
+                      f"and {where}")
+
+
+def _check_plan_covered(plan: PlanFile, frames: list[RawFrame], warn: Callable[[str], None]) -> None:
+    """Every planned exposure time must be among the frames; fewer frames than planned warn."""
+    seen = [0] * len(plan.times)
+    for fr in frames:
+        seen[plan.group(fr.exposure_time)] += 1
+    missing = [t for t, k in zip(plan.times, seen) if k == 0]
+    if missing:
+        raise InputError(f"{plan.path}: planned exposure {missing[0]:g} s matches no frame (within 0.1 %)")
+    for t, c, k in zip(plan.times, plan.counts, seen):
+        if k < c:
+            warn(f"the plan has {c} exposures of {t:g} s, the frames {k}")
+
+
+def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=None, progress=False, *,
+                   strategy_for=None, resolver: DarkResolver | None = None, plan: PlanFile | None = None,
+                   warn: Callable[[str], None] = _warn):
+    """Read the bracket (in parallel threads) and feed each frame to a
+    :class:`pipeline.merge.MergeAccumulator` as soon as it is decoded, with the dark strategy
+    ``strategy_for(frame)`` gives it (a strategy, or (strategy, planned frame count of its
+    master dark); default: the one of ``options``) and the dark level ``resolver`` serves it
+    (default: ``dark_paths`` matched by exposure time). With a ``plan``, every plan exposure
+    time must be among the frames. Returns (result, frames, darks, per-frame dark sources)."""
+    from hdrcap.pipeline.io import check_frames
+    from hdrcap.pipeline.merge import MergeAccumulator
+
+    darks = list(_read_parallel(dark_paths, None, "dark frame", progress)) if dark_paths else []
+    if darks:
+        darks = check_frames(darks, "dark frame")
+    if resolver is None:
+        resolver = DarkResolver(frames_per_dark=options.get("n_dark"),
+                                master_dark=None if master_dark is None else str(master_dark.path))
+    for d in darks:
+        resolver.add_dark(d.data, d.exposure_time, str(d.path))
+    if strategy_for is None:
+        only = options.get("dark_strategy") or default_strategy(bool(darks), master_dark is not None)
+
+        def strategy_for(_fr):
+            return only
+    opts = dict(options)
+    if master_dark is not None:
+        opts["dark_strategy"] = DarkStrategy.MASTER
+        opts.setdefault("master_dark_time", master_dark.exposure_time)
+    acc = None
+    frames, used, warned = [], [], set()
+    for fr in _read_parallel(frame_paths, times, "frame", progress):
+        if acc is None:
+            # stream=False: the frames are all read here anyway, so the merge does its single
+            # pass at the end (less memory than the first-pass sums of a live capture).
+            acc = MergeAccumulator(calib, fr.shape, master_dark=None if master_dark is None else master_dark.data,
+                                   stream=False, **opts)
+        strategy = strategy_for(fr)
+        strategy, n_planned = (strategy, None) if isinstance(strategy, str) else strategy
+        strategy = DarkStrategy(strategy)
+        src = resolver.resolve(fr.exposure_time, strategy, camera=fr.camera, iso=fr.iso)
+        if src is None:
+            raise _missing_dark(fr, strategy, resolver)
+        if src.data is not None and np.shape(src.data) != fr.shape:
+            raise InputError(f"{src.source}: dark frame size differs from the bracket's")
+        short = src.origin == "frames" and strategy is DarkStrategy.MASTER and n_planned and src.n_frames < n_planned
+        if short and src.source not in warned:  # once per master dark
+            warned.add(src.source)
+            warn(f"the plan expects a master dark of {n_planned:g} frames at {fr.exposure_time:g} s; --darks gives "
+                 f"one of {src.n_frames:g} (set --master-dark-frames if a file averages more)")
+        acc.add(fr.data, fr.exposure_time, src.data, strategy=strategy,
+                n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None)
+        frames.append(fr)
+        used.append(f"{strategy}: {src.source}" if strategy is not DarkStrategy.MODEL else "model")
+    check_frames(frames)
+    if plan is not None:
+        _check_plan_covered(plan, frames, warn)
+    return acc.result(), frames, darks, used
+
+
+def _read_master_dark(path: Path | None, options: dict) -> RawFrame | None:
+    """The master dark file: a raw file (with its exposure time), or a PNG/TIFF used as is."""
+    if not path:
+        return None
+    from hdrcap.pipeline.io import read_frame
+
+    if path.suffix.lower() in (".png", ".tif", ".tiff"):  # no exposure time: used as is
+        options["master_dark_time"] = None
+        return read_frame(path, 1.0)
+    return read_frame(path)
+
+
+def _plan_strategies(plan: PlanFile, dark_strategy: DarkStrategy | None):
+    """Frame -> (dark strategy, planned master-dark frame count) from the plan (or the one
+    strategy the user gave for every exposure)."""
+    def strategy_for(fr):
+        i = plan.group(fr.exposure_time)
+        if i is None:
+            raise InputError(f"{fr.path}: exposure {fr.exposure_time:g} s is not in the plan {plan.path} "
+                             f"({', '.join(f'{t:g}' for t in plan.times)} s); leave the frame out or "
+                             "merge without --plan")
+        return (dark_strategy, None) if dark_strategy else (plan.strategies[i], plan.n_dark[i])
+
+    return strategy_for
+
+
+@dataclass
+class FileMerge:
+    """What :func:`merge_files` produced: the merge, the frames (and dark frames) read, and
+    the extra EXR header attributes (weighting, dark sources, master dark file, planner)."""
+
+    result: Any
+    frames: list[RawFrame]
+    darks: list[RawFrame]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def merge_files(frame_paths: Sequence[Path], calib, options: dict, *, dark_paths: Sequence[Path] = (),
+                times: Sequence[float] | None = None, weighting: str = "optimal", plan: PlanFile | None = None,
+                plan_file: str | None = None, dark_strategy: str | None = None, master_dark: Path | None = None,
+                master_dark_frames: float | None = None, library: str | None = None,
+                given: Callable[[str], bool] = lambda _name: False, progress: bool = False,
+                warn: Callable[[str], None] = _warn) -> FileMerge:
+    """Merge raw files: the work of ``hdrcap merge`` between its options and the EXR.
+
+    ``options`` are merge options (:func:`merge_options`); ``given(name)`` tells which of them
+    the user set (they win over a plan's). ``weighting`` other than ``optimal`` runs a baseline
+    of :mod:`pipeline.weighting`. Master darks come from ``dark_paths`` of the exposure time
+    (``master_dark_frames`` frames each), else ``master_dark``, else the dark library at
+    ``library``.
+    """
+    extra: dict[str, Any] = {"weighting": weighting}
+    if weighting != "optimal":
+        from hdrcap.pipeline.weighting import merge_weighted
+
+        fr = read_frames(frame_paths, times, "frame", progress)
+        dk = read_frames(dark_paths, None, "dark frame", progress) if dark_paths else []
+        result = merge_weighted([f.data for f in fr], [f.exposure_time for f in fr], calib,
+                                [d.data for d in dk] if dk else None, method=weighting)
+        return FileMerge(result, fr, dk, extra)
+    dark_strategy = None if dark_strategy is None else DarkStrategy(dark_strategy)
+    md = _read_master_dark(master_dark, options)
+    strategy_for = taken = overridden = ignored = None
+    if plan is not None:
+        options, taken, overridden, ignored = apply_plan_options(plan, options, given)
+        for name in ignored:
+            warn(f"{plan.path}: merge option {name!r} is not one hdrcap merge knows; ignored")
+        if dark_strategy:
+            overridden["darks"] = {"plan": plan.data["darks"], "used": dark_strategy.value}
+        strategy_for = _plan_strategies(plan, dark_strategy)
+    resolver = DarkResolver(frames_per_dark=master_dark_frames, master_dark=None if md is None else str(md.path),
+                            library=library, temperature=(calib.provenance or {}).get("temperature"))
+    result, fr, dk, used = streamed_merge(frame_paths, dark_paths, times, calib, options, md, progress,
+                                          strategy_for=strategy_for, resolver=resolver, plan=plan, warn=warn)
+    extra["dark_sources"] = used
+    if master_dark:
+        extra["master_dark_file"] = str(master_dark)
+    if plan is not None:
+        extra["planner"] = planner_attribute(plan.data, plan_file, plan.sha256, taken, overridden,
+                                             options_ignored=ignored)
+    return FileMerge(result, fr, dk, extra)
