@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..params import Calibration, SensorParams
-from .dark import DarkFit, DarkSeries, MasterDark, stream_master_darks
+from .dark import DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
 from .flats import FlatResult, estimate_flats
 from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
 from .readout import ReadoutEstimate, estimate_readout
@@ -54,9 +54,9 @@ def _readout_step(bias: Iterable, clip: float | None, white_level: float | None,
 
 
 def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
-               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, np.ndarray | None]:
+               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, DarkSeries | None]:
     """Master darks per exposure time (each handed to ``dark_sink``), then the dark-current
-    fit and the per-photosite slope map (DN/s) when the series has >= 6 exposure times."""
+    fit and the series (for the per-photosite maps) when it has >= 6 exposure times."""
     if darks is None:
         return None, None
     shape = None if ro.bias_map is None else ro.bias_map.shape
@@ -70,7 +70,7 @@ def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
         return None, None
     rec.info["dark_series"] = series.to_dict()
     if series.n_times() >= 6:
-        return series.fit(), series.slope_map()
+        return series.fit(), series
     if dark_sink is None:
         raise InputError(f"dark current needs dark frames at >= 6 exposure times, got {len(series.times)} "
                          "(or give a dark library to store master darks only)")
@@ -178,16 +178,20 @@ def _ptc_info(ptc: PhotonTransferFit | None, x: np.ndarray, y: np.ndarray, sat_s
             "used": ptc.used.tolist(), "saturation": ptc.saturation}
 
 
-def _dark_current_step(dark_fit: DarkFit | None, dark_slope_map: np.ndarray | None, g: float, g_se: float,
-                       rec: _Record) -> tuple[float, np.ndarray | None]:
-    """D in electrons per second (clipped at 0) and the per-photosite map, from the DN/s fit."""
+def _dark_current_step(dark_fit: DarkFit | None, series: DarkSeries | None, g: float, g_se: float,
+                       sigma2_R: float, rec: _Record) -> tuple[float, Any]:
+    """D in electrons per second (clipped at 0) and the per-photosite map with its standard
+    error, shrunk toward D (:func:`~.dark.shrink_dark_current_map`), from the DN/s fit."""
     if dark_fit is None:
         return 0.0, None
     D = max(dark_fit.slope / g, 0.0)
     rec.stderr["dark_current"] = float(np.hypot(dark_fit.slope_stderr / g, D * g_se / g))
     rec.info["dark_fit"] = {"slope_DN_per_s": dark_fit.slope, "slope_stderr": dark_fit.slope_stderr,
                             "intercept_DN": dark_fit.intercept, "D_raw_e_per_s": dark_fit.slope / g}
-    return D, (dark_slope_map / g).astype(np.float32)
+    dmap = shrink_dark_current_map(series, g, sigma2_R, D, rec.stderr["dark_current"])
+    rec.info["dark_map"] = {"prior_sd_e_per_s": dmap.prior_sd, "outlier_fraction": dmap.outlier_fraction,
+                            "chi2": dmap.chi2, "raw_negative_fraction": float(np.mean(dmap.raw < 0))}
+    return D, dmap
 
 
 def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterable | None = None,
@@ -241,11 +245,12 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
         raise ValueError(f"gain_method must be auto, pairs or ptc, got {gain_method!r}")
     rec = _Record()
     ro = _readout_step(bias, clip, white_level, rec)
-    dark_fit, dark_slope_map = _dark_step(darks, ro, clip, dark_sink, rec)
+    dark_fit, dark_series = _dark_step(darks, ro, clip, dark_sink, rec)
+    dark_slope_map = dark_series.slope_map() if dark_series is not None else None
     v_sat, sat_map = _saturation_step(saturation, white_level, ro, clip, rec)
     fl, prnu_stderr = _flat_step(flats, ro, v_sat, clip, dark_slope_map, rec)
     g, g_se = _gain_step(fl, ro, v_sat, dark_fit, gain_method, fit_fraction, rec)
-    D, dmap = _dark_current_step(dark_fit, dark_slope_map, g, g_se, rec)
+    D, dmap = _dark_current_step(dark_fit, dark_series, g, g_se, ro.sigma2_R, rec)
     if fl.prnu_stderr is not None:
         rec.stderr["prnu_std"] = float(fl.prnu_std / np.sqrt(2 * fl.prnu.size)) if fl.prnu_std > 0 else 0.0
     prov: dict[str, Any] = dict(provenance or {})
@@ -258,9 +263,11 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     prov["n_frames"] = int(sum(rec.counts.values()))
     prov["prnu_std"] = fl.prnu_std
     prov["calibration"] = rec.info
-    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map, dark_current_map=dmap,
+    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map,
+                       dark_current_map=None if dmap is None else dmap.rate,
                        stderr={k: float(v) for k, v in rec.stderr.items()}, provenance=prov,
-                       prnu_stderr=prnu_stderr, saturation_map=sat_map)
+                       prnu_stderr=prnu_stderr, saturation_map=sat_map,
+                       dark_current_map_stderr=None if dmap is None else dmap.stderr)
 
 
 def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None,
