@@ -9,6 +9,7 @@ calibration's ``stderr`` and ``provenance["calibration"]``.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -19,7 +20,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..params import Calibration, SensorParams
-from .dark import DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
+from .dark import DarkCurrentMap, DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
+from .defects import DEFECT_BITS, DefectThresholds, defect_counts, hot_defects, neutral_prnu, response_defects
 from .flats import FlatResult, estimate_flats
 from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
 from .readout import ReadoutEstimate, estimate_readout
@@ -116,6 +118,32 @@ def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: 
     if not fl.pairs:
         raise InputError("the gain needs at least two flat fields at the same exposure time (a pair, Eq. 16)")
     return fl, prnu_stderr
+
+
+def _response_defect_step(fl: FlatResult, prnu_stderr: np.ndarray | None, ro: ReadoutEstimate,
+                          ) -> tuple[FlatResult, np.ndarray | None, np.ndarray]:
+    """Dead, weak and stuck photosites (:mod:`.defects`); dead and stuck ones get a_j = 1 and
+    the PRNU map and spread are taken over the normal photosites."""
+    defects = response_defects(fl.prnu, prnu_stderr, fl.prnu_std, ro.bias_map, ro.mu_R, ro.sigma2_R, ro.n_frames,
+                               ro.dsnu)
+    prnu, prnu_stderr, prnu_std = neutral_prnu(fl.prnu, prnu_stderr, defects)
+    return dataclasses.replace(fl, prnu=prnu, prnu_std=prnu_std), prnu_stderr, defects
+
+
+def _hot_defect_step(defects: np.ndarray, dmap: DarkCurrentMap | None, rec: _Record) -> np.ndarray:
+    """Add the hot photosites (with a dark series) to the defect map; record the counts."""
+    if dmap is not None:
+        defects[hot_defects(dmap.raw, dmap.raw_stderr, dmap.prior_mean, dmap.prior_sd)] |= DEFECT_BITS["hot"]
+    rec.info["defects"] = {"counts": defect_counts(defects), "hot_measured": dmap is not None,
+                           "thresholds": dataclasses.asdict(DefectThresholds())}
+    return defects
+
+
+def _bias_stderr_map(ro: ReadoutEstimate) -> np.ndarray | None:
+    """Standard error of the offset map, sqrt(sigma2_R / n_bias) DN, as a float32 map."""
+    if ro.bias_map is None:
+        return None
+    return np.full(ro.bias_map.shape, np.sqrt(ro.sigma2_R / ro.n_frames), np.float32)
 
 
 def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None) -> tuple[np.ndarray, np.ndarray]:
@@ -249,8 +277,10 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     dark_slope_map = dark_series.slope_map() if dark_series is not None else None
     v_sat, sat_map = _saturation_step(saturation, white_level, ro, clip, rec)
     fl, prnu_stderr = _flat_step(flats, ro, v_sat, clip, dark_slope_map, rec)
+    fl, prnu_stderr, defects = _response_defect_step(fl, prnu_stderr, ro)
     g, g_se = _gain_step(fl, ro, v_sat, dark_fit, gain_method, fit_fraction, rec)
     D, dmap = _dark_current_step(dark_fit, dark_series, g, g_se, ro.sigma2_R, rec)
+    defects = _hot_defect_step(defects, dmap, rec)
     if fl.prnu_stderr is not None:
         rec.stderr["prnu_std"] = float(fl.prnu_std / np.sqrt(2 * fl.prnu.size)) if fl.prnu_std > 0 else 0.0
     prov: dict[str, Any] = dict(provenance or {})
@@ -266,8 +296,8 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map,
                        dark_current_map=None if dmap is None else dmap.rate,
                        stderr={k: float(v) for k, v in rec.stderr.items()}, provenance=prov,
-                       prnu_stderr=prnu_stderr, saturation_map=sat_map,
-                       dark_current_map_stderr=None if dmap is None else dmap.stderr)
+                       prnu_stderr=prnu_stderr, saturation_map=sat_map, bias_map_stderr=_bias_stderr_map(ro),
+                       dark_current_map_stderr=None if dmap is None else dmap.stderr, defect_map=defects)
 
 
 def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None,
@@ -329,7 +359,8 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
     -------
     dict
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
-        each scalar's standard error, the frame count and the gain method, then the entries
+        each scalar's standard error, the frame count, the gain method and the defect counts
+        (``defects``: dead, weak, hot, stuck, total; None when not measured), then the entries
         above that are given.
     """
     p = calib.params
@@ -347,6 +378,7 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
         "dark_current": p.dark_current, "dark_current_stderr": se.get("dark_current"),
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
+        "defects": prov.get("calibration", {}).get("defects", {}).get("counts"),
     }
     if output is not None:
         summary["output"] = str(output)
@@ -360,7 +392,7 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
 
 
 def format_summary(summary: Mapping[str, Any]) -> str:
-    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D and the PRNU.
+    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D, the PRNU and the defects.
 
     Parameters
     ----------
@@ -374,4 +406,12 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     s = summary
     return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
             f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
+            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %" + _defect_text(s))
+
+
+def _defect_text(summary: Mapping[str, Any]) -> str:
+    """``  defects: N (dead a, weak b, hot c, stuck d)`` when the summary has defect counts."""
+    c = summary.get("defects")
+    if not c:
+        return ""
+    return f"  defects: {c['total']} ({', '.join(f'{k} {c[k]}' for k in DEFECT_BITS)})"
