@@ -347,8 +347,9 @@ def shrink_dark_current_map(
     by sqrt(chi2) when the residuals scatter more than that. The prior is a two-component
     mixture: the normal population N(D, tau^2) (tau^2 = spread of the raw map minus the mean
     squared standard error, at least that difference's own standard error) and, with
-    probability pi, a flat component over the range of the map (hot photosites). The result is the posterior mean, floored at 0: a normal photosite
-    moves toward D by the factor se^2 / (tau^2 + se^2), a hot one keeps its regression value.
+    probability pi, a flat component over the range of the map (hot photosites). The result
+    is the posterior mean, floored at 0: a normal photosite moves toward D by the factor
+    se^2 / (tau^2 + se^2), a hot one keeps its regression value.
 
     Parameters
     ----------
