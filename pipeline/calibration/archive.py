@@ -1,9 +1,11 @@
 """The calibration file: a compressed NumPy archive of float32 maps and JSON metadata.
 
-Format (docs/calibration.md): a ``.npz`` archive with the maps ``prnu``, ``prnu_stderr``,
-``bias_map``, ``dark_current_map``, ``saturation_map`` (each optional) and a ``metadata``
-entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``, ``stderr``,
-``provenance``, ``maps``, ``dark_library``.
+Format (docs/calibration.md): a ``.npz`` archive with the float32 maps ``prnu``,
+``prnu_stderr``, ``bias_map``, ``bias_map_stderr``, ``dark_current_map``,
+``dark_current_map_stderr``, ``saturation_map``, the uint8 ``defect_map`` (each optional) and a
+``metadata`` entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``,
+``stderr``, ``provenance``, ``maps``, ``dark_library``. Files written before the standard-error
+and defect maps existed load with those fields ``None``.
 """
 
 from __future__ import annotations
@@ -25,7 +27,10 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]
 FORMAT = "hdrcap-calibration"
 FORMAT_VERSION = 1
 
-_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "dark_current_map", "saturation_map")
+_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "bias_map_stderr", "dark_current_map", "dark_current_map_stderr",
+               "saturation_map")
+#: Maps stored with their own integer type instead of float32.
+_INT_MAPS = {"defect_map": np.uint8}
 
 
 def _jsonable(obj):
@@ -69,11 +74,11 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
 
     arrays = {}
     shape = None
-    for name in _MAP_FIELDS:
+    for name in (*_MAP_FIELDS, *_INT_MAPS):
         arr = getattr(calibration, name, None)
         if arr is None:
             continue
-        arr = np.ascontiguousarray(arr, dtype=np.float32)
+        arr = np.ascontiguousarray(arr, dtype=_INT_MAPS.get(name, np.float32))
         if shape is not None and arr.shape != shape:
             raise ValueError(f"calibration map {name} has shape {arr.shape}, expected {shape}")
         shape = arr.shape
@@ -132,7 +137,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             if "metadata" not in z.files:
                 raise InputError(f"{path}: not an hdrcap calibration file (no metadata entry)")
             meta = json.loads(bytes(z["metadata"]).decode("utf-8"))
-            maps = {name: z[name] for name in _MAP_FIELDS if name in z.files}
+            maps = {name: z[name] for name in (*_MAP_FIELDS, *_INT_MAPS) if name in z.files}
     except InputError:
         raise
     except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError) as err:
@@ -156,6 +161,11 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         raise InputError(f"{path}: bad camera parameters ({err})") from None
     if "prnu" in maps and not np.all(maps["prnu"] > 0):
         raise InputError(f"{path}: PRNU map has non-positive gains")
+    for name in ("bias_map_stderr", "dark_current_map_stderr"):
+        if name in maps and np.any(maps[name] < 0):
+            raise InputError(f"{path}: map {name} has negative values")
+    if "defect_map" in maps and maps["defect_map"].dtype != np.uint8:
+        raise InputError(f"{path}: defect map has type {maps['defect_map'].dtype}, expected uint8")
     return Calibration(
         params=params,
         prnu=maps.get("prnu"),
@@ -166,4 +176,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         prnu_stderr=maps.get("prnu_stderr"),
         saturation_map=maps.get("saturation_map"),
         dark_library=meta.get("dark_library"),
+        bias_map_stderr=maps.get("bias_map_stderr"),
+        dark_current_map_stderr=maps.get("dark_current_map_stderr"),
+        defect_map=maps.get("defect_map"),
     )

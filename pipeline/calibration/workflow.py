@@ -9,6 +9,7 @@ calibration's ``stderr`` and ``provenance["calibration"]``.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -19,7 +20,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..params import Calibration, SensorParams
-from .dark import DarkFit, DarkSeries, MasterDark, stream_master_darks
+from .dark import DarkCurrentMap, DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
+from .defects import DEFECT_BITS, DefectThresholds, defect_counts, hot_defects, neutral_prnu, response_defects
 from .flats import FlatResult, estimate_flats
 from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
 from .readout import ReadoutEstimate, estimate_readout
@@ -54,9 +56,9 @@ def _readout_step(bias: Iterable, clip: float | None, white_level: float | None,
 
 
 def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
-               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, np.ndarray | None]:
+               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, DarkSeries | None]:
     """Master darks per exposure time (each handed to ``dark_sink``), then the dark-current
-    fit and the per-photosite slope map (DN/s) when the series has >= 6 exposure times."""
+    fit and the series (for the per-photosite maps) when it has >= 6 exposure times."""
     if darks is None:
         return None, None
     shape = None if ro.bias_map is None else ro.bias_map.shape
@@ -70,7 +72,7 @@ def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
         return None, None
     rec.info["dark_series"] = series.to_dict()
     if series.n_times() >= 6:
-        return series.fit(), series.slope_map()
+        return series.fit(), series
     if dark_sink is None:
         raise InputError(f"dark current needs dark frames at >= 6 exposure times, got {len(series.times)} "
                          "(or give a dark library to store master darks only)")
@@ -116,6 +118,32 @@ def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: 
     if not fl.pairs:
         raise InputError("the gain needs at least two flat fields at the same exposure time (a pair, Eq. 16)")
     return fl, prnu_stderr
+
+
+def _response_defect_step(fl: FlatResult, prnu_stderr: np.ndarray | None, ro: ReadoutEstimate,
+                          ) -> tuple[FlatResult, np.ndarray | None, np.ndarray]:
+    """Dead, weak and stuck photosites (:mod:`.defects`); dead and stuck ones get a_j = 1 and
+    the PRNU map and spread are taken over the normal photosites."""
+    defects = response_defects(fl.prnu, prnu_stderr, fl.prnu_std, ro.bias_map, ro.mu_R, ro.sigma2_R, ro.n_frames,
+                               ro.dsnu)
+    prnu, prnu_stderr, prnu_std = neutral_prnu(fl.prnu, prnu_stderr, defects)
+    return dataclasses.replace(fl, prnu=prnu, prnu_std=prnu_std), prnu_stderr, defects
+
+
+def _hot_defect_step(defects: np.ndarray, dmap: DarkCurrentMap | None, rec: _Record) -> np.ndarray:
+    """Add the hot photosites (with a dark series) to the defect map; record the counts."""
+    if dmap is not None:
+        defects[hot_defects(dmap.raw, dmap.raw_stderr, dmap.prior_mean, dmap.prior_sd)] |= DEFECT_BITS["hot"]
+    rec.info["defects"] = {"counts": defect_counts(defects), "hot_measured": dmap is not None,
+                           "thresholds": dataclasses.asdict(DefectThresholds())}
+    return defects
+
+
+def _bias_stderr_map(ro: ReadoutEstimate) -> np.ndarray | None:
+    """Standard error of the offset map, sqrt(sigma2_R / n_bias) DN, as a float32 map."""
+    if ro.bias_map is None:
+        return None
+    return np.full(ro.bias_map.shape, np.sqrt(ro.sigma2_R / ro.n_frames), np.float32)
 
 
 def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None) -> tuple[np.ndarray, np.ndarray]:
@@ -178,16 +206,20 @@ def _ptc_info(ptc: PhotonTransferFit | None, x: np.ndarray, y: np.ndarray, sat_s
             "used": ptc.used.tolist(), "saturation": ptc.saturation}
 
 
-def _dark_current_step(dark_fit: DarkFit | None, dark_slope_map: np.ndarray | None, g: float, g_se: float,
-                       rec: _Record) -> tuple[float, np.ndarray | None]:
-    """D in electrons per second (clipped at 0) and the per-photosite map, from the DN/s fit."""
+def _dark_current_step(dark_fit: DarkFit | None, series: DarkSeries | None, g: float, g_se: float,
+                       sigma2_R: float, rec: _Record) -> tuple[float, Any]:
+    """D in electrons per second (clipped at 0) and the per-photosite map with its standard
+    error, shrunk toward D (:func:`~.dark.shrink_dark_current_map`), from the DN/s fit."""
     if dark_fit is None:
         return 0.0, None
     D = max(dark_fit.slope / g, 0.0)
     rec.stderr["dark_current"] = float(np.hypot(dark_fit.slope_stderr / g, D * g_se / g))
     rec.info["dark_fit"] = {"slope_DN_per_s": dark_fit.slope, "slope_stderr": dark_fit.slope_stderr,
                             "intercept_DN": dark_fit.intercept, "D_raw_e_per_s": dark_fit.slope / g}
-    return D, (dark_slope_map / g).astype(np.float32)
+    dmap = shrink_dark_current_map(series, g, sigma2_R, D, rec.stderr["dark_current"])
+    rec.info["dark_map"] = {"prior_sd_e_per_s": dmap.prior_sd, "outlier_fraction": dmap.outlier_fraction,
+                            "chi2": dmap.chi2, "raw_negative_fraction": float(np.mean(dmap.raw < 0))}
+    return D, dmap
 
 
 def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterable | None = None,
@@ -241,11 +273,14 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
         raise ValueError(f"gain_method must be auto, pairs or ptc, got {gain_method!r}")
     rec = _Record()
     ro = _readout_step(bias, clip, white_level, rec)
-    dark_fit, dark_slope_map = _dark_step(darks, ro, clip, dark_sink, rec)
+    dark_fit, dark_series = _dark_step(darks, ro, clip, dark_sink, rec)
+    dark_slope_map = dark_series.slope_map() if dark_series is not None else None
     v_sat, sat_map = _saturation_step(saturation, white_level, ro, clip, rec)
     fl, prnu_stderr = _flat_step(flats, ro, v_sat, clip, dark_slope_map, rec)
+    fl, prnu_stderr, defects = _response_defect_step(fl, prnu_stderr, ro)
     g, g_se = _gain_step(fl, ro, v_sat, dark_fit, gain_method, fit_fraction, rec)
-    D, dmap = _dark_current_step(dark_fit, dark_slope_map, g, g_se, rec)
+    D, dmap = _dark_current_step(dark_fit, dark_series, g, g_se, ro.sigma2_R, rec)
+    defects = _hot_defect_step(defects, dmap, rec)
     if fl.prnu_stderr is not None:
         rec.stderr["prnu_std"] = float(fl.prnu_std / np.sqrt(2 * fl.prnu.size)) if fl.prnu_std > 0 else 0.0
     prov: dict[str, Any] = dict(provenance or {})
@@ -258,9 +293,11 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     prov["n_frames"] = int(sum(rec.counts.values()))
     prov["prnu_std"] = fl.prnu_std
     prov["calibration"] = rec.info
-    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map, dark_current_map=dmap,
+    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map,
+                       dark_current_map=None if dmap is None else dmap.rate,
                        stderr={k: float(v) for k, v in rec.stderr.items()}, provenance=prov,
-                       prnu_stderr=prnu_stderr, saturation_map=sat_map)
+                       prnu_stderr=prnu_stderr, saturation_map=sat_map, bias_map_stderr=_bias_stderr_map(ro),
+                       dark_current_map_stderr=None if dmap is None else dmap.stderr, defect_map=defects)
 
 
 def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None,
@@ -322,7 +359,8 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
     -------
     dict
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
-        each scalar's standard error, the frame count and the gain method, then the entries
+        each scalar's standard error, the frame count, the gain method and the defect counts
+        (``defects``: dead, weak, hot, stuck, total; None when not measured), then the entries
         above that are given.
     """
     p = calib.params
@@ -340,6 +378,7 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
         "dark_current": p.dark_current, "dark_current_stderr": se.get("dark_current"),
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
+        "defects": prov.get("calibration", {}).get("defects", {}).get("counts"),
     }
     if output is not None:
         summary["output"] = str(output)
@@ -353,7 +392,7 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
 
 
 def format_summary(summary: Mapping[str, Any]) -> str:
-    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D and the PRNU.
+    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D, the PRNU and the defects.
 
     Parameters
     ----------
@@ -367,4 +406,12 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     s = summary
     return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
             f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
+            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %" + _defect_text(s))
+
+
+def _defect_text(summary: Mapping[str, Any]) -> str:
+    """``  defects: N (dead a, weak b, hot c, stuck d)`` when the summary has defect counts."""
+    c = summary.get("defects")
+    if not c:
+        return ""
+    return f"  defects: {c['total']} ({', '.join(f'{k} {c[k]}' for k in DEFECT_BITS)})"
