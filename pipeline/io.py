@@ -110,36 +110,59 @@ def check_exposure_time(t, where=None) -> float:
     return t
 
 
-def _tiff_exif(path: Path) -> dict[str, Any]:
-    """Exact ExposureTime, ISO, timestamp and camera from IFD0 or the EXIF IFD of a
-    TIFF-based raw file (DNG, NEF, ...); empty for other formats."""
-    import tifffile
-
+def _exif_values(page) -> dict[str, Any]:
+    """Exact ExposureTime (s), ISO, timestamp and camera from IFD0 or its EXIF IFD."""
+    tags = page.tags
+    exif = tags["ExifTag"].value if "ExifTag" in tags else {}
     out: dict[str, Any] = {}
-    try:
-        with tifffile.TiffFile(path) as tif:
-            tags = tif.pages[0].tags
-            exif = tags["ExifTag"].value if "ExifTag" in tags else {}
-            for key, code in (("ExposureTime", 33434), ("ISOSpeedRatings", 34855), ("DateTimeOriginal", 36867)):
-                val = exif.get(key)
-                if val is None and code in tags:
-                    val = tags[code].value
-                out[key] = val
-            out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
-            size = path.stat().st_size
-            ends = [o + n for o, n in zip(tif.pages[0].dataoffsets, tif.pages[0].databytecounts)]
-            out["truncated"] = bool(ends) and max(ends) > size
-    except Exception:  # not a TIFF container (CR3, RAF, ...): LibRaw's values are used
-        return {}
-    t = out.get("ExposureTime")
+    for key, code in (("ExposureTime", 33434), ("ISOSpeedRatings", 34855), ("DateTimeOriginal", 36867)):
+        val = exif.get(key)
+        if val is None and code in tags:
+            val = tags[code].value
+        out[key] = val
+    out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
+    t = out["ExposureTime"]
     if isinstance(t, tuple) and len(t) == 2:
         out["ExposureTime"] = float(Fraction(int(t[0]), int(t[1]))) if t[1] else None
     elif t is not None:
         out["ExposureTime"] = float(t)
-    iso = out.get("ISOSpeedRatings")
+    iso = out["ISOSpeedRatings"]
     if isinstance(iso, (tuple, list)):
         out["ISOSpeedRatings"] = iso[0] if iso else None
     return out
+
+
+def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
+    """EXIF values and, for a simple DNG, its decoded raw image (else None) of a TIFF-based raw
+    file (DNG, NEF, ...); ``({}, None)`` for other formats.
+
+    Raises :class:`InputError` when the image data runs past the end of the file.
+    """
+    import tifffile
+
+    from .dngread import decode_dng
+
+    try:
+        tif = tifffile.TiffFile(path)
+    except Exception:  # not a TIFF container (CR3, RAF, ...): LibRaw's values are used
+        return {}, None
+    with tif:
+        try:
+            page = tif.pages[0]
+            exif = _exif_values(page)
+            size = path.stat().st_size
+            ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts)]
+        except Exception:  # a TIFF header but no readable first IFD: LibRaw decides
+            return {}, None
+        if ends and max(ends) > size:
+            raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
+        try:
+            direct = decode_dng(path, tif, mmap=mmap)
+        except InputError:
+            raise
+        except Exception:  # tags tifffile cannot interpret: LibRaw decides
+            direct = None
+    return exif, direct
 
 
 _STDERR_LOCK = threading.Lock()
@@ -163,20 +186,23 @@ def _quiet_stderr():
             os.close(saved)
 
 
-def read_raw(path, exposure_time: float | None = None) -> RawFrame:
-    """Read a camera raw file (DNG, NEF, CR2, ...) with rawpy (LibRaw).
+@dataclass(frozen=True)
+class _Decoded:
+    """What a raw decoder gives besides the EXIF values: pixels, levels, LibRaw's metadata."""
 
-    Returns the visible CFA mosaic as uint16, the black and white levels, the CFA pattern, and
-    the exposure time and ISO from EXIF (IFD0 or the EXIF IFD). An explicit ``exposure_time``
-    (seconds) overrides the file's.
-    """
+    data: np.ndarray
+    cfa: str | None
+    black: float
+    white: float
+    shutter: float | None = None
+    iso: float | None = None
+    timestamp: str | None = None
+
+
+def _libraw_decode(path: Path) -> _Decoded:
+    """Decode any raw format with rawpy (LibRaw): visible mosaic, levels, CFA, shutter, ISO, time."""
     import rawpy
 
-    path = Path(path)
-    _check_readable(path)
-    exif = _tiff_exif(path)
-    if exif.get("truncated"):
-        raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
     try:
         with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
@@ -187,30 +213,71 @@ def read_raw(path, exposure_time: float | None = None) -> RawFrame:
                 cfa = "".join(desc[int(i)] for i in pattern.ravel())
             else:
                 cfa = None
-            black = float(np.mean(raw.black_level_per_channel))
-            white = float(raw.white_level)
-            shutter = float(other.shutter_speed) if other.shutter_speed else None
-            iso = float(other.iso_speed) if other.iso_speed else None
-            ts = other.timestamp.isoformat() if other.timestamp else None
+            return _Decoded(
+                data=data, cfa=cfa, black=float(np.mean(raw.black_level_per_channel)), white=float(raw.white_level),
+                shutter=float(other.shutter_speed) if other.shutter_speed else None,
+                iso=float(other.iso_speed) if other.iso_speed else None,
+                timestamp=other.timestamp.isoformat() if other.timestamp else None,
+            )
     except rawpy.LibRawFileUnsupportedError:
         raise InputError(f"{path}: not a raw file LibRaw can read") from None
     except rawpy.LibRawIOError:
         raise InputError(f"{path}: truncated or unreadable raw file") from None
     except rawpy.LibRawError as err:
         raise InputError(f"{path}: cannot decode raw data ({type(err).__name__})") from None
-    t = exposure_time if exposure_time is not None else (exif.get("ExposureTime") or shutter)
+
+
+def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bool:
+    """Whether the EXIF values leave nothing for LibRaw to supply (time, ISO, timestamp)."""
+    has_time = exposure_time is not None or bool(exif.get("ExposureTime"))
+    return has_time and bool(exif.get("ISOSpeedRatings")) and bool(exif.get("DateTimeOriginal"))
+
+
+def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> RawFrame:
+    """Read a camera raw file (DNG, NEF, CR2, ...).
+
+    An uncompressed DNG (8/16-bit strips or tiles, Bayer CFA, single black and white level) is
+    decoded directly from the file (:mod:`pipeline.dngread`); every other file goes through
+    rawpy (LibRaw). Both give the same visible CFA mosaic (LibRaw's ``raw_image_visible``) and
+    levels.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The raw file.
+    exposure_time : float, optional
+        Seconds; overrides the file's EXIF ExposureTime.
+    mmap : bool
+        Map the pixels of a contiguous little-endian 16-bit DNG from the file (copy-on-write;
+        the file must not be truncated or rewritten in place while the frame is in use), instead
+        of reading them into memory.
+
+    Returns
+    -------
+    RawFrame
+        uint16 mosaic (DN), exposure time (s), ISO, black and white levels (DN), CFA pattern,
+        camera and capture time.
+    """
+    path = Path(path)
+    _check_readable(path)
+    exif, direct = _tiff_raw(path, mmap)
+    if direct is not None and _direct_is_complete(exif, exposure_time):
+        dec = _Decoded(data=direct.data, cfa=direct.cfa_pattern, black=direct.black_level, white=direct.white_level)
+    else:
+        dec = _libraw_decode(path)
+    t = exposure_time if exposure_time is not None else (exif.get("ExposureTime") or dec.shutter)
     if t is None:
         raise InputError(f"{path}: no exposure time in EXIF; give it explicitly (--times)")
     return RawFrame(
-        data=data,
+        data=dec.data,
         exposure_time=check_exposure_time(t, path),
-        iso=float(exif["ISOSpeedRatings"]) if exif.get("ISOSpeedRatings") else iso,
-        black_level=black,
-        white_level=white,
-        cfa_pattern=cfa,
+        iso=float(exif["ISOSpeedRatings"]) if exif.get("ISOSpeedRatings") else dec.iso,
+        black_level=dec.black,
+        white_level=dec.white,
+        cfa_pattern=dec.cfa,
         path=str(path),
         camera=exif.get("camera"),
-        timestamp=exif.get("DateTimeOriginal") or ts,
+        timestamp=exif.get("DateTimeOriginal") or dec.timestamp,
     )
 
 
@@ -245,13 +312,27 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     return RawFrame(data=data.astype(np.uint16, copy=False), exposure_time=t, path=str(path))
 
 
-def read_frame(path, exposure_time: float | None = None) -> RawFrame:
-    """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type."""
+def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True) -> RawFrame:
+    """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Raw file (:func:`read_raw`) or PNG/TIFF (:func:`read_image16`).
+    exposure_time : float, optional
+        Seconds; required for PNG/TIFF, overrides EXIF for raw files.
+    mmap : bool
+        See :func:`read_raw`.
+
+    Returns
+    -------
+    RawFrame
+    """
     path = Path(path)
     _check_readable(path)
     if path.suffix.lower() in IMAGE_EXTENSIONS:
         return read_image16(path, exposure_time)
-    return read_raw(path, exposure_time)
+    return read_raw(path, exposure_time, mmap=mmap)
 
 
 def sha256_file(path, chunk: int = 1 << 20) -> str:
