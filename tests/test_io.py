@@ -169,3 +169,32 @@ def test_emva_descriptor_errors(tmp_path):
     p.write_text("v 3.0\nb 100 1\ni a.png\nx nonsense\n")
     with pytest.raises(InputError, match=r"d.txt:4"):
         read_emva_descriptor(p)
+
+
+def test_check_frames_bracket_passes_and_sampled_twins_are_not_duplicates(tmp_path):
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap.mock_camera.scenes import make_scene
+
+    cam = SimulatedCamera(PRESETS["camera-A"], make_scene("hdr", (64, 96), 4.0, 2e5), seed=1)
+    times = (1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0)
+    bracket = [read_raw(cam.capture_to(tmp_path / f"f{i}.dng", t)) for i, t in enumerate(times)]
+    darks = [read_raw(cam.capture_to(tmp_path / f"d{i}.dng", t, dark=True)) for i, t in enumerate(times)]
+    assert len(check_frames(bracket)) == 6 and len(check_frames(darks, "dark frame")) == 6
+    # identical in every sampled row, different in one photosite elsewhere: not a duplicate
+    a = np.zeros((64, 64), np.uint16)
+    b = a.copy()
+    b[1, 1] = 1
+    c = a.copy()
+    fa, fb, fc = (read_raw(_dng(tmp_path / f"{n}.dng", x)) for n, x in (("a", a), ("b", b), ("c", c)))
+    assert len(check_frames([fa, fb])) == 2
+    with pytest.raises(InputError, match="c.dng: duplicate frame, its pixels are identical to .*a.dng"):
+        check_frames([fa, fb, fc])
+
+
+def test_check_frames_catches_a_copy_with_another_exposure_time(tmp_path):
+    data = np.random.default_rng(3).integers(0, 4096, (64, 64), dtype=np.uint16)
+    a = read_raw(_dng(tmp_path / "a.dng", data, t=1 / 250))
+    b = read_raw(_dng(tmp_path / "b.dng", data, t=1 / 60))
+    with pytest.raises(InputError, match="b.dng: duplicate frame"):
+        check_frames([a, b])
