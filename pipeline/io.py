@@ -38,6 +38,10 @@ __all__ = [
     "HdrImage",
     "write_exr",
     "read_exr",
+    "EXR_COMPRESSIONS",
+    "EXR_PRECISIONS",
+    "HALF_RANGE",
+    "HALF_RELATIVE_ERROR",
     "atomic_output",
     "RAW_EXTENSIONS",
     "IMAGE_EXTENSIONS",
@@ -556,44 +560,100 @@ class HdrImage:
 _META_KEY = "hdrcap"
 
 
-#: EXR compression names accepted by :func:`write_exr`.
-EXR_COMPRESSIONS = ("zip", "zips", "piz", "zstd", "rle", "none")
+#: EXR compression names accepted by :func:`write_exr`, and OpenEXR's constant for each.
+_EXR_CODES = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_COMPRESSION",
+              "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
+EXR_COMPRESSIONS = tuple(_EXR_CODES)
+
+#: Channel precisions accepted by :func:`write_exr`: EXR pixel type and numpy dtype.
+EXR_PRECISIONS = {"float": np.float32, "half": np.float16, "uint": np.uint32}
+
+#: Smallest and largest magnitude a half stores with full relative precision (normal range).
+HALF_RANGE = (float(np.finfo(np.float16).tiny), float(np.finfo(np.float16).max))
+
+#: Largest relative rounding error of a value stored as half in :data:`HALF_RANGE` (2**-11).
+HALF_RELATIVE_ERROR = 2.0 ** -11
 
 
-def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip") -> Path:
-    """Write ``image`` to ``path`` as a scanline EXR (ZIP-compressed by default), atomically.
+def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
+    """``arr`` converted to the dtype of ``precision``, refused where the conversion would lose
+    more than :data:`HALF_RELATIVE_ERROR` (half) or anything at all (uint)."""
+    if precision not in EXR_PRECISIONS:
+        raise ValueError(f"channel {name!r}: precision must be one of {', '.join(EXR_PRECISIONS)}, got {precision!r}")
+    if name == "irradiance" and precision != "float":
+        raise ValueError("the irradiance channel is always stored as float (32 bits)")
+    arr = np.asarray(arr)
+    if precision == "half":
+        mag = np.abs(arr[np.isfinite(arr) & (arr != 0)])
+        if mag.size and (mag.min() < HALF_RANGE[0] or mag.max() > HALF_RANGE[1]):
+            raise ValueError(f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
+                             f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float")
+    elif precision == "uint":
+        if not (np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all() and (arr == np.round(arr)).all()):
+            raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
+    return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
 
-    ``compression`` is one of :data:`EXR_COMPRESSIONS` (``none`` and ``rle`` write much faster,
-    ``zip`` is about a third smaller, ``zstd`` smaller and faster but needs OpenEXR >= 3.4 to
-    read). Channels are stored as FLOAT (float32). The metadata goes into one string attribute
-    ``hdrcap`` (JSON, full precision), and the scalar string/number entries are also written
-    as plain header attributes so that any EXR viewer shows them.
+
+def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip", *,
+              precision: dict[str, str] | None = None, threads: int | None = None) -> Path:
+    """Write ``image`` to ``path`` as a single-part scanline EXR, atomically.
+
+    The metadata goes into one string attribute ``hdrcap`` (JSON, full precision), and the
+    scalar string entries are also written as plain header attributes so that any EXR viewer
+    shows them. :func:`read_exr` reads every precision back as float32.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file.
+    image : HdrImage
+        Channels (2-D arrays of one shape) and attributes.
+    force : bool
+        Replace an existing file.
+    compression : str
+        One of :data:`EXR_COMPRESSIONS`. Measured on a 24 Mpixel merge (three float channels,
+        2 threads; docs/merge.md "Speed and memory"): ``zip`` (default) and ``zips`` are the
+        smallest of the lossless codecs OpenEXR < 3.4 reads, ``zstd`` as small and faster but
+        needs OpenEXR >= 3.4 to read, ``rle``/``none`` the fastest and largest, ``piz`` between.
+    precision : dict, optional
+        Channel name -> ``"float"`` (32-bit, the default for every channel), ``"half"`` (16-bit
+        float: relative rounding error at most :data:`HALF_RELATIVE_ERROR`, 0.05 %; refused when
+        a finite non-zero value lies outside :data:`HALF_RANGE`) or ``"uint"`` (32-bit unsigned:
+        whole numbers only, lossless). ``irradiance`` is always float.
+    threads : int, optional
+        OpenEXR's compression threads for this file; default the number of CPUs (at most 8).
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
     """
     import OpenEXR
 
     if not image.channels:
         raise ValueError("an EXR needs at least one channel")
+    if compression not in _EXR_CODES or not hasattr(OpenEXR, _EXR_CODES[compression]):
+        raise ValueError(f"EXR compression must be one of {', '.join(_EXR_CODES)}, got {compression!r}")
+    precision = precision or {}
+    unknown = set(precision) - set(image.channels)
+    if unknown:
+        raise ValueError(f"precision given for channels the image does not have: {', '.join(sorted(unknown))}")
     shape = image.shape
     chans = {}
     for name, arr in image.channels.items():
-        arr = np.ascontiguousarray(arr, dtype=np.float32)
-        if arr.shape != shape:
-            raise ValueError(f"channel {name!r} has shape {arr.shape}, expected {shape}")
-        chans[name] = arr
-    codes = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_COMPRESSION",
-             "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
-    if compression not in codes or not hasattr(OpenEXR, codes.get(compression, "")):
-        raise ValueError(f"EXR compression must be one of {', '.join(codes)}, got {compression!r}")
-    if hasattr(OpenEXR, "set_global_thread_count") and OpenEXR.global_thread_count() == 0:
-        OpenEXR.set_global_thread_count(min(os.cpu_count() or 1, 8))  # compress lines in parallel
-    header: dict[str, Any] = {"compression": getattr(OpenEXR, codes[compression]), "type": OpenEXR.scanlineimage}
+        if np.shape(arr) != shape:
+            raise ValueError(f"channel {name!r} has shape {np.shape(arr)}, expected {shape}")
+        chans[name] = _exr_channel(name, arr, precision.get(name, "float"))
+    header: dict[str, Any] = {"compression": getattr(OpenEXR, _EXR_CODES[compression]),
+                              "type": OpenEXR.scanlineimage}
     header[_META_KEY] = json.dumps(image.attrs, sort_keys=True, default=_json_default)
     for key, val in image.attrs.items():
         if isinstance(val, str):
             header[f"{_META_KEY}:{key}"] = val
+    n_threads = threads if threads is not None else min(os.cpu_count() or 1, 8)
     path = Path(path)
     with atomic_output(path, force=force, suffix=".exr") as tmp:
-        with OpenEXR.File(header, chans) as exr:
+        with OpenEXR.File(header, chans, num_threads=n_threads) as exr:
             exr.write(str(tmp))
     return path
 
