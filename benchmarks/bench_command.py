@@ -45,19 +45,34 @@ def shape_for(mpix: float) -> tuple[int, int]:
     return h, w
 
 
+#: Runs a command and reports its wall time and its own peak RSS. A child forked from a large
+#: process inherits that process's RSS high-water mark (Linux keeps it across exec), so the
+#: command is started from this small launcher, never from the benchmark process itself.
+_LAUNCHER = r"""
+import json, os, subprocess, sys, time
+cmd, env = json.loads(sys.argv[1]), json.loads(sys.argv[2])
+t0 = time.perf_counter()
+proc = subprocess.Popen(cmd, env=env)
+_, status, usage = os.wait4(proc.pid, 0)
+wall = time.perf_counter() - t0
+print(json.dumps({"returncode": os.waitstatus_to_exitcode(status), "wall_seconds": wall,
+                  "peak_rss_mb": usage.ru_maxrss / 1024.0}), file=open(sys.argv[3], "w"))
+"""
+
+
 def run_measured(cmd, env=None, cwd=None) -> dict:
     """Run ``cmd``; return wall time (s), peak RSS (MB, os.wait4), return code, stdout/stderr tails."""
-    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        t0 = time.perf_counter()
-        proc = subprocess.Popen([str(c) for c in cmd], stdout=out, stderr=err, env=env, cwd=cwd)
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
-        stdout, stderr = out.read().strip(), err.read().strip()
-    return {"returncode": proc.returncode, "wall_seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024.0,
-            "stdout": stdout.splitlines()[-1] if stdout else "", "stderr": stderr[-400:]}
+    with tempfile.TemporaryDirectory(prefix="bench_run_") as tmp:
+        report = Path(tmp) / "report.json"
+        out, err = Path(tmp) / "out", Path(tmp) / "err"
+        with open(out, "w") as fo, open(err, "w") as fe:
+            subprocess.run([sys.executable, "-c", _LAUNCHER, json.dumps([str(c) for c in cmd]),
+                            json.dumps(dict(os.environ if env is None else env)), str(report)],
+                           stdout=fo, stderr=fe, cwd=cwd)
+        stdout, stderr = out.read_text().strip(), err.read_text().strip()
+        res = json.loads(report.read_text()) if report.exists() else {"returncode": -1, "wall_seconds": None,
+                                                                      "peak_rss_mb": None}
+    return res | {"stdout": stdout.splitlines()[-1] if stdout else "", "stderr": stderr[-400:]}
 
 
 def ensure_hdrmerge() -> bool:
@@ -201,6 +216,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="runs of each command (best is reported)")
     ap.add_argument("--no-hdrmerge", action="store_true", help="time hdrcap only")
     ap.add_argument("--exr-table", action="store_true", help="also time every EXR compression and precision")
+    ap.add_argument("--work", type=Path, help="keep the simulated files in this folder (default: a temporary one)")
     args = ap.parse_args(argv)
     if args.setup:
         return 0 if ensure_hdrmerge() else 1
@@ -211,7 +227,8 @@ def main(argv=None) -> int:
     if not args.no_hdrmerge and not with_hdrmerge:
         report["hdrmerge"] = "not on PATH: run with --setup"
     with tempfile.TemporaryDirectory(prefix="bench_command_") as tmp:
-        work = Path(tmp)
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
         sim = simulate(work, shape)
         report["commands"] = compare_commands(sim, work, args.repeats, with_hdrmerge)
         report["hdrcap_parts"], image = time_parts(sim, args.repeats)

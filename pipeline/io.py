@@ -565,8 +565,9 @@ _EXR_CODES = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_
               "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
 EXR_COMPRESSIONS = tuple(_EXR_CODES)
 
-#: Channel precisions accepted by :func:`write_exr`: EXR pixel type and numpy dtype.
-EXR_PRECISIONS = {"float": np.float32, "half": np.float16, "uint": np.uint32}
+#: Channel precisions accepted by :func:`write_exr` and their numpy dtype (EXR FLOAT, HALF,
+#: UINT); ``"auto"`` is half when the channel fits :data:`HALF_RANGE`, else float.
+EXR_PRECISIONS = {"float": np.float32, "half": np.float16, "uint": np.uint32, "auto": None}
 
 #: Smallest and largest magnitude a half stores with full relative precision (normal range).
 HALF_RANGE = (float(np.finfo(np.float16).tiny), float(np.finfo(np.float16).max))
@@ -583,15 +584,26 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
     if name == "irradiance" and precision != "float":
         raise ValueError("the irradiance channel is always stored as float (32 bits)")
     arr = np.asarray(arr)
-    if precision == "half":
+    if precision in ("half", "auto"):
         mag = np.abs(arr[np.isfinite(arr) & (arr != 0)])
-        if mag.size and (mag.min() < HALF_RANGE[0] or mag.max() > HALF_RANGE[1]):
+        fits = not mag.size or (mag.min() >= HALF_RANGE[0] and mag.max() <= HALF_RANGE[1])
+        if precision == "auto":
+            precision = "half" if fits else "float"
+        elif not fits:
             raise ValueError(f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
                              f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float")
     elif precision == "uint":
         if not (np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all() and (arr == np.round(arr)).all()):
             raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
     return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
+
+
+def _set_exr_threads(openexr, threads: int | None) -> None:
+    """Size OpenEXR's global thread pool: ``threads``, or the CPUs (at most 8) if it is empty."""
+    if threads is None:
+        threads = openexr.global_thread_count() or min(os.cpu_count() or 1, 8)
+    if openexr.global_thread_count() != threads:
+        openexr.set_global_thread_count(threads)
 
 
 def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip", *,
@@ -618,10 +630,13 @@ def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zi
     precision : dict, optional
         Channel name -> ``"float"`` (32-bit, the default for every channel), ``"half"`` (16-bit
         float: relative rounding error at most :data:`HALF_RELATIVE_ERROR`, 0.05 %; refused when
-        a finite non-zero value lies outside :data:`HALF_RANGE`) or ``"uint"`` (32-bit unsigned:
-        whole numbers only, lossless). ``irradiance`` is always float.
+        a finite non-zero value lies outside :data:`HALF_RANGE`), ``"auto"`` (half if the
+        channel fits that range, else float) or ``"uint"`` (32-bit unsigned: whole numbers
+        only, lossless). ``irradiance`` is always float.
     threads : int, optional
-        OpenEXR's compression threads for this file; default the number of CPUs (at most 8).
+        OpenEXR's compression threads (its global thread pool, which this sets; the per-file
+        ``num_threads`` of the Python binding has no effect on writing). Default: the pool as
+        it is, or the number of CPUs (at most 8) if it has no threads.
 
     Returns
     -------
@@ -650,10 +665,10 @@ def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zi
     for key, val in image.attrs.items():
         if isinstance(val, str):
             header[f"{_META_KEY}:{key}"] = val
-    n_threads = threads if threads is not None else min(os.cpu_count() or 1, 8)
+    _set_exr_threads(OpenEXR, threads)
     path = Path(path)
     with atomic_output(path, force=force, suffix=".exr") as tmp:
-        with OpenEXR.File(header, chans, num_threads=n_threads) as exr:
+        with OpenEXR.File(header, chans) as exr:
             exr.write(str(tmp))
     return path
 
