@@ -23,7 +23,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import TIMES, shape_for  # noqa: E402  (one bracket and frame size for both benchmarks)
+from bench_command import TIMES, shape_for
+
 
 def _frames(shape, seed=0):
     """Bracket + darks from the simulator, generated in tiles of rows (memory)."""
@@ -81,9 +82,8 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=3, help="iterations per photosite (>= 3)")
     args = ap.parse_args(argv)
     shape = shape_for(args.mpix)
-    import numba
-
     import hdrcap.pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
+    import numba
     from numba.core import config
 
     report = {"mpix": args.mpix, "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),

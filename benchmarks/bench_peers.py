@@ -52,7 +52,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import run_measured  # noqa: E402  (the same measurement for every command)
+from bench_command import run_measured
 
 WORK = REPO / "benchmarks" / "_work"
 DEFAULT_VENV = WORK / "venv"
@@ -127,7 +127,6 @@ def setup_venv(venv: Path) -> None:
 def simulate(work: Path, camera: str, shape, seed: int):
     """Write the DNG bracket + darks and 16-bit linear TIFFs; return paths, truth and sensor."""
     import tifffile
-
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
     from hdrcap.mock_camera.scenes import make_scene

@@ -12,39 +12,39 @@ import contextlib
 import hashlib
 import json
 import os
-import re
 import tempfile
 import threading
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
 from .errors import InputError, OutputExistsError
 
 __all__ = [
-    "RawFrame",
-    "read_raw",
-    "read_image16",
-    "read_frame",
-    "check_frames",
-    "check_exposure_time",
-    "sha256_file",
-    "EmvaStep",
-    "EmvaDataset",
-    "read_emva_descriptor",
-    "HdrImage",
-    "write_exr",
-    "read_exr",
     "EXR_COMPRESSIONS",
     "EXR_PRECISIONS",
     "HALF_RANGE",
     "HALF_RELATIVE_ERROR",
-    "atomic_output",
-    "RAW_EXTENSIONS",
     "IMAGE_EXTENSIONS",
+    "RAW_EXTENSIONS",
+    "EmvaDataset",
+    "EmvaStep",
+    "HdrImage",
+    "RawFrame",
+    "atomic_output",
+    "check_exposure_time",
+    "check_frames",
+    "read_emva_descriptor",
+    "read_exr",
+    "read_frame",
+    "read_image16",
+    "read_raw",
+    "sha256_file",
+    "write_exr",
 ]
 
 RAW_EXTENSIONS = {".dng", ".nef", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
@@ -148,7 +148,7 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
 
     try:
         tif = tifffile.TiffFile(path)
-    except Exception:  # not a TIFF container (CR3, RAF, ...): LibRaw's values are used
+    except Exception:  # noqa: BLE001  (not a TIFF container, e.g. CR3, RAF: LibRaw's values are used)
         return {}, None
     with tif:
         try:
@@ -156,7 +156,7 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
             exif = _exif_values(page)
             size = path.stat().st_size
             ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts)]
-        except Exception:  # a TIFF header but no readable first IFD: LibRaw decides
+        except Exception:  # noqa: BLE001  (a TIFF header but no readable first IFD: LibRaw decides)
             return {}, None
         if ends and max(ends) > size:
             raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
@@ -164,7 +164,7 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
             direct = decode_dng(path, tif, mmap=mmap)
         except InputError:
             raise
-        except Exception:  # tags tifffile cannot interpret: LibRaw decides
+        except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
             direct = None
     return exif, direct
 
@@ -593,7 +593,8 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
             raise ValueError(f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
                              f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float")
     elif precision == "uint":
-        if not (np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all() and (arr == np.round(arr)).all()):
+        whole = np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all()
+        if not (whole and (arr == np.round(arr)).all()):
             raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
     return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
 
@@ -667,9 +668,8 @@ def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zi
             header[f"{_META_KEY}:{key}"] = val
     _set_exr_threads(OpenEXR, threads)
     path = Path(path)
-    with atomic_output(path, force=force, suffix=".exr") as tmp:
-        with OpenEXR.File(header, chans) as exr:
-            exr.write(str(tmp))
+    with atomic_output(path, force=force, suffix=".exr") as tmp, OpenEXR.File(header, chans) as exr:
+        exr.write(str(tmp))
     return path
 
 

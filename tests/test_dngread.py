@@ -8,7 +8,6 @@ import struct
 import numpy as np
 import pytest
 import tifffile
-
 from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline import io as pio
 from hdrcap.pipeline.dngread import decode_dng

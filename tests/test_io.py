@@ -7,7 +7,6 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-
 from hdrcap.mock_camera.dng import exposure_rational, write_dng
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 from hdrcap.pipeline.io import (
@@ -130,10 +129,9 @@ def test_exr_round_trip_all_channels_and_attributes(tmp_path):
 
 def test_atomic_output_leaves_nothing_on_error(tmp_path):
     target = tmp_path / "x.txt"
-    with pytest.raises(RuntimeError):
-        with atomic_output(target) as tmp:
-            tmp.write_text("partial")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), atomic_output(target) as tmp:
+        tmp.write_text("partial")
+        raise RuntimeError("boom")
     assert not target.exists() and list(tmp_path.iterdir()) == []
     with pytest.raises(InputError, match="does not exist"):
         with atomic_output(tmp_path / "nofolder" / "x.txt"):
