@@ -80,6 +80,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mpix", type=float, default=24.0, help="megapixels per frame (default 24)")
     ap.add_argument("--iterations", type=int, default=3, help="iterations per photosite (>= 3)")
+    ap.add_argument("--no-hdrmerge", action="store_true",
+                    help="ignored (HDRMerge is compared in bench_command.py); accepted for run_all.py")
     args = ap.parse_args(argv)
     shape = shape_for(args.mpix)
     import hdrcap.pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
