@@ -1,5 +1,6 @@
 """The camera gain g, DN per electron: from flat pairs (Eq. 16, 17) and by the EMVA 1288
-photon-transfer regression of the pair variance on the mean over 0-70 % of saturation."""
+photon-transfer regression of the pair variance on the mean over 0-70 % of saturation, with
+the dark temporal variance at each pair's exposure time (:class:`DarkVariance`) subtracted."""
 
 from __future__ import annotations
 
@@ -8,10 +9,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..times import unique_exposures
 from .stats import PairStats
 
 __all__ = ["prnu_correction_factor", "gain_from_pair", "gain_from_pairs", "PhotonTransferFit",
-           "photon_transfer_gain"]
+           "photon_transfer_gain", "DarkVariance", "fit_dark_variance"]
 
 
 def prnu_correction_factor(mu_X: float, sigma2_a: float, mu_D: float = 0.0) -> float:
@@ -192,3 +194,78 @@ def photon_transfer_gain(means: Sequence[float] | np.ndarray, variances: Sequenc
         model = np.hypot(np.sqrt(np.sum(xu**2 * sk**2)) / sxx, common_stderr * np.sum(xu) / sxx)
         se = max(se, float(model))
     return PhotonTransferFit(g, se, x, y, used, float(saturation))
+
+
+@dataclass(frozen=True)
+class DarkVariance:
+    """Temporal variance of a dark frame against exposure time, sigma^2_y.dark(t) = a + b t.
+
+    The readout variance plus the dark shot noise g^2 D t (EMVA 1288 subtracts it, measured at
+    each exposure time, from the variance of the light pairs).
+
+    Attributes
+    ----------
+    intercept : float
+        a, DN^2.
+    slope : float
+        b, DN^2 per second.
+    cov : tuple of float
+        Covariance of (a, b): (var a, cov ab, var b), DN^4, DN^4/s, DN^4/s^2.
+    n_pairs : int
+        Dark pairs in the fit.
+    times : tuple of float
+        Their exposure times, s.
+    """
+
+    intercept: float
+    slope: float
+    cov: tuple[float, float, float]
+    n_pairs: int
+    times: tuple[float, ...]
+
+    def at(self, t: float) -> tuple[float, float]:
+        """The dark temporal variance at ``t`` seconds and its standard error, DN^2.
+
+        Parameters
+        ----------
+        t : float
+            Exposure time, s.
+
+        Returns
+        -------
+        value, stderr : float
+        """
+        va, cab, vb = self.cov
+        return self.intercept + self.slope * t, float(np.sqrt(max(va + 2 * t * cab + t * t * vb, 0.0)))
+
+
+def fit_dark_variance(pairs: Sequence[PairStats]) -> DarkVariance | None:
+    """Weighted straight-line fit of the dark pairs' temporal variance against exposure time.
+
+    Weights are the inverse squared fourth-moment standard errors of the pair variances; the
+    covariance is scaled up by the reduced chi-square when the points scatter more than their
+    errors say.
+
+    Parameters
+    ----------
+    pairs : sequence of PairStats
+        Dark pairs (variance DN^2, exposure time s).
+
+    Returns
+    -------
+    DarkVariance or None
+        None with fewer than two distinct exposure times (the line is not determined).
+    """
+    if len(unique_exposures([p.exposure_time for p in pairs])) < 2:
+        return None
+    t = np.array([p.exposure_time for p in pairs], float)
+    v = np.array([p.variance for p in pairs], float)
+    w = 1.0 / np.maximum(np.array([p.variance_stderr for p in pairs], float), 1e-12) ** 2
+    A = np.stack([np.ones_like(t), t], axis=1)
+    cov = np.linalg.inv(A.T @ (A * w[:, None]))
+    a, b = cov @ (A.T @ (w * v))
+    if t.size > 2:
+        chi2 = float(np.sum(w * (v - a - b * t) ** 2)) / (t.size - 2)
+        cov = cov * max(chi2, 1.0)
+    return DarkVariance(float(a), float(b), (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])), int(t.size),
+                        tuple(float(x) for x in t))

@@ -9,13 +9,17 @@ holds a few maps, never a stack of frames. Units: DN, DN^2.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from ..times import same_exposure
 from . import _kernels as _k
+from .frames import frame_data, frame_time
 
-__all__ = ["DEFAULT_CLIP", "robust_mean_std", "PairStats", "pair_statistics", "PixelStack"]
+__all__ = ["DEFAULT_CLIP", "robust_mean_std", "PairStats", "pair_statistics", "PairTap", "PixelStack"]
 
 #: Default clipping threshold, in standard deviations.
 DEFAULT_CLIP = 5.0
@@ -161,6 +165,40 @@ def pair_statistics(a: np.ndarray, b: np.ndarray, clip: float | None = DEFAULT_C
     var_stderr = 0.5 * np.sqrt(max(m4 - s2 * s2, 0.0) / n)
     d = a.size
     return PairStats(float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time))
+
+
+@dataclass
+class PairTap:
+    """Pass frames through unchanged, recording the pair statistics of consecutive frames at
+    one exposure time (frames 1-2, 3-4, ... of a run).
+
+    Holds one frame at a time. Iterate it in place of ``frames``; :attr:`pairs` fills as the
+    consumer advances.
+
+    Attributes
+    ----------
+    frames : iterable of frames
+        The frames (``data`` in DN, ``exposure_time`` in s), consumed once.
+    clip : float or None
+        Clipping threshold of :func:`pair_statistics`, robust standard deviations.
+    pairs : list of PairStats
+        The pairs seen so far (means DN, variance DN^2, exposure time s).
+    """
+
+    frames: Iterable
+    clip: float | None = DEFAULT_CLIP
+    pairs: list = field(default_factory=list)
+
+    def __iter__(self) -> Iterator[Any]:
+        pending = None
+        for fr in self.frames:
+            yield fr  # the consumer checks the frame (size, order) before it is paired
+            data, t = frame_data(fr), frame_time(fr)
+            if pending is not None and same_exposure(pending[1], t) and pending[0].shape == data.shape:
+                self.pairs.append(pair_statistics(pending[0], data, self.clip, t))
+                pending = None
+            else:
+                pending = (data, t)
 
 
 # --------------------------------------------------------------------------- per-photosite stacks

@@ -21,10 +21,17 @@ from ..errors import InputError
 from ..params import Calibration, SensorParams
 from .dark import DarkFit, DarkSeries, MasterDark, stream_master_darks
 from .flats import FlatResult, estimate_flats
-from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
+from .gain import (
+    DarkVariance,
+    PhotonTransferFit,
+    fit_dark_variance,
+    gain_from_pairs,
+    photon_transfer_gain,
+    prnu_correction_factor,
+)
 from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
-from .stats import DEFAULT_CLIP
+from .stats import DEFAULT_CLIP, PairTap
 
 __all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
 
@@ -42,6 +49,7 @@ class _Record:
     counts: dict[str, int] = field(default_factory=lambda: {"bias": 0, "saturation": 0, "flat": 0, "dark": 0})
     stderr: dict[str, float] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+    dark_variance: DarkVariance | None = None
 
 
 def _readout_step(bias: Iterable, clip: float | None, white_level: float | None, rec: _Record) -> ReadoutEstimate:
@@ -61,11 +69,13 @@ def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
         return None, None
     shape = None if ro.bias_map is None else ro.bias_map.shape
     series = DarkSeries()
-    for master in stream_master_darks(darks, clip, shape):
+    tap = PairTap(darks, clip)
+    for master in stream_master_darks(tap, clip, shape):
         series.add(master)
         rec.counts["dark"] += master.n_frames
         if dark_sink is not None:
             dark_sink(master)
+    rec.dark_variance = fit_dark_variance(tap.pairs)
     if not series.times:
         return None, None
     rec.info["dark_series"] = series.to_dict()
@@ -118,14 +128,29 @@ def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: 
     return fl, prnu_stderr
 
 
-def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None) -> tuple[np.ndarray, np.ndarray]:
-    """Photon-transfer points of the flat pairs: mean above dark (DN; the dark signal at each
-    pair's time removed when known) and variance above the readout variance (DN^2)."""
+def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None,
+                dark_var: DarkVariance | None) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """Photon-transfer points of the flat pairs (EMVA 1288): mean above dark (DN) and variance
+    above the dark temporal variance (DN^2), both at each pair's exposure time.
+
+    With a dark-current fit and dark pairs at >= 2 times, the dark mean and the dark temporal
+    variance at the pair's time are subtracted; otherwise neither is (the dark signal then
+    counts as signal in both coordinates, which leaves the slope unbiased). Also returns the
+    standard error common to every point (of the subtracted variance, DN^2) and how the dark
+    was handled.
+    """
     x = np.array([p.mean - ro.mu_R for p in fl.pairs])
-    y = np.array([p.variance - ro.sigma2_R for p in fl.pairs])
-    if dark_fit is not None:
-        x = x - np.array([dark_fit.slope * p.exposure_time for p in fl.pairs])
-    return x, y
+    times = np.array([p.exposure_time for p in fl.pairs])
+    if dark_fit is None or dark_var is None:
+        y = np.array([p.variance - ro.sigma2_R for p in fl.pairs])
+        why = "no dark fit" if dark_fit is None else "no dark pairs at >= 2 exposure times"
+        return x, y, ro.sigma2_R_stderr, f"readout mean and variance subtracted; dark signal counted as signal ({why})"
+    x = x - dark_fit.slope * times
+    y = np.array([p.variance - dark_var.at(p.exposure_time)[0] for p in fl.pairs])
+    common = dark_var.at(float(np.mean(times)))[1]
+    how = (f"dark mean (fit) and dark temporal variance ({dark_var.n_pairs} dark pairs, "
+           f"{dark_var.slope:.4g} DN^2/s) subtracted at each pair's exposure time")
+    return x, y, common, how
 
 
 def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: DarkFit | None, gain_method: str,
@@ -141,12 +166,11 @@ def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: Dark
     ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.8 * sat_span]
     if ok_pairs:
         g_pairs, g_pairs_se, per_pair = gain_from_pairs(ok_pairs, ro.mu_R, ro.sigma2_R, k, ro.sigma2_R_stderr)
-    x, y = _ptc_points(fl, ro, dark_fit)
+    x, y, common_se, dark_how = _ptc_points(fl, ro, dark_fit, rec.dark_variance)
     n_levels = int(np.unique(np.round(x[(x > 0) & (x <= fit_fraction * sat_span)], 6)).size)
     ptc = None
     if n_levels >= 3:
-        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, [p.variance_stderr for p in fl.pairs],
-                                   ro.sigma2_R_stderr)
+        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, [p.variance_stderr for p in fl.pairs], common_se)
     if gain_method == "ptc" and ptc is None:
         raise InputError(f"the photon-transfer regression needs flat pairs at >= 3 levels within "
                          f"{fit_fraction:.0%} of saturation; got {n_levels}")
@@ -164,6 +188,7 @@ def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: Dark
     rec.info["gain_method"] = g_method
     rec.info["gain_pairs"] = {"g": g_pairs, "g_stderr": g_pairs_se, "per_pair": per_pair, "k_eq17": k}
     rec.info["ptc"] = _ptc_info(ptc, x, y, sat_span)
+    rec.info["ptc"]["dark_correction"] = dark_how
     rec.info["flat_levels"] = [{"t": t, "level": lv, "file": nm} for t, lv, nm in fl.levels]
     rec.info["prnu_frames"] = fl.n_prnu_frames
     rec.info["prnu_rejected_samples"] = fl.n_rejected
