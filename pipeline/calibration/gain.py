@@ -13,7 +13,7 @@ from ..times import unique_exposures
 from .stats import PairStats
 
 __all__ = ["prnu_correction_factor", "gain_from_pair", "gain_from_pairs", "PhotonTransferFit",
-           "photon_transfer_gain", "DarkVariance", "fit_dark_variance"]
+           "photon_transfer_gain", "DarkVariance", "fit_dark_variance", "usable_pairs", "nonlinearity_warnings"]
 
 
 def prnu_correction_factor(mu_X: float, sigma2_a: float, mu_D: float = 0.0) -> float:
@@ -269,3 +269,91 @@ def fit_dark_variance(pairs: Sequence[PairStats]) -> DarkVariance | None:
         cov = cov * max(chi2, 1.0)
     return DarkVariance(float(a), float(b), (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])), int(t.size),
                         tuple(float(x) for x in t))
+
+
+#: A pair is left out of the gain when more than this fraction of its photosites is censored
+#: near saturation (its statistics would describe a minority of the sensor).
+MAX_CENSORED_FRACTION = 0.5
+
+
+def usable_pairs(pairs: Sequence[PairStats], mu_R: float, saturation: float,
+                 max_censored: float = MAX_CENSORED_FRACTION) -> tuple[list[PairStats], list[dict]]:
+    """The flat pairs that can give the gain, and a record of every pair and why.
+
+    A pair is usable when its mean lies above the bias and at most ``max_censored`` of its
+    photosites were censored near saturation; its level does not matter otherwise (censoring
+    keeps its statistics unbiased up to saturation).
+
+    Parameters
+    ----------
+    pairs : sequence of PairStats
+        The flat pairs (DN, DN^2).
+    mu_R : float
+        Bias level, DN.
+    saturation : float
+        Saturation level above the bias, DN (for the recorded fraction).
+    max_censored : float
+        Largest censored fraction of a usable pair.
+
+    Returns
+    -------
+    usable : list of PairStats
+    log : list of dict
+        Per pair: ``t`` (s), ``level`` (DN above bias), ``fraction_of_saturation``, ``n_used``,
+        ``n_censored``, ``used`` (bool) and ``reason``.
+    """
+    usable, log = [], []
+    for p in pairs:
+        level = p.mean - mu_R
+        frac = p.n_censored / max(p.n_used + p.n_rejected, 1)
+        if level <= 0:
+            reason = "at or below the bias level"
+        elif frac > max_censored:
+            reason = f"{100 * frac:.0f} % of photosites censored near saturation"
+        else:
+            reason = ""
+            usable.append(p)
+        log.append({"t": p.exposure_time, "level": level, "fraction_of_saturation": level / saturation,
+                    "n_used": p.n_used, "n_censored": p.n_censored, "used": not reason, "reason": reason or "usable"})
+    return usable, log
+
+
+def nonlinearity_warnings(means: np.ndarray, variances: np.ndarray, variance_stderr: np.ndarray, g: float,
+                          saturation: float, n_sigma: float = 4.0, min_relative: float = 0.01) -> list[str]:
+    """Photon-transfer points that depart from the straight line sigma^2 = g mu.
+
+    A point departs when its variance differs from g mu by more than ``n_sigma`` standard
+    errors and by more than ``min_relative`` of g mu; near saturation this is the sign of a
+    non-linear response (a compressing full well, a clipping ADC), which the gain must not
+    include and a merge should not trust.
+
+    Parameters
+    ----------
+    means, variances, variance_stderr : numpy.ndarray
+        Photon-transfer points: mean above dark (DN), variance above dark (DN^2) and its
+        standard error (DN^2).
+    g : float
+        The gain, DN per electron.
+    saturation : float
+        Saturation level above dark, DN.
+    n_sigma, min_relative : float
+        Thresholds.
+
+    Returns
+    -------
+    list of str
+        One warning naming the lowest departing level (empty when the points are linear).
+    """
+    x = np.asarray(means, float)
+    model = g * x
+    resid = np.asarray(variances, float) - model
+    se = np.asarray(variance_stderr, float)
+    bad = (x > 0) & (np.abs(resid) > n_sigma * se) & (np.abs(resid) > min_relative * model)
+    if not bad.any():
+        return []
+    i = int(np.flatnonzero(bad)[np.argmin(x[bad])])
+    n_above = int(np.count_nonzero(bad & (x >= x[i])))
+    return [f"photon transfer is not linear from {100 * x[i] / saturation:.0f} % of saturation "
+            f"({x[i]:.0f} DN above dark): variance {100 * resid[i] / model[i]:+.1f} % from g mu "
+            f"({resid[i] / se[i]:+.1f} sigma), {n_above} of {int(np.count_nonzero(x >= x[i]))} "
+            "levels from there depart; keep flats for the PRNU map and exposures below this level"]
