@@ -45,8 +45,17 @@ from .io import EmvaDataset, read_emva_descriptor, read_image16
 from .params import Calibration, SensorParams
 from .times import ExposureMap
 
-__all__ = ["EmvaData", "EmvaResults", "emva_data", "emva_results", "emva_calibration", "calibrate_descriptor",
-           "QUANTISATION_VARIANCE", "QUANTISATION_LIMIT", "MIN_DARK_TIMES"]
+__all__ = [
+    "EmvaData",
+    "EmvaResults",
+    "emva_data",
+    "emva_results",
+    "emva_calibration",
+    "calibrate_descriptor",
+    "QUANTISATION_VARIANCE",
+    "QUANTISATION_LIMIT",
+    "MIN_DARK_TIMES",
+]
 
 #: Variance of a uniform quantiser with a 1 DN step, DN^2.
 QUANTISATION_VARIANCE = 1.0 / 12.0
@@ -61,8 +70,10 @@ _PGM_TOKEN = re.compile(rb"(?:\s|#[^\n]*\n)*(\S+)")
 #: Distinct exposure times of dark pairs needed for the dark current (as for the calibration).
 MIN_DARK_TIMES = 6
 
-_QUANTISATION_RULE = ("EMVA 1288: dark variance below 0.24 DN^2 is quantisation-limited; sigma_y.dark is set to "
-                      "0.49 DN and sigma_d < sqrt(0.24 - 1/12)/K = 0.40/K is an upper limit")
+_QUANTISATION_RULE = (
+    "EMVA 1288: dark variance below 0.24 DN^2 is quantisation-limited; sigma_y.dark is set to "
+    "0.49 DN and sigma_d < sqrt(0.24 - 1/12)/K = 0.40/K is an upper limit"
+)
 
 
 @dataclass
@@ -120,8 +131,9 @@ def _read(path, shape) -> np.ndarray:
     """One image of the data set (PNG, TIFF or PGM), checked against the descriptor's size, DN."""
     data = _read_pgm(Path(path)) if Path(path).suffix.lower() in (".pgm", ".pnm") else read_image16(path, 1.0).data
     if data.shape != shape:
-        raise InputError(f"{path}: size {data.shape[1]}x{data.shape[0]} differs from the descriptor's "
-                         f"{shape[1]}x{shape[0]}")
+        raise InputError(
+            f"{path}: size {data.shape[1]}x{data.shape[0]} differs from the descriptor's {shape[1]}x{shape[0]}"
+        )
     return data
 
 
@@ -191,8 +203,10 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
     n_img = 0
     for step in dataset.steps:
         if len(step.images) < 2:
-            raise InputError(f"{dataset.path}: step {step.kind} {step.exposure_time * 1e9:g} ns has "
-                             f"{len(step.images)} image(s); every step needs at least two")
+            raise InputError(
+                f"{dataset.path}: step {step.kind} {step.exposure_time * 1e9:g} ns has "
+                f"{len(step.images)} image(s); every step needs at least two"
+            )
         if len(step.images) == 2:
             ps = _pair(step, shape, dark)
             if step.kind == "b":
@@ -212,13 +226,21 @@ def emva_data(dataset: EmvaDataset, progress: Callable[[int], Any] | None = None
     steps = _bright_steps(dataset, bright, darks)
     t_b = np.array([t for t, _, _ in steps])
     return EmvaData(
-        texp=t_b, photons=np.array([ph for _, ph, _ in steps]),
-        u_y=np.array([p.mean for _, _, p in steps]), s2_y=np.array([p.variance for _, _, p in steps]),
-        u_ydark=np.array([_dark_at(darks, t)[0] for t in t_b]), s2_ydark=np.array([_dark_at(darks, t)[1] for t in t_b]),
+        texp=t_b,
+        photons=np.array([ph for _, ph, _ in steps]),
+        u_y=np.array([p.mean for _, _, p in steps]),
+        s2_y=np.array([p.variance for _, _, p in steps]),
+        u_ydark=np.array([_dark_at(darks, t)[0] for t in t_b]),
+        s2_ydark=np.array([_dark_at(darks, t)[1] for t in t_b]),
         s2_y_stderr=np.array([p.variance_stderr for _, _, p in steps]),
         s2_ydark_stderr=np.array([_dark_at(darks, t)[2] for t in t_b]),
-        spatial=_spatial_summary(spatial), dark_slope_map=dark.slope_map(), bits=dataset.bits, width=dataset.width,
-        height=dataset.height, n_images=n_img, **series,
+        spatial=_spatial_summary(spatial),
+        dark_slope_map=dark.slope_map(),
+        bits=dataset.bits,
+        width=dataset.width,
+        height=dataset.height,
+        n_images=n_img,
+        **series,
     )
 
 
@@ -249,8 +271,12 @@ def _dark_series(darks: ExposureMap) -> dict[str, np.ndarray]:
     """The dark pairs by distinct exposure time (ascending), as EmvaData's dark_* fields."""
     times = sorted(darks.keys())
     vals = [_dark_at(darks, t) for t in times]
-    return {"dark_texp": np.array(times, float), "dark_u": np.array([v[0] for v in vals]),
-            "dark_s2": np.array([v[1] for v in vals]), "dark_s2_stderr": np.array([v[2] for v in vals])}
+    return {
+        "dark_texp": np.array(times, float),
+        "dark_u": np.array([v[0] for v in vals]),
+        "dark_s2": np.array([v[1] for v in vals]),
+        "dark_s2_stderr": np.array([v[2] for v in vals]),
+    }
 
 
 def _bright_steps(dataset: EmvaDataset, bright: list, darks: ExposureMap) -> list:
@@ -258,8 +284,10 @@ def _bright_steps(dataset: EmvaDataset, bright: list, darks: ExposureMap) -> lis
     time and mean; each must have a dark pair at its exposure time; >= 3 of them."""
     missing = [t for t, _, _ in bright if t not in darks]
     if missing:
-        raise InputError(f"{dataset.path}: bright step at {missing[0] * 1e9:g} ns has no dark pair at that exposure "
-                         "time (EMVA 1288 needs one at every exposure time)")
+        raise InputError(
+            f"{dataset.path}: bright step at {missing[0] * 1e9:g} ns has no dark pair at that exposure "
+            "time (EMVA 1288 needs one at every exposure time)"
+        )
     if len(bright) < 3:
         raise InputError(f"{dataset.path}: {len(bright)} bright pairs; the photon-transfer method needs >= 3")
     if all(np.isfinite(ph) for _, ph, _ in bright):
@@ -395,9 +423,27 @@ class EmvaResults:
             Units as the attributes; a quantity the data do not support is None (JSON null),
             with the reason in ``notes``.
         """
-        out = {k: getattr(self, k) for k in ("K", "K_stderr", "index_u_ysat", "u_y_sat", "sigma_y_dark", "sigma_d",
-                                             "u_I_mean", "u_I_mean_stderr", "R", "QE", "u_e_sat", "s2_y",
-                                             "s2_y_dark", "PRNU1288", "DSNU1288", "quantisation_limited")}
+        out = {
+            k: getattr(self, k)
+            for k in (
+                "K",
+                "K_stderr",
+                "index_u_ysat",
+                "u_y_sat",
+                "sigma_y_dark",
+                "sigma_d",
+                "u_I_mean",
+                "u_I_mean_stderr",
+                "R",
+                "QE",
+                "u_e_sat",
+                "s2_y",
+                "s2_y_dark",
+                "PRNU1288",
+                "DSNU1288",
+                "quantisation_limited",
+            )
+        }
         for k, v in out.items():
             if isinstance(v, float) and not np.isfinite(v):
                 out[k] = None
@@ -427,8 +473,9 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
     isat = int(np.argmax(data.s2_y))
     sat = float(x[isat])
     # include index 0 even if tiny: the fit range is 0 .. fit_fraction of saturation
-    ptc = photon_transfer_gain(np.where(x > 0, x, 1e-12), y, sat, fit_fraction,
-                               np.hypot(data.s2_y_stderr, data.s2_ydark_stderr))
+    ptc = photon_transfer_gain(
+        np.where(x > 0, x, 1e-12), y, sat, fit_fraction, np.hypot(data.s2_y_stderr, data.s2_ydark_stderr)
+    )
     K = ptc.g
     s2_dark0, notes = _dark_variance_at_zero(data), {}
     limited = s2_dark0 < QUANTISATION_LIMIT
@@ -460,11 +507,26 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
         signal = sp["mean"] - sp["mean_dark"]
         prnu = 100.0 * float(np.sqrt(max(s2_y - s2_y_dark, 0.0))) / signal
         dsnu = float(np.sqrt(max(s2_y_dark, 0.0))) / K
-    return EmvaResults(K=K, K_stderr=ptc.g_stderr, ptc=ptc, index_u_ysat=isat,
-                       u_y_sat=float(data.u_y[isat]), sigma_y_dark=sigma_y_dark, sigma_d=sigma_d,
-                       u_I_mean=float(u_I), u_I_mean_stderr=float(u_I_se), R=R, QE=QE, u_e_sat=float(u_e_sat),
-                       s2_y=float(s2_y), s2_y_dark=float(s2_y_dark), PRNU1288=float(prnu), DSNU1288=float(dsnu),
-                       quantisation_limited=bool(limited), notes=notes)
+    return EmvaResults(
+        K=K,
+        K_stderr=ptc.g_stderr,
+        ptc=ptc,
+        index_u_ysat=isat,
+        u_y_sat=float(data.u_y[isat]),
+        sigma_y_dark=sigma_y_dark,
+        sigma_d=sigma_d,
+        u_I_mean=float(u_I),
+        u_I_mean_stderr=float(u_I_se),
+        R=R,
+        QE=QE,
+        u_e_sat=float(u_e_sat),
+        s2_y=float(s2_y),
+        s2_y_dark=float(s2_y_dark),
+        PRNU1288=float(prnu),
+        DSNU1288=float(dsnu),
+        quantisation_limited=bool(limited),
+        notes=notes,
+    )
 
 
 def _dark_variance_at_zero(data: EmvaData) -> float:
@@ -497,8 +559,9 @@ def _dark_current(data: EmvaData, K: float, K_stderr: float, quantisation_limite
     return float(D), float(np.hypot(se, D * K_stderr / K)), ""
 
 
-def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "frame",
-                     provenance: Mapping[str, Any] | None = None) -> Calibration:
+def emva_calibration(
+    data: EmvaData, results: EmvaResults, saturation: str = "frame", provenance: Mapping[str, Any] | None = None
+) -> Calibration:
     """The camera model of an EMVA 1288 data set as a :class:`Calibration`.
 
     g = K; mu_R and sigma2_R from the dark pair at the shortest exposure time (pair
@@ -558,8 +621,15 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     measured_D = bool(np.isfinite(results.u_I_mean))
     D = results.u_I_mean if measured_D else 0.0
     dmap = None if data.dark_slope_map is None or not measured_D else (data.dark_slope_map / K).astype(np.float32)
-    params = SensorParams(g=K, mu_R=mu_R, sigma2_R=sigma2_R, v_sat=float(min(v_sat, white)), white_level=white,
-                          dark_current=float(D), name=str((provenance or {}).get("camera", "")))
+    params = SensorParams(
+        g=K,
+        mu_R=mu_R,
+        sigma2_R=sigma2_R,
+        v_sat=float(min(v_sat, white)),
+        white_level=white,
+        dark_current=float(D),
+        name=str((provenance or {}).get("camera", "")),
+    )
     prov = dict(provenance or {})
     prov["n_frames"] = int(data.n_images)
     prov["prnu_std"] = prnu_std
@@ -571,9 +641,14 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
         "sigma2_R_method": "dark pair difference at the shortest exposure time"
         + (" (quantisation-limited: 0.24 DN^2, EMVA 1288)" if results.quantisation_limited else ""),
         "emva1288": results.to_dict(),
-        "ptc": {"means": results.ptc.means.tolist(), "variances": results.ptc.variances.tolist(),
-                "used": results.ptc.used.tolist(), "saturation": results.ptc.saturation,
-                "g": results.K, "g_stderr": results.K_stderr},
+        "ptc": {
+            "means": results.ptc.means.tolist(),
+            "variances": results.ptc.variances.tolist(),
+            "used": results.ptc.used.tolist(),
+            "saturation": results.ptc.saturation,
+            "g": results.K,
+            "g_stderr": results.K_stderr,
+        },
         "dark_series": {"times": data.dark_texp.tolist(), "levels": data.dark_u.tolist()},
         "notes": dict(results.notes),
     }
@@ -589,12 +664,20 @@ def emva_calibration(data: EmvaData, results: EmvaResults, saturation: str = "fr
     }
     if measured_D:
         stderr["dark_current"] = results.u_I_mean_stderr
-    return Calibration(params=params, prnu=prnu, bias_map=bias_map, dark_current_map=dmap, stderr=stderr,
-                       provenance=prov, prnu_stderr=prnu_se)
+    return Calibration(
+        params=params,
+        prnu=prnu,
+        bias_map=bias_map,
+        dark_current_map=dmap,
+        stderr=stderr,
+        provenance=prov,
+        prnu_stderr=prnu_se,
+    )
 
 
-def calibrate_descriptor(descriptor: str | os.PathLike[str], saturation: str = "frame",
-                         provenance: Mapping[str, Any] | None = None) -> tuple[Calibration, EmvaResults]:
+def calibrate_descriptor(
+    descriptor: str | os.PathLike[str], saturation: str = "frame", provenance: Mapping[str, Any] | None = None
+) -> tuple[Calibration, EmvaResults]:
     """All four stages on an EMVA 1288 descriptor file: parse, data, results, calibration.
 
     Parameters

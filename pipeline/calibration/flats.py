@@ -78,8 +78,10 @@ def _clipped(data: np.ndarray, v_sat: float, name: str) -> np.ndarray:
     clipped = data >= v_sat
     frac = float(np.count_nonzero(clipped)) / data.size
     if frac > SATURATED_FRACTION:
-        raise InputError(f"{name}: flat field is saturated ({100 * frac:.1f} % of photosites at or above "
-                         f"v_sat = {v_sat:.1f} DN); lower the exposure")
+        raise InputError(
+            f"{name}: flat field is saturated ({100 * frac:.1f} % of photosites at or above "
+            f"v_sat = {v_sat:.1f} DN); lower the exposure"
+        )
     return clipped
 
 
@@ -115,9 +117,16 @@ def _prnu_map(mean_map: np.ndarray, err_map: np.ndarray | None) -> tuple[np.ndar
     return prnu, err_map, prnu_std
 
 
-def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: float, sigma2_R: float,
-                   clip: float | None = DEFAULT_CLIP, dark_rate_map: np.ndarray | None = None,
-                   prnu_max_fraction: float = 0.9, mu_R: float | None = None) -> FlatResult:
+def estimate_flats(
+    frames: Iterable,
+    dark_reference: np.ndarray | float,
+    v_sat: float,
+    sigma2_R: float,
+    clip: float | None = DEFAULT_CLIP,
+    dark_rate_map: np.ndarray | None = None,
+    prnu_max_fraction: float = 0.9,
+    mu_R: float | None = None,
+) -> FlatResult:
     """Stream flat fields: the dark-corrected PRNU map a_j (Eq. 14) and the flat pairs.
 
     Each flat f_i is dark-corrected with ``dark_reference`` plus ``dark_rate_map`` * t when
@@ -181,16 +190,17 @@ def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: 
         corr = _dark_corrected(data, dark_reference, dark_rate_map, t)
         level, _, _ = robust_mean_std(corr, clip)
         if level < 3.0 * np.sqrt(sigma2_R):
-            raise InputError(f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
-                             f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)")
+            raise InputError(
+                f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
+                f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)"
+            )
         levels.append((t, float(level), name))
         in_prnu, note = _prnu_use(level, sat_span, prnu_max_fraction, n_clipped, data.size)
         if in_prnu:
             prnu_levels.append(level)
             corr /= level
             stack.add(corr, weight=_prnu_weight(level), censor=clipped if n_clipped else None)
-        notes.append({"file": name, "t": t, "level": float(level), "clipped": n_clipped,
-                      "prnu": in_prnu, "note": note})
+        notes.append({"file": name, "t": t, "level": float(level), "clipped": n_clipped, "prnu": in_prnu, "note": note})
         del corr, clipped
         if pending is not None and same_exposure(pending[1], t):
             try:
@@ -211,8 +221,20 @@ def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: 
     n_never = 0 if counts is None else int(np.count_nonzero(counts == 0))
     del stack, counts  # free the sums before building the maps
     prnu, err_map, prnu_std = _prnu_map(mean_map, err_map)
-    return FlatResult(prnu, err_map, prnu_std, pairs, levels, n, n_prnu, rejected, float(np.mean(prnu_levels)),
-                      notes, skipped, n_never)
+    return FlatResult(
+        prnu,
+        err_map,
+        prnu_std,
+        pairs,
+        levels,
+        n,
+        n_prnu,
+        rejected,
+        float(np.mean(prnu_levels)),
+        notes,
+        skipped,
+        n_never,
+    )
 
 
 def _prnu_use(level: float, sat_span: float, max_fraction: float, n_clipped: int, size: int) -> tuple[bool, str]:

@@ -12,8 +12,17 @@ import numpy as np
 from ..times import unique_exposures
 from .stats import PairStats
 
-__all__ = ["prnu_correction_factor", "gain_from_pair", "gain_from_pairs", "PhotonTransferFit",
-           "photon_transfer_gain", "DarkVariance", "fit_dark_variance", "usable_pairs", "nonlinearity_warnings"]
+__all__ = [
+    "prnu_correction_factor",
+    "gain_from_pair",
+    "gain_from_pairs",
+    "PhotonTransferFit",
+    "photon_transfer_gain",
+    "DarkVariance",
+    "fit_dark_variance",
+    "usable_pairs",
+    "nonlinearity_warnings",
+]
 
 
 def prnu_correction_factor(mu_X: float, sigma2_a: float, mu_D: float = 0.0) -> float:
@@ -67,8 +76,9 @@ def gain_from_pair(pair: PairStats, mu_R: float, sigma2_R: float, k: float = 1.0
     return float(g), float(pair.variance_stderr / signal / k)
 
 
-def gain_from_pairs(pairs: list[PairStats], mu_R: float, sigma2_R: float, k: float = 1.0,
-                    sigma2_R_stderr: float = 0.0) -> tuple[float, float, list[float]]:
+def gain_from_pairs(
+    pairs: list[PairStats], mu_R: float, sigma2_R: float, k: float = 1.0, sigma2_R_stderr: float = 0.0
+) -> tuple[float, float, list[float]]:
     """Inverse-variance weighted average of Eq. 16 over several flat pairs.
 
     Sec. 6: "several gain estimates obtained from distinct flat frame differences should be
@@ -137,10 +147,14 @@ class PhotonTransferFit:
     saturation: float
 
 
-def photon_transfer_gain(means: Sequence[float] | np.ndarray, variances: Sequence[float] | np.ndarray,
-                         saturation: float, fit_fraction: float = 0.7,
-                         variance_stderr: Sequence[float] | np.ndarray | None = None,
-                         common_stderr: float = 0.0) -> PhotonTransferFit:
+def photon_transfer_gain(
+    means: Sequence[float] | np.ndarray,
+    variances: Sequence[float] | np.ndarray,
+    saturation: float,
+    fit_fraction: float = 0.7,
+    variance_stderr: Sequence[float] | np.ndarray | None = None,
+    common_stderr: float = 0.0,
+) -> PhotonTransferFit:
     """System gain K by the EMVA 1288 photon-transfer method.
 
     Least-squares slope through the origin of sigma^2_y - sigma^2_y.dark against
@@ -267,8 +281,13 @@ def fit_dark_variance(pairs: Sequence[PairStats]) -> DarkVariance | None:
     if t.size > 2:
         chi2 = float(np.sum(w * (v - a - b * t) ** 2)) / (t.size - 2)
         cov = cov * max(chi2, 1.0)
-    return DarkVariance(float(a), float(b), (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])), int(t.size),
-                        tuple(float(x) for x in t))
+    return DarkVariance(
+        float(a),
+        float(b),
+        (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])),
+        int(t.size),
+        tuple(float(x) for x in t),
+    )
 
 
 #: A pair is left out of the gain when more than this fraction of its photosites is censored
@@ -276,8 +295,9 @@ def fit_dark_variance(pairs: Sequence[PairStats]) -> DarkVariance | None:
 MAX_CENSORED_FRACTION = 0.5
 
 
-def usable_pairs(pairs: Sequence[PairStats], mu_R: float, saturation: float,
-                 max_censored: float = MAX_CENSORED_FRACTION) -> tuple[list[PairStats], list[dict]]:
+def usable_pairs(
+    pairs: Sequence[PairStats], mu_R: float, saturation: float, max_censored: float = MAX_CENSORED_FRACTION
+) -> tuple[list[PairStats], list[dict]]:
     """The flat pairs that can give the gain, and a record of every pair and why.
 
     A pair is usable when its mean lies above the bias and at most ``max_censored`` of its
@@ -313,13 +333,29 @@ def usable_pairs(pairs: Sequence[PairStats], mu_R: float, saturation: float,
         else:
             reason = ""
             usable.append(p)
-        log.append({"t": p.exposure_time, "level": level, "fraction_of_saturation": level / saturation,
-                    "n_used": p.n_used, "n_censored": p.n_censored, "used": not reason, "reason": reason or "usable"})
+        log.append(
+            {
+                "t": p.exposure_time,
+                "level": level,
+                "fraction_of_saturation": level / saturation,
+                "n_used": p.n_used,
+                "n_censored": p.n_censored,
+                "used": not reason,
+                "reason": reason or "usable",
+            }
+        )
     return usable, log
 
 
-def nonlinearity_warnings(means: np.ndarray, variances: np.ndarray, variance_stderr: np.ndarray, g: float,
-                          saturation: float, n_sigma: float = 4.0, min_relative: float = 0.01) -> list[str]:
+def nonlinearity_warnings(
+    means: np.ndarray,
+    variances: np.ndarray,
+    variance_stderr: np.ndarray,
+    g: float,
+    saturation: float,
+    n_sigma: float = 4.0,
+    min_relative: float = 0.01,
+) -> list[str]:
     """Photon-transfer points that depart from the straight line sigma^2 = g mu.
 
     A point departs when its variance differs from g mu by more than ``n_sigma`` standard
@@ -353,7 +389,9 @@ def nonlinearity_warnings(means: np.ndarray, variances: np.ndarray, variance_std
         return []
     i = int(np.flatnonzero(bad)[np.argmin(x[bad])])
     n_above = int(np.count_nonzero(bad & (x >= x[i])))
-    return [f"photon transfer is not linear from {100 * x[i] / saturation:.0f} % of saturation "
-            f"({x[i]:.0f} DN above dark): variance {100 * resid[i] / model[i]:+.1f} % from g mu "
-            f"({resid[i] / se[i]:+.1f} sigma), {n_above} of {int(np.count_nonzero(x >= x[i]))} "
-            "levels from there depart; keep flats for the PRNU map and exposures below this level"]
+    return [
+        f"photon transfer is not linear from {100 * x[i] / saturation:.0f} % of saturation "
+        f"({x[i]:.0f} DN above dark): variance {100 * resid[i] / model[i]:+.1f} % from g mu "
+        f"({resid[i] / se[i]:+.1f} sigma), {n_above} of {int(np.count_nonzero(x >= x[i]))} "
+        "levels from there depart; keep flats for the PRNU map and exposures below this level"
+    ]

@@ -44,8 +44,9 @@ def _subsample(x: np.ndarray, n: int = 200_003) -> np.ndarray:
     return flat[::step]
 
 
-def robust_mean_std(x: np.ndarray, clip: float | None = DEFAULT_CLIP,
-                    mask: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
+def robust_mean_std(
+    x: np.ndarray, clip: float | None = DEFAULT_CLIP, mask: np.ndarray | None = None
+) -> tuple[float, float, np.ndarray]:
     """Sigma-clipped spatial mean and standard deviation of ``x``.
 
     The clip interval is median +- ``clip`` robust sigmas (1.4826 MAD, taken from a regular
@@ -129,8 +130,13 @@ class PairStats:
         return 0.5 * (self.mean_a + self.mean_b)
 
 
-def pair_statistics(a: np.ndarray, b: np.ndarray, clip: float | None = DEFAULT_CLIP,
-                    exposure_time: float = 0.0, upper: float | None = None) -> PairStats:
+def pair_statistics(
+    a: np.ndarray,
+    b: np.ndarray,
+    clip: float | None = DEFAULT_CLIP,
+    exposure_time: float = 0.0,
+    upper: float | None = None,
+) -> PairStats:
     """EMVA 1288 temporal variance of a pair of frames, with outliers clipped.
 
     sigma^2 = (1/2NM) sum_j (y_A,j - y_B,j)^2 - 1/2 (mu_A - mu_B)^2, where the sum runs over
@@ -188,8 +194,9 @@ def pair_statistics(a: np.ndarray, b: np.ndarray, clip: float | None = DEFAULT_C
     var = 0.5 * s2
     var_stderr = 0.5 * np.sqrt(max(m4 - s2 * s2, 0.0) / n)
     d = a.size
-    return PairStats(float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time),
-                     n_censored)
+    return PairStats(
+        float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time), n_censored
+    )
 
 
 def _censored_pair(a: np.ndarray, b: np.ndarray, upper: float) -> np.ndarray:
@@ -303,8 +310,20 @@ class PixelStack:
             self._wmin = np.full(self.shape, self._w0, np.float32)
         if self._swm is not None:
             censor = np.zeros(self.shape, bool) if censor is None else np.ascontiguousarray(censor, dtype=bool)
-            _stack_add_censored(values, self._ref, w, censor, self._s, self._q, self._max, self._min, self._wmax,
-                                self._wmin, self._swm, self._cnt)
+            _stack_add_censored(
+                values,
+                self._ref,
+                w,
+                censor,
+                self._s,
+                self._q,
+                self._max,
+                self._min,
+                self._wmax,
+                self._wmin,
+                self._swm,
+                self._cnt,
+            )
         elif self._wmax is None:
             _k.stack_add_equal(values, self._ref, w, self._s, self._q, self._max, self._min)
         else:
@@ -312,8 +331,9 @@ class PixelStack:
         self.n += 1
         self.sw += w
 
-    def result(self, clip: float | None = DEFAULT_CLIP,
-               block_rows: int = 256) -> tuple[np.ndarray, np.ndarray | None, int]:
+    def result(
+        self, clip: float | None = DEFAULT_CLIP, block_rows: int = 256
+    ) -> tuple[np.ndarray, np.ndarray | None, int]:
         """Clipped weighted mean map and its standard error map.
 
         Parameters
@@ -370,8 +390,10 @@ class PixelStack:
             sw, cnt = get(self._swm), get(self._cnt)
         new_floors = {}
         nrej = 0
-        for key, on, sign, va, wa in (("max", do_max, +1, self._max, self._wmax),
-                                       ("min", do_min, -1, self._min, self._wmin)):
+        for key, on, sign, va, wa in (
+            ("max", do_max, +1, self._max, self._wmax),
+            ("min", do_min, -1, self._min, self._wmin),
+        ):
             if not on:
                 continue
             v, w = get(va), get(wa)
