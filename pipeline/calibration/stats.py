@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 
-from .._numba_target import numba
 from ..times import same_exposure
 from . import _kernels as _k
 from .frames import frame_data, frame_time
@@ -310,26 +309,30 @@ class PixelStack:
             self._wmin = np.full(self.shape, self._w0, np.float32)
         if self._swm is not None:
             censor = np.zeros(self.shape, bool) if censor is None else np.ascontiguousarray(censor, dtype=bool)
-            _stack_add_censored(
-                values,
-                self._ref,
-                w,
-                censor,
-                self._s,
-                self._q,
-                self._max,
-                self._min,
-                self._wmax,
-                self._wmin,
-                self._swm,
-                self._cnt,
-            )
+            self._add_censored(values, w, censor)
         elif self._wmax is None:
             _k.stack_add_equal(values, self._ref, w, self._s, self._q, self._max, self._min)
         else:
             _k.stack_add(values, self._ref, w, self._s, self._q, self._max, self._min, self._wmax, self._wmin)
         self.n += 1
         self.sw += w
+
+    def _add_censored(self, values: np.ndarray, w: float, censor: np.ndarray, block_rows: int = 256) -> None:
+        """Add a frame with weight ``w`` skipping the ``censor`` photosites, in row blocks (a few
+        block-sized temporaries): sums, extremes, per-photosite weight sums and counts."""
+        for r0 in range(0, self.shape[0], block_rows):
+            rows = slice(r0, min(r0 + block_rows, self.shape[0]))
+            keep = ~censor[rows]
+            d = np.where(keep, values[rows].astype(np.float64) - self._ref[rows], 0.0)
+            wk = np.where(keep, w, 0.0)
+            self._s[rows] += wk * d
+            self._q[rows] += wk * d * d
+            self._swm[rows] += wk
+            self._cnt[rows] += keep
+            for ext, wext, better in ((self._max, self._wmax, np.greater), (self._min, self._wmin, np.less)):
+                upd = keep & better(d, ext[rows])
+                ext[rows][upd] = d[upd]
+                wext[rows][upd] = w
 
     def result(
         self, clip: float | None = DEFAULT_CLIP, block_rows: int = 256
@@ -437,28 +440,3 @@ class PixelStack:
         numpy.ndarray or None
         """
         return None if self._cnt is None else self._cnt.copy()
-
-
-@numba.njit(cache=True, nogil=True)
-def _stack_add_censored(values, ref, w, censor, s, q, mx, mn, wmx, wmn, swm, cnt):  # pragma: no cover - compiled
-    """The stack's sums (s, q), extremes and per-photosite weight sums and counts, skipping the
-    censored photosites; d = values - ref."""
-    v = values.ravel()
-    r = ref.ravel()
-    c = censor.ravel()
-    s_, q_, mx_, mn_, wx_, wn_ = s.ravel(), q.ravel(), mx.ravel(), mn.ravel(), wmx.ravel(), wmn.ravel()
-    sw_, n_ = swm.ravel(), cnt.ravel()
-    for i in range(v.size):
-        if c[i]:
-            continue
-        d = np.float64(v[i]) - np.float64(r[i])
-        s_[i] += w * d
-        q_[i] += w * d * d
-        sw_[i] += w
-        n_[i] += 1.0
-        if d > mx_[i]:
-            mx_[i] = d
-            wx_[i] = w
-        if d < mn_[i]:
-            mn_[i] = d
-            wn_[i] = w
