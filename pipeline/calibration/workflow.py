@@ -23,10 +23,19 @@ from ..params import Calibration, SensorParams
 from .dark import DarkCurrentMap, DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
 from .defects import DEFECT_BITS, DefectThresholds, defect_counts, hot_defects, neutral_prnu, response_defects
 from .flats import FlatResult, estimate_flats
-from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
+from .gain import (
+    DarkVariance,
+    PhotonTransferFit,
+    fit_dark_variance,
+    gain_from_pairs,
+    nonlinearity_warnings,
+    photon_transfer_gain,
+    prnu_correction_factor,
+    usable_pairs,
+)
 from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
-from .stats import DEFAULT_CLIP
+from .stats import DEFAULT_CLIP, PairTap
 
 __all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
 
@@ -44,6 +53,7 @@ class _Record:
     counts: dict[str, int] = field(default_factory=lambda: {"bias": 0, "saturation": 0, "flat": 0, "dark": 0})
     stderr: dict[str, float] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+    dark_variance: DarkVariance | None = None
 
 
 def _readout_step(bias: Iterable, clip: float | None, white_level: float | None, rec: _Record) -> ReadoutEstimate:
@@ -63,11 +73,13 @@ def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
         return None, None
     shape = None if ro.bias_map is None else ro.bias_map.shape
     series = DarkSeries()
-    for master in stream_master_darks(darks, clip, shape):
+    tap = PairTap(darks, clip)
+    for master in stream_master_darks(tap, clip, shape):
         series.add(master)
         rec.counts["dark"] += master.n_frames
         if dark_sink is not None:
             dark_sink(master)
+    rec.dark_variance = fit_dark_variance(tap.pairs)
     if not series.times:
         return None, None
     rec.info["dark_series"] = series.to_dict()
@@ -146,45 +158,60 @@ def _bias_stderr_map(ro: ReadoutEstimate) -> np.ndarray | None:
     return np.full(ro.bias_map.shape, np.sqrt(ro.sigma2_R / ro.n_frames), np.float32)
 
 
-def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None) -> tuple[np.ndarray, np.ndarray]:
-    """Photon-transfer points of the flat pairs: mean above dark (DN; the dark signal at each
-    pair's time removed when known) and variance above the readout variance (DN^2)."""
-    x = np.array([p.mean - ro.mu_R for p in fl.pairs])
-    y = np.array([p.variance - ro.sigma2_R for p in fl.pairs])
-    if dark_fit is not None:
-        x = x - np.array([dark_fit.slope * p.exposure_time for p in fl.pairs])
-    return x, y
+def _ptc_points(pairs: list, ro: ReadoutEstimate, dark_fit: DarkFit | None,
+                dark_var: DarkVariance | None) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """Photon-transfer points of the flat pairs (EMVA 1288): mean above dark (DN) and variance
+    above the dark temporal variance (DN^2), both at each pair's exposure time.
+
+    With a dark-current fit and dark pairs at >= 2 times, the dark mean and the dark temporal
+    variance at the pair's time are subtracted; otherwise neither is (the dark signal then
+    counts as signal in both coordinates, which leaves the slope unbiased). Also returns the
+    standard error common to every point (of the subtracted variance, DN^2) and how the dark
+    was handled.
+    """
+    x = np.array([p.mean - ro.mu_R for p in pairs])
+    times = np.array([p.exposure_time for p in pairs])
+    if dark_fit is None or dark_var is None:
+        y = np.array([p.variance - ro.sigma2_R for p in pairs])
+        why = "no dark fit" if dark_fit is None else "no dark pairs at >= 2 exposure times"
+        return x, y, ro.sigma2_R_stderr, f"readout mean and variance subtracted; dark signal counted as signal ({why})"
+    x = x - dark_fit.slope * times
+    y = np.array([p.variance - dark_var.at(p.exposure_time)[0] for p in pairs])
+    common = dark_var.at(float(np.mean(times)))[1]
+    how = (f"dark mean (fit) and dark temporal variance ({dark_var.n_pairs} dark pairs, "
+           f"{dark_var.slope:.4g} DN^2/s) subtracted at each pair's exposure time")
+    return x, y, common, how
 
 
 def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: DarkFit | None, gain_method: str,
                fit_fraction: float, rec: _Record) -> tuple[float, float]:
-    """g and its standard error, DN per electron: the Eq. 16 average over the flat pairs below
-    80 % of saturation (with the Eq. 17 factor k from the flats' dark/light signal ratio) and
-    the photon-transfer regression over the levels within ``fit_fraction`` of saturation."""
+    """g and its standard error, DN per electron: the Eq. 16 average over every usable flat
+    pair, whatever its level (with the Eq. 17 factor k from the flats' dark/light signal
+    ratio), and the photon-transfer regression over the levels within ``fit_fraction`` of
+    saturation (EMVA 1288). Records which pairs served and why, and warns when the
+    photon-transfer points depart from the line near saturation."""
     t_flat = float(np.mean([p.exposure_time for p in fl.pairs]))
     dark_dn = dark_fit.slope * t_flat if dark_fit is not None else 0.0
     k = prnu_correction_factor(fl.mean_level, fl.prnu_std**2, max(dark_dn, 0.0))
     sat_span = v_sat - ro.mu_R
     g_pairs, g_pairs_se, per_pair = None, None, []
-    ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.8 * sat_span]
+    ok_pairs, pair_log = usable_pairs(fl.pairs, ro.mu_R, sat_span)
     if ok_pairs:
         g_pairs, g_pairs_se, per_pair = gain_from_pairs(ok_pairs, ro.mu_R, ro.sigma2_R, k, ro.sigma2_R_stderr)
-    x, y = _ptc_points(fl, ro, dark_fit)
+    x, y, common_se, dark_how = _ptc_points(ok_pairs, ro, dark_fit, rec.dark_variance)
     n_levels = int(np.unique(np.round(x[(x > 0) & (x <= fit_fraction * sat_span)], 6)).size)
     ptc = None
+    var_se = np.array([p.variance_stderr for p in ok_pairs])
     if n_levels >= 3:
-        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, [p.variance_stderr for p in fl.pairs],
-                                   ro.sigma2_R_stderr)
+        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, var_se, common_se)
     if gain_method == "ptc" and ptc is None:
         raise InputError(f"the photon-transfer regression needs flat pairs at >= 3 levels within "
                          f"{fit_fraction:.0%} of saturation; got {n_levels}")
-    if gain_method == "pairs" and g_pairs is None:
-        raise InputError("no flat pair below 80 % of saturation for Eq. 16")
+    if g_pairs is None:
+        raise InputError(f"no usable flat pair for the gain (Eq. 16): {pair_log[0]['reason']}")
     if gain_method == "ptc" or (gain_method == "auto" and ptc is not None):
         g, g_se, g_method = ptc.g, ptc.g_stderr, _PTC_METHOD
     else:
-        if g_pairs is None:
-            raise InputError("no flat pair below 80 % of saturation for the gain (Eq. 16)")
         g, g_se, g_method = g_pairs, g_pairs_se, f"flat pairs, Eq. 16-17 (k = {k:.6f}), {len(ok_pairs)} pairs"
     if not (np.isfinite(g) and g > 0):
         raise InputError(f"gain estimate {g!r} is not positive: are the flats really flat and unsaturated?")
@@ -192,6 +219,15 @@ def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: Dark
     rec.info["gain_method"] = g_method
     rec.info["gain_pairs"] = {"g": g_pairs, "g_stderr": g_pairs_se, "per_pair": per_pair, "k_eq17": k}
     rec.info["ptc"] = _ptc_info(ptc, x, y, sat_span)
+    rec.info["ptc"]["dark_correction"] = dark_how
+    for entry, in_fit in zip((e for e in pair_log if e["used"]), x <= fit_fraction * sat_span, strict=True):
+        entry["ptc_fit"] = bool(in_fit and ptc is not None)
+    rec.info["flat_pairs"] = pair_log
+    rec.info["flat_frames"] = fl.frames
+    rec.info["flat_pairs_skipped"] = fl.skipped_pairs
+    rec.info["prnu_never_measured"] = fl.n_never_measured
+    rec.info.setdefault("warnings", []).extend(
+        nonlinearity_warnings(x, y, np.hypot(var_se, common_se), g, sat_span))
     rec.info["flat_levels"] = [{"t": t, "level": lv, "file": nm} for t, lv, nm in fl.levels]
     rec.info["prnu_frames"] = fl.n_prnu_frames
     rec.info["prnu_rejected_samples"] = fl.n_rejected
@@ -359,9 +395,9 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
     -------
     dict
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
-        each scalar's standard error, the frame count, the gain method and the defect counts
-        (``defects``: dead, weak, hot, stuck, total; None when not measured), then the entries
-        above that are given.
+        each scalar's standard error, the frame count, the gain method, the defect counts
+        (``defects``: dead, weak, hot, stuck, total; None when not measured) and the warnings (e.g.
+        a non-linear photon transfer near saturation), then the entries above that are given.
     """
     p = calib.params
     prov = calib.provenance
@@ -379,6 +415,7 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
         "defects": prov.get("calibration", {}).get("defects", {}).get("counts"),
+        "warnings": list(prov.get("calibration", {}).get("warnings", [])),
     }
     if output is not None:
         summary["output"] = str(output)
@@ -392,7 +429,8 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
 
 
 def format_summary(summary: Mapping[str, Any]) -> str:
-    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D, the PRNU and the defects.
+    """The summary as text: g, mu_R, sigma2_R, v_sat, D, the PRNU and the defects on one line,
+    then one line per warning.
 
     Parameters
     ----------
@@ -406,7 +444,8 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     s = summary
     return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
             f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %" + _defect_text(s))
+            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %" + _defect_text(s)
+            + "".join(f"\nwarning: {w}" for w in s.get("warnings") or ()))
 
 
 def _defect_text(summary: Mapping[str, Any]) -> str:
