@@ -102,8 +102,25 @@ def _check_readable(path: Path) -> None:
 
 
 def check_exposure_time(t, where=None) -> float:
-    """Return ``t`` as float seconds, or raise :class:`InputError` (prefixed with ``where``,
-    e.g. the file name) unless it is a finite number > 0."""
+    """Check an exposure time: a finite number of seconds > 0.
+
+    Parameters
+    ----------
+    t : object
+        The exposure time, s (a number or a numeric string).
+    where : str, optional
+        Prefix of the error message (e.g. the file name).
+
+    Returns
+    -------
+    float
+        ``t`` in seconds.
+
+    Raises
+    ------
+    InputError
+        ``t`` is missing, not a number, not finite or not positive.
+    """
     prefix = f"{where}: " if where is not None else ""
     try:
         t = float(t)
@@ -286,7 +303,20 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
 
 
 def read_image16(path, exposure_time: float) -> RawFrame:
-    """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time."""
+    """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The image (single channel, 8 or 16 bits per sample).
+    exposure_time : float
+        Seconds (such files carry none).
+
+    Returns
+    -------
+    RawFrame
+        uint16 values (DN), the exposure time (s); black level 0, white level from the bit depth.
+    """
     path = Path(path)
     _check_readable(path)
     if exposure_time is None:
@@ -340,7 +370,20 @@ def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True) -
 
 
 def sha256_file(path, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file, read in chunks."""
+    """Hex sha256 of a file, read in chunks.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    chunk : int
+        Bytes read at a time.
+
+    Returns
+    -------
+    str
+        The 64-character hexadecimal digest.
+    """
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while block := f.read(chunk):
@@ -440,6 +483,17 @@ def read_emva_descriptor(path) -> EmvaDataset:
 
     Lines: ``v`` version, ``n bits width height``, ``b <t ns> <photons>`` and ``d <t ns>`` open
     a bright or dark step, ``i <relative path>`` lists its images (Windows separators allowed).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The descriptor; image paths in it are relative to its folder.
+
+    Returns
+    -------
+    EmvaDataset
+        Bit depth, image size and the bright and dark steps (exposure time in s, photons per
+        photosite, image paths).
     """
     path = Path(path)
     _check_readable(path)
@@ -684,7 +738,24 @@ def _json_default(obj):
 
 
 def read_exr(path) -> HdrImage:
-    """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`."""
+    """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The EXR file.
+
+    Returns
+    -------
+    HdrImage
+        Every channel as a float32 array (irradiance and sigma in e-/s per photosite for
+        hdrcap's files) and the metadata (the ``hdrcap`` JSON attribute, else the header).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file.
+    """
     import OpenEXR
 
     path = Path(path)
