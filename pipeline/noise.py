@@ -121,14 +121,10 @@ def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
         Exposure time, s.
     g : float
         Gain, DN/e-.
-    sigma2_R : array_like
-        Readout variance, DN^2.
-    D : array_like
-        Dark current, e-/s.
     a : array_like
         PRNU gain (mean 1).
-    k : float
-        :func:`dark_factor` (0: the variance of the raw value alone).
+    sigma2_R, D, k
+        As :func:`variance_of_rate` (DN^2, e-/s, 1).
 
     Returns
     -------
