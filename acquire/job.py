@@ -35,7 +35,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
         "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "delete_after_download": (bool,), "iso": (int,),
+        "model": (str,), "port": (str,), "serial": (str,), "delete_after_download": (bool,), "iso": (int,),
         "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
         "allowed_times": (list,),
     },
@@ -291,7 +291,8 @@ def open_camera(job: Job, n: int = 0):
                           faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
     from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
 
-    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), delete_after_download=cam["delete_after_download"],
+    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), serial=cam.get("serial"),
+                           delete_after_download=cam["delete_after_download"],
                            long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
     if "iso" in cam:
         camera.set_iso(cam["iso"])

@@ -648,7 +648,7 @@ class CaptureSession:
     def _reconnect(self, log: EventLog) -> None:
         try:
             self.camera.reconnect()
-            log.emit("reconnect", ok=True)
+            log.emit("reconnect", ok=True, port=str(getattr(getattr(self.camera, "identity", None), "port", "")))
         except Exception as err:
             if fault_kind(err) is None:
                 raise

@@ -152,3 +152,81 @@ def test_mock_camera_shares_the_camera_types(tmp_path):
     assert isinstance(e.value, CameraError) and e.value.camera_fault == "reconnect"
     ok = MockCamera("camera-B", _scene(), seed=1)
     assert isinstance(ok.capture(tmp_path / "c.dng"), CaptureResult)
+
+
+def test_mock_reconnect_fails_n_times_then_comes_back_on_a_new_port(tmp_path):
+    faults = MockFaults(disconnect_rate=1.0, reconnect_fail_rate=1.0, reconnect_failures=2, renumber_rate=1.0)
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=faults)
+    serial, port = cam.identity.serial, cam.identity.port
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "a.dng")
+    assert fault_kind(e.value) == "reconnect"
+    for _ in range(2):  # gvfs (say) holds the device twice
+        with pytest.raises(Exception) as e:
+            cam.reconnect()
+        assert fault_kind(e.value) == "reconnect" and "-53" in str(e.value)
+        with pytest.raises(Exception) as e:
+            cam.set_exposure(0.01)
+        assert fault_kind(e.value) == "reconnect"
+    cam.reconnect()
+    assert cam.identity.port != port and cam.identity.serial == serial
+    assert cam.reconnect_failures == 2 and cam.fault_log.count("renumbered") == 1
+    assert cam.set_exposure(0.01) == pytest.approx(0.01)
+
+
+def test_mock_reconnect_faults_are_drawn_per_disconnect():
+    """Half of the disconnects (rate 0.5) are followed by failing reconnects: the draws are
+    seeded and their frequency is the rate's (binomial, 400 disconnects: 3 sigma = 30)."""
+    cam = MockCamera("camera-B", _scene((8, 8)), seed=1, faults=MockFaults(seed=3, reconnect_fail_rate=0.5,
+                                                                          reconnect_failures=2, renumber_rate=0.25))
+    failing = 0
+    for _ in range(400):
+        cam._lose_connection()
+        failed = 0
+        while True:
+            try:
+                cam.reconnect()
+                break
+            except Exception as err:
+                assert fault_kind(err) == "reconnect"
+                failed += 1
+        assert failed in (0, 2)
+        failing += failed == 2
+    assert abs(failing - 200) < 30
+    assert abs(cam.fault_log.count("renumbered") - 100) < 26  # 3 sigma of binomial(400, 0.25)
+
+
+def test_mock_hang_that_ignores_the_timeout(tmp_path):
+    import time
+
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(hang_rate=1.0, hang_s=0.3,
+                                                                     hang_ignores_timeout=True))
+    t0 = time.monotonic()
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "a.dng", timeout=0.01)
+    assert time.monotonic() - t0 >= 0.3  # the caller's timeout did not shorten it
+    assert fault_kind(e.value) == "reconnect"
+
+
+def test_session_survives_failing_reconnects_and_a_new_port(tmp_path):
+    """Every disconnect is followed by two failed reconnects and a new port: the session keeps
+    reconnecting (each failure is logged), and every planned frame lands once."""
+    import json
+
+    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy
+
+    faults = MockFaults(seed=5, disconnect_rate=0.25, reconnect_fail_rate=1.0, reconnect_failures=2,
+                        renumber_rate=1.0)
+    cam = MockCamera("camera-B", _scene((24, 24)), seed=2, faults=faults)
+    plan = CapturePlan.bracket([1 / 250, 1 / 60, 1 / 15], None, "matched")
+    fast = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
+    res = CaptureSession(cam, tmp_path / "run", plan, retry=fast, progress=False).run()
+    disconnects = cam.fault_log.count("disconnect")
+    assert disconnects >= 1 and res.captured == len(plan.frames)
+    assert cam.reconnect_failures == 2 * disconnects and len(set(cam.ports)) == disconnects + 1
+    assert sorted(Manifest(tmp_path / "run").frames()) == sorted(f.key for f in plan.frames)
+    events = [json.loads(line) for line in (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
+    rec = [e for e in events if e["event"] == "reconnect"]
+    assert sum(not e["ok"] for e in rec) == 2 * disconnects
+    assert [e["port"] for e in rec if e["ok"]] == cam.ports[1:]
