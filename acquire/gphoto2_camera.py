@@ -604,6 +604,9 @@ class Gphoto2Camera:
     """
 
     backend = "gphoto2"
+    #: makes the worker that owns the camera (name -> object with call/stop/pid/dead); tests
+    #: substitute a simulated body here
+    worker_factory: Callable[[str], Any] = _Worker
 
     def __init__(self, model: str | None = None, port: str | None = None, *, serial: str | None = None,
                  delete_after_download: bool = True, long_exposure_s: float = 1.0, call_timeout_s: float = 30.0,
@@ -631,7 +634,7 @@ class Gphoto2Camera:
         #: tests: libgphoto2 codes to raise instead of the next calls; an int fails the next
         #: call, an (op, code) pair the next call of that worker op
         self._inject: list = []
-        self._worker: _Worker | None = None
+        self._worker: Any = None
         self._bulb_time: float | None = None
         self._t: float | None = None
         self._labels: dict[float, str] = {}
@@ -660,7 +663,7 @@ class Gphoto2Camera:
                  prefer_port: str | None) -> None:
         """Start a worker, find the camera (by serial when known), open it and read its
         exposure times; on failure the worker is stopped and the camera stays disconnected."""
-        self._worker = _Worker(f"camera {model or ''}".strip())
+        self._worker = self.worker_factory(f"camera {model or ''}".strip())
         try:
             found = [tuple(x) for x in self._call("detect", during="autodetect")]
             opened: list[str] = []
@@ -738,7 +741,7 @@ class Gphoto2Camera:
 
     def _reset_port(self, port: str) -> None:
         """USB reset of the old port in a short-lived worker (best effort)."""
-        worker = _Worker("port reset")
+        worker = self.worker_factory("port reset")
         try:
             worker.call("reset_port", port, timeout=10.0)
             self.events.append(("port_reset", port))
@@ -936,7 +939,7 @@ class Gphoto2Camera:
                 self.events.append(("stale_file", "/".join(first)))
                 files = self._wait_files(wait, stale | {first})
             else:
-                files = [first] + self._partners(first, self.pair_wait_s)
+                files = [first] + self._partners(first, wait)
         if not files:
             raise CameraTimeoutError(f"no file from the camera within {wait:.0f} s")
         folder, name = _prefer_raw(files)
@@ -1003,27 +1006,36 @@ class Gphoto2Camera:
             if kind == "file":
                 f = tuple(data)
                 if self._is_new(f, stale):
-                    return [f] + self._partners(f, self.pair_wait_s)
+                    return [f] + self._partners(f, deadline - time.monotonic())
                 self.events.append(("late_partner" if _stem(f[1]) in self._stems else "stale_file", "/".join(f)))
         return []
 
-    def _partners(self, first: tuple[str, str], seconds: float) -> list[tuple[str, str]]:
-        """Files with the stem of ``first`` announced within ``seconds`` (RAW+JPEG)."""
-        if seconds <= 0:
+    def _partners(self, first: tuple[str, str], wait: float) -> list[tuple[str, str]]:
+        """Files with the stem of ``first`` (RAW+JPEG): listened for ``pair_wait_s``; when
+        ``first`` is not raw but the image format includes raw, up to ``wait`` s for the raw."""
+        need_raw = not _is_raw(first[1]) and self._format_has_raw()
+        span = max(self.pair_wait_s, wait if need_raw else 0.0)
+        if span <= 0:
             return []
-        end = time.monotonic() + seconds
+        end = time.monotonic() + span
         files = []
         while time.monotonic() < end:
             kind, data = self._next_event(50)
-            if kind == "timeout":
+            if kind == "timeout" and not need_raw:
                 break
             if kind == "file":
                 f = tuple(data)
                 if _stem(f[1]) == _stem(first[1]):
                     files.append(f)
+                    need_raw = need_raw and not _is_raw(f[1])
                 else:
                     self.events.append(("unmatched_file", "/".join(f)))
         return files
+
+    def _format_has_raw(self) -> bool:
+        """Whether the camera's image format setting includes a raw file (RAW, NEF+Fine...)."""
+        fmt = (self.applied.get("imageformat") or self.get_setting("imageformat") or "").lower()
+        return any(k in fmt for k in ("raw", "nef", "cr2", "cr3", "arw", "dng", "orf", "rw2", "raf", "pef"))
 
     def _next_event(self, ms: int) -> tuple[str, Any]:
         kind, data = self._call("event", ms, during="wait_for_event", timeout=ms / 1000 + 10)
@@ -1065,9 +1077,13 @@ def _bulb_values(d: dict) -> tuple[Any, Any]:
     return press, release
 
 
+def _is_raw(name: str) -> bool:
+    return Path(name).suffix.lower() in RAW_SUFFIXES
+
+
 def _prefer_raw(files: list[tuple[str, str]]) -> tuple[str, str]:
     for folder, name in files:
-        if Path(name).suffix.lower() in RAW_SUFFIXES:
+        if _is_raw(name):
             return folder, name
     return files[0]
 

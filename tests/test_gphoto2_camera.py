@@ -384,3 +384,194 @@ def test_cameras_command_shows_serials_and_a_job_selects_by_serial(tmp_path, cli
     job.write_text('[camera]\nbackend = "gphoto2"\nserial = "X42"\n\n' + body)
     other = cli("run", job, "--check", env=env)
     assert other.returncode != 0 and "no camera serial 'X42'" in other.stderr and "Traceback" not in other.stderr
+
+
+class FakeBody:
+    """A simulated PTP body behind the worker protocol of ``Gphoto2Camera`` (in this process):
+    RAW+JPEG pairs named DSC_nnnn, events queued with delays (a number of 50-ms waits that
+    time out first), a bulb widget (``bulb`` toggle or Canon's ``eosremoterelease``), storages."""
+
+    def __init__(self, raw_delay=0, fmt="NEF+Fine", canon=False, storages=None, longest="30"):
+        self.dead, self.pid, self.n = False, 4242, 0
+        self.queue: list = []  # [delay, (kind, data)]
+        self.raw_delay, self.canon = raw_delay, canon
+        self.storages = storages if storages is not None else [{"freeimages": 100, "access": "rw"}]
+        labels = ["1/100", "1/10", "1", longest, "Bulb"]
+        self.widgets = {"shutterspeed": ("radio", "1/100", labels), "imagequality": ("radio", fmt, [fmt]),
+                        "capturetarget": ("radio", "Memory card", ["Internal RAM", "Memory card"]),
+                        "serialnumber": ("text", "F00D", [])}
+        if canon:
+            self.widgets["eosremoterelease"] = ("radio", "None", ["None", "Press Full", "Release Full"])
+        else:
+            self.widgets["bulb"] = ("toggle", 0, [])
+        self.log: list = []
+
+    def call(self, op, *args, timeout=None):
+        self.log.append(op)
+        return getattr(self, "op_" + op)(*args)
+
+    def stop(self, timeout=0.0):
+        self.dead = True
+
+    def op_detect(self):
+        return [("Fake Body", "usb:001,002")]
+
+    def op_open(self, model, port):
+        pass
+
+    def op_exit(self):
+        pass
+
+    def _find(self, names):
+        return next((n for n in names if n in self.widgets), None)
+
+    def op_describe(self, names):
+        n = self._find(names)
+        if n is None:
+            return None
+        typ, value, choices = self.widgets[n]
+        return {"name": n, "type": typ, "value": value, "choices": list(choices), "readonly": False}
+
+    def op_read(self, names):
+        n = self._find(names)
+        return None if n is None else self.widgets[n][1]
+
+    def op_set(self, name, value):
+        typ, _old, choices = self.widgets[name]
+        self.widgets[name] = (typ, value, choices)
+        return value
+
+    def op_storage(self):
+        return self.storages
+
+    def _shoot(self, announce_jpeg):
+        self.n += 1
+        jpg, raw = ("/store/DCIM", f"DSC_{self.n:04d}.JPG"), ("/store/DCIM", f"DSC_{self.n:04d}.NEF")
+        if announce_jpeg:
+            self.queue.append([0, ("file", jpg)])
+        self.queue.append([self.raw_delay, ("file", raw)])
+        return jpg
+
+    def op_capture(self):
+        return self._shoot(announce_jpeg=False)
+
+    def op_trigger(self):
+        self._shoot(announce_jpeg=True)
+
+    def op_bulb(self, name, press, release, seconds):
+        self.log.append(("bulb", name, press, release))
+        self._shoot(announce_jpeg=True)
+        return {"press_start": 0.0, "press_end": 0.01, "release_start": seconds + 0.004, "release_end": seconds + 0.02}
+
+    def op_event(self, ms):
+        if not self.queue:
+            return "timeout", ""
+        if self.queue[0][0] > 0:
+            self.queue[0][0] -= 1
+            return "timeout", ""
+        return self.queue.pop(0)[1]
+
+    def op_drain(self, ms):
+        out = []
+        while self.queue:
+            self.queue[0][0] = 0  # everything pending arrives while draining
+            out.append(self.queue.pop(0)[1])
+        return out
+
+    def op_download(self, folder, name, path):
+        Path(path).write_text(name)
+
+    def op_delete(self, folder, name):
+        pass
+
+
+def _fake_camera(body, **kw):
+    from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
+
+    cls = type("FakeGphoto2Camera", (Gphoto2Camera,), {"worker_factory": staticmethod(lambda name: body)})
+    return cls(**kw)
+
+
+def test_a_late_raw_partner_never_becomes_the_next_frames_file(tmp_path):
+    """The RAW of a RAW+JPEG pair comes 4 event waits after the JPEG (longer than pair_wait):
+    each frame still gets its own RAW, and the late one is never taken for the next frame."""
+    body = FakeBody(raw_delay=4)
+    cam = _fake_camera(body, pair_wait_s=0.05, long_exposure_s=0.5)
+    got = []
+    for k, t in enumerate([0.01, 0.01, 1.0, 1.0]):  # capture() path, then the trigger path
+        cam.set_exposure(t)
+        got.append(Path(cam.capture(tmp_path / f"f{k}.nef").path).read_text())
+    assert got == ["DSC_0001.NEF", "DSC_0002.NEF", "DSC_0003.NEF", "DSC_0004.NEF"]
+
+
+def test_stale_files_are_drained_before_the_release(tmp_path):
+    body = FakeBody(fmt="RAW")
+    cam = _fake_camera(body, pair_wait_s=0.0, long_exposure_s=0.5)
+    body._shoot(announce_jpeg=False)  # a file announced before this capture (a stray release)
+    cam.set_exposure(1.0)
+    res = cam.capture(tmp_path / "a.nef")
+    assert Path(res.path).read_text() == "DSC_0002.NEF" and res.camera_file.endswith("DSC_0002.NEF")
+    assert ("stale_file", "/store/DCIM/DSC_0001.NEF") in cam.events
+
+
+@pytest.mark.parametrize("storages, full", [
+    ([{"freeimages": 0, "access": "rw"}], True),
+    ([{"freekbytes": 0, "access": "rw"}], False),           # no valid image count: unknown, not full
+    ([{"access": "rw"}], False),                              # nothing valid at all
+    ([{"freeimages": 0, "access": "rw"}, {"freeimages": 12, "access": "rw"}], False),  # second card
+    ([{"freeimages": 0, "access": "rw"}, {"freeimages": 50, "access": "ro"}], True),  # read-only card
+])
+def test_storage_full_only_from_valid_fields_of_every_storage(tmp_path, storages, full):
+    from hdrcap.acquire.camera import StorageFullError
+
+    cam = _fake_camera(FakeBody(fmt="RAW", storages=storages), pair_wait_s=0.0)
+    cam.set_exposure(0.01)
+    if full:
+        with pytest.raises(StorageFullError):
+            cam.capture(tmp_path / "a.nef")
+    else:
+        assert cam.capture(tmp_path / "a.nef").path.exists()
+
+
+def test_worker_reads_only_the_storage_fields_marked_valid():
+    """libgphoto2 leaves ``freeimages`` at 0 when the camera does not report it (its bit in
+    ``fields`` is clear): that must not read as a full card."""
+    import types
+
+    gp = pytest.importorskip("gphoto2")
+    from hdrcap.acquire.gphoto2_camera import _WorkerState, free_images
+
+    def info(fields, **kw):
+        base = dict(basedir="/store_1", freeimages=0, freekbytes=0, access=gp.GP_STORAGEINFO_AC_READWRITE,
+                    description="SD")
+        return types.SimpleNamespace(fields=fields, **{**base, **kw})
+
+    st = _WorkerState.__new__(_WorkerState)
+    st.gp = gp
+    bits = gp.GP_STORAGEINFO_ACCESS | gp.GP_STORAGEINFO_FREESPACEKBYTES
+    st.cam = types.SimpleNamespace(get_storageinfo=lambda: [info(bits, freekbytes=900000)])
+    assert st.op_storage() == [{"base": "/store_1", "freekbytes": 900000, "access": "rw"}]
+    assert free_images(st.op_storage()) is None
+    st.cam = types.SimpleNamespace(get_storageinfo=lambda: [
+        info(bits | gp.GP_STORAGEINFO_FREESPACEIMAGES, freeimages=0),
+        info(gp.GP_STORAGEINFO_FREESPACEIMAGES, freeimages=40, basedir="/store_2")])
+    assert free_images(st.op_storage()) == 40  # the second storage still has room
+
+
+def test_no_full_config_tree_read_per_frame(tmp_path):
+    """The configuration tree is read once per connection; a frame writes and reads back one
+    widget (the shutter speed). The code this replaced read the whole tree five times a frame."""
+    r = run_vcam(tmp_path, """
+        cam = Gphoto2Camera(pair_wait_s=0)
+        cam.set_exposure(0.01)
+        before = cam.tree_reads()
+        for i in range(4):
+            RESULT.setdefault("t", []).append(cam.set_exposure([0.02, 0.05][i % 2]))
+            cam.capture(OUT / f"f{i}.jpg")
+        after = cam.tree_reads()
+        RESULT["per_frame"] = {k: (after[k] - before[k]) / 4 for k in after}
+        RESULT["label"] = cam.get_setting("shutterspeed", fresh=True)
+        cam.close()
+    """)
+    assert r["per_frame"] == {"tree": 0, "single": 1, "set": 1}
+    assert r["t"] == [0.02, 0.05, 0.02, 0.05] and r["label"] == "0.0500s"
