@@ -62,6 +62,7 @@ from .camera import (
     CameraGoneError,
     CameraIdentity,
     CameraTimeoutError,
+    BULB_MAX_S,
     CaptureResult,
     StorageFullError,
     nearest_allowed,
@@ -851,7 +852,16 @@ class Gphoto2Camera:
                 self._labels.setdefault(t, label)
 
     def allowed_exposure_times(self) -> list[float]:
+        """Timed shutter speeds, s, ascending (bulb excluded)."""
         return sorted(self._labels)
+
+    def bulb_range(self) -> tuple[float, float] | None:
+        """Times (s) reachable by bulb: above 1.2 x the longest timed speed up to
+        :data:`~acquire.camera.BULB_MAX_S`; None when the camera has no bulb speed or no bulb
+        release widget."""
+        if not self._labels or not self._bulb_label or self._describe("bulb") is None:
+            return None
+        return max(self._labels) * 1.2, BULB_MAX_S
 
     def iso_values(self) -> list[int]:
         d = self._describe("iso")
@@ -948,11 +958,13 @@ class Gphoto2Camera:
         if self.delete_after_download:
             for fo, na in files:
                 self._call("delete", fo, na, during=f"delete {na}")
-        applied = self._bulb_open() if self._bulb_time is not None else parse_exposure_label(
+        bulb = self._bulb_time is not None
+        applied = self.bulb_open_s if bulb else parse_exposure_label(
             self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed"))
+        settings = dict(self.applied, **({"bulb_open_s": f"{self.bulb_open_s:.4f}"} if bulb else {}))
         return CaptureResult(path=out, requested_exposure_s=t, applied_exposure_s=applied or t, dark=dark,
-                             settings=dict(self.applied), camera_file=f"{folder}/{name}",
-                             temperature_c=self.temperature())
+                             settings=settings, camera_file=f"{folder}/{name}",
+                             temperature_c=self.temperature(), bulb=bulb)
 
     def download(self, camera_path: str, dest, timeout: float | None = None) -> Path:
         """Download a file already on the camera (``/store_00010001/DCIM/x.NEF``) to ``dest``."""
@@ -973,17 +985,19 @@ class Gphoto2Camera:
         """Every file on the camera under ``folder`` (recursive)."""
         return self._call("list_files", folder, during="list files")
 
-    def _bulb_open(self) -> float:
-        return self.bulb_open_s if self.bulb_open_s is not None else float(self._bulb_time or 0.0)
-
     def _capture_bulb(self, t: float, wait: float) -> list[tuple[str, str]]:
+        """Press, sleep ``t`` s and release in the worker (one request: no other camera call
+        inside the open interval); the open time is measured from the end of the press call
+        to the start of the release call (both edges: :attr:`events`)."""
         d = self._describe("bulb")
         if d is None:
             raise InputError(f"camera {self.identity.model} has no bulb release widget (bulb, eosremoterelease)")
         press, release = _bulb_values(d)
+        self.bulb_open_s = None
         edges = self._call("bulb", d["name"], press, release, float(t), during="bulb exposure", timeout=t + wait)
         self.bulb_open_s = edges["release_start"] - edges["press_end"]
-        self.events.append(("bulb", f"{self.bulb_open_s:.3f}"))
+        slack = (edges["press_end"] - edges["press_start"]) + (edges["release_end"] - edges["release_start"])
+        self.events.append(("bulb", f"open {self.bulb_open_s:.4f} s (press/release calls {slack:.4f} s)"))
         return self._wait_files(wait, set())
 
     def _drain_stale(self) -> set[tuple[str, str]]:

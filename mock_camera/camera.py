@@ -133,12 +133,16 @@ class MockCamera:
         Faults to inject (none by default).
     temperature : float, optional
         Sensor temperature, degrees C (reported by :meth:`temperature`).
+    bulb_max_s : float, optional
+        Longest bulb exposure, s: times above 1.2 x the longest allowed time up to this are
+        exposed exactly as asked (bulb); None: no bulb.
     """
 
     backend = "mock"
 
     def __init__(self, spec: SensorSpec | str, scene: np.ndarray, seed: int = 0, allowed_times=None,
-                 faults: MockFaults | None = None, temperature: float | None = None):
+                 faults: MockFaults | None = None, temperature: float | None = None,
+                 bulb_max_s: float | None = None):
         if isinstance(spec, str):
             if spec not in PRESETS:
                 raise ValueError(f"unknown camera preset {spec!r}; choose from {', '.join(PRESETS)}")
@@ -151,6 +155,8 @@ class MockCamera:
         self._frng = np.random.default_rng([self.faults.seed, 7])
         self._rrng = np.random.default_rng([self.faults.seed, 11])  # reconnect faults: own stream
         self._t = self._allowed[len(self._allowed) // 2]
+        self.bulb_max_s = bulb_max_s
+        self._bulb = False
         self._iso = spec.iso
         self._covered = False
         self._connected = True
@@ -179,12 +185,19 @@ class MockCamera:
         self._iso = self.spec.iso  # the simulated sensor has one ISO: coerced
         return self._iso
 
+    def bulb_range(self) -> tuple[float, float] | None:
+        """Bulb times (s) this camera exposes exactly, None without bulb."""
+        return (self._allowed[-1] * 1.2, float(self.bulb_max_s)) if self.bulb_max_s else None
+
     def set_exposure(self, t: float) -> float:
-        """Coerce ``t`` to the nearest allowed time (log scale) and return what was applied."""
+        """Coerce ``t`` to the nearest allowed time (log scale), or take it as it is in the
+        bulb range, and return what was applied."""
         self._check_connected()
         if not (t > 0 and math.isfinite(t)):
             raise ValueError(f"exposure time must be positive, got {t!r}")
-        self._t = min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
+        bulb = self.bulb_range()
+        self._bulb = bool(bulb) and bulb[0] < t <= bulb[1]
+        self._t = t if self._bulb else min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
         return self._t
 
     # --- light, temperature, connection -------------------------------------------------
@@ -285,6 +298,7 @@ class MockCamera:
             settings={"shutterspeed": self._t, "iso": self._iso, "covered": self._covered},
             camera_file="",
             temperature_c=self.sim.temperature,
+            bulb=self._bulb,
         )
 
 

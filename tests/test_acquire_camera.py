@@ -230,3 +230,59 @@ def test_session_survives_failing_reconnects_and_a_new_port(tmp_path):
     rec = [e for e in events if e["event"] == "reconnect"]
     assert sum(not e["ok"] for e in rec) == 2 * disconnects
     assert [e["port"] for e in rec if e["ok"]] == cam.ports[1:]
+
+
+BULB_JOB = """\
+[camera]
+backend = "mock"
+preset = "camera-B"
+size = "32x32"
+{bulb}
+
+[scene]
+name = "hdr"
+decades = 2.0
+x_max = 200.0
+
+[exposure]
+times = [1.0, 60.0]
+
+[darks]
+strategy = "matched"
+block_light = "mock"
+check = 0.5
+
+[output]
+folder = "runs/b"
+"""
+
+
+def test_bulb_exposures_beyond_30_s_are_planned_captured_and_verified(tmp_path, cli):
+    """A 60 s exposure: refused on a camera without bulb, planned exactly (not snapped to 30 s)
+    and captured on one with bulb; the frame's EXIF time is the bulb time."""
+    import json
+
+    from hdrcap.acquire.manifest import Manifest
+
+    job = tmp_path / "job.toml"
+    job.write_text(BULB_JOB.format(bulb=""))
+    no = cli("run", job, "--check")
+    assert no.returncode != 0 and "exposure 60 s is outside the camera's range" in no.stderr
+    job.write_text(BULB_JOB.format(bulb="bulb_max_s = 600"))
+    ok = cli("run", job, "--no-progress", "--json")
+    assert ok.returncode == 0, ok.stderr
+    frames = Manifest(tmp_path / "runs" / "b").frames().values()
+    long = [r for r in frames if r["requested_exposure_s"] > 30]
+    assert len(long) == 2 and {r["kind"] for r in long} == {"dark", "light"}  # matched dark too
+    for r in long:
+        assert r["applied_exposure_s"] == pytest.approx(60.0) and r["file_exposure_s"] == pytest.approx(60.0)
+    assert json.loads(ok.stdout.strip().splitlines()[-1])["frames"] == 4
+
+
+def test_bulb_verification_tolerance():
+    from hdrcap.pipeline.times import same_bulb_exposure, same_exposure
+
+    assert same_bulb_exposure(60.0, 59.9) and not same_exposure(60.0, 59.9)  # host timing: tens of ms
+    assert same_bulb_exposure(40, 40.45) and not same_bulb_exposure(40, 40.55)  # EXIF in whole seconds
+    assert same_bulb_exposure(600, 605.9) and not same_bulb_exposure(600, 606.1)  # 1 % at long times
+    assert not same_bulb_exposure(47.6, 60.0)  # never joins two 1/3-stop steps

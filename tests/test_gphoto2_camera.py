@@ -575,3 +575,36 @@ def test_no_full_config_tree_read_per_frame(tmp_path):
     """)
     assert r["per_frame"] == {"tree": 0, "single": 1, "set": 1}
     assert r["t"] == [0.02, 0.05, 0.02, 0.05] and r["label"] == "0.0500s"
+
+
+@pytest.mark.parametrize("canon", [False, True])
+def test_bulb_is_one_press_sleep_release_and_records_the_measured_open_time(tmp_path, canon):
+    from hdrcap.acquire.camera import exposure_ladder
+
+    body = FakeBody(fmt="RAW", canon=canon)
+    cam = _fake_camera(body, pair_wait_s=0.0)
+    assert cam.bulb_range() == (pytest.approx(36.0), 3600.0)
+    ladder = exposure_ladder(cam)
+    assert ladder[:4] == [0.01, 0.1, 1.0, 30.0] and ladder[4:7] == [37.8, 47.6, 60.0] and max(ladder) <= 3600
+    assert cam.set_exposure(60.0) == 60.0 and cam.applied["shutterspeed"] == "Bulb"
+    body.log.clear()
+    res = cam.capture(tmp_path / "b.nef")
+    name, press, release = ("eosremoterelease", "Press Full", "Release Full") if canon else ("bulb", 1, 0)
+    bulb_calls = [x for x in body.log if isinstance(x, tuple)]
+    assert bulb_calls == [("bulb", name, press, release)]
+    # nothing but the one worker request between press and release
+    assert body.log[body.log.index("bulb") + 1] == bulb_calls[0]
+    assert res.bulb and res.applied_exposure_s == pytest.approx(60.0 - 0.006)  # release start - press end
+    assert res.requested_exposure_s == 60.0 and res.settings["bulb_open_s"] == "59.9940"
+    cam.set_exposure(1.0)
+    assert not cam.capture(tmp_path / "t.nef").bulb
+
+
+def test_no_bulb_without_a_bulb_speed(tmp_path):
+    from hdrcap.acquire.camera import exposure_ladder
+
+    body = FakeBody(fmt="RAW")
+    body.widgets["shutterspeed"] = ("radio", "1/100", ["1/100", "1", "30"])
+    cam = _fake_camera(body)
+    assert cam.bulb_range() is None and exposure_ladder(cam) == [0.01, 1.0, 30.0]
+    assert cam.set_exposure(60.0) == 30.0
