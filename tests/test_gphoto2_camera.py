@@ -303,7 +303,7 @@ def test_a_failed_constructor_releases_the_camera(tmp_path):
         class Spy(g._Worker):
             def __init__(self, *a, **k):
                 super().__init__(*a, **k); made.append(self)
-        g._Worker = Spy
+        g.Gphoto2Camera.worker_factory = Spy
         try:
             Gphoto2Camera(settings={"aperture": "f/5.6", "no-such-setting": 1})
         except Exception as e:
