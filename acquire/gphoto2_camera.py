@@ -69,7 +69,7 @@ from .camera import (
     parse_exposure_label,
 )
 
-__all__ = ["Gphoto2Camera", "ALIASES", "list_cameras", "classify_gphoto2_error", "RAW_SUFFIXES", "choose_camera",
+__all__ = ["Gphoto2Camera", "ALIASES", "PREFLIGHT", "list_cameras", "classify_gphoto2_error", "RAW_SUFFIXES", "choose_camera",
            "free_images", "GphotoError"]
 
 #: Generic setting name -> names used by the brands (first found wins).
@@ -84,7 +84,49 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "focusmode": ("focusmode", "autofocus"),
     "temperature": ("sensortemperature", "cameratemperature", "temperature", "batterytemperature"),
     "serialnumber": ("serialnumber", "eos-serialnumber"),
+    "exposureprogram": ("expprogram", "exposureprogram", "autoexposuremode", "autoexposuremodedial",
+                        "exposuremode"),
+    "autoiso": ("autoiso", "isoauto"),
+    "longexposurenr": ("longexpnr", "longexposurenr", "longexposurenoisereduction", "eos-longexposurenr"),
 }
+
+_RAW_WORDS = ("raw", "nef", "cr2", "cr3", "arw", "dng", "orf", "rw2", "raf", "pef")
+_OFF_WORDS = ("off", "0", "false", "disable", "disabled", "no")
+
+
+def _is_manual_program(v: str) -> bool:
+    return v.strip().lower() in ("m", "manual", "1") or v.strip().lower().startswith("manual")
+
+
+def _is_manual_focus(v: str) -> bool:
+    s = v.strip().lower()
+    return s in _OFF_WORDS or s in ("mf", "manual", "manual focus") or s.startswith("manual") or "(mf)" in s
+
+
+def _has_raw(v: str) -> bool:
+    return any(k in v.lower() for k in _RAW_WORDS)
+
+
+def _is_fixed_iso(v: str) -> bool:
+    try:
+        return float(v) > 0
+    except ValueError:
+        return False
+
+
+def _is_off(v: str) -> bool:
+    return v.strip().lower() in _OFF_WORDS
+
+
+#: Pre-flight rules: generic setting, test of its value, what it must be and why.
+PREFLIGHT: tuple[tuple[str, Callable[[str], bool], str, str], ...] = (
+    ("exposureprogram", _is_manual_program, "manual (M)", "the camera must not choose the exposure"),
+    ("focusmode", _is_manual_focus, "manual focus", "autofocus may refocus between frames or refuse to release"),
+    ("imageformat", _has_raw, "RAW", "the merge needs linear raw data"),
+    ("iso", _is_fixed_iso, "a fixed ISO", "one gain for every frame"),
+    ("autoiso", _is_off, "off", "one gain for every frame"),
+    ("longexposurenr", _is_off, "off", "in-camera dark subtraction doubles the time and alters the noise"),
+)
 
 RAW_SUFFIXES = (".dng", ".nef", ".nrw", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw")
 
@@ -916,6 +958,55 @@ class Gphoto2Camera:
         except ValueError:
             return None
 
+    def preflight(self, *, enforce: bool = False, iso: int | None = None) -> list[dict[str, Any]]:
+        """Check the settings an HDR capture needs (:data:`PREFLIGHT`): manual exposure program,
+        manual focus, a RAW image format, a fixed ISO (``iso`` when given), no auto ISO, no
+        long-exposure noise reduction. Nothing is changed unless ``enforce``.
+
+        Parameters
+        ----------
+        enforce : bool
+            Set each wrong setting to an allowed value (read back).
+        iso : int, optional
+            The ISO the job asks for.
+
+        Returns
+        -------
+        list of dict
+            One finding per setting the camera has: ``setting``, ``widget``, ``value``, ``want``,
+            ``ok`` and ``changed`` (the value set, or None).
+
+        Raises
+        ------
+        InputError
+            A setting is wrong and ``enforce`` is off, or it cannot be changed (a mode dial,
+            a read-only widget, no allowed value); the message names every such setting.
+        """
+        findings, bad = [], []
+        for name, good, want, why in PREFLIGHT:
+            d = self._describe(name)
+            if d is None:
+                continue
+            value = str(d["value"])
+            ok = good(value)
+            if name == "iso" and iso is not None and ok:
+                ok, want = _is_fixed_iso(value) and int(float(value)) == int(iso), f"ISO {iso}"
+            f = {"setting": name, "widget": d["name"], "value": value, "want": want, "ok": ok, "changed": None}
+            if not ok and enforce:
+                target = str(iso) if name == "iso" and iso is not None else next(
+                    (c for c in d["choices"] if good(c)), None)
+                if target is not None and not d["readonly"]:
+                    applied = self.set_setting(name, target)
+                    f.update(changed=applied, ok=good(applied) and (name != "iso" or iso is None
+                                                                    or int(float(applied)) == int(iso)))
+            findings.append(f)
+            if not f["ok"]:
+                bad.append(f"{d['name']} is {value!r}, needs {want} ({why})")
+        if bad:
+            hint = "" if enforce else "; set it on the camera or add enforce = true to the job's [camera]"
+            raise InputError(f"camera {self.identity.model}: " + "; ".join(bad) + hint)
+        return findings
+
     def storage_free_images(self) -> int | None:
         """Free images on the writable storages (:func:`free_images`), None when unknown
         (only meaningful when the camera captures to its card)."""
@@ -1048,8 +1139,7 @@ class Gphoto2Camera:
 
     def _format_has_raw(self) -> bool:
         """Whether the camera's image format setting includes a raw file (RAW, NEF+Fine...)."""
-        fmt = (self.applied.get("imageformat") or self.get_setting("imageformat") or "").lower()
-        return any(k in fmt for k in ("raw", "nef", "cr2", "cr3", "arw", "dng", "orf", "rw2", "raf", "pef"))
+        return _has_raw(self.applied.get("imageformat") or self.get_setting("imageformat") or "")
 
     def _next_event(self, ms: int) -> tuple[str, Any]:
         kind, data = self._call("event", ms, during="wait_for_event", timeout=ms / 1000 + 10)

@@ -35,7 +35,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
         "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "serial": (str,), "delete_after_download": (bool,), "iso": (int,),
+        "model": (str,), "port": (str,), "serial": (str,), "enforce": (bool,), "delete_after_download": (bool,), "iso": (int,),
         "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
         "allowed_times": (list,), "bulb_max_s": ((int, float),),
     },
@@ -295,8 +295,13 @@ def open_camera(job: Job, n: int = 0):
     camera = Gphoto2Camera(cam.get("model"), cam.get("port"), serial=cam.get("serial"),
                            delete_after_download=cam["delete_after_download"],
                            long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
-    if "iso" in cam:
-        camera.set_iso(cam["iso"])
+    try:
+        if "iso" in cam:
+            camera.set_iso(cam["iso"])
+        camera.preflight(enforce=cam.get("enforce", False), iso=cam.get("iso"))  # changes nothing unless enforce
+    except BaseException:
+        camera.close()
+        raise
     return camera
 
 

@@ -333,7 +333,7 @@ def test_job_check_against_the_virtual_camera(tmp_path, cli):
     vdir = _vcam_dir(tmp_path)
     job = tmp_path / "job.toml"
     text = (
-        '[camera]\nbackend = "gphoto2"\nmodel = "D750"\n\n'
+        '[camera]\nbackend = "gphoto2"\nmodel = "D750"\nsettings = { autofocus = "Off" }\n\n'
         '[exposure]\ntimes = [0.01, 0.1, 1.0]\n\n'
         '[darks]\nstrategy = "matched"\nblock_light = "command"\ncover_command = "true"\nuncover_command = "true"\n\n'
         '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n'
@@ -345,7 +345,7 @@ def test_job_check_against_the_virtual_camera(tmp_path, cli):
     job.write_text(text.replace("1.0]", "1.0, 30.0]"))
     bad = cli("run", job, "--check", env=env)
     assert bad.returncode != 0 and "Traceback" not in bad.stderr
-    assert f"{job}:6: exposure.times: exposure 30 s is outside the camera's range 0.0001 .. 1 s" in bad.stderr
+    assert f"{job}:7: exposure.times: exposure 30 s is outside the camera's range 0.0001 .. 1 s" in bad.stderr
     job.write_text(text.replace('model = "D750"', 'model = "EOS R5"'))
     gone = cli("run", job, "--check", env=env)
     assert gone.returncode != 0 and "no camera model 'EOS R5'" in gone.stderr and "Traceback" not in gone.stderr
@@ -355,7 +355,7 @@ def test_session_on_the_virtual_camera_refuses_jpeg(tmp_path, cli):
     """The whole chain (job -> Gphoto2Camera -> session) on the virtual camera, which only
     delivers JPEG: the session stops at once with a clear message instead of merging JPEGs."""
     job = tmp_path / "job.toml"
-    job.write_text('[camera]\nbackend = "gphoto2"\n\n[exposure]\ntimes = [0.01]\n\n'
+    job.write_text('[camera]\nbackend = "gphoto2"\nenforce = true\n\n[exposure]\ntimes = [0.01]\n\n'
                    '[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
                    '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
     env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
@@ -378,7 +378,7 @@ def test_cameras_command_shows_serials_and_a_job_selects_by_serial(tmp_path, cli
     job = tmp_path / "job.toml"
     body = ('[exposure]\ntimes = [0.01]\n\n[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
             '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
-    job.write_text('[camera]\nbackend = "gphoto2"\nserial = "0.1"\n\n' + body)
+    job.write_text('[camera]\nbackend = "gphoto2"\nserial = "0.1"\nsettings = { autofocus = "Off" }\n\n' + body)
     ok = cli("run", job, "--check", env=env)
     assert ok.returncode == 0, ok.stderr
     job.write_text('[camera]\nbackend = "gphoto2"\nserial = "X42"\n\n' + body)
@@ -608,3 +608,86 @@ def test_no_bulb_without_a_bulb_speed(tmp_path):
     cam = _fake_camera(body)
     assert cam.bulb_range() is None and exposure_ladder(cam) == [0.01, 1.0, 30.0]
     assert cam.set_exposure(60.0) == 30.0
+
+
+def _canon_like_body(dial_readonly=False):
+    body = FakeBody(fmt="Large Fine JPEG", canon=True)
+    body.widgets.update({
+        "imageformat": ("radio", "Large Fine JPEG", ["Large Fine JPEG", "RAW + Large Fine JPEG", "RAW"]),
+        "autoexposuremode": ("radio", "AV", ["P", "TV", "AV", "Manual", "Bulb"]),
+        "focusmode": ("radio", "One Shot", ["One Shot", "AI Servo", "Manual"]),
+        "iso": ("radio", "Auto", ["Auto", "100", "200", "400", "800"]),
+        "longexpnr": ("radio", "On", ["Off", "Auto", "On"]),
+    })
+    del body.widgets["imagequality"]
+    if dial_readonly:
+        real = body.op_describe
+        body.op_describe = lambda names: (lambda d: d and dict(d, readonly=d["name"] == "autoexposuremode"))(
+            real(names))
+    return body
+
+
+def test_preflight_reports_every_wrong_setting_and_changes_nothing(tmp_path):
+    from hdrcap.pipeline.errors import InputError
+
+    body = _canon_like_body()
+    cam = _fake_camera(body)
+    before = {k: v[1] for k, v in body.widgets.items()}
+    with pytest.raises(InputError) as e:
+        cam.preflight()
+    msg = str(e.value)
+    assert "\n" not in msg and "enforce = true" in msg
+    for words in ("autoexposuremode is 'AV'", "focusmode is 'One Shot'", "imageformat is 'Large Fine JPEG'",
+                  "iso is 'Auto'", "longexpnr is 'On'"):
+        assert words in msg
+    assert {k: v[1] for k, v in body.widgets.items()} == before  # nothing changed
+
+
+def test_preflight_enforce_sets_allowed_values_and_the_jobs_iso(tmp_path):
+    from hdrcap.pipeline.errors import InputError
+
+    body = _canon_like_body()
+    cam = _fake_camera(body)
+    found = {f["setting"]: f for f in cam.preflight(enforce=True, iso=400)}
+    assert {k: f["changed"] for k, f in found.items()} == {
+        "exposureprogram": "Manual", "focusmode": "Manual", "imageformat": "RAW + Large Fine JPEG", "iso": "400",
+        "longexposurenr": "Off"}
+    assert all(f["ok"] for f in found.values())
+    assert all(f["changed"] is None for f in cam.preflight())  # a second check finds nothing to do
+    dial = _fake_camera(_canon_like_body(dial_readonly=True))
+    with pytest.raises(InputError, match="autoexposuremode is 'AV', needs manual"):
+        dial.preflight(enforce=True)  # a mode dial cannot be turned over USB
+
+
+def test_preflight_on_the_virtual_camera(tmp_path, cli):
+    vdir = _vcam_dir(tmp_path)
+    env = {"VCAMERADIR": str(vdir), "XDG_CONFIG_HOME": str(tmp_path / "xdg")}
+    job = tmp_path / "job.toml"
+    body = ('\n[exposure]\ntimes = [0.01]\n\n[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
+            '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
+    job.write_text('[camera]\nbackend = "gphoto2"\n' + body)
+    refused = cli("run", job, "--check", env=env)
+    assert refused.returncode != 0 and "Traceback" not in refused.stderr
+    assert "autofocus is 'On', needs manual focus" in refused.stderr
+    job.write_text('[camera]\nbackend = "gphoto2"\nenforce = true\n' + body)
+    ok = cli("run", job, "--check", env=env)
+    assert ok.returncode == 0, ok.stderr
+
+
+def test_capture_command_sets_iso_and_enforces_on_the_virtual_camera(tmp_path, cli):
+    """`hdrcap capture --enforce` switches autofocus off on the virtual camera (which has no
+    ISO setting: --iso is refused there with the camera's own words)."""
+    env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
+           "HDRCAP_LOCK_DIR": str(tmp_path / "locks")}
+    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.pipeline.calibration.archive import save_calibration
+
+    calib = save_calibration(tmp_path / "calib.npz", resolve_calibration(None, "camera-B"))
+    base = ["capture", "--camera", "gphoto2", "--times", "0.01", "--darks", "model", "--block-light", "none",
+            "--calibration", calib, "--out", tmp_path / "run", "--no-progress"]
+    refused = cli(*base, env=env)
+    assert refused.returncode != 0 and "autofocus is 'On'" in refused.stderr and "Traceback" not in refused.stderr
+    enforced = cli(*base, "--enforce", env=env)
+    assert "autofocus" not in enforced.stderr and "delivers .jpg files, not raw" in enforced.stderr
+    iso = cli(*base, "--enforce", "--iso", "400", env=env)
+    assert iso.returncode != 0 and "has no setting 'iso'" in iso.stderr and "Traceback" not in iso.stderr
