@@ -691,3 +691,84 @@ def test_capture_command_sets_iso_and_enforces_on_the_virtual_camera(tmp_path, c
     assert "autofocus" not in enforced.stderr and "delivers .jpg files, not raw" in enforced.stderr
     iso = cli(*base, "--enforce", "--iso", "400", env=env)
     assert iso.returncode != 0 and "has no setting 'iso'" in iso.stderr and "Traceback" not in iso.stderr
+
+
+def test_gphoto2_success_path_raw_frames_through_the_virtual_camera(tmp_path):
+    """Raw file -> verification -> manifest -> merge, every camera call through libgphoto2.
+
+    The virtual camera returns, for every capture, the bytes of the first ``.jpg`` in
+    VCAMERADIR under the name ``GPH_nnnn.JPG``, and reads them when the file is downloaded
+    (with the size the file had at ``init``). So the test keeps a DNG of the simulated sensor
+    there, rewritten before each release with the frame's exposure (same size every time), and
+    renames each download to ``.dng``: the only step that is not the real path."""
+    from hdrcap.mock_camera.dng import write_dng
+
+    vdir = tmp_path / "vcamera"
+    vdir.mkdir()
+    # a placeholder DNG of the final size, so init records the size the frames will have
+    placeholder = np.zeros((32, 48), np.uint16)
+    with open(vdir / "scene.jpg", "wb") as f:
+        import datetime
+        write_dng(f, placeholder, exposure_time=0.01, iso=200, black_level=32, white_level=4095, cfa="RGGB",
+                  make="hdrcap", model="sim", serial="1", timestamp=datetime.datetime(2026, 1, 1), description="x")
+    r = run_vcam(tmp_path, """
+        import datetime, dataclasses
+        import numpy as np
+        from hdrcap.mock_camera.backend import SimulatedCamera
+        from hdrcap.mock_camera.dng import write_dng
+        from hdrcap.mock_camera.scenes import make_scene
+        from hdrcap.mock_camera.sensor import PRESETS
+        from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy
+        from hdrcap.acquire.manifest import Manifest
+        from hdrcap.acquire.cliutil import resolve_calibration
+        VDIR = Path(os.environ["VCAMERADIR"])
+        spec = PRESETS["camera-B"]
+        sim = SimulatedCamera(spec, make_scene("hdr", (32, 48), decades=2.0, x_max=3e4), seed=4)
+        size = (VDIR / "scene.jpg").stat().st_size
+
+        class RawThroughVcam:
+            def __init__(self, cam):
+                self.cam, self.identity = cam, cam.identity
+            def __getattr__(self, name):
+                return getattr(self.cam, name)
+            def capture(self, dest, *, dark=False, timeout=None):
+                t = self.cam._t
+                mosaic = sim.capture_array(t, dark=dark)
+                tmp = VDIR / ".next"
+                with open(tmp, "wb") as f:
+                    write_dng(f, mosaic, exposure_time=t, iso=spec.iso, black_level=spec.mu_R,
+                              white_level=spec.white_level, cfa=spec.cfa, make="hdrcap", model="sim", serial="1",
+                              timestamp=datetime.datetime(2026, 1, 1), description="x")
+                assert tmp.stat().st_size == size
+                os.replace(tmp, VDIR / "scene.jpg")
+                res = self.cam.capture(dest, dark=dark, timeout=timeout)
+                raw = Path(res.path).with_suffix(".dng")
+                os.replace(res.path, raw)
+                return dataclasses.replace(res, path=raw)
+
+        cam = Gphoto2Camera(pair_wait_s=0)
+        plan = CapturePlan.bracket([0.0025, 0.01, 0.05], cam.allowed_exposure_times(), "matched")
+        cal = resolve_calibration(None, "camera-B")
+        res = CaptureSession(RawThroughVcam(cam), OUT / "run", plan, calibration=cal,
+                             light=LightBlocker("command", "true", "true"),
+                             retry=RetryPolicy(max_attempts=3, backoff_s=0.01, max_backoff_s=0.02, timeout_s=20),
+                             progress=False).run()
+        frames = Manifest(OUT / "run").frames()
+        RESULT["captured"] = res.captured
+        RESULT["frames"] = {k: [r["camera_file"], r["file_exposure_s"], r["applied_exposure_s"]]
+                            for k, r in frames.items()}
+        m = res.merge
+        ok = m.nexp > 0
+        z = (m.irradiance[ok] - sim.scene[ok]) / m.sigma[ok]
+        RESULT["z_median"] = float(np.median(z))
+        RESULT["z_spread"] = float(1.4826 * np.median(np.abs(z - np.median(z))))
+        RESULT["covered"] = float(ok.mean())
+        cam.close()
+    """, vdir)
+    assert r["captured"] == 6 and len(r["frames"]) == 6
+    for cam_file, file_t, applied in r["frames"].values():
+        assert cam_file.startswith("/store_00010001/DCIM/") and cam_file.endswith(".JPG")
+        assert file_t == pytest.approx(applied, rel=1e-3)
+    assert sorted({round(v[1], 4) for v in r["frames"].values()}) == [0.0025, 0.01, 0.05]
+    # the merge of what came through libgphoto2 agrees with the simulator's truth
+    assert r["covered"] > 0.9 and abs(r["z_median"]) < 0.3 and 0.7 < r["z_spread"] < 1.4
