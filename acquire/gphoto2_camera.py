@@ -49,28 +49,29 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 from hdrcap.pipeline.errors import InputError
 
 from .camera import (
+    BULB_MAX_S,
     CameraBusyError,
     CameraDisconnectedError,
     CameraError,
     CameraGoneError,
     CameraIdentity,
     CameraTimeoutError,
-    BULB_MAX_S,
     CaptureResult,
     StorageFullError,
     nearest_allowed,
     parse_exposure_label,
 )
 
-__all__ = ["Gphoto2Camera", "ALIASES", "PREFLIGHT", "list_cameras", "classify_gphoto2_error", "RAW_SUFFIXES", "choose_camera",
-           "free_images", "GphotoError"]
+__all__ = ["Gphoto2Camera", "ALIASES", "PREFLIGHT", "list_cameras", "classify_gphoto2_error", "RAW_SUFFIXES",
+           "choose_camera", "free_images", "GphotoError"]
 
 #: Generic setting name -> names used by the brands (first found wins).
 ALIASES: dict[str, tuple[str, ...]] = {

@@ -35,7 +35,8 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
         "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "serial": (str,), "enforce": (bool,), "delete_after_download": (bool,), "iso": (int,),
+        "model": (str,), "port": (str,), "serial": (str,), "enforce": (bool,), "delete_after_download": (bool,),
+        "iso": (int,),
         "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
         "allowed_times": (list,), "bulb_max_s": ((int, float),),
     },

@@ -24,7 +24,8 @@ def command(as_json):
         found, problem = [], f"{type(err).__name__}: {err}"
     mock = [{"preset": k, "model": v.model} for k, v in PRESETS.items()]
     if as_json:
-        echo_json({"gphoto2": [{"model": m, "port": p, "serial": s} for m, p, s in found], "mock": mock, "problem": problem})
+        echo_json({"gphoto2": [{"model": m, "port": p, "serial": s} for m, p, s in found], "mock": mock,
+                   "problem": problem})
         return
     if found:
         for m, p, s in found:

@@ -40,7 +40,8 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--force", is_flag=True, help="Overwrite hdr.exr / preview.png in --out.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary.")
-def command(camera, port, serial, iso, enforce, times, target_snr, dark_strategy, dark_count, block_light, cover_command, uncover_command,
+def command(camera, port, serial, iso, enforce, times, target_snr,
+            dark_strategy, dark_count, block_light, cover_command, uncover_command,
             calibration, scene, size, seed, out, resume, force, progress, as_json):
     """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
     hash every frame into manifest.jsonl, and merge it to --out/hdr.exr."""
