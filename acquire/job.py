@@ -20,7 +20,7 @@ from typing import Any, Callable
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
 
-from .camera import nearest_allowed
+from .camera import exposure_ladder, nearest_allowed
 
 __all__ = ["Job", "JobError", "SCHEMA", "load_job", "job_from_dict", "open_camera", "run_job", "run_schedule",
            "check_job_against_camera"]
@@ -35,9 +35,10 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
         "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "delete_after_download": (bool,), "iso": (int,),
+        "model": (str,), "port": (str,), "serial": (str,), "enforce": (bool,), "delete_after_download": (bool,),
+        "iso": (int,),
         "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
-        "allowed_times": (list,),
+        "allowed_times": (list,), "bulb_max_s": ((int, float),),
     },
     "scene": {"name": (str,), "decades": ((int, float),), "x_max": ((int, float),)},
     "exposure": {
@@ -288,13 +289,20 @@ def open_camera(job: Job, n: int = 0):
         shape = parse_size(cam["size"])
         scene = load_scene(_scene_path(job, sc["name"]), shape, sc["decades"], sc["x_max"])
         return MockCamera(cam["preset"], scene, seed=cam["seed"] + n, allowed_times=cam.get("allowed_times"),
+                          bulb_max_s=cam.get("bulb_max_s"),
                           faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
     from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
 
-    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), delete_after_download=cam["delete_after_download"],
+    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), serial=cam.get("serial"),
+                           delete_after_download=cam["delete_after_download"],
                            long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
-    if "iso" in cam:
-        camera.set_iso(cam["iso"])
+    try:
+        if "iso" in cam:
+            camera.set_iso(cam["iso"])
+        camera.preflight(enforce=cam.get("enforce", False), iso=cam.get("iso"))  # changes nothing unless enforce
+    except BaseException:
+        camera.close()
+        raise
     return camera
 
 
@@ -304,7 +312,7 @@ def _scene_path(job: Job, name: str) -> str:
 
 def check_job_against_camera(job: Job, camera) -> None:
     """Checks that need the camera (still before any frame): exposure times in its range."""
-    allowed = camera.allowed_exposure_times()
+    allowed = exposure_ladder(camera)  # timed speeds, and bulb times where the camera has bulb
     if not allowed:
         raise job.error("camera", None, "the camera offers no exposure times")
     lo, hi = min(allowed), max(allowed)
@@ -337,7 +345,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     from hdrcap.acquire.session import CapturePlan
 
     exp, darks = job["exposure"], job["darks"]
-    allowed = camera.allowed_exposure_times()
+    allowed = exposure_ladder(camera)
     times = list(exp["times"])
     strategy: str | list[str] = darks["strategy"]
     info: dict[str, Any] = {"mode": exp["mode"]}
