@@ -32,10 +32,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -121,7 +122,7 @@ def _json(obj: Any) -> str:
 def _utc_datetime64(iso: str) -> np.datetime64:
     t = _dt.datetime.fromisoformat(iso)
     if t.tzinfo is not None:
-        t = t.astimezone(_dt.timezone.utc).replace(tzinfo=None)
+        t = t.astimezone(_dt.UTC).replace(tzinfo=None)
     return np.datetime64(t, "us")
 
 
@@ -352,7 +353,7 @@ class Archive:
                 return
             failed.pop(folder)
         else:
-            failed[folder] = {"error": error, "time": _dt.datetime.now(_dt.timezone.utc).isoformat()}
+            failed[folder] = {"error": error, "time": _dt.datetime.now(_dt.UTC).isoformat()}
         root.attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
         if consolidate:
             zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)

@@ -20,10 +20,11 @@ import hashlib
 import os
 import sys
 import time
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 from hdrcap.pipeline.errors import InputError
 
@@ -95,11 +96,13 @@ class BatchSettings:
 
 @dataclass(frozen=True)
 class RunOutcome:
-    """What a worker sends back for one run: the run to commit, warnings, merge seconds."""
+    """What a worker sends back for one run: the run to commit (None if it failed), warnings,
+    merge seconds, and the one-line error of a run that failed on bad input."""
 
     run: Any
     warnings: tuple[str, ...]
     seconds: float
+    error: str | None = None
 
 
 @dataclass
@@ -213,7 +216,7 @@ def _start_time(source: RunSource, frames) -> str:
         except ValueError:
             pass
     first = min(os.stat(p).st_mtime for p in source.frames)
-    return _dt.datetime.fromtimestamp(first, _dt.timezone.utc).isoformat()
+    return _dt.datetime.fromtimestamp(first, _dt.UTC).isoformat()
 
 
 def merge_run(source: RunSource, settings: BatchSettings) -> RunOutcome:
@@ -231,14 +234,24 @@ def merge_run(source: RunSource, settings: BatchSettings) -> RunOutcome:
     Returns
     -------
     RunOutcome
-        The :class:`acquire.archive.ArchiveRun` (float32 channels as in the EXR), warnings, seconds.
+        The :class:`acquire.archive.ArchiveRun` (float32 channels as in the EXR), warnings, seconds;
+        or the one-line error of a run that failed on bad input (other exceptions propagate).
     """
+    from hdrcap.pipeline.errors import HdrcapError
+
+    t0 = time.perf_counter()
+    try:
+        return _merge_run(source, settings, t0)
+    except HdrcapError as err:  # bad input: a one-line error, no worker traceback in the log
+        return RunOutcome(None, (), time.perf_counter() - t0, _describe(err))
+
+
+def _merge_run(source: RunSource, settings: BatchSettings, t0: float) -> RunOutcome:
     import numpy as np
 
     from hdrcap.acquire.archive import CHANNELS, ArchiveRun
     from hdrcap.acquire.filemerge import build_hdr_image, library_root, merge_files
 
-    t0 = time.perf_counter()
     calib = _calibration(settings.calibration, settings.camera)
     plan = None
     if source.plan is not None and settings.weighting == "optimal":
@@ -362,6 +375,8 @@ def _land(fut, source: RunSource, store, force: bool, report: BatchReport) -> No
     """Commit one finished task's run to the archive, or record its failure."""
     try:
         out = fut.result()
+        if out.error is not None:
+            raise InputError(out.error)
         report.committed[source.folder] = store.commit(out.run, replace=force)
     except Exception as err:  # any failure of one run: recorded, the batch goes on
         message = _describe(err)

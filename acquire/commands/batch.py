@@ -8,6 +8,14 @@ import click
 
 from hdrcap.acquire.cliutil import echo_json
 from hdrcap.acquire.commands.merge import command as _merge
+from hdrcap.pipeline.errors import HdrcapError
+
+
+class BatchIncomplete(HdrcapError):
+    """Some runs failed (the others landed); exit status 1."""
+
+    exit_code = 1
+
 
 #: The options of ``hdrcap merge`` that ``hdrcap batch`` takes too (the same click options).
 SHARED = ("calibration", "camera", "weighting", "iterations", "tolerance", "saturation", "saturation_sigmas", "prnu",
@@ -67,7 +75,8 @@ def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **m
         click.echo(f"{output}: {len(report.committed)} runs merged, {len(report.skipped)} already there, "
                    f"{len(report.failed)} failed, {report.seconds:.1f} s")
     if report.failed:
-        ctx.exit(1)
+        raise BatchIncomplete(f"{len(report.failed)} of {len(report.failed) + len(report.committed)} runs failed; "
+                              f"recorded in {output} (attribute hdrcap_failed_runs); run again to retry them")
 
 
 command.params.extend(p for p in _merge.params if p.name in SHARED)

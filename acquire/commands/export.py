@@ -9,7 +9,8 @@ import click
 
 @click.command("export")
 @click.argument("archive", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--run", "run", type=click.IntRange(min=0), required=True, help="Run number (the archive's run coordinate).")
+@click.option("--run", "run", type=click.IntRange(min=0), required=True,
+              help="Run number (the archive's run coordinate).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output EXR file.")
 @click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip",
               show_default=True, help="EXR compression.")
