@@ -108,7 +108,8 @@ class RunOutcome:
 @dataclass
 class BatchReport:
     """What a batch did: runs committed (folder -> run number), skipped (already in the
-    archive), failed (folder -> error), warnings and wall-clock seconds."""
+    archive), failed (folder -> error), warnings, wall-clock seconds, and the seconds spent
+    merging (summed over the workers) and committing (on the client)."""
 
     archive: str
     committed: dict[str, int] = field(default_factory=dict)
@@ -116,10 +117,13 @@ class BatchReport:
     failed: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    merge_seconds: float = 0.0
+    commit_seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return {"archive": self.archive, "committed": len(self.committed), "skipped": len(self.skipped),
-                "failed": self.failed, "warnings": self.warnings, "seconds": round(self.seconds, 3)}
+                "failed": self.failed, "warnings": self.warnings, "seconds": round(self.seconds, 3),
+                "merge_seconds": round(self.merge_seconds, 3), "commit_seconds": round(self.commit_seconds, 3)}
 
 
 # --------------------------------------------------------------------------- finding runs
@@ -282,10 +286,10 @@ def _merge_run(source: RunSource, settings: BatchSettings, t0: float) -> RunOutc
 
 # --------------------------------------------------------------------------- the driver
 @contextmanager
-def _client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
+def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Any]:
     """A dask.distributed client: of the scheduler at ``scheduler``, or of a local cluster of
-    ``workers`` single-threaded worker processes (each with its share of the cores for the
-    merge kernel's threads)."""
+    ``workers`` worker processes running one task at a time, each with ``threads`` threads for
+    the merge kernel (default: its share of the cores)."""
     from distributed import Client, LocalCluster
 
     if scheduler:
@@ -293,7 +297,7 @@ def _client(workers: int | None, scheduler: str | None) -> Iterator[Any]:
             yield client
         return
     n = workers or max(1, (os.cpu_count() or 1))
-    threads = str(max(1, (os.cpu_count() or 1) // n))
+    threads = str(threads or max(1, (os.cpu_count() or 1) // n))
     env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                       env=env) as cluster, Client(cluster) as client:
@@ -312,8 +316,8 @@ def _task_key(source: RunSource) -> str:
 
 
 def run_batch(paths: Sequence[Path], archive, settings: BatchSettings, *, workers: int | None = None,
-              scheduler: str | None = None, force: bool = False, progress: bool | None = None,
-              on_submit: Callable[[Any], None] | None = None) -> BatchReport:
+              scheduler: str | None = None, threads: int | None = None, force: bool = False,
+              progress: bool | None = None, on_submit: Callable[[Any], None] | None = None) -> BatchReport:
     """Merge the runs of ``paths`` on dask.distributed and commit each to ``archive``.
 
     Runs already in the archive are skipped unless ``force`` (then rewritten in place). One
@@ -332,6 +336,8 @@ def run_batch(paths: Sequence[Path], archive, settings: BatchSettings, *, worker
         Worker processes of the local cluster (default: one per core).
     scheduler : str or None
         Address of a running Dask scheduler (instead of a local cluster).
+    threads : int or None
+        Merge-kernel threads per local worker (default: the cores divided among the workers).
     force : bool
         Merge runs already in the archive again.
     progress : bool or None
@@ -356,7 +362,7 @@ def run_batch(paths: Sequence[Path], archive, settings: BatchSettings, *, worker
     todo = [s for s in sources if force or s.folder not in there]
     report.skipped = [s.folder for s in sources if s not in todo]
     if todo:
-        with _client(workers, scheduler) as client:
+        with _client(workers, scheduler, threads) as client:
             futures = {client.submit(merge_run, s, settings, key=_task_key(s), pure=False): s for s in todo}
             if on_submit is not None:
                 on_submit(client)
@@ -375,9 +381,12 @@ def _land(fut, source: RunSource, store, force: bool, report: BatchReport) -> No
     """Commit one finished task's run to the archive, or record its failure."""
     try:
         out = fut.result()
+        report.merge_seconds += out.seconds
         if out.error is not None:
             raise InputError(out.error)
+        t0 = time.perf_counter()
         report.committed[source.folder] = store.commit(out.run, replace=force)
+        report.commit_seconds += time.perf_counter() - t0
     except Exception as err:  # any failure of one run: recorded, the batch goes on
         message = _describe(err)
         store.record_failure(source.folder, message)
