@@ -271,6 +271,7 @@ def _merge_run(source: RunSource, settings: BatchSettings, t0: float) -> RunOutc
     warnings: list[str] = []
     done = merge_files([Path(f) for f in source.frames], calib, options, dark_paths=[Path(d) for d in source.darks],
                        weighting=settings.weighting, plan=plan, dark_strategy=strategy,
+                       plan_file=None if plan is None else plan.path,
                        master_dark_frames=settings.master_dark_frames,
                        library=library_root(calib, settings.calibration), given=lambda n: n in settings.given,
                        warn=warnings.append)

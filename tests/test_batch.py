@@ -37,10 +37,13 @@ def runs(tmp_path_factory):
     cap = root / "cap"  # a capture run folder with its manifest
     assert cli_main(["capture", "--camera", f"mock:{CAMERA}", "--times", *map(str, TIMES), "--out", str(cap),
                      "--size", "64x48", "--seed", "7", "--no-progress"]) == 0
+    planned = root / "planned"  # a capture run the planner planned (per-exposure dark strategies, options)
+    assert cli_main(["capture", "--camera", "mock:camera-B", "--target-snr", "20", "--out", str(planned),
+                     "--size", "64x48", "--seed", "8", "--no-progress"]) == 0
     bad = _bracket(root / "bad", seed=99)
     frame = sorted(bad.glob("frame_*.dng"))[1]
     frame.write_bytes(frame.read_bytes()[: frame.stat().st_size // 3])  # truncated raw file
-    return {"good": good, "capture": cap, "bad": bad}
+    return {"good": good, "capture": cap, "planned": planned, "bad": bad}
 
 
 def _merge_exr(tmp: Path, name: str, frames, darks, *extra) -> Path:
@@ -75,9 +78,7 @@ def test_batch_cli_identical_to_merge_records_failure_and_resumes(runs, tmp_path
         for name, arr in ref.channels.items():
             got = ds[name].isel(run=i).values
             assert got.dtype == arr.dtype and np.array_equal(got, arr, equal_nan=True), (folder, name)
-        out = tmp_path / f"e{k}.exr"
-        assert cli_main(["export", str(archive), "--run", str(i), "-o", str(out)]) == 0
-        back = read_exr(out)
+        back = read_exr(_export(archive, i, tmp_path / f"e{k}.exr"))
         assert back.attrs == ref.attrs
         assert all(np.array_equal(back.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
     # Re-running resumes: the runs there are skipped, only the failed one is tried again.
@@ -85,6 +86,31 @@ def test_batch_cli_identical_to_merge_records_failure_and_resumes(runs, tmp_path
     report = json.loads(proc.stdout)
     assert proc.returncode == 1 and report["committed"] == 0 and report["skipped"] == 4 and len(report["failed"]) == 1
     assert xr.open_zarr(archive).sizes["run"] == 4
+
+
+def test_planned_run_follows_its_recorded_plan_as_merge_plan_does(runs, tmp_path):
+    from hdrcap.acquire.manifest import Manifest
+
+    folder = runs["planned"].resolve()
+    archive = tmp_path / "p.zarr"
+    assert cli_main(["batch", str(folder), "--camera", "camera-B", "-o", str(archive), "--workers", "1",
+                     "--no-progress"]) == 0
+    plan = Manifest(folder).header()["planning"]["plan"]
+    plan_file = tmp_path / "plan.json"
+    plan_file.write_text(json.dumps(plan))
+    ref = tmp_path / "ref.exr"
+    assert cli_main(["merge", *map(str, sorted(folder.glob("frames/*_light_*.dng"))), "--camera", "camera-B",
+                     "--plan", str(plan_file), "-o", str(ref)]) == 0
+    ref, got = read_exr(ref), read_exr(_export(archive, 0, tmp_path / "got.exr"))
+    assert got.attrs["merge"] == ref.attrs["merge"] and got.attrs["merge"]["saturation"] == plan["merge_options"][
+        "saturation"]
+    assert all(np.array_equal(got.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
+    assert got.attrs["planner"]["plan_file"] == str(folder / "manifest.jsonl")
+
+
+def _export(archive: Path, run: int, out: Path) -> Path:
+    assert cli_main(["export", str(archive), "--run", str(run), "-o", str(out)]) == 0
+    return out
 
 
 def test_killed_worker_loses_nothing(runs, tmp_path):
