@@ -290,18 +290,19 @@ def _merge_run(source: RunSource, settings: BatchSettings, t0: float) -> RunOutc
 def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Any]:
     """A dask.distributed client: of the scheduler at ``scheduler``, or of a local cluster of
     ``workers`` worker processes running one task at a time, each with ``threads`` threads for
-    the merge kernel (default: its share of the cores)."""
+    the merge kernel (default: its share of the cores). Results are fetched from the workers
+    directly, not through the scheduler."""
     from distributed import Client, LocalCluster
 
     if scheduler:
-        with Client(scheduler) as client:
+        with Client(scheduler, direct_to_workers=True) as client:  # results straight from the worker
             yield client
         return
     n = workers or max(1, (os.cpu_count() or 1))
     threads = str(threads or max(1, (os.cpu_count() or 1) // n))
     env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                      env=env) as cluster, Client(cluster) as client:
+                      env=env) as cluster, Client(cluster, direct_to_workers=True) as client:
         yield client
 
 
