@@ -42,7 +42,7 @@ import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ArchiveRun", "Archive", "CHANNELS", "RUN_COORDS", "read_run", "open_archive"]
+__all__ = ["ArchiveRun", "Archive", "CHANNELS", "RUN_COORDS", "read_run", "open_archive", "stage_channels"]
 
 #: The per-photosite variables, as in the EXR of ``hdrcap merge``.
 CHANNELS = ("irradiance", "sigma", "nexp")
@@ -107,10 +107,20 @@ class ArchiveRun:
     plan: dict | None = None
     merge_options: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
+    staged: dict[str, str] = field(default_factory=dict)
+    staged_shape: tuple[int, int] = (0, 0)
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.channels["irradiance"].shape
+        return tuple(self.staged_shape) if self.staged else self.channels["irradiance"].shape
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The channels, decoded from the staged chunk files if the run was staged."""
+        if not self.staged:
+            return self.channels
+        codec = _codec()
+        return {name: np.frombuffer(codec.decode(Path(f).read_bytes()), dtype=np.float32).reshape(self.shape)
+                for name, f in self.staged.items()}
 
 
 def _json(obj: Any) -> str:
@@ -126,12 +136,8 @@ def _utc_datetime64(iso: str) -> np.datetime64:
     return np.datetime64(t, "us")
 
 
-def _dataset(run: ArchiveRun, index: int):
-    """The one-run xarray Dataset of ``run`` at position ``index``."""
-    import xarray as xr
-
-    data = {name: (("run", "y", "x"), np.asarray(run.channels[name], dtype=np.float32)[None], _VAR_ATTRS[name])
-            for name in CHANNELS}
+def _coords(run: ArchiveRun, index: int) -> dict[str, tuple]:
+    """The coordinates along ``run`` of ``run`` at position ``index``."""
     values = {"run": np.array([index], dtype=np.int64),
               "start_time": np.array([_utc_datetime64(run.start_time)], dtype="datetime64[us]"),
               "folder": np.array([run.folder], dtype=object),
@@ -141,12 +147,36 @@ def _dataset(run: ArchiveRun, index: int):
               "merge_options": np.array([_json(run.merge_options)], dtype=object),
               "calibration": np.array([_json(run.calibration)], dtype=object),
               "header": np.array([_json(run.header)], dtype=object)}
-    coords = {name: ("run", v, _COORD_ATTRS[name]) for name, v in values.items()}
-    return xr.Dataset(data, coords=coords)
+    return {name: ("run", v, _COORD_ATTRS[name]) for name, v in values.items()}
+
+
+def _dataset(run: ArchiveRun, index: int):
+    """The one-run xarray Dataset of ``run`` at position ``index``."""
+    import xarray as xr
+
+    arrays = run.arrays()
+    data = {name: (("run", "y", "x"), np.asarray(arrays[name], dtype=np.float32)[None], _VAR_ATTRS[name])
+            for name in CHANNELS}
+    return xr.Dataset(data, coords=_coords(run, index))
+
+
+def _dataset_coords(run: ArchiveRun, index: int):
+    """The one-run Dataset of ``run``'s coordinates only (its arrays are staged), as variables:
+    the per-photosite arrays' ``coordinates`` attribute already makes them coordinates."""
+    import xarray as xr
+
+    return xr.Dataset(coords=_coords(run, index)).reset_coords()
+
+
+def _codec():
+    """The compressor of the per-photosite chunks (workers encode staged chunks with it)."""
+    from numcodecs import Blosc
+
+    return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
 
 
 def _encoding(shape: tuple[int, int]) -> dict[str, dict]:
-    enc: dict[str, dict] = {name: {"chunks": (1, *shape)} for name in CHANNELS}
+    enc: dict[str, dict] = {name: {"chunks": (1, *shape), "compressors": (_codec(),)} for name in CHANNELS}
     enc.update({name: {"chunks": (1,)} for name in ("run", *RUN_COORDS)})
     enc["start_time"].update(units=_TIME_UNITS, dtype="int64")
     return enc
@@ -284,42 +314,103 @@ class Archive:
         int
             The run number (``run`` coordinate).
         """
+        with self._locked():
+            i = self._commit(run, replace)
+        for f in run.staged.values():  # decoded rather than renamed (first run, rewrite): not needed any more
+            Path(f).unlink(missing_ok=True)
+        return i
+
+    def _commit(self, run: ArchiveRun, replace: bool) -> int:
+        """:meth:`commit` under the writer's lock."""
         import zarr
 
-        with self._locked():
-            group = None
-            if self.exists():
-                self._repair()
-                group = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
-            attrs = _global_attrs() if group is None else dict(group.attrs)
-            failed = json.loads(attrs.get(_FAILED_ATTR, "{}"))
-            failed.pop(run.folder, None)
-            attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
-            if group is None or "irradiance" not in group:  # the first run (perhaps after failures only)
-                ds = _dataset(run, 0)
-                ds.attrs.update(attrs)
-                ds.to_zarr(self.path, mode="w", consolidated=True, zarr_format=_FORMAT,
-                           encoding=_encoding(run.shape))
-                return 0
-            n = group["run"].shape[0]
-            shape = tuple(group["irradiance"].shape[1:])
-            if tuple(run.shape) != shape:
-                raise InputError(f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
-                                 f"archive's {shape[1]}x{shape[0]}")
-            folders = [str(f) for f in group["folder"][:]]
-            if run.folder in folders:
-                if not replace:
-                    raise InputError(f"{run.folder}: already in {self.path} as run {folders.index(run.folder)}")
-                i = folders.index(run.folder)
-                ds = _dataset(run, i)
-                ds.attrs.update(attrs)
-                ds.to_zarr(self.path, mode="r+", region={"run": slice(i, i + 1)}, consolidated=True,
-                           zarr_format=_FORMAT)
-                return i
-            ds = _dataset(run, n)
-            ds.attrs.update(attrs)  # xarray replaces the root attributes on append
-            ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=True, zarr_format=_FORMAT)
-            return n
+        group = None
+        if self.exists():
+            self._repair()
+            group = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
+        attrs = _global_attrs() if group is None else dict(group.attrs)
+        attrs.pop("coordinates", None)
+        failed = json.loads(attrs.get(_FAILED_ATTR, "{}"))
+        failed.pop(run.folder, None)
+        attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
+        if group is None or "irradiance" not in group:  # the first run (perhaps after failures only)
+            ds = _dataset(run, 0)
+            ds.attrs.update(attrs)
+            ds.to_zarr(self.path, mode="w", consolidated=True, zarr_format=_FORMAT,
+                       encoding=_encoding(run.shape))
+            return 0
+        n = group["run"].shape[0]
+        shape = tuple(group["irradiance"].shape[1:])
+        if tuple(run.shape) != shape:
+            raise InputError(f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
+                             f"archive's {shape[1]}x{shape[0]}")
+        folders = [str(f) for f in group["folder"][:]]
+        if run.folder in folders:
+            if not replace:
+                raise InputError(f"{run.folder}: already in {self.path} as run {folders.index(run.folder)}")
+            i = folders.index(run.folder)
+            ds = _dataset(run, i)
+            ds.attrs.update(attrs)
+            ds.to_zarr(self.path, mode="r+", region={"run": slice(i, i + 1)}, consolidated=True,
+                       zarr_format=_FORMAT)
+            return i
+        if run.staged and self._chunks_compatible(group):
+            return self._append_staged(run, n, attrs)
+        ds = _dataset(run, n)
+        ds.attrs.update(attrs)  # xarray replaces the root attributes on append
+        ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=True, zarr_format=_FORMAT)
+        return n
+
+    @staticmethod
+    def _chunks_compatible(group) -> bool:
+        """Whether staged chunk files can be moved in as they are (same codec, dtype, layout)."""
+        for name in CHANNELS:
+            meta = group[name].metadata
+            if (meta.compressor != _codec() or meta.filters or meta.order != "C" or meta.dtype.to_native_dtype()
+                    != np.dtype("<f4") or meta.dimension_separator != "."):
+                return False
+        return True
+
+    def _append_staged(self, run: ArchiveRun, n: int, attrs: dict) -> int:
+        """Append a staged run: its coordinates (xarray), the per-photosite arrays grown by one
+        run and its chunk files renamed into place, then the commit (consolidated metadata)."""
+        import os
+
+        import zarr
+
+        ds = _dataset_coords(run, n)
+        ds.attrs.update(attrs)
+        ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=False, zarr_format=_FORMAT)
+        group = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
+        for name in CHANNELS:
+            arr = group[name]
+            arr.resize((n + 1, *arr.shape[1:]))
+            os.replace(run.staged[name], self.path / name / arr.metadata.encode_chunk_key((n, 0, 0)))
+        zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)
+        return n
+
+    # ------------------------------------------------------------------ staging
+    def open_staging(self) -> tuple[str, str]:
+        """A staging folder for this batch (``ARCHIVE.zarr.staging/TOKEN``, on the archive's file
+        system) where workers that see it write their runs' encoded chunks; returns (folder, token)."""
+        import secrets
+
+        token = secrets.token_hex(8)
+        folder = self.path.with_name(self.path.name + ".staging") / token
+        folder.mkdir(parents=True)
+        (folder / "token").write_text(token)
+        return str(folder), token
+
+    def close_staging(self, staging: tuple[str, str]) -> None:
+        """Remove this batch's staging folder (and the staging root once empty)."""
+        import shutil
+
+        folder = Path(staging[0])
+        shutil.rmtree(folder, ignore_errors=True)
+        try:
+            folder.parent.rmdir()
+        except OSError:
+            pass
 
     def record_failure(self, folder: str, error: str) -> None:
         """Record that merging ``folder`` failed with ``error`` (kept in the archive's
@@ -357,3 +448,43 @@ class Archive:
         root.attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
         if consolidate:
             zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)
+
+
+def stage_channels(staging: tuple[str, str] | None, key: str, channels: dict[str, np.ndarray]) -> dict[str, str]:
+    """On a worker: write each channel as the archive's chunk file (float32, C order, encoded with
+    the archive's compressor) into the batch's staging folder, so that the client commits the
+    run by renaming files instead of receiving and compressing the arrays.
+
+    Parameters
+    ----------
+    staging : (str, str) or None
+        The staging folder and its token (:meth:`Archive.open_staging`).
+    key : str
+        A name unique to the run in this batch.
+    channels : dict of str to numpy.ndarray
+        ``irradiance``, ``sigma``, ``nexp``.
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> staged file; empty when the worker does not see the staging folder
+        (no shared file system): then the arrays go to the client.
+    """
+    import os
+
+    if staging is None:
+        return {}
+    folder, token = Path(staging[0]), staging[1]
+    try:
+        if (folder / "token").read_text() != token:
+            return {}
+    except OSError:
+        return {}
+    codec, out = _codec(), {}
+    for name in CHANNELS:
+        final = folder / f"{key}.{name}"
+        tmp = folder / f".{key}.{name}.{os.getpid()}.partial"
+        tmp.write_bytes(codec.encode(np.ascontiguousarray(channels[name], dtype=np.float32)))
+        os.replace(tmp, final)
+        out[name] = str(final)
+    return out

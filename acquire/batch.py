@@ -223,7 +223,7 @@ def _start_time(source: RunSource, frames) -> str:
     return _dt.datetime.fromtimestamp(first, _dt.UTC).isoformat()
 
 
-def merge_run(source: RunSource, settings: BatchSettings) -> RunOutcome:
+def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None = None) -> RunOutcome:
     """Merge one run on the worker, as ``hdrcap merge`` would: the same
     :func:`acquire.filemerge.merge_files` and EXR content, the run's recorded plan and dark
     strategy unless the settings override them.
@@ -234,6 +234,9 @@ def merge_run(source: RunSource, settings: BatchSettings) -> RunOutcome:
         The run's files.
     settings : BatchSettings
         The merge settings.
+    staging : (str, str) or None
+        The batch's staging folder and token: if this worker sees it, the merged arrays are
+        written there as the archive's chunk files instead of being sent back.
 
     Returns
     -------
@@ -245,15 +248,15 @@ def merge_run(source: RunSource, settings: BatchSettings) -> RunOutcome:
 
     t0 = time.perf_counter()
     try:
-        return _merge_run(source, settings, t0)
+        return _merge_run(source, settings, staging, t0)
     except HdrcapError as err:  # bad input: a one-line error, no worker traceback in the log
         return RunOutcome(None, (), time.perf_counter() - t0, _describe(err))
 
 
-def _merge_run(source: RunSource, settings: BatchSettings, t0: float) -> RunOutcome:
+def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
     import numpy as np
 
-    from hdrcap.acquire.archive import CHANNELS, ArchiveRun
+    from hdrcap.acquire.archive import CHANNELS, ArchiveRun, stage_channels
     from hdrcap.acquire.filemerge import build_hdr_image, library_root, merge_files
 
     calib = _calibration(settings.calibration, settings.camera)
@@ -277,7 +280,9 @@ def _merge_run(source: RunSource, settings: BatchSettings, t0: float) -> RunOutc
                        warn=warnings.append)
     img = build_hdr_image(done.result, done.frames, calib, done.extra)
     channels = {k: np.ascontiguousarray(img.channels[k], dtype=np.float32) for k in CHANNELS}
-    run = ArchiveRun(folder=source.folder, start_time=_start_time(source, done.frames), channels=channels,
+    staged = stage_channels(staging, _task_key(source), channels)
+    run = ArchiveRun(folder=source.folder, start_time=_start_time(source, done.frames),
+                     channels={} if staged else channels, staged=staged, staged_shape=img.shape,
                      header=img.attrs, exposure_times=[fr.exposure_time for fr in done.frames], plan=source.plan,
                      merge_options={"weighting": settings.weighting, "merge": img.attrs.get("merge")},
                      calibration=dict(settings.calibration_id, params=calib.params.to_dict(),
@@ -351,9 +356,6 @@ def run_batch(paths: Sequence[Path], archive, settings: BatchSettings, *, worker
     -------
     BatchReport
     """
-    from distributed import as_completed
-    from tqdm import tqdm
-
     from hdrcap.acquire.archive import Archive
 
     t0 = time.perf_counter()
@@ -364,19 +366,31 @@ def run_batch(paths: Sequence[Path], archive, settings: BatchSettings, *, worker
     todo = [s for s in sources if force or s.folder not in there]
     report.skipped = [s.folder for s in sources if s not in todo]
     if todo:
-        with _client(workers, scheduler, threads) as client:
-            futures = {client.submit(merge_run, s, settings, key=_task_key(s), pure=False): s for s in todo}
-            if on_submit is not None:
-                on_submit(client)
-            show = sys.stderr.isatty() if progress is None else progress
-            with tqdm(total=len(todo), desc="batch", unit="run", disable=not show, dynamic_ncols=True) as bar:
-                for fut in as_completed(futures):
-                    source = futures.pop(fut)
-                    _land(fut, source, store, force, report)
-                    fut.release()
-                    bar.update(1)
+        staging = store.open_staging()
+        try:
+            _run_tasks(todo, settings, staging, store, report, workers, scheduler, threads, force, progress, on_submit)
+        finally:
+            store.close_staging(staging)
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _run_tasks(todo, settings, staging, store, report, workers, scheduler, threads, force, progress, on_submit):
+    """Submit one task per run and commit (or record the failure of) each as it finishes."""
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    with _client(workers, scheduler, threads) as client:
+        futures = {client.submit(merge_run, s, settings, staging, key=_task_key(s), pure=False): s for s in todo}
+        if on_submit is not None:
+            on_submit(client)
+        show = sys.stderr.isatty() if progress is None else progress
+        with tqdm(total=len(todo), desc="batch", unit="run", disable=not show, dynamic_ncols=True) as bar:
+            for fut in as_completed(futures):
+                source = futures.pop(fut)
+                _land(fut, source, store, force, report)
+                fut.release()
+                bar.update(1)
 
 
 def _land(fut, source: RunSource, store, force: bool, report: BatchReport) -> None:

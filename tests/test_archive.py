@@ -4,13 +4,14 @@ run, readers undisturbed by appends), in-place rewrite, failure records, one-lin
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import xarray as xr
 import zarr
 
-from hdrcap.acquire.archive import CHANNELS, RUN_COORDS, Archive, ArchiveRun, open_archive, read_run
+from hdrcap.acquire.archive import CHANNELS, RUN_COORDS, Archive, ArchiveRun, open_archive, read_run, stage_channels
 from hdrcap.pipeline.errors import InputError
 
 SHAPE = (6, 8)
@@ -88,10 +89,38 @@ def test_reader_undisturbed_by_appends_and_rewrite_in_place(tmp_path):
     np.testing.assert_array_equal(ds["irradiance"].isel(run=1).values, new.channels["irradiance"])
 
 
-def test_a_crash_before_the_commit_leaves_no_partial_run(tmp_path, monkeypatch):
+def _staged(store: Archive, staging, run: ArchiveRun) -> ArchiveRun:
+    """``run`` as a worker that sees the staging folder sends it: chunk files, no arrays."""
+    files = stage_channels(staging, run.folder.replace("/", "_"), run.channels)
+    assert set(files) == set(CHANNELS)
+    return ArchiveRun(run.folder, run.start_time, {}, run.header, run.exposure_times, run.plan, run.merge_options,
+                      run.calibration, staged=files, staged_shape=run.shape)
+
+
+def test_staged_runs_commit_by_renaming_chunk_files(tmp_path):
+    path = tmp_path / "a.zarr"
+    store = Archive(path)
+    staging = store.open_staging()
+    for i in range(3):  # the first creates the archive, the others are renamed into place
+        store.commit(_staged(store, staging, _run(i)))
+    assert stage_channels((staging[0], "another batch's token"), "x", _run(0).channels) == {}  # not seen: no staging
+    assert not [p for p in Path(staging[0]).iterdir() if p.name != "token"]  # every staged file moved in
+    store.close_staging(staging)
+    assert not path.with_name("a.zarr.staging").exists()
+    ds = xr.open_zarr(path)
+    for i in range(3):
+        for name in CHANNELS:
+            np.testing.assert_array_equal(ds[name].isel(run=i).values, _run(i).channels[name])
+    assert set(ds.coords) == {"run", *RUN_COORDS} and set(ds.data_vars) == set(CHANNELS)
+
+
+@pytest.mark.parametrize("staged", [False, True])
+def test_a_crash_before_the_commit_leaves_no_partial_run(tmp_path, monkeypatch, staged):
     path = tmp_path / "a.zarr"
     store = Archive(path)
     store.commit(_run(0))
+    staging = store.open_staging()
+    given = (lambda r: _staged(store, staging, r)) if staged else (lambda r: r)
     # The writer dies after writing the run's arrays, before the consolidated metadata (the commit).
     real = zarr.consolidate_metadata
 
@@ -100,14 +129,14 @@ def test_a_crash_before_the_commit_leaves_no_partial_run(tmp_path, monkeypatch):
 
     monkeypatch.setattr(zarr, "consolidate_metadata", die)
     with pytest.raises(KeyboardInterrupt):
-        store.commit(_run(1))
+        store.commit(given(_run(1)))
     monkeypatch.setattr(zarr, "consolidate_metadata", real)
     raw = zarr.open_group(path, mode="r", use_consolidated=False, zarr_format=2)
     assert raw["irradiance"].shape[0] == 2  # the arrays did grow ...
     ds = xr.open_zarr(path)
     assert ds.sizes["run"] == 1 and list(ds["folder"].values) == ["/runs/000"]  # ... readers see no partial run
     # The next writer cuts the uncommitted run off and appends in its place.
-    assert store.commit(_run(2)) == 1
+    assert store.commit(given(_run(2))) == 1
     ds = xr.open_zarr(path)
     assert list(ds["folder"].values) == ["/runs/000", "/runs/002"]
     np.testing.assert_array_equal(ds["nexp"].isel(run=1).values, _run(2).channels["nexp"])
