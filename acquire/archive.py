@@ -26,6 +26,10 @@ arrays one run longer than the consolidated metadata says; readers do not see th
 the next writer cuts the arrays back to the committed length before appending. So the archive
 never shows a partial run. Writers take a lock file ``ARCHIVE.zarr.lock`` (one writer at a
 time); readers take no lock and may read while a batch appends.
+
+Staging: batch workers may write a run's chunk files themselves (:func:`stage_channels`, encoded
+exactly as the archive's chunks) into ``ARCHIVE.zarr.staging/BATCH/``; the commit then renames
+them into place instead of compressing and writing the arrays.
 """
 
 from __future__ import annotations

@@ -7,9 +7,11 @@ the task a worker runs for one run: it reads the frames itself and merges them w
 one task per run to a local cluster or a scheduler, commits every merged run to the
 :class:`acquire.archive.Archive` as it arrives, records failures and skips runs already there.
 
-Over the network go the task (a run's file paths and the merge settings, a few kB) and its
-result (the merged float32 arrays, 12 bytes per photosite, to the client that writes the
-archive); the raw frames are read on the worker and never leave it.
+Over the network go the task (a run's file paths and the merge settings, a few kB) and a few
+kB of result: a worker that sees the archive's file system writes the run's encoded chunk files
+into the batch's staging folder (:func:`acquire.archive.stage_channels`) and the client commits
+them by renaming; otherwise the float32 arrays (12 bytes per photosite) go to the client. The
+raw frames are read on the worker and never leave it.
 """
 
 from __future__ import annotations
