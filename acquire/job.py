@@ -23,7 +23,8 @@ from hdrcap.pipeline.noise import DarkStrategy
 from .camera import nearest_allowed
 
 __all__ = ["Job", "JobError", "SCHEMA", "load_job", "job_from_dict", "open_camera", "run_job", "run_schedule",
-           "check_job_against_camera"]
+           "check_job_against_camera", "run_folder", "resume_folder", "run_state", "error_summary", "notify",
+           "NothingToResume", "ScheduleError"]
 
 
 class JobError(InputError):
@@ -49,6 +50,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "calibration": {"file": (str,), "preset": (str,), "series": (list,), "dark_library": (str,)},
     "output": {"folder": (str,), "exr": (str,), "png": (str,), "force": (bool,)},
     "schedule": {"repeat": (int,), "every_s": ((int, float),)},
+    "notify": {"on_done": (str,), "on_failure": (str,), "timeout_s": ((int, float),)},
     "session": {"max_attempts": (int,), "backoff_s": ((int, float),), "max_backoff_s": ((int, float),),
                 "timeout_s": ((int, float),)},
 }
@@ -63,6 +65,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "calibration": {"series": []},
     "output": {"folder": "runs/{job}-{date}", "exr": "hdr.exr", "png": "preview.png", "force": False},
     "schedule": {"repeat": 1, "every_s": 0.0},
+    "notify": {"timeout_s": 60.0},
     "session": {"max_attempts": 12, "backoff_s": 0.5, "max_backoff_s": 30.0, "timeout_s": 60.0},
 }
 
@@ -240,6 +243,8 @@ def _check_values(job: Job) -> None:
     sched = job["schedule"]
     if sched["repeat"] < 1 or sched["every_s"] < 0:
         raise job.error("schedule", "repeat" if sched["repeat"] < 1 else "every_s", "must be >= 1 / >= 0")
+    if not job["notify"]["timeout_s"] > 0:
+        raise job.error("notify", "timeout_s", "must be > 0 seconds")
 
 
 def _resolve(job: Job, name: str) -> Path:
@@ -261,19 +266,95 @@ def _check_writable(job: Job, folder: str) -> None:
 
 
 def run_folder(job: Job, n: int = 0, resume: bool = False) -> Path:
-    """The run folder of repetition ``n`` (``{job}``, ``{n}``, ``{date}`` are filled in); with
-    ``resume`` and ``{date}`` in the pattern, the newest existing folder."""
+    """The run folder of repetition ``n`` (``{job}``, ``{n}``, ``{date}`` are filled in).
+
+    A new run with ``{date}`` in the pattern gets a folder that does not exist yet: when the
+    name is taken (two starts within one second, as ``--repeat N`` does), the date gets a
+    suffix ``-2``, ``-3``, ... (two processes racing for one name collide on the run folder's
+    lock and the second stops with exit status 5). With ``resume`` the
+    folder of the newest incomplete run, else of the newest complete one (:func:`resume_folder`).
+
+    Parameters
+    ----------
+    job : Job
+    n : int
+        Repetition number (0-based).
+    resume : bool
+        Find the run to continue instead of a new folder.
+
+    Returns
+    -------
+    Path
+        The run folder.
+    """
     pattern = job["output"]["folder"]
-    base = _resolve(job, pattern)
-    if resume and "{date}" in pattern:
-        glob = str(base).format(job=job.name, n=n, date="*")
-        found = sorted(Path("/").glob(glob.lstrip("/"))) if glob.startswith("/") else sorted(Path(".").glob(glob))
-        found = [f for f in found if (f / "manifest.jsonl").exists()]
-        if not found:
-            raise JobError(f"{job.where('output', 'folder')}: --resume: no earlier run folder matches {glob}")
-        return found[-1]
-    date = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    return Path(str(base).format(job=job.name, n=n, date=date))
+    base = str(_resolve(job, pattern))
+    if resume:
+        found = resume_folder(job, n)
+        if found is None:
+            raise NothingToResume(f"{job.where('output', 'folder')}: --resume: no earlier run folder matches "
+                                  f"{base.format(job=job.name, n=n, date='*')}")
+        return found
+    if "{date}" not in pattern:
+        return Path(base.format(job=job.name, n=n, date=""))
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    for k in range(1, 10000):
+        folder = Path(base.format(job=job.name, n=n, date=stamp if k == 1 else f"{stamp}-{k}"))
+        if not folder.exists():
+            return folder
+    raise JobError(f"{job.where('output', 'folder')}: no free run folder name for {base}")
+
+
+class NothingToResume(JobError):
+    """``--resume`` found no earlier run of the job (a no-op for ``hdrcap run``)."""
+
+
+def resume_folder(job: Job, n: int = 0) -> Path | None:
+    """The run folder ``--resume`` continues: the newest run of the job whose manifest has no
+    ``complete`` record, else the newest complete one (resuming it re-reports its summary),
+    else None. Newest by the start time in the manifest header.
+
+    Parameters
+    ----------
+    job : Job
+    n : int
+        Repetition number filled into ``{n}``.
+
+    Returns
+    -------
+    Path or None
+    """
+    from hdrcap.acquire.manifest import Manifest
+
+    glob = str(_resolve(job, job["output"]["folder"])).format(job=job.name, n=n, date="*")
+    root = Path("/") if glob.startswith("/") else Path(".")
+    found = [f for f in root.glob(glob.lstrip("/")) if (f / "manifest.jsonl").is_file()]
+    if not found:
+        return None
+    states = {f: run_state(job, f) for f in found}
+    for wanted in ("incomplete", "complete"):
+        runs = [f for f in found if states[f][0] == wanted]
+        if runs:
+            return max(runs, key=lambda f: (states[f][1], f.stat().st_mtime, str(f)))
+    return None
+
+
+def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
+    """(``"complete"`` or ``"incomplete"``, start time) of the run in ``run_dir``. Complete: the
+    manifest has a ``complete`` record, or (runs recorded before it existed) every planned
+    frame is recorded and the job's EXR output exists."""
+    from hdrcap.acquire.manifest import Manifest
+
+    m = Manifest(run_dir)
+    head = m.header() or {}
+    started = str(head.get("time", ""))
+    if m.completion() is not None:
+        return "complete", started
+    planned = {f["key"] for f in head.get("plan", {}).get("frames", [])}
+    exr = job["output"]["exr"]
+    if planned and planned <= set(m.frames()) and exr and (run_dir / exr).is_file():
+        return "complete", started
+    return "incomplete", started
 
 
 # --------------------------------------------------------------------------- camera and checks
@@ -427,14 +508,84 @@ def _meter_fn(camera, run_dir: Path):
 def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None = None, progress: bool | None = None,
             echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr), camera=None,
             force: bool = False, exr_path: Path | None = None, png_path: Path | None = None,
-            return_result: bool = False):
-    """Run one repetition of ``job``; returns a summary dict (run folder, frames, outputs), and
-    the :class:`acquire.session.SessionResult` too when ``return_result``. ``exr_path`` and
-    ``png_path`` override the job's outputs (which lie inside the run folder)."""
-    from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy
-    from hdrcap.acquire.manifest import Manifest
+            return_result: bool = False, stop=None):
+    """Run one repetition of ``job``.
 
-    run_dir = Path(run_dir) if run_dir else run_folder(job, n, resume)
+    With ``resume`` the newest incomplete run of the job is continued; on a complete run
+    nothing is done and its recorded summary is returned (``status`` ``"already_complete"``),
+    with no run at all ``status`` is ``"nothing_to_resume"``.
+
+    Parameters
+    ----------
+    job : Job
+    resume : bool
+        Continue an interrupted run (see :func:`resume_folder`).
+    n : int
+        Repetition number (seed offset of the simulated camera, ``{n}`` of the folder).
+    run_dir : Path, optional
+        The run folder (default: the job's ``[output] folder``).
+    camera : Camera, optional
+        An open camera (default: :func:`open_camera`, closed at the end).
+    exr_path, png_path : Path, optional
+        Override the job's outputs (which lie inside the run folder).
+    return_result : bool
+        Also return the :class:`acquire.session.SessionResult` (None for a no-op).
+    stop : threading.Event, optional
+        Ends the capture cleanly when set (:func:`acquire.session.stop_on_signals`).
+
+    Returns
+    -------
+    dict
+        Summary: ``status``, run folder, frames, captured/resumed/adopted counts, retries,
+        outputs (and the SessionResult when ``return_result``).
+
+    Raises
+    ------
+    HdrcapError
+        With the exit status of what stopped the run; ``err.run_dir`` names the run folder.
+    """
+    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.session import LocalIOError
+    from hdrcap.pipeline.errors import HdrcapError
+
+    try:
+        run_dir = Path(run_dir) if run_dir else run_folder(job, n, resume)
+    except NothingToResume as err:
+        echo(f"hdrcap: {err}; nothing to do")
+        summary = {"status": "nothing_to_resume", "run_dir": None, "message": str(err)}
+        return (summary, None) if return_result else summary
+    if resume and Manifest(run_dir).exists() and run_state(job, run_dir)[0] == "complete":
+        done = Manifest(run_dir).completion()
+        summary = dict(done["summary"]) if done else {"run_dir": str(run_dir)}
+        summary["status"] = "already_complete"
+        echo(f"hdrcap: {run_dir}: the run is complete; nothing to resume")
+        return (summary, None) if return_result else summary
+    try:
+        summary, result = _run_one(job, resume, n, run_dir, progress, echo, camera, force, exr_path, png_path, stop)
+    except HdrcapError as err:
+        err.run_dir = str(run_dir)
+        raise
+    except OSError as err:  # our side outside the session: metering files, outputs, disk full
+        stop_err = LocalIOError(f"{err.filename or run_dir}: {err.strerror or err}; free space or fix permissions, "
+                                "then run again with --resume")
+        stop_err.run_dir = str(run_dir)
+        raise stop_err from None
+    try:
+        Manifest(run_dir).append({"type": "complete", "time": _dt.datetime.now(_dt.timezone.utc).isoformat(),
+                                  "summary": _json_safe(summary)})
+    except OSError as err:
+        echo(f"hdrcap: warning: {run_dir}: could not record the run as complete ({err.strerror or err})")
+    return (summary, result) if return_result else summary
+
+
+def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, camera, force, exr_path, png_path,
+             stop) -> tuple[dict, Any]:
+    """Open the camera, plan (or read the plan of the run resumed), capture, merge and write the
+    outputs; returns (summary, SessionResult)."""
+    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, RunConflictError
+    from hdrcap.pipeline.errors import OutputExistsError
+
     own = camera is None
     camera = camera or open_camera(job, n)
     try:
@@ -447,13 +598,11 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         if png_path is None and job["output"]["png"]:
             png_path = run_dir / job["output"]["png"]
         if not resume and Manifest(run_dir).exists():
-            from hdrcap.acquire.session import SessionError
-
-            raise SessionError(f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it "
-                               "or choose another run folder")
+            raise RunConflictError(f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it "
+                                   "or choose another run folder")
         for p in (exr_path, png_path):
             if p is not None and p.exists() and not force:
-                raise JobError(f"{p}: exists; use --force to overwrite (or another run folder)")
+                raise OutputExistsError(f"{p}: exists; use --force to overwrite (or another run folder)")
         head = Manifest(run_dir).header() if resume else None
         masters = None
         if head is not None:  # resume: the plan recorded at the start, not a new one
@@ -475,7 +624,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         options = _plan_merge_options(planned)
         session = CaptureSession(camera, run_dir, plan, calibration=calibration, light=light, retry=retry,
                                  resume=resume, progress=progress, meta=meta, check_dark=d["check"],
-                                 master_darks=masters, merge_options=options)
+                                 master_darks=masters, merge_options=options, stop=stop)
         result = session.run()
         header = None
         if planned:
@@ -491,6 +640,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
             except Exception:
                 pass
     summary = {
+        "status": "done",
         "run_dir": str(run_dir),
         "frames": len(result.frames),
         "captured": result.captured,
@@ -501,7 +651,7 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         "streamed_merge": result.merge is not None,
         **outputs,
     }
-    return (summary, result) if return_result else summary
+    return summary, result
 
 
 def _plan_merge_options(planned: dict) -> dict:
@@ -548,20 +698,148 @@ def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_pat
 
 def run_schedule(job: Job, *, repeat: int | None = None, every_s: float | None = None, resume: bool = False,
                  progress: bool | None = None, echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
-                 run_dir: Path | None = None, force: bool = False, sleep=time.sleep) -> list[dict]:
+                 run_dir: Path | None = None, force: bool = False, sleep=time.sleep, keep_going: bool = False,
+                 on_result: Callable[[dict], None] | None = None, stop=None) -> list[dict]:
     """Run the job ``repeat`` times, starting one every ``every_s`` seconds (a slow run delays
-    the next start rather than overlapping it)."""
+    the next start rather than overlapping it).
+
+    Parameters
+    ----------
+    job : Job
+    repeat : int, optional
+        Repetitions (default: the job's ``[schedule] repeat``).
+    every_s : float, optional
+        Seconds between starts (default: the job's ``[schedule] every_s``).
+    resume : bool
+        Each repetition continues its newest incomplete run (see :func:`run_job`).
+    run_dir : Path, optional
+        Folder pattern overriding ``[output] folder`` (needs ``{n}`` with ``repeat > 1``).
+    keep_going : bool
+        A failed repetition is reported (``status`` ``"failed"``) and the schedule goes on;
+        at the end :class:`ScheduleError` carries the first failure's exit status.
+    on_result : callable, optional
+        Called with each repetition's summary (or error summary, :func:`error_summary`) as it ends.
+    stop : threading.Event, optional
+        Set by SIGTERM/SIGINT: the running repetition ends cleanly and no further one starts.
+
+    Returns
+    -------
+    list of dict
+        The summaries, in order.
+
+    Raises
+    ------
+    HdrcapError
+        The first failure (without ``keep_going``), or :class:`ScheduleError`.
+    """
+    from hdrcap.acquire.session import RunInterrupted
+    from hdrcap.pipeline.errors import HdrcapError
+
     repeat = repeat if repeat is not None else job["schedule"]["repeat"]
     every_s = every_s if every_s is not None else job["schedule"]["every_s"]
     if repeat > 1 and run_dir is not None and "{n" not in str(run_dir):
         raise JobError("--run-dir with --repeat needs {n} in the folder name")
+    wait = stop.wait if stop is not None and sleep is time.sleep else sleep
     t0 = time.monotonic()
-    results = []
+    results: list[dict] = []
+    failures: list[HdrcapError] = []
     for n in range(repeat):
-        start = t0 + n * every_s
-        delay = start - time.monotonic()
+        delay = t0 + n * every_s - time.monotonic()
         if delay > 0:
-            sleep(delay)
+            wait(delay)
+        if stop is not None and stop.is_set():
+            raise RunInterrupted(f"stopped by signal {stop.signum} before repetition {n + 1} of {repeat}", stop.signum)
         rd = Path(str(run_dir).format(n=n, job=job.name)) if run_dir else None
-        results.append(run_job(job, resume=resume, n=n, run_dir=rd, progress=progress, echo=echo, force=force))
+        try:
+            res = run_job(job, resume=resume, n=n, run_dir=rd, progress=progress, echo=echo, force=force, stop=stop)
+        except HdrcapError as err:
+            res = error_summary(err, n)
+            notify(job, res, echo)
+            if on_result is not None and keep_going:
+                on_result(res)
+            if not keep_going or isinstance(err, RunInterrupted):
+                raise
+            failures.append(err)
+            results.append(res)
+            continue
+        res["repetition"] = n
+        notify(job, res, echo)
+        results.append(res)
+        if on_result is not None:
+            on_result(res)
+    if failures:
+        raise ScheduleError(f"{len(failures)} of {repeat} repetitions failed (first: {failures[0]})",
+                            failures[0].exit_code)
     return results
+
+
+class ScheduleError(JobError):
+    """Some repetitions of a ``--keep-going`` schedule failed (each already reported); the exit
+    status is the first failure's."""
+
+    def __init__(self, message: str, exit_code: int):
+        super().__init__(message)
+        self.exit_code = exit_code
+        self.reported = True
+
+
+def error_summary(err: BaseException, n: int | None = None) -> dict:
+    """The JSON error object of a failed run: ``status`` ``"failed"``, ``error`` (the one-line
+    message), ``exit_code``, ``error_type``, ``run_dir`` (when known) and ``repetition``.
+
+    Parameters
+    ----------
+    err : BaseException
+        What stopped the run.
+    n : int, optional
+        Repetition number.
+
+    Returns
+    -------
+    dict
+    """
+    out = {"status": "failed", "error": str(err), "exit_code": int(getattr(err, "exit_code", 70)),
+           "error_type": type(err).__name__, "run_dir": getattr(err, "run_dir", None)}
+    if n is not None:
+        out["repetition"] = n
+    return out
+
+
+def notify(job: Job, summary: dict, echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr)) -> None:
+    """Run the job's notification hook: ``[notify] on_done`` after a run that ended well (also a
+    no-op resume), ``on_failure`` after one that failed. The command runs with the shell, the
+    summary as JSON on its stdin and ``HDRCAP_STATUS``, ``HDRCAP_EXIT_CODE``, ``HDRCAP_RUN_DIR``,
+    ``HDRCAP_JOB`` and ``HDRCAP_MESSAGE`` in its environment; a hook that fails or outlasts
+    ``timeout_s`` is reported as a warning and changes nothing else.
+
+    Parameters
+    ----------
+    job : Job
+    summary : dict
+        The run's summary (:func:`run_job`) or error summary (:func:`error_summary`).
+    echo : callable
+        Where warnings go.
+    """
+    import json
+    import subprocess
+
+    hooks = job["notify"]
+    failed = summary.get("status") == "failed"
+    cmd = hooks.get("on_failure" if failed else "on_done")
+    if not cmd:
+        return
+    env = dict(os.environ, HDRCAP_STATUS=str(summary.get("status", "")), HDRCAP_JOB=job.name,
+               HDRCAP_EXIT_CODE=str(summary.get("exit_code", 0)), HDRCAP_RUN_DIR=str(summary.get("run_dir") or ""),
+               HDRCAP_MESSAGE=str(summary.get("error") or summary.get("message") or ""))
+    try:
+        proc = subprocess.run(cmd, shell=True, input=json.dumps(_json_safe(summary)), text=True, env=env,
+                              capture_output=True, timeout=hooks["timeout_s"])
+    except subprocess.TimeoutExpired:
+        echo(f"hdrcap: warning: notification hook {cmd!r} took longer than {hooks['timeout_s']:g} s; stopped")
+        return
+    except OSError as err:
+        echo(f"hdrcap: warning: notification hook {cmd!r} could not run: {err}")
+        return
+    if proc.returncode != 0:
+        echo(f"hdrcap: warning: notification hook {cmd!r} failed (exit {proc.returncode}): "
+             f"{proc.stderr.strip()[:200]}")

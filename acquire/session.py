@@ -28,11 +28,14 @@ import os
 import shutil
 import subprocess
 import sys
+import signal
 import tempfile
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -50,11 +53,17 @@ __all__ = [
     "RetryPolicy",
     "LightBlocker",
     "SessionError",
+    "RunConflictError",
+    "LocalIOError",
+    "VerificationError",
+    "RunInterrupted",
+    "EXIT_CODES",
     "SessionResult",
     "CaptureSession",
     "StreamingMerge",
     "frame_stem",
     "lock_dir",
+    "stop_on_signals",
 ]
 
 #: Frame kinds; the first two feed the HDR merge, the rest are calibration series.
@@ -63,10 +72,52 @@ DARK_KINDS = ("dark", "bias", "darkseries")
 KINDS = ("light", "dark", "bias", "flat", "saturation", "darkseries")
 
 
+#: Exit statuses of ``hdrcap run``/``capture`` (documented in docs/acquisition.md): what stopped a run.
+EXIT_CODES = {
+    0: "done (or --resume on a finished run: nothing to do)",
+    2: "bad input or configuration (job file, options, calibration of another camera); fix it first",
+    3: "an output file exists; use --force or another run folder",
+    4: "the camera stopped the run (card full, camera gone, gave up retrying); resumable with --resume",
+    5: "conflict: the run folder or camera is locked by another session, or holds another run",
+    6: "local I/O error (disk full, permissions, read-only file system); free space, then --resume",
+    7: "verification failed (a dark frame saw light, a file does not match the plan); fix it, then --resume",
+    130: "interrupted (SIGINT); resumable with --resume",
+    143: "terminated (SIGTERM); resumable with --resume",
+}
+
+
 class SessionError(HdrcapError):
-    """The session stopped (camera gone, card full, gave up retrying, locked run folder)."""
+    """The session stopped on the camera's side (camera gone, card full, gave up retrying):
+    resumable with ``--resume``."""
 
     exit_code = 4
+
+
+class RunConflictError(SessionError):
+    """The run folder or the camera is locked by another session, or the folder holds another run."""
+
+    exit_code = 5
+
+
+class LocalIOError(SessionError):
+    """Our side failed: disk full, permissions, a read-only or vanished file system."""
+
+    exit_code = 6
+
+
+class VerificationError(SessionError):
+    """A frame or the run folder does not match what was planned (light not blocked, wrong file)."""
+
+    exit_code = 7
+
+
+class RunInterrupted(SessionError):
+    """SIGINT or SIGTERM stopped the run between two frames; the run folder is consistent and
+    resumable. ``exit_code`` is 128 + the signal number."""
+
+    def __init__(self, message: str, signum: int = 2):
+        super().__init__(message)
+        self.exit_code = 128 + int(signum)
 
 
 @dataclass(frozen=True)
@@ -288,9 +339,52 @@ class LightBlocker:
 
 def _default_prompt(message: str) -> None:
     if not sys.stdin or not sys.stdin.isatty():
-        raise SessionError(f"light blocking needs a person at a terminal ({message}); "
+        raise InputError(f"light blocking needs a person at a terminal ({message}); "
                            "use block_light = \"command\" for unattended runs")
     input(message + " ")
+
+
+class StopEvent(threading.Event):
+    """A :class:`threading.Event` that remembers the signal that set it (``signum``)."""
+
+    signum: int = 15
+
+    def stop(self, signum: int) -> None:
+        self.signum = int(signum)
+        self.set()
+
+
+@contextmanager
+def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM, signal.SIGINT)) -> Iterator[StopEvent]:
+    """Turn SIGTERM and SIGINT into a clean stop while the block runs.
+
+    The first signal sets the yielded :class:`StopEvent`: a :class:`CaptureSession` given it
+    (``stop=``) ends before the next frame or retry with :class:`RunInterrupted` (exit status
+    128 + the signal number) after logging a ``stop`` event, and the caller closes the camera;
+    the run folder stays resumable. A second signal raises :class:`RunInterrupted` at once.
+    Outside the main thread (where Python cannot install handlers) the event is only yielded.
+
+    Yields
+    ------
+    StopEvent
+        Set by the first signal.
+    """
+    event = StopEvent()
+    if threading.current_thread() is not threading.main_thread():
+        yield event
+        return
+
+    def handler(signum, _frame):
+        if event.is_set():
+            raise RunInterrupted(f"stopped by signal {signum} (second signal); run again with --resume", signum)
+        event.stop(signum)
+
+    previous = {sig: signal.signal(sig, handler) for sig in signals}
+    try:
+        yield event
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def lock_dir() -> Path:
@@ -411,13 +505,17 @@ class CaptureSession:
     merge_options : dict, optional
         Options of the merge (:class:`pipeline.merge.MergeOptions` fields such as iterations,
         saturation, prnu), e.g. the planner's decisions.
+    stop : threading.Event, optional
+        Set (by a SIGTERM/SIGINT handler, :func:`stop_on_signals`) to end the run cleanly before
+        the next frame or retry: :class:`RunInterrupted`, the run folder resumable.
     """
 
     def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
                  retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
                  meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05,
-                 master_darks: dict | None = None, merge_options: dict | None = None):
+                 master_darks: dict | None = None, merge_options: dict | None = None, stop=None):
         self.camera = camera
+        self.stop = stop
         self.run_dir = Path(run_dir)
         self.plan = plan
         self.calibration = calibration
@@ -426,13 +524,13 @@ class CaptureSession:
         self.resume = resume
         self.progress = progress
         self.meta = meta or {}
-        self.sleep = sleep
+        self.sleep = stop.wait if stop is not None and sleep is time.sleep else sleep
         self.check_dark = check_dark
         self.master_darks: ExposureMap[tuple] = ExposureMap((float(t), v) for t, v in (master_darks or {}).items())
         self.merge_options = dict(merge_options or {})
         missing = [t for t in plan.library_times if t not in self.master_darks]
         if missing:
-            raise SessionError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
+            raise InputError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
         self.retries: dict[str, int] = {}
         self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
 
@@ -453,12 +551,12 @@ class CaptureSession:
         try:
             run_lock.acquire(timeout=0)
         except Timeout:
-            raise SessionError(f"{self.run_dir}: another hdrcap session is using this run folder") from None
+            raise RunConflictError(f"{self.run_dir}: another hdrcap session is using this run folder") from None
         try:
             try:
                 cam_lock.acquire(timeout=0)
             except Timeout:
-                raise SessionError(f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use "
+                raise RunConflictError(f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use "
                                    "by another hdrcap session") from None
             try:
                 return self._run_locked(ident, t0)
@@ -501,11 +599,11 @@ class CaptureSession:
             log.emit("start", frames=len(self.plan.frames), camera=ident, run_dir=str(self.run_dir))
             return {}, 0
         if not self.resume:
-            raise SessionError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
+            raise RunConflictError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
                                "to continue it or choose another run folder")
         head = manifest.header()
         if head is not None and head.get("plan_fingerprint") != fp:
-            raise SessionError(f"{self.run_dir}: the run there was made from a different plan; "
+            raise RunConflictError(f"{self.run_dir}: the run there was made from a different plan; "
                                "resume with the same job or choose another run folder")
         done = manifest.frames()
         bad = manifest.verify_hashes()
@@ -551,7 +649,8 @@ class CaptureSession:
     def _capture_missing(self, done: dict, merger: StreamingMerge | None, ident: dict, manifest: Manifest,
                          log: EventLog, partial_dir: Path, frames_dir: Path) -> tuple[int, StreamingMerge | None]:
         """Capture every planned frame not yet done (light blocked as each needs), feeding the
-        merge; a stop is logged with its reason. Returns (frames captured, the merge)."""
+        merge; a ``frame`` event follows each frame, a stop is logged with its reason and exit
+        code. Returns (frames captured, the merge)."""
         from tqdm import tqdm
 
         todo = [(i, s) for i, s in enumerate(self.plan.frames) if s.key not in done]
@@ -559,33 +658,46 @@ class CaptureSession:
         bar = tqdm(total=len(self.plan.frames), initial=len(self.plan.frames) - len(todo), desc="capture",
                    unit="frame", disable=not show, dynamic_ncols=True)
         captured = 0
+        eta = _Eta([s.exposure_s for _i, s in todo])
         try:
             for i, spec in todo:
+                self._check_stop()
                 self.light.set(self.camera, spec.dark, log)
                 rec, values = self._capture_one(i, spec, ident, manifest, log, partial_dir, frames_dir)
                 done[spec.key] = rec
                 captured += 1
                 if self.calibration is not None:
                     merger = self._feed(merger, rec, values)
+                eta.frame_done(spec.exposure_s)
+                log.emit("frame", key=spec.key, index=i, done=len(done), total=len(self.plan.frames),
+                         eta_s=eta.remaining_s(), temperature_c=rec.get("temperature_c"))
                 bar.update(1)
             if self.light.covered:
                 self.light.set(self.camera, False, log)
-        except CameraError as err:
-            log.emit("stop", reason=str(err), kind=fault_kind(err))
-            raise
-        except SessionError as err:
-            log.emit("stop", reason=str(err))
-            raise
         except OSError as err:  # our side: disk full, permissions
-            log.emit("stop", reason=f"{type(err).__name__}: {err}")
-            raise SessionError(f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
-                               "permissions, then run again with --resume") from None
+            stop = LocalIOError(f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
+                                "permissions, then run again with --resume")
+            _emit_stop(log, stop, kind="local_io")
+            raise stop from None
+        except CameraError as err:
+            _emit_stop(log, err, kind=fault_kind(err))
+            raise
+        except HdrcapError as err:
+            _emit_stop(log, err)
+            raise
         except BaseException as err:
-            log.emit("stop", reason=f"{type(err).__name__}: {err}")
+            _emit_stop(log, err)
             raise
         finally:
             bar.close()
         return captured, merger
+
+    def _check_stop(self) -> None:
+        """Raise :class:`RunInterrupted` when the stop event is set (SIGTERM/SIGINT)."""
+        if self.stop is not None and self.stop.is_set():
+            signum = getattr(self.stop, "signum", 15)
+            raise RunInterrupted(f"{self.run_dir}: stopped by signal {signum} between two frames; "
+                                 "run again with --resume", signum)
 
     def _feed(self, merger: StreamingMerge | None, rec: dict, values: np.ndarray) -> StreamingMerge | None:
         """Hand a verified frame to the merge (created with the first frame: its size)."""
@@ -606,6 +718,7 @@ class CaptureSession:
                      partial_dir: Path, frames_dir: Path):
         last = None
         for attempt in range(1, self.retry.max_attempts + 1):
+            self._check_stop()
             tmp = partial_dir / f"{frame_stem(i, spec)}.try{attempt}.dng"
             try:
                 started = utc_now()
@@ -661,7 +774,7 @@ class CaptureSession:
         from hdrcap.pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
         if path.suffix.lower() not in RAW_EXTENSIONS | IMAGE_EXTENSIONS:
-            raise SessionError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
+            raise InputError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
                                "image format to RAW (job: [camera] settings = {{ imageformat = \"RAW\" }})")
         try:
             frame = read_frame(path)
@@ -676,7 +789,7 @@ class CaptureSession:
             white = frame.white_level or 65535.0
             level = float((np.median(frame.data) - black) / max(white - black, 1.0))
             if level > self.check_dark:
-                raise SessionError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
+                raise VerificationError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
                                    f"range); check the light blocking ({self.light.method}) and run again with --resume")
         if not same_exposure(frame.exposure_time, applied):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
@@ -721,12 +834,46 @@ class CaptureSession:
         os.replace(path, target)
 
 
+class _Eta:
+    """Time left in a run: the exposures still to take plus the mean overhead per frame so far, s."""
+
+    def __init__(self, exposures: list[float]):
+        self.left = float(sum(exposures))
+        self.t0 = time.monotonic()
+        self.n = 0
+        self.exposed = 0.0
+        self.frames_left = len(exposures)
+
+    def frame_done(self, exposure_s: float) -> None:
+        self.n += 1
+        self.frames_left -= 1
+        self.exposed += exposure_s
+        self.left -= exposure_s
+
+    def remaining_s(self) -> float:
+        overhead = max(0.0, (time.monotonic() - self.t0 - self.exposed) / max(self.n, 1))
+        return round(max(0.0, self.left) + overhead * self.frames_left, 3)
+
+
+def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
+    """The ``stop`` event: reason and exit code. A failing event log (disk full) does not hide
+    the error that stopped the run."""
+    fields = {"reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
+              "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130)}
+    if kind:
+        fields["kind"] = kind
+    try:
+        log.emit("stop", **fields)
+    except OSError:
+        pass
+
+
 def _link_new(src: Path, dst: Path) -> None:
     """Put ``src`` at ``dst`` without ever replacing an existing file."""
     try:
         os.link(src, dst)
     except FileExistsError:
-        raise SessionError(f"{dst}: exists already; the run folder is inconsistent") from None
+        raise VerificationError(f"{dst}: exists already; the run folder is inconsistent") from None
 
 
 def _temp(camera) -> float | None:
