@@ -123,8 +123,9 @@ class Manifest:
         return bad
 
 
-#: Log level of each event on the ``hdrcap.run`` logger (others: INFO).
-EVENT_LEVELS = {"stop": logging.ERROR, "fault": logging.WARNING, "void": logging.WARNING,
+#: Log level of each event on the ``hdrcap.run`` logger (others, also ``stop``, whose error the
+#: command prints anyway: INFO).
+EVENT_LEVELS = {"fault": logging.WARNING, "void": logging.WARNING,
                 "reject": logging.WARNING, "frame": logging.INFO}
 _LOG = logging.getLogger("hdrcap.run")
 
