@@ -368,14 +368,29 @@ def open_camera(job: Job, n: int = 0):
         sc = job["scene"]
         shape = parse_size(cam["size"])
         scene = load_scene(_scene_path(job, sc["name"]), shape, sc["decades"], sc["x_max"])
-        return MockCamera(cam["preset"], scene, seed=cam["seed"] + n, allowed_times=cam.get("allowed_times"),
-                          faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
+        camera = MockCamera(cam["preset"], scene, seed=cam["seed"] + n, allowed_times=cam.get("allowed_times"),
+                            faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
+        return _apply_iso(job, camera)
     from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
 
     camera = Gphoto2Camera(cam.get("model"), cam.get("port"), delete_after_download=cam["delete_after_download"],
                            long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
+    return _apply_iso(job, camera)
+
+
+def _apply_iso(job: Job, camera):
+    """Set the job's ``[camera] iso`` and refuse a camera that silently applies another one."""
+    cam = job["camera"]
     if "iso" in cam:
-        camera.set_iso(cam["iso"])
+        try:
+            applied = camera.set_iso(cam["iso"])
+        except BaseException:
+            camera.close()
+            raise
+        if applied is not None and abs(float(applied) - cam["iso"]) > 0.5:  # a silent substitution
+            camera.close()
+            raise job.error("camera", "iso", f"the camera applied ISO {applied:g}, not {cam['iso']}; choose one of "
+                                             f"its ISO speeds")
     return camera
 
 
@@ -427,7 +442,8 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
 
         irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
         root = _library_root(job, calibration)
-        library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False).items()}
+        iso = run_iso(job, calibration)
+        library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False, iso=iso).items()}
         plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
                                       max_exposures=exp.get("max_exposures"),
                                       time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
@@ -444,7 +460,8 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     snapped = [nearest_allowed(t, allowed) for t in times]
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
     master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
-    masters = library_masters(_library_root(job, calibration), camera, master_times, load=False) if master_times else {}
+    masters = (library_masters(_library_root(job, calibration), camera, master_times, load=False,
+                               iso=run_iso(job, calibration), strict=True) if master_times else {})
     if masters:
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
         echo(f"dark library: master darks for {len(masters)} of {len(set(master_times))} master-dark exposure times")
@@ -474,18 +491,109 @@ def _library_root(job: Job, calibration) -> str | None:
     return getattr(calibration, "dark_library", None)
 
 
-def library_masters(root, camera, times, load: bool = True) -> dict[float, tuple]:
+def library_masters(root, camera, times, load: bool = True, iso: float | None = None,
+                    strict: bool = False) -> dict[float, tuple]:
     """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N), matched
-    by :meth:`pipeline.darklibrary.DarkLibrary.masters` to the camera's model and temperature
-    (data None unless ``load``). Empty when there is no dark library."""
+    by :meth:`pipeline.darklibrary.DarkLibrary.masters` to the camera's model (normalised,
+    :func:`acquire.compat.same_model`), ``iso`` and temperature (data None unless ``load``).
+    Empty when there is no dark library.
+
+    Parameters
+    ----------
+    root : str or None
+        The dark library folder.
+    camera : Camera
+        The connected camera (identity, temperature).
+    times : iterable of float
+        Exposure times, s.
+    load : bool
+        Load the master darks.
+    iso : float, optional
+        The run's ISO speed.
+    strict : bool
+        Refuse (CompatibilityError) a library that holds no master of this camera, or whose
+        masters for one of ``times`` are all of another ISO, instead of using none.
+
+    Returns
+    -------
+    dict
+        t -> (master dark in DN or None, its frame count N).
+    """
     if not root:
         return {}
-    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from collections import Counter
 
+    from hdrcap.acquire.compat import CompatibilityError, same_model
+    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.times import same_exposure
+
+    lib = DarkLibrary(root)
+    entries = lib.entries()
     model = str(getattr(getattr(camera, "identity", None), "model", "")) or None
+    mine = [e for e in entries if same_model(model, e.camera)]
+    if not mine:
+        if strict and entries:
+            names = ", ".join(sorted({e.camera for e in entries}))
+            raise CompatibilityError(f"dark library {root} holds master darks of {names}, not of the camera "
+                                     f"{model!r}")
+        return {}
+    if strict and iso is not None:
+        for t in times:
+            at_t = [e for e in mine if same_exposure(e.exposure_time, t)]
+            if at_t and all(e.iso is not None and abs(e.iso - iso) > 0.5 for e in at_t):
+                isos = ", ".join(sorted({f"{e.iso:g}" for e in at_t}))
+                raise CompatibilityError(f"dark library {root}: the master darks for {t:g} s are at ISO {isos}, "
+                                         f"the run is at ISO {iso:g}; add masters at ISO {iso:g} or use "
+                                         "[darks] strategy = \"matched\"")
+    name = Counter(e.camera for e in mine).most_common(1)[0][0]
     temp = camera.temperature() if hasattr(camera, "temperature") else None
-    found = DarkLibrary(root).masters(times, camera=model, temperature=temp, load=load)
+    found = lib.masters(times, camera=name, iso=iso, temperature=temp, load=load)
     return {t: (data, n) for t, (data, n, _e) in found.items()}
+
+
+def run_iso(job: Job, calibration) -> float | None:
+    """The run's ISO speed: the job's ``[camera] iso``, else the calibration's, else None (then
+    the first frame's ISO is the run's)."""
+    from hdrcap.acquire.compat import CameraProfile
+
+    if "iso" in job["camera"]:
+        return float(job["camera"]["iso"])
+    return CameraProfile.from_calibration(calibration).iso
+
+
+def check_compatibility(job: Job, camera, calibration, echo: Callable[[str], None]):
+    """Plan-time check: the calibration must belong to the connected camera (serial, else the
+    normalised model) and the run's ISO (:func:`acquire.compat.check_compatible`); temperature
+    differences are warnings. Returns the profile every frame is then checked against.
+
+    Parameters
+    ----------
+    job : Job
+    camera : Camera
+    calibration : pipeline.params.Calibration
+    echo : callable
+        Where warnings go.
+
+    Returns
+    -------
+    acquire.compat.CameraProfile
+        Model of the camera and the run's ISO.
+
+    Raises
+    ------
+    acquire.compat.CompatibilityError
+        Calibration of another camera or ISO (exit status 2), before any frame.
+    """
+    from hdrcap.acquire.compat import CameraProfile, check_compatible
+
+    cal = job["calibration"]
+    what = f"calibration {cal['file']}" if "file" in cal else f"calibration preset {cal.get('preset') or ''}".strip()
+    profile = CameraProfile.from_calibration(calibration, what)
+    iso = run_iso(job, calibration)
+    connected = CameraProfile.from_camera(camera, iso=job["camera"].get("iso"))
+    for warning in check_compatible(profile, connected):
+        echo(f"hdrcap: warning: {warning}")
+    return CameraProfile("the run's camera", connected.model or profile.model, "", iso)
 
 
 def _meter_fn(camera, run_dir: Path):
@@ -591,6 +699,7 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
     try:
         check_job_against_camera(job, camera)
         calibration = job_calibration(job)
+        expect = check_compatibility(job, camera, calibration, echo)
         sess = job["session"]
         force = force or job["output"]["force"]
         if exr_path is None and job["output"]["exr"]:
@@ -614,7 +723,8 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
                 echo(f"hdrcap: {run_dir}: nothing to resume; starting the run")
             plan, info = plan_for(job, camera, calibration, run_dir, echo)
         if plan.library_times:
-            masters = library_masters(_library_root(job, calibration), camera, plan.library_times)
+            masters = library_masters(_library_root(job, calibration), camera, plan.library_times,
+                                      iso=run_iso(job, calibration), strict=True)
         d = job["darks"]
         light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
         retry = RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
@@ -624,7 +734,7 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
         options = _plan_merge_options(planned)
         session = CaptureSession(camera, run_dir, plan, calibration=calibration, light=light, retry=retry,
                                  resume=resume, progress=progress, meta=meta, check_dark=d["check"],
-                                 master_darks=masters, merge_options=options, stop=stop)
+                                 master_darks=masters, merge_options=options, stop=stop, expect=expect)
         result = session.run()
         header = None
         if planned:

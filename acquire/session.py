@@ -33,7 +33,7 @@ import tempfile
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
@@ -45,6 +45,7 @@ from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.times import ExposureMap, find_exposure, same_exposure
 
 from .camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
+from .compat import CameraProfile, CompatibilityError, check_compatible
 from .manifest import EventLog, Manifest, utc_now
 
 __all__ = [
@@ -508,14 +509,21 @@ class CaptureSession:
     stop : threading.Event, optional
         Set (by a SIGTERM/SIGINT handler, :func:`stop_on_signals`) to end the run cleanly before
         the next frame or retry: :class:`RunInterrupted`, the run folder resumable.
+    expect : acquire.compat.CameraProfile, optional
+        The camera and ISO every frame must come from (:func:`acquire.compat.check_compatible`
+        on its EXIF make/model and ISO; a mismatch stops the run with :class:`VerificationError`).
+        Without an ISO the first frame's ISO (or the recorded frames' on resume) is the run's.
+        On resume the camera must be the one recorded in the manifest.
     """
 
     def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
                  retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
                  meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05,
-                 master_darks: dict | None = None, merge_options: dict | None = None, stop=None):
+                 master_darks: dict | None = None, merge_options: dict | None = None, stop=None,
+                 expect: CameraProfile | None = None):
         self.camera = camera
         self.stop = stop
+        self.expect = expect
         self.run_dir = Path(run_dir)
         self.plan = plan
         self.calibration = calibration
@@ -602,6 +610,12 @@ class CaptureSession:
             raise RunConflictError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
                                "to continue it or choose another run folder")
         head = manifest.header()
+        if head is not None and head.get("camera"):
+            try:
+                check_compatible(CameraProfile.from_record(head["camera"], f"the run in {self.run_dir}"),
+                                 CameraProfile.from_record(ident, "the connected camera"))
+            except CompatibilityError as err:
+                raise RunConflictError(f"{err}; resume it with its own camera") from None
         if head is not None and head.get("plan_fingerprint") != fp:
             raise RunConflictError(f"{self.run_dir}: the run there was made from a different plan; "
                                "resume with the same job or choose another run folder")
@@ -614,6 +628,9 @@ class CaptureSession:
                              "time": utc_now()})
             log.emit("void", key=key, file=rec["file"])
         log.emit("resume", frames_done=len(done), torn_manifest_lines=manifest.torn_lines, voided=len(bad))
+        isos = {r.get("iso") for r in done.values() if r.get("iso") is not None}
+        if self.expect is not None and self.expect.iso is None and len(isos) == 1:
+            self.expect = replace(self.expect, iso=float(isos.pop()))
         return done, len(done)
 
     def _adopt_landed(self, done: dict, frames_dir: Path, ident: dict, manifest: Manifest, log: EventLog) -> int:
@@ -791,6 +808,7 @@ class CaptureSession:
             if level > self.check_dark:
                 raise VerificationError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
                                    f"range); check the light blocking ({self.light.method}) and run again with --resume")
+        self._check_frame_camera(path, frame)
         if not same_exposure(frame.exposure_time, applied):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
                                     f"camera reported {applied:g} s")
@@ -809,6 +827,20 @@ class CaptureSession:
             "camera_file": getattr(res, "camera_file", "") if res is not None else "",
         }
         return rec, frame.data
+
+    def _check_frame_camera(self, path: Path, frame) -> None:
+        """The frame's EXIF camera and ISO against :attr:`expect` (the first frame fixes the
+        run's ISO when nothing else did); VerificationError on a mismatch."""
+        if self.expect is None:
+            return
+        got = CameraProfile(f"frame {path.name}", frame.camera or "", "", frame.iso)
+        try:
+            check_compatible(replace(self.expect, temperature_c=None), got)
+        except CompatibilityError as err:
+            raise VerificationError(f"{err}; check the camera's settings (fixed ISO), then run again with "
+                                    "--resume") from None
+        if self.expect.iso is None and frame.iso is not None:
+            self.expect = replace(self.expect, iso=float(frame.iso))
 
     def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict) -> dict:
         from hdrcap.pipeline.io import sha256_file

@@ -97,7 +97,7 @@ def test_card_full_stops_cleanly_then_resume_completes(tmp_path):
     assert len(Manifest(tmp_path / "run").frames()) == 5
     with pytest.raises(SessionError, match="--resume"):
         CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False).run()
-    res = CaptureSession(_camera(seed=1), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
+    res = CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
     assert res.resumed == 5 and res.captured == len(plan.frames) - 5
     _check_run(tmp_path / "run", plan)
 
@@ -111,7 +111,7 @@ def test_resume_adopts_landed_frame_and_voids_tampered_one(tmp_path):
     mpath.write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2])
     first = json.loads(lines[1])
     (tmp_path / "run" / first["file"]).write_bytes(b"tampered")
-    res = CaptureSession(_camera(seed=2), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
+    res = CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
     assert res.adopted == 1 and res.captured == 1  # the tampered one was taken again
     _check_run(tmp_path / "run", plan)
     assert (tmp_path / "run" / "rejected").is_dir()
@@ -163,7 +163,8 @@ from hdrcap.acquire.cliutil import resolve_calibration
 run, seed, kill = Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 faults = MockFaults(seed=seed, busy_rate=0.20, disconnect_rate=0.02, corrupt_rate=0.01, truncate_rate=0.005,
                     hang_rate=0.005, hang_s=0.01, kill_after=kill or None)
-cam = MockCamera("camera-B", make_scene("hdr", (32, 32), decades=3.0, x_max=2e4), seed=seed, faults=faults)
+# one camera (seed 11: its serial and fixed patterns) restarted with other fault draws each time
+cam = MockCamera("camera-B", make_scene("hdr", (32, 32), decades=3.0, x_max=2e4), seed=11, faults=faults)
 times = [1/4000, 1/1000, 1/250, 1/60, 1/15, 1/4, 1.0, 2.0, 4.0, 8.0]
 plan = CapturePlan.bracket(times, cam.allowed_exposure_times(), "matched", repeats=20)
 res = CaptureSession(cam, run, plan, calibration=resolve_calibration(None, "camera-B"),

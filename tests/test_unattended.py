@@ -225,7 +225,7 @@ def test_stop_event_ends_the_session_between_frames_and_resume_completes(tmp_pat
     events = EventLog(tmp_path / "r").events()
     assert events[-1]["event"] == "stop" and events[-1]["exit_code"] == 143
     assert len(Manifest(tmp_path / "r").frames()) == 4
-    res = CaptureSession(MockCamera("camera-B", _scene((24, 32)), seed=3), tmp_path / "r", plan, calibration=cal,
+    res = CaptureSession(MockCamera("camera-B", _scene((24, 32)), seed=2), tmp_path / "r", plan, calibration=cal,
                          retry=FAST, progress=False, resume=True).run()
     assert res.resumed == 4 and res.captured == 2
     frames = [e for e in EventLog(tmp_path / "r").events() if e["event"] == "frame"]
