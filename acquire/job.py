@@ -311,8 +311,9 @@ class NothingToResume(JobError):
 
 def resume_folder(job: Job, n: int = 0) -> Path | None:
     """The run folder ``--resume`` continues: the newest run of the job whose manifest has no
-    ``complete`` record, else the newest complete one (resuming it re-reports its summary),
-    else None. Newest by the start time in the manifest header.
+    ``complete`` record (or that was stopped while metering: ``meter/`` but no manifest), else
+    the newest complete one (resuming it re-reports its summary), else None. Newest by the
+    start time in the manifest header, then by the folder's modification time.
 
     Parameters
     ----------
@@ -328,7 +329,7 @@ def resume_folder(job: Job, n: int = 0) -> Path | None:
 
     glob = str(_resolve(job, job["output"]["folder"])).format(job=job.name, n=n, date="*")
     root = Path("/") if glob.startswith("/") else Path(".")
-    found = [f for f in root.glob(glob.lstrip("/")) if (f / "manifest.jsonl").is_file()]
+    found = [f for f in root.glob(glob.lstrip("/")) if (f / "manifest.jsonl").is_file() or (f / "meter").is_dir()]
     if not found:
         return None
     states = {f: run_state(job, f) for f in found}
@@ -347,7 +348,7 @@ def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
 
     m = Manifest(run_dir)
     head = m.header() or {}
-    started = str(head.get("time", ""))
+    started = str(head.get("time") or _dt.datetime.fromtimestamp(run_dir.stat().st_mtime, _dt.timezone.utc).isoformat())
     if m.completion() is not None:
         return "complete", started
     planned = {f["key"] for f in head.get("plan", {}).get("frames", [])}
@@ -423,7 +424,7 @@ def job_calibration(job: Job):
 
 
 # --------------------------------------------------------------------------- planning
-def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str], None]):
+def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str], None], retry=None, stop=None):
     """The capture plan: a fixed bracket, or meter + planner for a target SNR.
 
     The planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
@@ -440,7 +441,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     if exp["mode"] == "snr":
         from hdrcap import planner
 
-        irradiance = planner.meter(_meter_fn(camera, run_dir), calibration, allowed)
+        irradiance = planner.meter(_meter_fn(camera, run_dir, retry, stop), calibration, allowed)
         root = _library_root(job, calibration)
         iso = run_iso(job, calibration)
         library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False, iso=iso).items()}
@@ -596,20 +597,76 @@ def check_compatibility(job: Job, camera, calibration, echo: Callable[[str], Non
     return CameraProfile("the run's camera", connected.model or profile.model, "", iso)
 
 
-def _meter_fn(camera, run_dir: Path):
+def _meter_fn(camera, run_dir: Path, retry=None, stop=None, sleep=time.sleep):
+    """``capture_fn(t)`` for :func:`planner.meter`: one metering frame into ``RUN/meter/``, with
+    the session's retries (busy: wait; disconnect or hang: reconnect; a bad file: capture again).
+    Files of an earlier, interrupted metering stay; new ones never reuse their names."""
+    from hdrcap.acquire.camera import fault_kind
+    from hdrcap.acquire.session import RetryPolicy, SessionError
     from hdrcap.pipeline.io import read_frame
 
+    retry = retry or RetryPolicy()
     meter_dir = run_dir / "meter"
     meter_dir.mkdir(parents=True, exist_ok=True)
     counter = [0]
 
     def capture(t: float):
         counter[0] += 1
-        camera.set_exposure(t)
-        res = camera.capture(meter_dir / f"meter_{counter[0]:02d}_{t:.6g}s.dng")
-        return read_frame(res.path).data
+        last = None
+        for attempt in range(1, retry.max_attempts + 1):
+            if stop is not None and stop.is_set():
+                from hdrcap.acquire.session import RunInterrupted
+
+                raise RunInterrupted(f"{run_dir}: stopped by signal {stop.signum} while metering; run again with "
+                                     "--resume", stop.signum)
+            dest = _free_name(meter_dir, f"meter_{counter[0]:02d}_{t:.6g}s", ".dng")
+            try:
+                applied = float(camera.set_exposure(t))
+                timeout = None if retry.timeout_s is None else applied + retry.timeout_s
+                res = camera.capture(dest, timeout=timeout)
+                try:
+                    return read_frame(res.path).data
+                except (InputError, ValueError) as err:
+                    from hdrcap.acquire.camera import CorruptFrameError
+
+                    raise CorruptFrameError(f"metering frame {Path(res.path).name}: {err}") from None
+            except Exception as err:
+                kind = fault_kind(err)
+                if kind is None or kind == "fatal":
+                    raise
+                last = err
+                if attempt == retry.max_attempts:
+                    break
+                if kind in ("busy", "reconnect"):
+                    sleep(retry.wait(attempt))
+                if kind == "reconnect":
+                    _reconnect_quietly(camera)
+        raise SessionError(f"metering at {t:g} s: gave up after {retry.max_attempts} attempts (last: {last}); "
+                           "run again with --resume")
 
     return capture
+
+
+def _reconnect_quietly(camera) -> None:
+    """Reconnect after a metering fault; a failed reconnect is one more fault for the retry loop
+    (a fatal one stops)."""
+    from hdrcap.acquire.camera import fault_kind
+
+    try:
+        camera.reconnect()
+    except Exception as err:
+        if fault_kind(err) in (None, "fatal"):
+            raise
+
+
+def _free_name(folder: Path, stem: str, suffix: str) -> Path:
+    """``folder/stem+suffix``, or ``stem.2+suffix``, ... : the first name that does not exist."""
+    path = folder / f"{stem}{suffix}"
+    k = 1
+    while path.exists():
+        k += 1
+        path = folder / f"{stem}.{k}{suffix}"
+    return path
 
 
 # --------------------------------------------------------------------------- running
@@ -701,6 +758,7 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
         calibration = job_calibration(job)
         expect = check_compatibility(job, camera, calibration, echo)
         sess = job["session"]
+        retry = RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
         force = force or job["output"]["force"]
         if exr_path is None and job["output"]["exr"]:
             exr_path = run_dir / job["output"]["exr"]
@@ -720,14 +778,13 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
             info = head.get("planning", {})
         else:
             if resume and Manifest(run_dir).exists() is False and run_dir.exists():
-                echo(f"hdrcap: {run_dir}: nothing to resume; starting the run")
-            plan, info = plan_for(job, camera, calibration, run_dir, echo)
+                echo(f"hdrcap: {run_dir}: stopped before its plan was recorded; starting the run again")
+            plan, info = plan_for(job, camera, calibration, run_dir, echo, retry, stop)
         if plan.library_times:
             masters = library_masters(_library_root(job, calibration), camera, plan.library_times,
                                       iso=run_iso(job, calibration), strict=True)
         d = job["darks"]
         light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
-        retry = RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
         meta = {"job": str(job.path) if job.path else None, "job_name": job.name, "repetition": n,
                 "planning": info, "calibration": calibration.provenance}
         planned = info.get("plan") or {}

@@ -296,3 +296,49 @@ def test_a_failing_hook_is_only_a_warning(tmp_path):
 
     notify(job, {"status": "done"}, warnings.append)
     assert len(warnings) == 1 and "exit 3" in warnings[0]
+
+
+# --------------------------------------------------------------------------- item: metering
+SNR = '''
+[exposure]
+mode = "snr"
+target_snr_db = 20.0
+max_exposures = 3
+'''
+
+
+def _snr_job(tmp_path, faults, folder="runs/{job}-{date}") -> Path:
+    text = _job(tmp_path, folder=folder, faults=faults).read_text()
+    text = text.replace('[exposure]\nmode = "bracket"\ntimes = [0.004, 0.064, 0.5]\n', SNR)
+    p = tmp_path / "job.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("folder", ["runs/{job}-{date}", "runs/fixed"])
+def test_a_kill_during_metering_leaves_a_run_that_resume_and_a_fresh_start_complete(tmp_path, cli, folder):
+    p = _snr_job(tmp_path, "faults = { kill_after = 1 }", folder)
+    first = cli("run", p, "--no-progress", cwd=tmp_path)
+    assert first.returncode == 137
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert list((run_dir / "meter").iterdir()) and not (run_dir / "manifest.jsonl").exists()
+    _snr_job(tmp_path, "", folder)
+    resumed = cli("run", p, "--resume", "--json", "--no-progress", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    res = json.loads(resumed.stdout)
+    assert Path(res["run_dir"]) == run_dir and res["status"] == "done" and (run_dir / "hdr.exr").is_file()
+    _frames_once(run_dir)
+    if folder == "runs/fixed":  # a fresh start in a folder a metering kill left behind
+        (tmp_path / "runs" / "again" / "meter").mkdir(parents=True)
+        for f in (run_dir / "meter").iterdir():
+            (tmp_path / "runs" / "again" / "meter" / f.name).write_bytes(f.read_bytes())
+        fresh = cli("run", p, "--run-dir", tmp_path / "runs" / "again", "--no-progress", cwd=tmp_path)
+        assert fresh.returncode == 0, fresh.stderr
+
+
+def test_metering_retries_busy_and_disconnects(tmp_path):
+    p = _snr_job(tmp_path, "faults = { busy_first = 3, disconnect_rate = 0.3, seed = 2 }")
+    res = run_job(load_job(p), progress=False, echo=_quiet)
+    assert res["status"] == "done"
+    meters = list((Path(res["run_dir"]) / "meter").iterdir())
+    assert meters
