@@ -5,8 +5,9 @@ fingerprint, then one ``{"type": "frame", ...}`` record per verified frame (file
 requested and applied settings, timestamps, temperature, camera identity), and a last
 ``{"type": "complete", "summary": ...}`` once the outputs are written (``--resume`` on such a
 run only re-reports the summary). Lines are only
-ever appended, each written in one ``write`` and flushed to disk (fsync) before the session
-goes on, so a crash loses at most the line being written; a torn last line is ignored on
+ever appended, each written whole (a short ``write`` is continued; one that cannot finish is
+cut back) and flushed to disk (fsync) before the session goes on, so a crash loses at most
+the line being written; a torn last line is ignored on
 reading and the next append starts a fresh line. ``events.jsonl`` logs everything that
 happened (retries, reconnects, light blocking), also as JSON lines.
 """
@@ -14,6 +15,7 @@ happened (retries, reconnects, light blocking), also as JSON lines.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import logging
 import os
@@ -47,10 +49,30 @@ def _append_line(path: Path, record: dict) -> None:
                 f.seek(size - 1)
                 if f.read(1) != b"\n":
                     data = b"\n" + data
-        os.write(fd, data)
+        _write_all(fd, data, size)
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _write_all(fd: int, data: bytes, size: int) -> None:
+    """Write all of ``data`` (``os.write`` may write less than asked: a full disk, a signal);
+    when the rest cannot be written the file is cut back to ``size`` bytes, so no torn record
+    stays behind, and the error is raised."""
+    view, done = memoryview(data), 0
+    try:
+        while done < len(data):
+            n = os.write(fd, view[done:])
+            if n <= 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            done += n
+    except OSError:
+        if done:
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass
+        raise
 
 
 def _read_lines(path: Path) -> Iterator[tuple[int, dict | None]]:

@@ -22,6 +22,7 @@ Guarantees
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -541,6 +542,7 @@ class CaptureSession:
             raise InputError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
         self.retries: dict[str, int] = {}
         self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
+        self._frame_bytes = 0
 
     # ------------------------------------------------------------------ public
     def run(self) -> SessionResult:
@@ -585,6 +587,7 @@ class CaptureSession:
             shutil.rmtree(partial_dir)
         partial_dir.mkdir()
         adopted = self._adopt_landed(done, frames_dir, ident, manifest, log)
+        self._check_free_space(done, log)
         merger = self._replay(done)
         captured, merger = self._capture_missing(done, merger, ident, manifest, log, partial_dir, frames_dir)
         result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
@@ -754,6 +757,7 @@ class CaptureSession:
                     log.emit("recovered", key=spec.key, attempts=attempt)
                 return rec, values
             except Exception as err:  # classify; anything that is not a camera fault propagates
+                _raise_if_local_io(err, partial_dir, self._frame_bytes)
                 kind = fault_kind(err)
                 if kind is None:
                     raise
@@ -842,9 +846,25 @@ class CaptureSession:
         if self.expect.iso is None and frame.iso is not None:
             self.expect = replace(self.expect, iso=float(frame.iso))
 
+    def _check_free_space(self, done: dict, log: EventLog) -> None:
+        """Refuse to start (LocalIOError, exit 6) when the run folder's file system has no room
+        for the frames still to take and the outputs (:func:`estimate_run_bytes`)."""
+        todo = sum(1 for f in self.plan.frames if f.key not in done)
+        if not todo:
+            return
+        self._frame_bytes = max([self._frame_bytes] + [int(r.get("bytes") or 0) for r in done.values()])
+        need = estimate_run_bytes(todo, self.shape, self._frame_bytes or None, merge=self.calibration is not None)
+        free = shutil.disk_usage(self.run_dir).free
+        if free < need:
+            stop = LocalIOError(f"{self.run_dir}: {free / 1e6:.0f} MB free, the {todo} frames still to take and the "
+                                f"outputs need about {need / 1e6:.0f} MB; free space, then run again with --resume")
+            _emit_stop(log, stop, kind="local_io")
+            raise stop
+
     def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict) -> dict:
         from hdrcap.pipeline.io import sha256_file
 
+        self._frame_bytes = max(self._frame_bytes, final.stat().st_size)
         return {"file": str(final.relative_to(self.run_dir)), "sha256": sha256_file(final),
                 "bytes": final.stat().st_size, "index": i, "camera": ident}
 
@@ -887,11 +907,70 @@ class _Eta:
         return round(max(0.0, self.left) + overhead * self.frames_left, 3)
 
 
+#: Bytes of a raw file when neither an earlier frame nor the sensor size tells (a 24 MP raw is
+#: 25-50 MB).
+UNKNOWN_FRAME_BYTES = 50_000_000
+#: Room kept free besides the run's files (manifest, events, file-system slack), bytes.
+FREE_SPACE_MARGIN = 16_000_000
+#: errno values that mean our side failed, not the camera: full disk or quota, read-only or
+#: vanished file system, permissions.
+LOCAL_IO_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.ENODEV})
+
+
+def estimate_run_bytes(n_frames: int, shape: tuple[int, int] | None = None, frame_bytes: int | None = None,
+                       merge: bool = True) -> int:
+    """Disk space a run still needs, bytes: its raw files and (``merge``) the EXR and PNG outputs.
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames still to take.
+    shape : (int, int), optional
+        Raw mosaic size, photosites.
+    frame_bytes : int, optional
+        Size of one raw file, bytes (an earlier frame's); else 2 bytes per photosite plus 1 MB,
+        else :data:`UNKNOWN_FRAME_BYTES`.
+    merge : bool
+        The run writes the merged EXR (4 float32 channels) and a preview PNG.
+
+    Returns
+    -------
+    int
+        Bytes, with :data:`FREE_SPACE_MARGIN`.
+    """
+    pixels = int(np.prod(shape)) if shape else 0
+    per = frame_bytes or (2 * pixels + 1_000_000 if pixels else UNKNOWN_FRAME_BYTES)
+    outputs = (4 * 4 + 3) * pixels if merge else 0
+    return int(n_frames * per + outputs + FREE_SPACE_MARGIN)
+
+
+def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> None:
+    """A failed download whose cause is our disk (ENOSPC and its kin anywhere in the exception
+    chain, or less room left than one frame) is a LocalIOError, not the camera's fault."""
+    seen, e = set(), err
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in LOCAL_IO_ERRNOS:
+            raise LocalIOError(f"{e.filename or folder}: {e.strerror or e}; free space or fix permissions, then "
+                               "run again with --resume") from None
+        e = e.__cause__ or e.__context__
+    if fault_kind(err) is not None and frame_bytes:
+        try:
+            free = shutil.disk_usage(folder).free
+        except OSError:
+            return
+        if free < frame_bytes:
+            raise LocalIOError(f"{folder}: {free / 1e6:.1f} MB free, less than one frame ({frame_bytes / 1e6:.1f} MB):"
+                               f" the download failed on this computer's disk ({err}); free space, then run again "
+                               "with --resume") from None
+
+
 def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
     """The ``stop`` event: reason and exit code. A failing event log (disk full) does not hide
     the error that stopped the run."""
     fields = {"reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
               "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130)}
+    kind = kind or ("local_io" if isinstance(err, LocalIOError) else None)
     if kind:
         fields["kind"] = kind
     try:
@@ -901,9 +980,12 @@ def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> No
 
 
 def _link_new(src: Path, dst: Path) -> None:
-    """Put ``src`` at ``dst`` without ever replacing an existing file."""
+    """Put ``src`` at ``dst`` without ever replacing an existing file (also on file systems
+    without hard links, :func:`pipeline.io.place_new`)."""
+    from hdrcap.pipeline.io import place_new
+
     try:
-        os.link(src, dst)
+        place_new(src, dst)
     except FileExistsError:
         raise VerificationError(f"{dst}: exists already; the run folder is inconsistent") from None
 
