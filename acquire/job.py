@@ -36,7 +36,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
         "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "delete_after_download": (bool,), "iso": (int,),
+        "model": (str,), "port": (str,), "serial": (str,), "delete_after_download": (bool,), "iso": (int,),
         "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
         "allowed_times": (list,),
     },
@@ -395,6 +395,31 @@ def _apply_iso(job: Job, camera):
     return camera
 
 
+def job_camera_key(job: Job) -> str | None:
+    """What names the job's real camera before it is opened, for its lock: ``gphoto2-`` and the
+    serial, else the model, else the port, else ``any`` (the first camera found); None for the
+    simulated camera (one object per process).
+
+    Parameters
+    ----------
+    job : Job
+
+    Returns
+    -------
+    str or None
+    """
+    cam = job["camera"]
+    if cam["backend"] == "mock":
+        return None
+    from hdrcap.acquire.compat import normalise_model
+
+    if cam.get("serial"):
+        return f"gphoto2-serial-{cam['serial']}"
+    if cam.get("model"):
+        return "gphoto2-model-" + "-".join(normalise_model(cam["model"]) or (cam["model"],))
+    return f"gphoto2-port-{cam['port']}" if cam.get("port") else "gphoto2-any"
+
+
 def _scene_path(job: Job, name: str) -> str:
     return str(_resolve(job, name)) if name.lower().endswith(".exr") else name
 
@@ -725,8 +750,12 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
         summary["status"] = "already_complete"
         echo(f"hdrcap: {run_dir}: the run is complete; nothing to resume")
         return (summary, None) if return_result else summary
+    from hdrcap.acquire.session import hold_run_locks
+
     try:
-        summary, result = _run_one(job, resume, n, run_dir, progress, echo, camera, force, exr_path, png_path, stop)
+        with hold_run_locks(run_dir, job_camera_key(job) if camera is None else None):
+            summary, result = _run_one(job, resume, n, run_dir, progress, echo, camera, force, exr_path, png_path,
+                                       stop)
     except HdrcapError as err:
         err.run_dir = str(run_dir)
         raise

@@ -30,7 +30,6 @@ import shutil
 import subprocess
 import sys
 import signal
-import tempfile
 import threading
 import time
 from contextlib import contextmanager
@@ -66,6 +65,7 @@ __all__ = [
     "frame_stem",
     "lock_dir",
     "stop_on_signals",
+    "hold_run_locks",
 ]
 
 #: Frame kinds; the first two feed the HDR merge, the rest are calibration series.
@@ -390,10 +390,69 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM, signal.SIGINT)) ->
 
 
 def lock_dir() -> Path:
-    """Folder of the per-camera lock files (``HDRCAP_LOCK_DIR`` or the system temp folder)."""
-    d = Path(os.environ.get("HDRCAP_LOCK_DIR") or Path(tempfile.gettempdir()) / "hdrcap-locks")
-    d.mkdir(parents=True, exist_ok=True)
+    """Folder of the lock files: ``$HDRCAP_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/hdrcap/locks``
+    (per user, emptied at boot), else the user's state folder
+    (``${XDG_STATE_HOME:-~/.local/state}/hdrcap/locks``). Not the shared /tmp: another user's
+    lock there would be unwritable, and systemd's PrivateTmp gives each service its own /tmp.
+
+    Returns
+    -------
+    Path
+        The folder (created, private to the user).
+    """
+    if os.environ.get("HDRCAP_LOCK_DIR"):
+        d = Path(os.environ["HDRCAP_LOCK_DIR"])
+    elif os.environ.get("XDG_RUNTIME_DIR") and Path(os.environ["XDG_RUNTIME_DIR"]).is_dir():
+        d = Path(os.environ["XDG_RUNTIME_DIR"]) / "hdrcap" / "locks"
+    else:
+        state = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
+        d = Path(state) / "hdrcap" / "locks"
+    try:
+        d.mkdir(parents=True, exist_ok=True, mode=0o700)
+    except OSError as err:
+        raise InputError(f"{d}: cannot create the lock folder ({err.strerror}); set HDRCAP_LOCK_DIR") from None
     return d
+
+
+@contextmanager
+def hold_run_locks(run_dir, camera_key: str | None = None) -> Iterator[None]:
+    """Locks taken before the camera is opened and metering runs: one for the run folder and,
+    when ``camera_key`` is given (a real camera named by the job), one for that camera. Both
+    live in :func:`lock_dir` (the run folder need not exist yet); a held one is a
+    :class:`RunConflictError` (exit 5) before anything touches the camera.
+
+    Parameters
+    ----------
+    run_dir : path
+        The run folder.
+    camera_key : str, optional
+        Names the camera the job asks for (``gphoto2-SERIAL``, ``gphoto2-MODEL``, ...).
+    """
+    from filelock import FileLock, Timeout
+
+    folder = hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
+    wanted = [(f"run-{folder}", f"{run_dir}: another hdrcap session is using this run folder")]
+    if camera_key:
+        wanted.append((f"open-{_safe(camera_key)}", f"camera {camera_key} is in use by another hdrcap session"))
+    held = []
+    try:
+        for name, message in wanted:
+            lock = FileLock(str(lock_dir() / f"{name}.lock"))
+            try:
+                lock.acquire(timeout=0)
+            except Timeout:
+                raise RunConflictError(message) from None
+            held.append(lock)
+        yield
+    finally:
+        for lock in reversed(held):
+            lock.release()
+
+
+def _safe(text: str) -> str:
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
 
 
 def _identity(camera) -> dict:
@@ -998,12 +1057,9 @@ def _temp(camera) -> float | None:
 
 
 def _lock_key(ident: dict) -> str:
-    import re
-
     # a real camera is one device whatever port it is on (serial); a simulated one is one object (port)
     who = ident["serial"] if ident["serial"] and ident["backend"] != "mock" else ident["port"]
-    key = f"{ident['backend']}-{ident['model']}-{who}"
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)
+    return _safe(f"{ident['backend']}-{ident['model']}-{who}")
 
 
 def _jsonable(obj):

@@ -342,3 +342,46 @@ def test_metering_retries_busy_and_disconnects(tmp_path):
     assert res["status"] == "done"
     meters = list((Path(res["run_dir"]) / "meter").iterdir())
     assert meters
+
+
+# --------------------------------------------------------------------------- item: locks
+def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
+    import hdrcap.acquire.job as job_mod
+    from filelock import FileLock
+
+    from hdrcap.acquire.session import hold_run_locks, lock_dir
+
+    monkeypatch.setenv("HDRCAP_LOCK_DIR", str(tmp_path / "locks"))
+    opened = []
+    real_open = job_mod.open_camera
+    monkeypatch.setattr(job_mod, "open_camera", lambda *a, **kw: opened.append(1) or real_open(*a, **kw))
+    job = load_job(_job(tmp_path, folder="runs/{job}-{n}"))
+    with hold_run_locks(tmp_path / "runs" / "u-0"):
+        with pytest.raises(RunConflictError, match="another hdrcap session") as info:
+            run_job(job, progress=False, echo=_quiet)
+    assert info.value.exit_code == 5 and opened == [] and not (tmp_path / "runs").exists()
+    # a real camera named by the job: locked by its serial (else model, port) before it is opened
+    gp = job_from_dict({"camera": {"backend": "gphoto2", "model": "Nikon DSC D750", "serial": "300123"},
+                        "darks": {"block_light": "none"}, "exposure": {"times": [0.01]},
+                        "calibration": {"preset": "camera-B"}})
+    assert job_mod.job_camera_key(gp) == "gphoto2-serial-300123"
+    with FileLock(str(lock_dir() / "open-gphoto2-serial-300123.lock")):
+        with pytest.raises(RunConflictError, match="300123 is in use"):
+            run_job(gp, run_dir=tmp_path / "gp", progress=False, echo=_quiet)
+    assert opened == []
+
+
+def test_the_default_lock_folder_is_per_user_not_tmp(tmp_path, monkeypatch):
+    from hdrcap.acquire.session import lock_dir
+
+    monkeypatch.delenv("HDRCAP_LOCK_DIR", raising=False)
+    (tmp_path / "run").mkdir()
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "run"))
+    assert lock_dir() == tmp_path / "run" / "hdrcap" / "locks"
+    monkeypatch.delenv("XDG_RUNTIME_DIR")
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    assert lock_dir() == tmp_path / "state" / "hdrcap" / "locks" and lock_dir().is_dir()
+    monkeypatch.delenv("XDG_STATE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert lock_dir() == tmp_path / "home" / ".local" / "state" / "hdrcap" / "locks"
+    assert oct(lock_dir().stat().st_mode & 0o777) == "0o700"
