@@ -663,24 +663,28 @@ class CaptureSession:
         """Start the manifest, or (resume) check it was made from this plan and void the frames
         whose file is missing or changed. Returns (frames recorded by key, their number)."""
         fp = self.plan.fingerprint()
-        if not manifest.exists():
+        head = manifest.header() if manifest.exists() else None
+        if head is None and manifest.exists() and (not self.resume or manifest.frames()):
+            # a torn or unreadable header: the plan cannot be checked, so frames are not trusted
+            raise VerificationError(f"{manifest.path}: the run record (first line) is unreadable, so the plan of the "
+                                    "frames there cannot be checked; move the run folder aside and start again")
+        if head is None:  # a new run, or a crash while its first line was written
             manifest.append({"type": "run", "time": utc_now(), "plan_fingerprint": fp, "camera": ident,
                              "plan": self.plan.to_dict(), **self.meta})
             log.emit("start", frames=len(self.plan.frames), camera=ident, run_dir=str(self.run_dir))
             return {}, 0
         if not self.resume:
             raise RunConflictError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
-                               "to continue it or choose another run folder")
-        head = manifest.header()
-        if head is not None and head.get("camera"):
+                                   "to continue it or choose another run folder")
+        if head.get("camera"):
             try:
                 check_compatible(CameraProfile.from_record(head["camera"], f"the run in {self.run_dir}"),
                                  CameraProfile.from_record(ident, "the connected camera"))
             except CompatibilityError as err:
                 raise RunConflictError(f"{err}; resume it with its own camera") from None
-        if head is not None and head.get("plan_fingerprint") != fp:
+        if head.get("plan_fingerprint") != fp:
             raise RunConflictError(f"{self.run_dir}: the run there was made from a different plan; "
-                               "resume with the same job or choose another run folder")
+                                   "resume with the same job or choose another run folder")
         done = manifest.frames()
         bad = manifest.verify_hashes()
         for key in bad:

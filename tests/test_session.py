@@ -319,3 +319,22 @@ def test_capture_plan_per_exposure_strategies_and_old_manifests():
     p = CapturePlan.from_dict(old)
     assert p == CapturePlan.bracket([0.001], None, "master", n_dark=2) and p.strategy_for(0.001) == "master"
     assert p.fingerprint() == old["fingerprint"]
+
+
+def test_a_torn_manifest_header_is_not_trusted(tmp_path):
+    plan = CapturePlan.bracket(TIMES[:2], None, "matched")
+    CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False).run()
+    mpath = tmp_path / "run" / "manifest.jsonl"
+    lines = mpath.read_text().splitlines(keepends=True)
+    mpath.write_text(lines[0][: len(lines[0]) // 2] + "\n" + "".join(lines[1:]))
+    other = CapturePlan.bracket(TIMES[2:4], None, "matched")  # would have passed unchecked before
+    from hdrcap.acquire.session import VerificationError
+
+    with pytest.raises(VerificationError, match="unreadable"):
+        CaptureSession(_camera(), tmp_path / "run", other, retry=FAST, progress=False, resume=True).run()
+    # a crash while the very first line was written: nothing recorded, the run starts over
+    (tmp_path / "new").mkdir()
+    (tmp_path / "new" / "manifest.jsonl").write_text('{"type": "run", "plan_fin')
+    res = CaptureSession(_camera(), tmp_path / "new", plan, retry=FAST, progress=False, resume=True).run()
+    assert res.captured == len(plan.frames)
+    _check_run(tmp_path / "new", plan)
