@@ -869,12 +869,7 @@ class CaptureSession:
         if frame.shape != self.shape:
             raise CorruptFrameError(f"{path.name}: size {frame.shape} differs from the camera's {self.shape}")
         if spec.dark and self.check_dark:
-            black = frame.black_level or 0.0
-            white = frame.white_level or 65535.0
-            level = float((np.median(frame.data) - black) / max(white - black, 1.0))
-            if level > self.check_dark:
-                raise VerificationError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
-                                   f"range); check the light blocking ({self.light.method}) and run again with --resume")
+            self._check_dark(spec, frame)
         self._check_frame_camera(path, frame)
         if not same_exposure(frame.exposure_time, applied):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
@@ -894,6 +889,26 @@ class CaptureSession:
             "camera_file": getattr(res, "camera_file", "") if res is not None else "",
         }
         return rec, frame.data
+
+    def _check_dark(self, spec: FrameSpec, frame) -> None:
+        """A dark frame must be dark: its median below ``check_dark`` of the raw range and, with a
+        calibration, within :func:`dark_excess_limit` of the level the calibration predicts
+        (which catches a light leak at short exposures, far below a fraction of the range)."""
+        black = frame.black_level or 0.0
+        white = frame.white_level or 65535.0
+        median = float(np.median(frame.data))
+        level = (median - black) / max(white - black, 1.0)
+        why = f"dark frame median at {level:.1%} of the range" if level > self.check_dark else ""
+        if not why and self.calibration is not None:
+            p = self.calibration.params
+            expected = p.mu_R + p.g * p.dark_current * frame.exposure_time
+            limit = dark_excess_limit(p, frame.exposure_time, frame.data.size)
+            if median - expected > limit:
+                why = (f"dark frame median {median - expected:.1f} DN above the calibrated dark level "
+                       f"{expected:.1f} DN, more than {limit:.1f} DN")
+        if why:
+            raise VerificationError(f"{spec.key}: the light is not blocked ({why}); check the light blocking "
+                                    f"({self.light.method}) and run again with --resume")
 
     def _check_frame_camera(self, path: Path, frame) -> None:
         """The frame's EXIF camera and ISO against :attr:`expect` (the first frame fixes the
@@ -1005,6 +1020,31 @@ def estimate_run_bytes(n_frames: int, shape: tuple[int, int] | None = None, fram
     per = frame_bytes or (2 * pixels + 1_000_000 if pixels else UNKNOWN_FRAME_BYTES)
     outputs = (4 * 4 + 3) * pixels if merge else 0
     return int(n_frames * per + outputs + FREE_SPACE_MARGIN)
+
+
+def dark_excess_limit(params, t: float, n_pixels: int) -> float:
+    """How far a dark frame's median may lie above the calibrated dark level ``mu_R + g D t``
+    before the light counts as not blocked, DN: 2 DN (bias drift, quantisation of the median),
+    plus the dark signal itself (the dark current may double with a few degrees C), plus five
+    standard errors of the median, 1.25 sigma / sqrt(N), with the noise of Eq. (5)
+    sigma^2 = sigma2_R + g^2 D t.
+
+    Parameters
+    ----------
+    params : pipeline.params.SensorParams
+    t : float
+        Exposure time, s.
+    n_pixels : int
+        Photosites in the frame.
+
+    Returns
+    -------
+    float
+        DN.
+    """
+    dark_dn = params.g * params.dark_current * t
+    sigma = float(np.sqrt(params.sigma2_R + params.g * dark_dn))
+    return 2.0 + dark_dn + 5 * 1.25 * sigma / np.sqrt(max(int(n_pixels), 1))
 
 
 def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> None:

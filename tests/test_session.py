@@ -338,3 +338,26 @@ def test_a_torn_manifest_header_is_not_trusted(tmp_path):
     res = CaptureSession(_camera(), tmp_path / "new", plan, retry=FAST, progress=False, resume=True).run()
     assert res.captured == len(plan.frames)
     _check_run(tmp_path / "new", plan)
+
+
+def test_a_light_leak_at_a_short_exposure_is_caught_with_a_calibration(tmp_path):
+    """At 1/60 s the lit scene's median is ~1 % of the range: below the 5 % rule, yet ~10 DN
+    above the calibrated dark level, far beyond the noise of a 32x32 median."""
+    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.session import VerificationError
+
+    cal = resolve_calibration(None, "camera-B")
+    plan = CapturePlan.bracket([1 / 60], None, "matched")
+    leaky = _camera()
+    leaky.cover = lambda: None  # the lens cap fell off
+    CaptureSession(leaky, tmp_path / "weak", plan, light=LightBlocker("none"), retry=FAST, progress=False).run()
+    leaky = _camera()
+    leaky.cover = lambda: None
+    with pytest.raises(VerificationError, match="above the calibrated dark level"):
+        CaptureSession(leaky, tmp_path / "run", plan, calibration=cal, light=LightBlocker("none"), retry=FAST,
+                       progress=False).run()
+    # no false alarm for real dark frames up to 30 s, also 5 C warmer than the calibration
+    warm = MockCamera("camera-B", _scene((32, 32)), seed=4, temperature=25.0)
+    times = [1 / 8000, 1 / 60, 1.0, 8.0, 30.0]
+    CaptureSession(warm, tmp_path / "ok", CapturePlan.bracket(times, None, "matched"), calibration=cal, retry=FAST,
+                   progress=False).run()
