@@ -2,7 +2,8 @@
 
 Commands live in :mod:`acquire.commands` (one module each, discovered at start-up). Errors
 the user can fix (:class:`pipeline.errors.HdrcapError`) are printed as one line
-``hdrcap: error: ...`` with the error's exit status (:data:`acquire.session.EXIT_CODES`); a
+``hdrcap: error: ...`` with the error's exit status (:data:`acquire.session.EXIT_CODES`), and
+with ``--json`` also as a JSON object on stdout (:func:`acquire.job.error_summary`); a
 local I/O error (disk full, permissions) exits 6; an unexpected exception is reported in
 one line too (exit 70), with its traceback only when ``HDRCAP_DEBUG=1``.
 """
@@ -87,6 +88,12 @@ def main(argv: list[str] | None = None) -> int:
         cli.main(args=argv, prog_name="hdrcap", standalone_mode=False)
         return 0
     except HdrcapError as err:
+        args = sys.argv[1:] if argv is None else list(map(str, argv))
+        if "--json" in args and not getattr(err, "reported", False):  # the error as JSON too
+            from hdrcap.acquire.cliutil import echo_json
+            from hdrcap.acquire.job import error_summary
+
+            echo_json(error_summary(err))
         click.echo(f"hdrcap: error: {err}", err=True)
         return err.exit_code
     except click.exceptions.Exit as err:

@@ -949,6 +949,7 @@ def run_schedule(job: Job, *, repeat: int | None = None, every_s: float | None =
         try:
             res = run_job(job, resume=resume, n=n, run_dir=rd, progress=progress, echo=echo, force=force, stop=stop)
         except HdrcapError as err:
+            err.repetition = n
             res = error_summary(err, n)
             notify(job, res, echo)
             if on_result is not None and keep_going:
@@ -996,6 +997,7 @@ def error_summary(err: BaseException, n: int | None = None) -> dict:
     """
     out = {"status": "failed", "error": str(err), "exit_code": int(getattr(err, "exit_code", 70)),
            "error_type": type(err).__name__, "run_dir": getattr(err, "run_dir", None)}
+    n = n if n is not None else getattr(err, "repetition", None)
     if n is not None:
         out["repetition"] = n
     return out

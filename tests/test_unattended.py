@@ -385,3 +385,11 @@ def test_the_default_lock_folder_is_per_user_not_tmp(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     assert lock_dir() == tmp_path / "home" / ".local" / "state" / "hdrcap" / "locks"
     assert oct(lock_dir().stat().st_mode & 0o777) == "0o700"
+
+
+def test_capture_json_error_object_and_run_out_alias(tmp_path, cli):
+    proc = cli("capture", "--camera", "mock:camera-Z", "--times", "0.01", "--out", tmp_path / "c", "--json")
+    assert proc.returncode == 2 and json.loads(proc.stdout)["exit_code"] == 2, proc.stderr
+    p = _job(tmp_path)
+    ok = cli("run", p, "--out", tmp_path / "here", "--json", "--no-progress")
+    assert ok.returncode == 0 and Path(json.loads(ok.stdout)["run_dir"]) == tmp_path / "here", ok.stderr

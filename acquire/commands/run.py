@@ -8,7 +8,6 @@ from pathlib import Path
 import click
 
 from hdrcap.acquire.cliutil import echo_json
-from hdrcap.pipeline.errors import HdrcapError
 
 
 @click.command("run")
@@ -20,13 +19,13 @@ from hdrcap.pipeline.errors import HdrcapError
               help="Start a repetition every SECONDS (overrides [schedule] every_s).")
 @click.option("--keep-going", is_flag=True,
               help="A failed repetition does not end the schedule (the exit status is the first failure's).")
-@click.option("--run-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Run folder (overrides [output] folder; with --repeat it must contain {n}).")
+@click.option("--run-dir", "--out", "run_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Run folder (overrides [output] folder; with --repeat it must contain {n}); --out as in capture.")
 @click.option("--force", is_flag=True, help="Overwrite the EXR/PNG outputs of an earlier run in the same folder.")
 @click.option("--check", is_flag=True, help="Only validate the job (and the camera's range); take no frame.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
 @click.option("--json", "as_json", is_flag=True,
-              help="Print one JSON line per repetition as it ends; an error as a JSON object too.")
+              help="Print one JSON line per repetition as it ends (an error: a JSON object, see docs/acquisition.md).")
 def command(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json):
     """Run the measurement described by JOB_FILE (TOML; see docs/acquisition.md).
 
@@ -35,14 +34,7 @@ def command(job_file, resume, repeat, every, keep_going, run_dir, force, check, 
     run (also by SIGTERM or Ctrl-C, which end it cleanly) continues with --resume without
     duplicating or losing a frame. Exit status: see docs/acquisition.md.
     """
-    from hdrcap.acquire.job import error_summary
-
-    try:
-        _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json)
-    except HdrcapError as err:
-        if as_json and not getattr(err, "reported", False):
-            echo_json(error_summary(err))
-        raise
+    _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json)
 
 
 def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json) -> None:
