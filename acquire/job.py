@@ -487,7 +487,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
     master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
     masters = (library_masters(_library_root(job, calibration), camera, master_times, load=False,
-                               iso=run_iso(job, calibration), strict=True) if master_times else {})
+                               iso=run_iso(job, calibration), strict=True, echo=echo) if master_times else {})
     if masters:
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
         echo(f"dark library: master darks for {len(masters)} of {len(set(master_times))} master-dark exposure times")
@@ -518,7 +518,7 @@ def _library_root(job: Job, calibration) -> str | None:
 
 
 def library_masters(root, camera, times, load: bool = True, iso: float | None = None,
-                    strict: bool = False) -> dict[float, tuple]:
+                    strict: bool = False, echo: Callable[[str], None] | None = None) -> dict[float, tuple]:
     """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N), matched
     by :meth:`pipeline.darklibrary.DarkLibrary.masters` to the camera's model (normalised,
     :func:`acquire.compat.same_model`), ``iso`` and temperature (data None unless ``load``).
@@ -539,6 +539,9 @@ def library_masters(root, camera, times, load: bool = True, iso: float | None = 
     strict : bool
         Refuse (CompatibilityError) a library that holds no master of this camera, or whose
         masters for one of ``times`` are all of another ISO, instead of using none.
+    echo : callable, optional
+        Where a warning goes when the camera reports no temperature (the masters are then
+        matched at any temperature).
 
     Returns
     -------
@@ -574,6 +577,9 @@ def library_masters(root, camera, times, load: bool = True, iso: float | None = 
     name = Counter(e.camera for e in mine).most_common(1)[0][0]
     temp = camera.temperature() if hasattr(camera, "temperature") else None
     found = lib.masters(times, camera=name, iso=iso, temperature=temp, load=load)
+    if echo is not None and temp is None and any(e.temperature is not None for _d, _n, e in found.values()):
+        echo("hdrcap: warning: the camera reports no temperature; master darks of the dark library are matched at "
+             "any temperature (their dark current may differ)")
     return {t: (data, n) for t, (data, n, _e) in found.items()}
 
 

@@ -185,3 +185,17 @@ def test_resume_on_another_camera_is_refused_before_any_frame(tmp_path):
         CaptureSession(other, tmp_path / "r", CapturePlan(plan.frames[:2]), retry=FAST, progress=False,
                        resume=True).run()
     assert info.value.exit_code == 5 and other.calls == 0
+
+
+def test_masters_at_any_temperature_are_a_warning_when_the_camera_reports_none(tmp_path):
+    from hdrcap.pipeline.darklibrary import DarkLibrary
+
+    lib = DarkLibrary(tmp_path / "darks")
+    model = MockCamera("camera-B", _scene()).identity.model
+    for t in (0.001, 0.004):
+        lib.add(np.full((24, 32), 32.0), 4, camera=model, iso=400, exposure_time=t, temperature=35.0)
+    p = _job(tmp_path, darks='strategy = "master"\ncount = 2',
+             calibration='preset = "camera-B"\ndark_library = "darks"')
+    said = []
+    run_job(load_job(p), progress=False, echo=said.append)
+    assert any("no temperature" in s for s in said)
