@@ -69,14 +69,14 @@ class CameraProfile:
     temperature_c: float | None = None
 
     @classmethod
-    def from_calibration(cls, calibration, name: str = "calibration") -> "CameraProfile":
+    def from_calibration(cls, calibration, name: str = "calibration") -> CameraProfile:
         """The camera a :class:`pipeline.params.Calibration` was made on (its provenance)."""
         prov: dict[str, Any] = dict(getattr(calibration, "provenance", {}) or {})
         return cls(name, str(prov.get("camera") or ""), str(prov.get("serial") or ""), _num(prov.get("iso")),
                    _num(prov.get("temperature")))
 
     @classmethod
-    def from_camera(cls, camera, iso: float | None = None) -> "CameraProfile":
+    def from_camera(cls, camera, iso: float | None = None) -> CameraProfile:
         """A connected camera: its identity (model, serial) and temperature, and ``iso`` (s)et."""
         ident = getattr(camera, "identity", None)
         try:
@@ -87,7 +87,7 @@ class CameraProfile:
                    _num(iso), _num(temp))
 
     @classmethod
-    def from_record(cls, record: dict, source: str) -> "CameraProfile":
+    def from_record(cls, record: dict, source: str) -> CameraProfile:
         """A camera identity recorded in a manifest (``{"model": ..., "serial": ...}``)."""
         return cls(source, str(record.get("model") or ""), str(record.get("serial") or ""))
 

@@ -325,8 +325,6 @@ def resume_folder(job: Job, n: int = 0) -> Path | None:
     -------
     Path or None
     """
-    from hdrcap.acquire.manifest import Manifest
-
     glob = str(_resolve(job, job["output"]["folder"])).format(job=job.name, n=n, date="*")
     root = Path("/") if glob.startswith("/") else Path(".")
     found = [f for f in root.glob(glob.lstrip("/")) if (f / "manifest.jsonl").is_file() or (f / "meter").is_dir()]

@@ -346,9 +346,9 @@ def test_metering_retries_busy_and_disconnects(tmp_path):
 
 # --------------------------------------------------------------------------- item: locks
 def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
-    import hdrcap.acquire.job as job_mod
     from filelock import FileLock
 
+    import hdrcap.acquire.job as job_mod
     from hdrcap.acquire.session import hold_run_locks, lock_dir
 
     monkeypatch.setenv("HDRCAP_LOCK_DIR", str(tmp_path / "locks"))
