@@ -49,6 +49,8 @@ __all__ = [
     "parse_exposure_label",
     "format_exposure",
     "nearest_allowed",
+    "exposure_ladder",
+    "BULB_MAX_S",
     "dark_level",
     "frame_is_dark",
 ]
@@ -87,6 +89,9 @@ class Camera(Protocol):
 
     def reconnect(self) -> None:
         """Drop the connection and open a new one (a fresh camera object)."""
+
+    # optional: ``bulb_range() -> (shortest, longest) | None``, the bulb times (s) the camera
+    # can time; see :func:`exposure_ladder`
 
     def close(self) -> None:
         """Release the camera."""
@@ -151,6 +156,39 @@ def nearest_allowed(t: float, allowed: Sequence[float]) -> float:
     if not allowed:
         raise ValueError("no allowed exposure times")
     return min(allowed, key=lambda a: (abs(math.log(a / t)), a))
+
+
+#: Longest bulb exposure a plan may ask for, s (an hour: beyond it dark current and cosmic
+#: rays, not the shutter, limit a frame).
+BULB_MAX_S: float = 3600.0
+
+
+def exposure_ladder(camera) -> list[float]:
+    """Every exposure time a plan may use on ``camera``, s, ascending: its timed shutter speeds
+    and, when it has bulb (``camera.bulb_range()``), a 1/3-stop ladder above the longest timed
+    speed up to the longest bulb time (each bulb time is timed around the release).
+
+    Parameters
+    ----------
+    camera : Camera
+        The camera (``allowed_exposure_times()``; ``bulb_range()`` optional).
+
+    Returns
+    -------
+    list of float
+        Exposure times, s.
+    """
+    allowed = sorted(float(t) for t in camera.allowed_exposure_times())
+    bulb = getattr(camera, "bulb_range", lambda: None)()
+    if not allowed or not bulb:
+        return allowed
+    lo, hi = bulb
+    out, k = list(allowed), 1
+    while (t := round(allowed[-1] * 2 ** (k / 3), 1)) <= hi * (1 + 1e-9):
+        if t >= lo:
+            out.append(t)
+        k += 1
+    return out
 
 
 def dark_level(path) -> float:

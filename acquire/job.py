@@ -20,7 +20,7 @@ from typing import Any, Callable
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
 
-from .camera import nearest_allowed
+from .camera import exposure_ladder, nearest_allowed
 
 __all__ = ["Job", "JobError", "SCHEMA", "load_job", "job_from_dict", "open_camera", "run_job", "run_schedule",
            "check_job_against_camera", "run_folder", "resume_folder", "run_state", "error_summary", "notify",
@@ -36,9 +36,10 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
         "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "serial": (str,), "delete_after_download": (bool,), "iso": (int,),
+        "model": (str,), "port": (str,), "serial": (str,), "enforce": (bool,), "delete_after_download": (bool,),
+        "iso": (int,),
         "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
-        "allowed_times": (list,),
+        "allowed_times": (list,), "bulb_max_s": ((int, float),),
     },
     "scene": {"name": (str,), "decades": ((int, float),), "x_max": ((int, float),)},
     "exposure": {
@@ -368,26 +369,34 @@ def open_camera(job: Job, n: int = 0):
         shape = parse_size(cam["size"])
         scene = load_scene(_scene_path(job, sc["name"]), shape, sc["decades"], sc["x_max"])
         camera = MockCamera(cam["preset"], scene, seed=cam["seed"] + n, allowed_times=cam.get("allowed_times"),
+                            bulb_max_s=cam.get("bulb_max_s"),
                             faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
-        return _apply_iso(job, camera)
-    from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
-
-    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), delete_after_download=cam["delete_after_download"],
-                           long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
-    return _apply_iso(job, camera)
-
-
-def _apply_iso(job: Job, camera):
-    """Set the job's ``[camera] iso`` and refuse a camera that silently applies another one."""
-    cam = job["camera"]
-    if "iso" in cam:
         try:
-            applied = camera.set_iso(cam["iso"])
+            return _apply_iso(job, camera)
         except BaseException:
             camera.close()
             raise
+    from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
+
+    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), serial=cam.get("serial"),
+                           delete_after_download=cam["delete_after_download"],
+                           long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
+    try:
+        _apply_iso(job, camera)
+        camera.preflight(enforce=cam.get("enforce", False), iso=cam.get("iso"))  # changes nothing unless enforce
+    except BaseException:
+        camera.close()
+        raise
+    return camera
+
+
+def _apply_iso(job: Job, camera):
+    """Set the job's ``[camera] iso`` and refuse (JobError) a camera that silently applies
+    another one; returns the camera."""
+    cam = job["camera"]
+    if "iso" in cam:
+        applied = camera.set_iso(cam["iso"])
         if applied is not None and abs(float(applied) - cam["iso"]) > 0.5:  # a silent substitution
-            camera.close()
             raise job.error("camera", "iso", f"the camera applied ISO {applied:g}, not {cam['iso']}; choose one of "
                                              f"its ISO speeds")
     return camera
@@ -424,7 +433,7 @@ def _scene_path(job: Job, name: str) -> str:
 
 def check_job_against_camera(job: Job, camera) -> None:
     """Checks that need the camera (still before any frame): exposure times in its range."""
-    allowed = camera.allowed_exposure_times()
+    allowed = exposure_ladder(camera)  # timed speeds, and bulb times where the camera has bulb
     if not allowed:
         raise job.error("camera", None, "the camera offers no exposure times")
     lo, hi = min(allowed), max(allowed)
@@ -457,7 +466,7 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     from hdrcap.acquire.session import CapturePlan
 
     exp, darks = job["exposure"], job["darks"]
-    allowed = camera.allowed_exposure_times()
+    allowed = exposure_ladder(camera)
     times = list(exp["times"])
     strategy: str | list[str] = darks["strategy"]
     info: dict[str, Any] = {"mode": exp["mode"]}

@@ -42,7 +42,7 @@ import numpy as np
 from hdrcap.pipeline.darks import DarkResolver
 from hdrcap.pipeline.errors import HdrcapError, InputError
 from hdrcap.pipeline.noise import DarkStrategy
-from hdrcap.pipeline.times import ExposureMap, find_exposure, same_exposure
+from hdrcap.pipeline.times import ExposureMap, find_exposure, same_bulb_exposure, same_exposure
 
 from .camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
 from .compat import CameraProfile, CompatibilityError, check_compatible
@@ -808,6 +808,8 @@ class CaptureSession:
                 applied = float(self.camera.set_exposure(spec.exposure_s))
                 timeout = None if self.retry.timeout_s is None else applied + self.retry.timeout_s
                 res = self.camera.capture(tmp, dark=spec.dark, timeout=timeout)
+                if getattr(res, "bulb", False):  # timed around the release: the measured open time
+                    applied = float(res.applied_exposure_s)
                 path = Path(res.path)
                 final = frames_dir / (frame_stem(i, spec) + path.suffix.lower())
                 rec, values = self._verify(path, spec, applied, res)
@@ -845,7 +847,7 @@ class CaptureSession:
     def _reconnect(self, log: EventLog) -> None:
         try:
             self.camera.reconnect()
-            log.emit("reconnect", ok=True)
+            log.emit("reconnect", ok=True, port=str(getattr(getattr(self.camera, "identity", None), "port", "")))
         except Exception as err:
             if fault_kind(err) is None:
                 raise
@@ -871,7 +873,8 @@ class CaptureSession:
         if spec.dark and self.check_dark:
             self._check_dark(spec, frame)
         self._check_frame_camera(path, frame)
-        if not same_exposure(frame.exposure_time, applied):
+        bulb = bool(getattr(res, "bulb", False))
+        if not (same_bulb_exposure if bulb else same_exposure)(frame.exposure_time, applied):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
                                     f"camera reported {applied:g} s")
         rec = {

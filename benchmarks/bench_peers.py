@@ -9,15 +9,21 @@ Peers, each used the way its documentation intends:
   them; the mosaic replicated into 3 channels), with the exposure times, default linear response.
 * colour-hdri ``image_stack_to_HDRI`` (default Debevec 1997 hat weighting, linear data, no CRF)
   on the same TIFFs as floats in [0, 1], with exposure time, f-number and ISO metadata.
-* hdrcap: the maximum-likelihood merge (``pipeline.merge``, default options, and with the
-  probabilistic saturation model) with the matched dark frames and Table 2's parameters, with
-  the sensor's PRNU and dark-current maps (a full calibration) and without them (nominal
-  scalars, as a user without a flat-field calibration). Its time excludes the first call
-  (numba compilation or cache load, reported as ``first_call_seconds``).
+* hdrcap: the installed ``hdrcap merge`` command (maximum-likelihood merge, default options,
+  and with the probabilistic saturation model) with the matched dark frames and Table 2's
+  parameters, with a calibration file holding the sensor's PRNU and dark-current maps (a full
+  calibration) and one without them (nominal scalars, as a user without a flat-field
+  calibration); its irradiance is read back from the EXR it writes.
 
-Every tool runs in its own process (peers in their own venv, ``--setup`` creates it); the merge
-time is measured inside the process around the merge call only (reading excluded) and the peak
-memory is the process's maximum resident set (``os.wait4``), interpreter and imports included.
+Every tool runs in its own process (peers in their own venv, ``--setup`` creates it). The
+timing columns compare the same work for every tool:
+
+* ``whole_command_seconds`` (and ``..._per_megapixel``): the process's wall time from the input
+  files to the output file, interpreter start, imports, reading and writing included;
+* ``peak_rss_mb``: the process's maximum resident set (``os.wait4``);
+* ``in_memory_merge_seconds`` (and ``..._per_megapixel``): the merge call alone on frames already
+  in memory (a separate run for hdrcap, after a first call that compiles or loads the numba
+  kernels, reported as ``first_call_seconds``); absent for HDRMerge, which has no such call.
 Accuracy: SNR per irradiance bin against the simulator's truth after a global least-squares
 scale fit of the relative error (the peers do not know the gain), and the Cramér-Rao bound.
 
@@ -38,13 +44,15 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_command import run_measured
 
 WORK = REPO / "benchmarks" / "_work"
 DEFAULT_VENV = WORK / "venv"
@@ -81,17 +89,15 @@ print(json.dumps({"merge_seconds": sec, "version": colour_hdri.__version__}))
 """
 
 RUN_HDRCAP = r"""
-import json, sys, time, numpy as np
+import json, sys, time
 sys.path.insert(0, sys.argv[2])
+from hdrcap.pipeline.calibration import load_calibration
 from hdrcap.pipeline.io import read_frame
-from hdrcap.pipeline.params import Calibration, SensorParams
 from hdrcap.pipeline import merge as M
-files, darks, out, calib, options = json.loads(sys.argv[1])
+files, darks, calib, options = json.loads(sys.argv[1])
 frames = [read_frame(f) for f in files]
 dk = [read_frame(f) for f in darks]
-cal = Calibration(SensorParams(**calib["params"]),
-                  prnu=np.load(calib["prnu"]) if calib.get("prnu") else None,
-                  dark_current_map=np.load(calib["dcm"]) if calib.get("dcm") else None)
+cal = load_calibration(calib)
 values, times, dvals = [f.data for f in frames], [f.exposure_time for f in frames], [d.data for d in dk]
 crop = lambda a: None if a is None else a[:8, :8]
 small = cal.replace(prnu=crop(cal.prnu), dark_current_map=crop(cal.dark_current_map))
@@ -101,23 +107,8 @@ first = time.perf_counter() - t0  # compiles the kernels or loads them from numb
 t0 = time.perf_counter()
 res = M.merge_arrays(values, times, cal, darks=dvals, **options)
 sec = time.perf_counter() - t0
-np.save(out, res.irradiance.astype(np.float64))
 print(json.dumps({"merge_seconds": sec, "first_call_seconds": first, "method": res.info.get("method")}))
 """
-
-
-def run_measured(cmd, env=None, cwd=None) -> dict:
-    """Run ``cmd``; return wall time, peak RSS (MB, os.wait4), return code, stdout/stderr tails."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=cwd, text=True)
-    out, err = "", ""
-    # drain pipes, then reap with wait4 for the child's own rusage
-    out, err = proc.stdout.read(), proc.stderr.read()
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    wall = time.perf_counter() - t0
-    return {"returncode": proc.returncode, "wall_seconds": wall, "peak_rss_mb": usage.ru_maxrss / 1024.0,
-            "stdout": out.strip().splitlines()[-1] if out.strip() else "", "stderr": err.strip()[-400:]}
 
 
 def setup_venv(venv: Path) -> None:
@@ -136,7 +127,6 @@ def setup_venv(venv: Path) -> None:
 def simulate(work: Path, camera: str, shape, seed: int):
     """Write the DNG bracket + darks and 16-bit linear TIFFs; return paths, truth and sensor."""
     import tifffile
-
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
     from hdrcap.mock_camera.scenes import make_scene
@@ -163,8 +153,13 @@ def simulate(work: Path, camera: str, shape, seed: int):
         tif = work / f"frame_{i}.tif"
         tifffile.imwrite(tif, np.round(lin * 65535).astype(np.uint16))
         tiffs.append(str(tif))
-    np.save(work / "prnu.npy", cam.sensor.prnu.astype(np.float32))
-    np.save(work / "dcm.npy", cam.sensor.dark_current_map().astype(np.float32))
+    from hdrcap.pipeline.calibration import save_calibration
+    from hdrcap.pipeline.params import Calibration
+
+    maps = Calibration(p, prnu=cam.sensor.prnu.astype(np.float32),
+                       dark_current_map=cam.sensor.dark_current_map().astype(np.float32))
+    save_calibration(work / "calibration_maps.npz", maps, force=True)
+    save_calibration(work / "calibration_nominal.npz", Calibration(p), force=True)
     return {"files": files, "darks": darks, "tiffs": tiffs, "times": times, "truth": scene, "spec": spec,
             "params": p, "sensor": cam.sensor}
 
@@ -174,6 +169,127 @@ def scale_fit(y: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> float:
     r = y[valid] / truth[valid]
     r = r[np.isfinite(r)]
     return float(np.sum(r) / np.sum(r * r))
+
+
+#: hdrcap's rows: calibration file, extra ``hdrcap merge`` options, whether the dark frames are
+#: given, and the same options for the in-memory merge call.
+HDRCAP_ROWS = {
+    "hdrcap ML merge (PRNU + dark maps)": ("calibration_maps.npz", [], True, {}),
+    "hdrcap ML merge (maps, probabilistic saturation)": ("calibration_maps.npz", ["--saturation", "probabilistic"],
+                                                         True, {"saturation": "probabilistic"}),
+    "hdrcap ML merge (maps, no dark frames: model darks)": ("calibration_maps.npz", [], False,
+                                                            {"dark_strategy": "model"}),
+    "hdrcap ML merge (nominal scalars)": ("calibration_nominal.npz", [], True, {}),
+}
+
+
+def run_hdrcap(name: str, sim: dict, work: Path) -> dict:
+    """``hdrcap merge`` from the DNGs to an EXR (whole command; its irradiance saved as .npy for
+    the accuracy columns), then the merge call alone in memory (a separate process)."""
+    from hdrcap.pipeline.io import read_exr
+
+    calib, flags, with_darks, options = HDRCAP_ROWS[name]
+    exe = Path(sys.executable).with_name("hdrcap")
+    exr = work / f"hdrcap_{len(flags)}_{with_darks}_{calib}.exr"
+    darks = ["--darks", *sim["darks"]] if with_darks else []
+    r = run_measured([exe if exe.exists() else "hdrcap", "merge", *sim["files"], *darks, "--calibration",
+                      work / calib, *flags, "-o", exr, "--force", "--json"])
+    r["whole_command_seconds"] = r["wall_seconds"]
+    if r["returncode"] == 0:
+        np.save(work / f"{exr.stem}.npy", read_exr(exr).channels["irradiance"].astype(np.float64))
+        r["output"] = f"{exr.stem}.npy"
+    mem = run_measured([sys.executable, "-c", RUN_HDRCAP, json.dumps([sim["files"], sim["darks"], str(work / calib),
+                                                                      options]), str(REPO)])
+    if mem["returncode"] == 0 and mem["stdout"]:
+        got = json.loads(mem["stdout"])
+        r.update(in_memory_merge_seconds=got["merge_seconds"], first_call_seconds=got["first_call_seconds"],
+                 method=got.get("method"))
+    return r
+
+
+def run_peer_script(script: str, sim: dict, work: Path, npy: str, kind: str, peers_py: str) -> dict:
+    """A Python peer in its venv: whole process from the TIFFs to its .npy output, and the merge
+    call's own time as the in-memory figure."""
+    r = run_measured([peers_py, "-c", script, json.dumps([sim["tiffs"], sim["times"], str(work / npy), kind])])
+    r["whole_command_seconds"] = r["wall_seconds"]
+    if r["returncode"] == 0 and r["stdout"]:
+        got = json.loads(r["stdout"])
+        r.update(in_memory_merge_seconds=got["merge_seconds"], version=got.get("version"), output=npy)
+    return r
+
+
+def run_hdrmerge(sim: dict, work: Path, truth_shape) -> dict:
+    """HDRMerge on the bright DNGs (whole command); its raw output, black subtracted, as .npy."""
+    hdr_out = work / "hdrmerge.dng"
+    if not shutil.which("hdrmerge"):
+        return {"error": "hdrmerge not on PATH (apt-get install -y hdrmerge)"}
+    hdr_out.unlink(missing_ok=True)
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_RUNTIME_DIR=str(work))
+    r = run_measured(["hdrmerge", "--no-align", "--no-crop", "-b", "32", "-o", hdr_out, *sim["files"]], env=env)
+    r["whole_command_seconds"] = r["wall_seconds"]
+    if r["returncode"] == 0 and hdr_out.exists():
+        import rawpy
+
+        with rawpy.imread(str(hdr_out)) as raw:
+            data = raw.raw_image_visible.astype(np.float64)
+            black = float(np.mean(raw.black_level_per_channel))
+        if data.shape == truth_shape:
+            np.save(work / "hdrmerge.npy", data - black)
+            r["output"] = "hdrmerge.npy"
+        else:
+            r["error"] = f"output shape {data.shape} != input {truth_shape}"
+    return r
+
+
+PEER_SCRIPTS = {
+    "OpenCV MergeDebevec (16-bit)": (RUN_OPENCV, "cv_debevec.npy", "debevec"),
+    "OpenCV MergeRobertson (16-bit)": (RUN_OPENCV, "cv_robertson.npy", "robertson"),
+    "colour-hdri image_stack_to_HDRI": (RUN_COLOUR, "colour_hdri.npy", ""),
+}
+
+#: Columns of the printed table; every timing column is the same work for every tool.
+TABLE_COLUMNS = ("mean_snr_db", "min_snr_db", "lowest_decade_mean_snr_db", "mean_efficiency", "min_efficiency",
+                 "whole_command_seconds", "whole_command_seconds_per_megapixel", "peak_rss_mb",
+                 "in_memory_merge_seconds", "in_memory_merge_seconds_per_megapixel", "first_call_seconds",
+                 "scale_fit", "version", "method", "error", "nonfinite_pixels")
+
+
+def accuracy(results: dict, sim: dict, work: Path, bins: int) -> dict:
+    """SNR per irradiance bin of every output against the truth; adds the summary to each row."""
+    from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
+
+    truth, sensor = sim["truth"], sim["sensor"]
+    edges = log_bins(truth, bins)
+    bound = bound_variance(truth, sim["times"], sim["params"], a=sensor.prnu, D=sensor.dark_current_map(),
+                           dark="matched")
+    valid = np.isfinite(bound)
+    curves = {}
+    for name, r in results.items():
+        if r.get("returncode", 1) != 0 or not r.get("output"):
+            r.setdefault("error", r.get("stderr", "failed"))
+            continue
+        y = np.load(work / r["output"])
+        s = scale_fit(y, truth, valid & np.isfinite(y) & (y > 0))
+        res = snr_per_bin(np.where(np.isfinite(y), s * y, 0.0), truth, edges, bound=bound, valid=valid)
+        curves[name] = res
+        snr = np.array([v for v in res["snr_db"] if v is not None])
+        eff = np.array([v for v in res["efficiency"] if v is not None])
+        lowest = [v for v in res["snr_db"][: max(1, bins // 4)] if v is not None]
+        r.update({"scale_fit": s, "mean_snr_db": float(snr.mean()), "min_snr_db": float(snr.min()),
+                  "lowest_decade_mean_snr_db": float(np.mean(lowest)), "mean_efficiency": float(eff.mean()),
+                  "min_efficiency": float(eff.min()), "nonfinite_pixels": int((~np.isfinite(y)).sum())})
+    return curves
+
+
+def table_rows(results: dict, mp: float) -> dict:
+    """The printed columns of every row, with the per-megapixel timings."""
+    table = {}
+    for name, r in results.items():
+        for key in ("whole_command_seconds", "in_memory_merge_seconds"):
+            if r.get(key):
+                r[f"{key}_per_megapixel"] = r[key] / mp
+        table[name] = {k: r[k] for k in TABLE_COLUMNS if r.get(k) is not None}
+    return table
 
 
 def main(argv=None) -> int:
@@ -189,111 +305,21 @@ def main(argv=None) -> int:
     if args.setup:
         setup_venv(args.venv)
         return 0
-    from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
-
     w, h = (int(v) for v in args.size.split("x"))
     work = args.out / "data"
     sim = simulate(work, args.camera, (h, w), args.seed)
-    truth, p = sim["truth"], sim["params"]
+    truth = sim["truth"]
     peers_py = str(args.venv / "bin" / "python")
-    results: dict[str, dict] = {}
-
-    def calib_json(maps: bool):
-        return {"params": p.to_dict(), "prnu": str(work / "prnu.npy") if maps else None,
-                "dcm": str(work / "dcm.npy") if maps else None}
-
-    def hdrcap(npy, maps, options):
-        return [sys.executable, "-c", RUN_HDRCAP,
-                json.dumps([sim["files"], sim["darks"], str(work / npy), calib_json(maps), options]), str(REPO)]
-
-    runs = {
-        "hdrcap ML merge (PRNU + dark maps)": hdrcap("hdrcap_maps.npy", True, {}),
-        "hdrcap ML merge (maps, probabilistic saturation)": hdrcap("hdrcap_prob.npy", True,
-                                                                   {"saturation": "probabilistic"}),
-        "hdrcap ML merge (maps, no dark frames: model darks)": hdrcap("hdrcap_model.npy", True,
-                                                                      {"dark_strategy": "model"}),
-        "hdrcap ML merge (nominal scalars)": hdrcap("hdrcap_nominal.npy", False, {}),
-        "OpenCV MergeDebevec (16-bit)": [peers_py, "-c", RUN_OPENCV,
-                                         json.dumps([sim["tiffs"], sim["times"], str(work / "cv_debevec.npy"),
-                                                     "debevec"])],
-        "OpenCV MergeRobertson (16-bit)": [peers_py, "-c", RUN_OPENCV,
-                                           json.dumps([sim["tiffs"], sim["times"], str(work / "cv_robertson.npy"),
-                                                       "robertson"])],
-        "colour-hdri image_stack_to_HDRI": [peers_py, "-c", RUN_COLOUR,
-                                            json.dumps([sim["tiffs"], sim["times"], str(work / "colour_hdri.npy"),
-                                                        ""])],
-    }
-    outputs = {"hdrcap ML merge (PRNU + dark maps)": "hdrcap_maps.npy",
-               "hdrcap ML merge (maps, probabilistic saturation)": "hdrcap_prob.npy",
-               "hdrcap ML merge (maps, no dark frames: model darks)": "hdrcap_model.npy",
-               "hdrcap ML merge (nominal scalars)":
-               "hdrcap_nominal.npy", "OpenCV MergeDebevec (16-bit)": "cv_debevec.npy",
-               "OpenCV MergeRobertson (16-bit)": "cv_robertson.npy", "colour-hdri image_stack_to_HDRI": "colour_hdri.npy"}
-    for name, cmd in runs.items():
-        if cmd[0] == peers_py and not Path(peers_py).exists():
+    results: dict[str, dict] = {name: run_hdrcap(name, sim, work) for name in HDRCAP_ROWS}
+    for name, (script, npy, kind) in PEER_SCRIPTS.items():
+        if Path(peers_py).exists():
+            results[name] = run_peer_script(script, sim, work, npy, kind, peers_py)
+        else:
             results[name] = {"error": f"peers venv missing ({args.venv}); run with --setup"}
-            continue
-        r = run_measured(cmd)
-        results[name] = r
-        if r["returncode"] == 0 and r["stdout"]:
-            r.update(json.loads(r["stdout"]))
-    # HDRMerge: a command-line tool on the DNGs
-    hdr_out = work / "hdrmerge.dng"
-    if shutil.which("hdrmerge"):
-        if hdr_out.exists():
-            hdr_out.unlink()
-        env = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_RUNTIME_DIR=str(work))
-        r = run_measured(["hdrmerge", "--no-align", "--no-crop", "-b", "32", "-o", str(hdr_out), *sim["files"]],
-                         env=env)
-        r["merge_seconds"] = r["wall_seconds"]  # includes reading the DNGs and writing the output
-        results["HDRMerge"] = r
-        if r["returncode"] == 0 and hdr_out.exists():
-            import rawpy
-
-            with rawpy.imread(str(hdr_out)) as raw:
-                data = raw.raw_image_visible.astype(np.float64)
-                black = float(np.mean(raw.black_level_per_channel))
-            if data.shape == truth.shape:
-                np.save(work / "hdrmerge.npy", data - black)
-                outputs["HDRMerge"] = "hdrmerge.npy"
-            else:
-                r["error"] = f"output shape {data.shape} != input {truth.shape}"
-    else:
-        results["HDRMerge"] = {"error": "hdrmerge not on PATH (apt-get install -y hdrmerge)"}
-
-    edges = log_bins(truth, args.bins)
-    sensor = sim["sensor"]
-    bound = bound_variance(truth, sim["times"], p, a=sensor.prnu, D=sensor.dark_current_map(), dark="matched")
-    valid = np.isfinite(bound)
-    curves = {}
-    for name, fname in outputs.items():
-        r = results[name]
-        if r.get("returncode", 1) != 0 or not (work / fname).exists():
-            r.setdefault("error", r.get("stderr", "failed"))
-            continue
-        y = np.load(work / fname)
-        fit_ok = valid & np.isfinite(y) & (y > 0)
-        s = scale_fit(y, truth, fit_ok)
-        est = np.where(np.isfinite(y), s * y, 0.0)
-        res = snr_per_bin(est, truth, edges, bound=bound, valid=valid)
-        curves[name] = res
-        snr = np.array([v for v in res["snr_db"] if v is not None])
-        eff = np.array([v for v in res["efficiency"] if v is not None])
-        lowest = [v for v in res["snr_db"][: max(1, args.bins // 4)] if v is not None]
-        r.update({"scale_fit": s, "mean_snr_db": float(snr.mean()), "min_snr_db": float(snr.min()),
-                  "lowest_decade_mean_snr_db": float(np.mean(lowest)), "mean_efficiency": float(eff.mean()),
-                  "min_efficiency": float(eff.min()), "nonfinite_pixels": int((~np.isfinite(y)).sum())})
+    results["HDRMerge"] = run_hdrmerge(sim, work, truth.shape)
+    curves = accuracy(results, sim, work, args.bins)
     mp = truth.size / 1e6
-    table = {}
-    for name, r in results.items():
-        row = {k: r.get(k) for k in ("mean_snr_db", "min_snr_db", "lowest_decade_mean_snr_db", "mean_efficiency",
-                                     "min_efficiency", "merge_seconds", "wall_seconds", "peak_rss_mb",
-                                     "scale_fit", "version", "method", "error", "nonfinite_pixels",
-                                     "first_call_seconds")
-               if r.get(k) is not None}
-        if r.get("merge_seconds"):
-            row["merge_seconds_per_megapixel"] = r["merge_seconds"] / mp
-        table[name] = row
+    table = table_rows(results, mp)
     bound_snr = [v for v in next(iter(curves.values()))["bound_snr_db"] if v is not None] if curves else []
     out = {"camera": args.camera, "size": args.size, "megapixels": mp, "exposure_times": sim["times"],
            "irradiance_range": [float(truth.min()), float(truth.max())], "seed": args.seed,
@@ -309,12 +335,9 @@ def main(argv=None) -> int:
 
 
 def plot(curves: dict, path: Path, title: str) -> None:
-    import matplotlib
+    from hdrcap.pipeline.plotting import new_figure, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.0, 4.2))
+    fig, ax = new_figure(figsize=(7.0, 4.2))
     first = next(iter(curves.values()))
     c = np.asarray(first["center"])
     ax.plot(c, np.array([np.nan if v is None else v for v in first["bound_snr_db"]], float), color="k", lw=2.4,
@@ -328,8 +351,7 @@ def plot(curves: dict, path: Path, title: str) -> None:
     ax.grid(True, which="both", alpha=0.25)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=72)
-    plt.close(fig)
+    save_figure(fig, path, force=True, dpi=72)
 
 
 if __name__ == "__main__":

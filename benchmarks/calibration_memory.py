@@ -1,4 +1,4 @@
-"""Peak memory of a streamed calibration: 24 Mpixel frames, 100 flat fields (issue 3 claim < 2 GB).
+"""Peak memory of a streamed calibration: 24 Mpixel frames, 100 flat fields (the claim: under 2 GB).
 
 Frames are generated on the fly, one at a time, as a capture session would deliver them
 (Gaussian approximation of the shot noise for speed: the point is the memory of the

@@ -27,7 +27,8 @@ HERE = Path(__file__).resolve().parent
 
 #: name -> (arguments for a quick run, arguments for the full run)
 BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
-    "bench_merge": (["--mpix", "2", "--no-hdrmerge"], []),
+    "bench_merge": (["--mpix", "2"], []),
+    "bench_command": (["--mpix", "2"], []),
     "bench_denoise": (["--width", "1500", "--height", "1000", "--runs", "2"], []),
     "bench_trade": (["--cameras", "camera-B", "--size", "256x128", "--reps", "1", "--timing-runs", "1"], []),
     "bench_peers": (["--size", "256x192"], []),
@@ -38,7 +39,7 @@ BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
     "hdrmerge_smoke": (["--size", "256x192"], []),
 }
 #: Benchmarks skipped in quick mode (they need system packages installed by apt-get).
-NEEDS_APT = {"hdrmerge_smoke"}
+NEEDS_APT = {"hdrmerge_smoke", "bench_command"}
 
 
 def last_json(text: str):

@@ -5,8 +5,10 @@ It behaves like a tethered raw camera: a list of allowed exposure times (1/3-sto
 ``set_exposure`` coerces to the nearest allowed value and reports what it applied, ``capture``
 writes a DNG (:class:`hdrcap.mock_camera.backend.SimulatedCamera`) and hands it over. Faults
 (:class:`MockFaults`) reproduce what real cameras do: busy, disconnect in the middle of a
-download (a partial file is left behind), hang until the timeout, a corrupted or truncated file
-reported as a success, a full card, and an abrupt process kill.
+download (a partial file is left behind), hang until the timeout (or past it: a hang that does
+not cooperate), reconnects that fail several times in a row, a camera that comes back on a new
+port, a corrupted or truncated file reported as a success, a full card, and an abrupt process
+kill.
 
 This module must not import :mod:`hdrcap.acquire` (imports point down): it raises the camera
 errors of :mod:`hdrcap.pipeline.camera_types` (the classes the real camera raises; their
@@ -16,6 +18,7 @@ errors of :mod:`hdrcap.pipeline.camera_types` (the classes the real camera raise
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -68,6 +71,18 @@ class MockFaults:
         call returns: the crash a resume must survive.
     hang_s : float
         Longest simulated hang, s.
+    hang_ignores_timeout : bool
+        A hang sleeps the whole ``hang_s`` whatever the caller's timeout (a USB transfer stuck
+        in the driver does not cooperate); the caller must be able to give up on it.
+    reconnect_fail_rate : float
+        Probability that a disconnect or hang is followed by ``reconnect_failures`` failed
+        reconnects (``-53``: another process, such as gvfs, claimed the device meanwhile).
+    reconnect_failures : int
+        How many reconnects fail in a row when they do.
+    renumber_rate : float
+        Probability that a reconnect finds the camera on a new port (a re-plugged,
+        power-cycled or woken camera gets a new USB address); the identity's port changes,
+        its serial does not.
     """
 
     seed: int = 0
@@ -80,6 +95,10 @@ class MockFaults:
     card_full_after: int | None = None
     kill_after: int | None = None
     hang_s: float = 0.05
+    hang_ignores_timeout: bool = False
+    reconnect_fail_rate: float = 0.0
+    reconnect_failures: int = 2
+    renumber_rate: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "MockFaults":
@@ -114,12 +133,16 @@ class MockCamera:
         Faults to inject (none by default).
     temperature : float, optional
         Sensor temperature, degrees C (reported by :meth:`temperature`).
+    bulb_max_s : float, optional
+        Longest bulb exposure, s: times above 1.2 x the longest allowed time up to this are
+        exposed exactly as asked (bulb); None: no bulb.
     """
 
     backend = "mock"
 
     def __init__(self, spec: SensorSpec | str, scene: np.ndarray, seed: int = 0, allowed_times=None,
-                 faults: MockFaults | None = None, temperature: float | None = None):
+                 faults: MockFaults | None = None, temperature: float | None = None,
+                 bulb_max_s: float | None = None):
         if isinstance(spec, str):
             if spec not in PRESETS:
                 raise ValueError(f"unknown camera preset {spec!r}; choose from {', '.join(PRESETS)}")
@@ -130,7 +153,10 @@ class MockCamera:
         self._allowed = sorted(float(t) for t in (allowed_times or STANDARD_TIMES))
         self.faults = faults or MockFaults()
         self._frng = np.random.default_rng([self.faults.seed, 7])
+        self._rrng = np.random.default_rng([self.faults.seed, 11])  # reconnect faults: own stream
         self._t = self._allowed[len(self._allowed) // 2]
+        self.bulb_max_s = bulb_max_s
+        self._bulb = False
         self._iso = spec.iso
         self._covered = False
         self._connected = True
@@ -138,10 +164,14 @@ class MockCamera:
         self.calls = 0
         self.downloads = 0
         self.reconnects = 0
+        self.reconnect_failures = 0
+        self.ports: list[str] = []
+        self._failing_reconnects = 0
         self.fault_log: list[str] = []
         # the port names this object: two simulated cameras are never the same device
-        port = f"mock:{spec.name}:{os.getpid()}.{id(self):x}"
-        self.identity = CameraIdentity("mock", spec.model, self.sim.serial, port)
+        self._port_base = f"mock:{spec.name}:{os.getpid()}.{id(self):x}"
+        self.identity = CameraIdentity("mock", spec.model, self.sim.serial, self._port_base)
+        self.ports.append(self.identity.port)
 
     # --- settings -------------------------------------------------------------------
     def allowed_exposure_times(self) -> list[float]:
@@ -155,12 +185,19 @@ class MockCamera:
         self._iso = self.spec.iso  # the simulated sensor has one ISO: coerced
         return self._iso
 
+    def bulb_range(self) -> tuple[float, float] | None:
+        """Bulb times (s) this camera exposes exactly, None without bulb."""
+        return (self._allowed[-1] * 1.2, float(self.bulb_max_s)) if self.bulb_max_s else None
+
     def set_exposure(self, t: float) -> float:
-        """Coerce ``t`` to the nearest allowed time (log scale) and return what was applied."""
+        """Coerce ``t`` to the nearest allowed time (log scale), or take it as it is in the
+        bulb range, and return what was applied."""
         self._check_connected()
         if not (t > 0 and math.isfinite(t)):
             raise ValueError(f"exposure time must be positive, got {t!r}")
-        self._t = min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
+        bulb = self.bulb_range()
+        self._bulb = bool(bulb) and bulb[0] < t <= bulb[1]
+        self._t = t if self._bulb else min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
         return self._t
 
     # --- light, temperature, connection -------------------------------------------------
@@ -178,8 +215,26 @@ class MockCamera:
         return self.sim.temperature
 
     def reconnect(self) -> None:
+        """Connect again; fails (``reconnect`` kind) while a drawn run of failed reconnects
+        lasts, and may come back on a new port (:class:`MockFaults`)."""
         self.reconnects += 1
+        if self._failing_reconnects > 0:
+            self._failing_reconnects -= 1
+            self.reconnect_failures += 1
+            self.fault_log.append("reconnect_failed")
+            raise CameraDisconnectedError("mock camera: could not claim the device [-53 I/O USB claim]")
+        if not self._connected and self._rrng.random() < self.faults.renumber_rate:
+            self.fault_log.append("renumbered")
+            port = f"{self._port_base}#{len(self.ports)}"
+            self.identity = dataclasses.replace(self.identity, port=port)
+            self.ports.append(port)
         self._connected = True
+
+    def _lose_connection(self) -> None:
+        """The connection broke: draw whether the next reconnects fail."""
+        self._connected = False
+        if self._rrng.random() < self.faults.reconnect_fail_rate:
+            self._failing_reconnects = self.faults.reconnect_failures
 
     def close(self) -> None:
         self._connected = False
@@ -207,8 +262,8 @@ class MockCamera:
             raise CameraBusyError("mock camera: busy [-110]")
         if u[1] < f.hang_rate:
             self.fault_log.append("hang")
-            time.sleep(min(f.hang_s, timeout) if timeout else f.hang_s)
-            self._connected = False
+            time.sleep(min(f.hang_s, timeout) if timeout and not f.hang_ignores_timeout else f.hang_s)
+            self._lose_connection()
             raise CameraTimeoutError("mock camera: no answer (timeout)")
         if f.card_full_after is not None and self.downloads >= f.card_full_after:
             self._card_full = True
@@ -222,7 +277,7 @@ class MockCamera:
             size = dest.stat().st_size
             with open(dest, "r+b") as fh:  # the download stopped half-way
                 fh.truncate(size // 2)
-            self._connected = False
+            self._lose_connection()
             raise CameraDisconnectedError("mock camera: disconnected during download [-7 I/O]")
         if u[3] < f.corrupt_rate:
             self.fault_log.append("corrupt")
@@ -243,6 +298,7 @@ class MockCamera:
             settings={"shutterspeed": self._t, "iso": self._iso, "covered": self._covered},
             camera_file="",
             temperature_c=self.sim.temperature,
+            bulb=self._bulb,
         )
 
 

@@ -1,4 +1,5 @@
-"""PNG plots of a calibration: photon-transfer curve, PRNU histogram and map, dark-current fit.
+"""PNG plots of a calibration: photon-transfer curve, PRNU histogram and map, dark-current fit,
+defect map.
 
 Figures come from :mod:`hdrcap.pipeline.plotting` (no display, no global backend). Every file
 is written atomically and never overwritten without ``force``.
@@ -12,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .params import Calibration
+from .params import DEFECT_BITS, Calibration
 from .plotting import new_figure, save_figure
 
 __all__ = ["write_report"]
@@ -82,6 +83,29 @@ def _dark_plot(calib: Calibration, series: dict[str, Any], fit: dict[str, Any], 
     return save_figure(fig, path, force=force, dpi=_DPI)
 
 
+#: Colour of each kind of defect in the map (a photosite with several flags shows the last).
+_DEFECT_COLOURS = {"dead": "black", "weak": "tab:blue", "hot": "tab:red", "stuck": "tab:orange"}
+
+
+def _defect_plot(defects: np.ndarray, path: Path, force: bool) -> Path:
+    """Map of the defective photosites, one colour per kind, with the counts in the legend.
+
+    Each defect is drawn as a marker (not a pixel) so that a few photosites of a large mosaic
+    stay visible."""
+    fig, ax = new_figure(figsize=(6.4, 5.0))
+    h, w = defects.shape
+    ax.set_xlim(-0.5, w - 0.5)
+    ax.set_ylim(h - 0.5, -0.5)
+    ax.set_aspect("equal")
+    for kind, bit in DEFECT_BITS.items():
+        ys, xs = np.nonzero(defects & bit)
+        ax.plot(xs, ys, "s", ms=2.5, color=_DEFECT_COLOURS[kind], label=f"{kind}: {ys.size}", linestyle="none")
+    ax.set_title(f"Defective photosites: {int(np.count_nonzero(defects))} of {defects.size}")
+    ax.legend(loc="upper right", fontsize="small")
+    fig.tight_layout()
+    return save_figure(fig, path, force=force, dpi=_DPI)
+
+
 def write_report(calib: Calibration, out_dir: str | os.PathLike[str], force: bool = False) -> list[Path]:
     """Write the plots of a calibration into ``out_dir`` (created when missing).
 
@@ -98,8 +122,8 @@ def write_report(calib: Calibration, out_dir: str | os.PathLike[str], force: boo
     Returns
     -------
     list of Path
-        The files written: ``ptc.png``, ``prnu_hist.png``, ``prnu_map.png`` and
-        ``dark_current.png``, each when its data exist.
+        The files written: ``ptc.png``, ``prnu_hist.png``, ``prnu_map.png``,
+        ``dark_current.png`` and ``defects.png``, each when its data exist.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -113,4 +137,6 @@ def write_report(calib: Calibration, out_dir: str | os.PathLike[str], force: boo
     ds = info.get("dark_series")
     if ds and len(ds.get("times", [])) >= 2:
         written.append(_dark_plot(calib, ds, info.get("dark_fit") or {}, out / "dark_current.png", force))
+    if calib.defect_map is not None:
+        written.append(_defect_plot(calib.defect_map, out / "defects.png", force))
     return written

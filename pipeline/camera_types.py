@@ -88,6 +88,9 @@ class CaptureResult:
         Name of the file on the camera ("" for the simulator).
     temperature_c : float or None
         Sensor temperature when the camera reports it, degrees C.
+    bulb : bool
+        A bulb exposure: ``applied_exposure_s`` is the open time measured around the release
+        (compare it with the file's time by :func:`hdrcap.pipeline.times.same_bulb_exposure`).
     """
 
     path: Path
@@ -97,6 +100,7 @@ class CaptureResult:
     settings: dict[str, Any] = field(default_factory=dict)
     camera_file: str = ""
     temperature_c: float | None = None
+    bulb: bool = False
 
 
 class CameraError(HdrcapError):

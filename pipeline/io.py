@@ -13,35 +13,39 @@ import errno
 import hashlib
 import json
 import os
-import re
 import tempfile
 import threading
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
 from .errors import InputError, OutputExistsError
 
 __all__ = [
-    "RawFrame",
-    "read_raw",
-    "read_image16",
-    "read_frame",
-    "check_frames",
-    "check_exposure_time",
-    "sha256_file",
-    "EmvaStep",
-    "EmvaDataset",
-    "read_emva_descriptor",
-    "HdrImage",
-    "write_exr",
-    "read_exr",
-    "atomic_output",
-    "RAW_EXTENSIONS",
+    "EXR_COMPRESSIONS",
+    "EXR_PRECISIONS",
+    "HALF_RANGE",
+    "HALF_RELATIVE_ERROR",
     "IMAGE_EXTENSIONS",
+    "RAW_EXTENSIONS",
+    "EmvaDataset",
+    "EmvaStep",
+    "HdrImage",
+    "RawFrame",
+    "atomic_output",
+    "check_exposure_time",
+    "check_frames",
+    "read_emva_descriptor",
+    "read_exr",
+    "read_frame",
+    "read_image16",
+    "read_raw",
+    "sha256_file",
+    "write_exr",
 ]
 
 RAW_EXTENSIONS = {".dng", ".nef", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
@@ -99,8 +103,25 @@ def _check_readable(path: Path) -> None:
 
 
 def check_exposure_time(t, where=None) -> float:
-    """Return ``t`` as float seconds, or raise :class:`InputError` (prefixed with ``where``,
-    e.g. the file name) unless it is a finite number > 0."""
+    """Check an exposure time: a finite number of seconds > 0.
+
+    Parameters
+    ----------
+    t : object
+        The exposure time, s (a number or a numeric string).
+    where : str, optional
+        Prefix of the error message (e.g. the file name).
+
+    Returns
+    -------
+    float
+        ``t`` in seconds.
+
+    Raises
+    ------
+    InputError
+        ``t`` is missing, not a number, not finite or not positive.
+    """
     prefix = f"{where}: " if where is not None else ""
     try:
         t = float(t)
@@ -111,36 +132,59 @@ def check_exposure_time(t, where=None) -> float:
     return t
 
 
-def _tiff_exif(path: Path) -> dict[str, Any]:
-    """Exact ExposureTime, ISO, timestamp and camera from IFD0 or the EXIF IFD of a
-    TIFF-based raw file (DNG, NEF, ...); empty for other formats."""
-    import tifffile
-
+def _exif_values(page) -> dict[str, Any]:
+    """Exact ExposureTime (s), ISO, timestamp and camera from IFD0 or its EXIF IFD."""
+    tags = page.tags
+    exif = tags["ExifTag"].value if "ExifTag" in tags else {}
     out: dict[str, Any] = {}
-    try:
-        with tifffile.TiffFile(path) as tif:
-            tags = tif.pages[0].tags
-            exif = tags["ExifTag"].value if "ExifTag" in tags else {}
-            for key, code in (("ExposureTime", 33434), ("ISOSpeedRatings", 34855), ("DateTimeOriginal", 36867)):
-                val = exif.get(key)
-                if val is None and code in tags:
-                    val = tags[code].value
-                out[key] = val
-            out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
-            size = path.stat().st_size
-            ends = [o + n for o, n in zip(tif.pages[0].dataoffsets, tif.pages[0].databytecounts)]
-            out["truncated"] = bool(ends) and max(ends) > size
-    except Exception:  # not a TIFF container (CR3, RAF, ...): LibRaw's values are used
-        return {}
-    t = out.get("ExposureTime")
+    for key, code in (("ExposureTime", 33434), ("ISOSpeedRatings", 34855), ("DateTimeOriginal", 36867)):
+        val = exif.get(key)
+        if val is None and code in tags:
+            val = tags[code].value
+        out[key] = val
+    out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
+    t = out["ExposureTime"]
     if isinstance(t, tuple) and len(t) == 2:
         out["ExposureTime"] = float(Fraction(int(t[0]), int(t[1]))) if t[1] else None
     elif t is not None:
         out["ExposureTime"] = float(t)
-    iso = out.get("ISOSpeedRatings")
+    iso = out["ISOSpeedRatings"]
     if isinstance(iso, (tuple, list)):
         out["ISOSpeedRatings"] = iso[0] if iso else None
     return out
+
+
+def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
+    """EXIF values and, for a simple DNG, its decoded raw image (else None) of a TIFF-based raw
+    file (DNG, NEF, ...); ``({}, None)`` for other formats.
+
+    Raises :class:`InputError` when the image data runs past the end of the file.
+    """
+    import tifffile
+
+    from .dngread import decode_dng
+
+    try:
+        tif = tifffile.TiffFile(path)
+    except Exception:  # noqa: BLE001  (not a TIFF container, e.g. CR3, RAF: LibRaw's values are used)
+        return {}, None
+    with tif:
+        try:
+            page = tif.pages[0]
+            exif = _exif_values(page)
+            size = path.stat().st_size
+            ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts)]
+        except Exception:  # noqa: BLE001  (a TIFF header but no readable first IFD: LibRaw decides)
+            return {}, None
+        if ends and max(ends) > size:
+            raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
+        try:
+            direct = decode_dng(path, tif, mmap=mmap)
+        except InputError:
+            raise
+        except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
+            direct = None
+    return exif, direct
 
 
 _STDERR_LOCK = threading.Lock()
@@ -164,20 +208,23 @@ def _quiet_stderr():
             os.close(saved)
 
 
-def read_raw(path, exposure_time: float | None = None) -> RawFrame:
-    """Read a camera raw file (DNG, NEF, CR2, ...) with rawpy (LibRaw).
+@dataclass(frozen=True)
+class _Decoded:
+    """What a raw decoder gives besides the EXIF values: pixels, levels, LibRaw's metadata."""
 
-    Returns the visible CFA mosaic as uint16, the black and white levels, the CFA pattern, and
-    the exposure time and ISO from EXIF (IFD0 or the EXIF IFD). An explicit ``exposure_time``
-    (seconds) overrides the file's.
-    """
+    data: np.ndarray
+    cfa: str | None
+    black: float
+    white: float
+    shutter: float | None = None
+    iso: float | None = None
+    timestamp: str | None = None
+
+
+def _libraw_decode(path: Path) -> _Decoded:
+    """Decode any raw format with rawpy (LibRaw): visible mosaic, levels, CFA, shutter, ISO, time."""
     import rawpy
 
-    path = Path(path)
-    _check_readable(path)
-    exif = _tiff_exif(path)
-    if exif.get("truncated"):
-        raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
     try:
         with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
@@ -188,35 +235,89 @@ def read_raw(path, exposure_time: float | None = None) -> RawFrame:
                 cfa = "".join(desc[int(i)] for i in pattern.ravel())
             else:
                 cfa = None
-            black = float(np.mean(raw.black_level_per_channel))
-            white = float(raw.white_level)
-            shutter = float(other.shutter_speed) if other.shutter_speed else None
-            iso = float(other.iso_speed) if other.iso_speed else None
-            ts = other.timestamp.isoformat() if other.timestamp else None
+            return _Decoded(
+                data=data, cfa=cfa, black=float(np.mean(raw.black_level_per_channel)), white=float(raw.white_level),
+                shutter=float(other.shutter_speed) if other.shutter_speed else None,
+                iso=float(other.iso_speed) if other.iso_speed else None,
+                timestamp=other.timestamp.isoformat() if other.timestamp else None,
+            )
     except rawpy.LibRawFileUnsupportedError:
         raise InputError(f"{path}: not a raw file LibRaw can read") from None
     except rawpy.LibRawIOError:
         raise InputError(f"{path}: truncated or unreadable raw file") from None
     except rawpy.LibRawError as err:
         raise InputError(f"{path}: cannot decode raw data ({type(err).__name__})") from None
-    t = exposure_time if exposure_time is not None else (exif.get("ExposureTime") or shutter)
+
+
+def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bool:
+    """Whether the EXIF values leave nothing for LibRaw to supply (time, ISO, timestamp)."""
+    has_time = exposure_time is not None or bool(exif.get("ExposureTime"))
+    return has_time and bool(exif.get("ISOSpeedRatings")) and bool(exif.get("DateTimeOriginal"))
+
+
+def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> RawFrame:
+    """Read a camera raw file (DNG, NEF, CR2, ...).
+
+    An uncompressed DNG (8/16-bit strips or tiles, Bayer CFA, single black and white level) is
+    decoded directly from the file (:mod:`pipeline.dngread`); every other file goes through
+    rawpy (LibRaw). Both give the same visible CFA mosaic (LibRaw's ``raw_image_visible``) and
+    levels.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The raw file.
+    exposure_time : float, optional
+        Seconds; overrides the file's EXIF ExposureTime.
+    mmap : bool
+        Map the pixels of a contiguous little-endian 16-bit DNG from the file (copy-on-write;
+        the file must not be truncated or rewritten in place while the frame is in use), instead
+        of reading them into memory.
+
+    Returns
+    -------
+    RawFrame
+        uint16 mosaic (DN), exposure time (s), ISO, black and white levels (DN), CFA pattern,
+        camera and capture time.
+    """
+    path = Path(path)
+    _check_readable(path)
+    exif, direct = _tiff_raw(path, mmap)
+    if direct is not None and _direct_is_complete(exif, exposure_time):
+        dec = _Decoded(data=direct.data, cfa=direct.cfa_pattern, black=direct.black_level, white=direct.white_level)
+    else:
+        dec = _libraw_decode(path)
+    t = exposure_time if exposure_time is not None else (exif.get("ExposureTime") or dec.shutter)
     if t is None:
         raise InputError(f"{path}: no exposure time in EXIF; give it explicitly (--times)")
     return RawFrame(
-        data=data,
+        data=dec.data,
         exposure_time=check_exposure_time(t, path),
-        iso=float(exif["ISOSpeedRatings"]) if exif.get("ISOSpeedRatings") else iso,
-        black_level=black,
-        white_level=white,
-        cfa_pattern=cfa,
+        iso=float(exif["ISOSpeedRatings"]) if exif.get("ISOSpeedRatings") else dec.iso,
+        black_level=dec.black,
+        white_level=dec.white,
+        cfa_pattern=dec.cfa,
         path=str(path),
         camera=exif.get("camera"),
-        timestamp=exif.get("DateTimeOriginal") or ts,
+        timestamp=exif.get("DateTimeOriginal") or dec.timestamp,
     )
 
 
 def read_image16(path, exposure_time: float) -> RawFrame:
-    """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time."""
+    """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The image (single channel, 8 or 16 bits per sample).
+    exposure_time : float
+        Seconds (such files carry none).
+
+    Returns
+    -------
+    RawFrame
+        uint16 values (DN), the exposure time (s); black level 0, white level from the bit depth.
+    """
     path = Path(path)
     _check_readable(path)
     if exposure_time is None:
@@ -246,17 +347,44 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     return RawFrame(data=data.astype(np.uint16, copy=False), exposure_time=t, path=str(path))
 
 
-def read_frame(path, exposure_time: float | None = None) -> RawFrame:
-    """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type."""
+def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True) -> RawFrame:
+    """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Raw file (:func:`read_raw`) or PNG/TIFF (:func:`read_image16`).
+    exposure_time : float, optional
+        Seconds; required for PNG/TIFF, overrides EXIF for raw files.
+    mmap : bool
+        See :func:`read_raw`.
+
+    Returns
+    -------
+    RawFrame
+    """
     path = Path(path)
     _check_readable(path)
     if path.suffix.lower() in IMAGE_EXTENSIONS:
         return read_image16(path, exposure_time)
-    return read_raw(path, exposure_time)
+    return read_raw(path, exposure_time, mmap=mmap)
 
 
 def sha256_file(path, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file, read in chunks."""
+    """Hex sha256 of a file, read in chunks.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    chunk : int
+        Bytes read at a time.
+
+    Returns
+    -------
+    str
+        The 64-character hexadecimal digest.
+    """
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while block := f.read(chunk):
@@ -264,17 +392,42 @@ def sha256_file(path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+#: Rows of a frame read into its duplicate-finding fingerprint (evenly spaced, whole rows).
+_SAMPLE_ROWS = 16
+
+
+def _pixel_sample(data: np.ndarray) -> bytes:
+    """A cheap fingerprint of a 2-D frame's pixels: its shape, dtype and a few whole rows."""
+    rows = np.unique(np.linspace(0, data.shape[0] - 1, _SAMPLE_ROWS).astype(int))
+    head = f"{data.shape}{data.dtype}".encode()
+    return hashlib.blake2b(head + np.ascontiguousarray(data[rows]).tobytes(), digest_size=16).digest()
+
+
 def check_frames(frames: Iterable[RawFrame], what: str = "frame") -> list[RawFrame]:
     """Check a set of frames can be merged together: same size, no duplicates.
 
-    Duplicates are the same file given twice or two files with identical pixel data.
+    Duplicates are the same file given twice or two frames with identical pixel data. Frames are
+    paired by a sample of their pixels (a few whole rows) and a pair is confirmed by comparing
+    all pixels, so two different exposures never collide and no frame is hashed in full.
+
+    Parameters
+    ----------
+    frames : iterable of RawFrame
+        The frames, in the order given.
+    what : str
+        Their name in error messages ("frame", "dark frame").
+
+    Returns
+    -------
+    list of RawFrame
+        The frames.
     """
     frames = list(frames)
     if not frames:
         raise InputError(f"no {what}s given")
     shape = frames[0].shape
     seen_paths: dict[str, str] = {}
-    seen_data: dict[str, str] = {}
+    seen_data: dict[bytes, list[RawFrame]] = {}
     for fr in frames:
         name = fr.path or "<array>"
         if fr.shape != shape:
@@ -287,10 +440,11 @@ def check_frames(frames: Iterable[RawFrame], what: str = "frame") -> list[RawFra
             if real in seen_paths:
                 raise InputError(f"{name}: the same file is given twice")
             seen_paths[real] = name
-        digest = hashlib.sha256(np.ascontiguousarray(fr.data).tobytes()).hexdigest()
-        if digest in seen_data:
-            raise InputError(f"{name}: duplicate {what}, its pixels are identical to {seen_data[digest]}")
-        seen_data[digest] = name
+        same_sample = seen_data.setdefault(_pixel_sample(fr.data), [])
+        for other in same_sample:
+            if np.array_equal(other.data, fr.data):
+                raise InputError(f"{name}: duplicate {what}, its pixels are identical to {other.path or '<array>'}")
+        same_sample.append(fr)
     return frames
 
 
@@ -330,6 +484,17 @@ def read_emva_descriptor(path) -> EmvaDataset:
 
     Lines: ``v`` version, ``n bits width height``, ``b <t ns> <photons>`` and ``d <t ns>`` open
     a bright or dark step, ``i <relative path>`` lists its images (Windows separators allowed).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The descriptor; image paths in it are relative to its folder.
+
+    Returns
+    -------
+    EmvaDataset
+        Bit depth, image size and the bright and dark steps (exposure time in s, photons per
+        photosite, image paths).
     """
     path = Path(path)
     _check_readable(path)
@@ -484,45 +649,116 @@ class HdrImage:
 _META_KEY = "hdrcap"
 
 
-#: EXR compression names accepted by :func:`write_exr`.
-EXR_COMPRESSIONS = ("zip", "zips", "piz", "zstd", "rle", "none")
+#: EXR compression names accepted by :func:`write_exr`, and OpenEXR's constant for each.
+_EXR_CODES = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_COMPRESSION",
+              "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
+EXR_COMPRESSIONS = tuple(_EXR_CODES)
+
+#: Channel precisions accepted by :func:`write_exr` and their numpy dtype (EXR FLOAT, HALF,
+#: UINT); ``"auto"`` is half when the channel fits :data:`HALF_RANGE`, else float.
+EXR_PRECISIONS = {"float": np.float32, "half": np.float16, "uint": np.uint32, "auto": None}
+
+#: Smallest and largest magnitude a half stores with full relative precision (normal range).
+HALF_RANGE = (float(np.finfo(np.float16).tiny), float(np.finfo(np.float16).max))
+
+#: Largest relative rounding error of a value stored as half in :data:`HALF_RANGE` (2**-11).
+HALF_RELATIVE_ERROR = 2.0 ** -11
 
 
-def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip") -> Path:
-    """Write ``image`` to ``path`` as a scanline EXR (ZIP-compressed by default), atomically.
+def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
+    """``arr`` converted to the dtype of ``precision``, refused where the conversion would lose
+    more than :data:`HALF_RELATIVE_ERROR` (half) or anything at all (uint)."""
+    if precision not in EXR_PRECISIONS:
+        raise ValueError(f"channel {name!r}: precision must be one of {', '.join(EXR_PRECISIONS)}, got {precision!r}")
+    if name == "irradiance" and precision != "float":
+        raise ValueError("the irradiance channel is always stored as float (32 bits)")
+    arr = np.asarray(arr)
+    if precision in ("half", "auto"):
+        mag = np.abs(arr[np.isfinite(arr) & (arr != 0)])
+        fits = not mag.size or (mag.min() >= HALF_RANGE[0] and mag.max() <= HALF_RANGE[1])
+        if precision == "auto":
+            precision = "half" if fits else "float"
+        elif not fits:
+            raise ValueError(f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
+                             f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float")
+    elif precision == "uint":
+        whole = np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all()
+        if not (whole and (arr == np.round(arr)).all()):
+            raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
+    return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
 
-    ``compression`` is one of :data:`EXR_COMPRESSIONS` (``none`` and ``rle`` write much faster,
-    ``zip`` is about a third smaller, ``zstd`` smaller and faster but needs OpenEXR >= 3.4 to
-    read). Channels are stored as FLOAT (float32). The metadata goes into one string attribute
-    ``hdrcap`` (JSON, full precision), and the scalar string/number entries are also written
-    as plain header attributes so that any EXR viewer shows them.
+
+def _set_exr_threads(openexr, threads: int | None) -> None:
+    """Size OpenEXR's global thread pool: ``threads``, or the CPUs (at most 8) if it is empty."""
+    if threads is None:
+        threads = openexr.global_thread_count() or min(os.cpu_count() or 1, 8)
+    if openexr.global_thread_count() != threads:
+        openexr.set_global_thread_count(threads)
+
+
+def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip", *,
+              precision: dict[str, str] | None = None, threads: int | None = None) -> Path:
+    """Write ``image`` to ``path`` as a single-part scanline EXR, atomically.
+
+    The metadata goes into one string attribute ``hdrcap`` (JSON, full precision), and the
+    scalar string entries are also written as plain header attributes so that any EXR viewer
+    shows them. :func:`read_exr` reads every precision back as float32.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file.
+    image : HdrImage
+        Channels (2-D arrays of one shape) and attributes.
+    force : bool
+        Replace an existing file.
+    compression : str
+        One of :data:`EXR_COMPRESSIONS`. Measured on a 24 Mpixel merge (three float channels,
+        2 threads; docs/merge.md "Speed and memory"): ``zip`` (default) and ``zips`` are the
+        smallest of the lossless codecs OpenEXR < 3.4 reads, ``zstd`` as small and faster but
+        needs OpenEXR >= 3.4 to read, ``rle``/``none`` the fastest and largest, ``piz`` between.
+    precision : dict, optional
+        Channel name -> ``"float"`` (32-bit, the default for every channel), ``"half"`` (16-bit
+        float: relative rounding error at most :data:`HALF_RELATIVE_ERROR`, 0.05 %; refused when
+        a finite non-zero value lies outside :data:`HALF_RANGE`), ``"auto"`` (half if the
+        channel fits that range, else float) or ``"uint"`` (32-bit unsigned: whole numbers
+        only, lossless). ``irradiance`` is always float.
+    threads : int, optional
+        OpenEXR's compression threads (its global thread pool, which this sets; the per-file
+        ``num_threads`` of the Python binding has no effect on writing). Default: the pool as
+        it is, or the number of CPUs (at most 8) if it has no threads.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
     """
     import OpenEXR
 
     if not image.channels:
         raise ValueError("an EXR needs at least one channel")
+    if compression not in _EXR_CODES or not hasattr(OpenEXR, _EXR_CODES[compression]):
+        raise ValueError(f"EXR compression must be one of {', '.join(_EXR_CODES)}, got {compression!r}")
+    precision = precision or {}
+    unknown = set(precision) - set(image.channels)
+    if unknown:
+        raise ValueError(f"precision given for channels the image does not have: {', '.join(sorted(unknown))}")
     shape = image.shape
     chans = {}
     for name, arr in image.channels.items():
-        arr = np.ascontiguousarray(arr, dtype=np.float32)
-        if arr.shape != shape:
-            raise ValueError(f"channel {name!r} has shape {arr.shape}, expected {shape}")
-        chans[name] = arr
-    codes = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_COMPRESSION",
-             "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
-    if compression not in codes or not hasattr(OpenEXR, codes.get(compression, "")):
-        raise ValueError(f"EXR compression must be one of {', '.join(codes)}, got {compression!r}")
-    if hasattr(OpenEXR, "set_global_thread_count") and OpenEXR.global_thread_count() == 0:
-        OpenEXR.set_global_thread_count(min(os.cpu_count() or 1, 8))  # compress lines in parallel
-    header: dict[str, Any] = {"compression": getattr(OpenEXR, codes[compression]), "type": OpenEXR.scanlineimage}
+        if np.shape(arr) != shape:
+            raise ValueError(f"channel {name!r} has shape {np.shape(arr)}, expected {shape}")
+        chans[name] = _exr_channel(name, arr, precision.get(name, "float"))
+    header: dict[str, Any] = {"compression": getattr(OpenEXR, _EXR_CODES[compression]),
+                              "type": OpenEXR.scanlineimage}
     header[_META_KEY] = json.dumps(image.attrs, sort_keys=True, default=_json_default)
     for key, val in image.attrs.items():
         if isinstance(val, str):
             header[f"{_META_KEY}:{key}"] = val
+    _set_exr_threads(OpenEXR, threads)
     path = Path(path)
-    with atomic_output(path, force=force, suffix=".exr") as tmp:
-        with OpenEXR.File(header, chans) as exr:
-            exr.write(str(tmp))
+    with atomic_output(path, force=force, suffix=".exr") as tmp, OpenEXR.File(header, chans) as exr:
+        exr.write(str(tmp))
     return path
 
 
@@ -537,7 +773,24 @@ def _json_default(obj):
 
 
 def read_exr(path) -> HdrImage:
-    """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`."""
+    """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The EXR file.
+
+    Returns
+    -------
+    HdrImage
+        Every channel as a float32 array (irradiance and sigma in e-/s per photosite for
+        hdrcap's files) and the metadata (the ``hdrcap`` JSON attribute, else the header).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file.
+    """
     import OpenEXR
 
     path = Path(path)

@@ -2,8 +2,9 @@
 
 The whole estimator of :mod:`pipeline.merge` runs here: one pass over the input frames, no
 full-size per-frame temporaries (only buffers of one row per frame and thread), float32
-outputs. The variance is :func:`pipeline.noise.difference_variance` (the formula is written
-only there; :func:`_weigh` evaluates the same expression from per-frame constants).
+outputs. The variance is :func:`pipeline.noise.variance_of_rate`, the one place the formula is
+written, compiled into the kernels (numba inlines it: :func:`_weigh` calls it with per-frame
+constants, :func:`_probabilistic` at each sample).
 
 The work on a row is split into small loops over blocks of columns (load one frame's samples,
 weigh three frames' samples, update the estimates), each a separate compiled function over
@@ -44,7 +45,7 @@ import numpy as np
 from numba import prange
 
 from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
-from .noise import difference_variance
+from .noise import variance_of_rate
 
 __all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX", "MapArg", "FrameTable", "CameraConstants", "MapSet",
            "StartSums", "IterationOptions", "MergeOutputs"]
@@ -52,7 +53,7 @@ __all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX", "MapArg", "FrameT
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 _FM = {"contract", "arcp", "nsz"}
-_dvar = numba.njit(inline="always", cache=True)(difference_variance)
+_var = numba.njit(inline="always", cache=True)(variance_of_rate)  # Var(v_i - b_i), DN^2 (Eq. 3, 5)
 
 
 
@@ -220,24 +221,25 @@ def _weigh(x, u, vsb, a2, D, fr, s2, sat2, rule):
     NaN once dropped; numerator n_i; variance d_i), so that the weight
     w_i = n_i / d_i = (t g a)^2 / Var(v_i - b_i) = 1 / Var(x_i) (Eq. 6, 13; 0 when not usable).
 
-    ``fr`` holds the frame's constants (t g, g^2 t, (t g)^2, k, sigma_R^2 (1 + k)), so that
-    d_i = g^2 t (u + k D) + sigma_R^2 (1 + k) is :func:`pipeline.noise.difference_variance`.
+    ``fr`` holds the frame's constants (t g, g^2 t, (t g)^2, k); the variance
+    d_i = Var(v_i - b_i) and, for the rule, Var(v_i) are :func:`pipeline.noise.variance_of_rate`
+    (with k and with 0).
     With ``rule`` (the near-saturation rule; a compile-time constant), a sample whose raw
     value predicted from the estimate lies within sqrt(sat2) of its own standard deviation of
     v_sat is dropped for good (saturated samples that slip under v_sat on read noise)."""
-    tg, g2t, tg2, k, s2k = fr
+    tg, g2t, tg2, k = fr
     use = x == x
     if rule:
-        varv = g2t * u + s2  # Var(v_i), DN^2
+        varv = _var(u, g2t, D, s2, _ZERO32)  # Var(v_i), DN^2
         gap = vsb - tg * u  # v_sat - E(v_i), DN
         use = use & (gap > 0.0) & (gap * gap > sat2 * varv)
-    d = g2t * (u + k * D) + s2k
+    d = _var(u, g2t, D, s2, k)
     return (x if use else _NAN32), (tg2 * a2 if use else _ZERO32), d
 
 
 @numba.njit(inline="always", cache=True)
 def _frame(FR, i):
-    return FR[i, 0], FR[i, 1], FR[i, 2], FR[i, 3], FR[i, 4]
+    return FR[i, 0], FR[i, 1], FR[i, 2], FR[i, 3]
 
 
 @numba.njit(cache=True, fastmath=_FM, error_model="numpy")
@@ -448,7 +450,7 @@ def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, maste
             p = 1.0
             if full_well:
                 ev = bl + g * t * D + tga * m  # E(v_i) without clipping, DN
-                sv = math.sqrt(_dvar(m, t, g, sigma2_R, D, a, 0.0))
+                sv = math.sqrt(_var(a * m + D, g * g * t, D, sigma2_R, 0.0))
                 pu = 1.0 - 0.5 * math.erfc((v_clip - ev) / (_SQRT2 * sv))
                 zu = (v - ev) / sv
                 zc = (v - v_clip) / sigma_R
@@ -457,7 +459,7 @@ def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, maste
                 p = 1.0 / (1.0 + math.exp(min(lb - la, 700.0)))
             if p <= 0.0:
                 continue
-            w = (tga * tga) / _dvar(m, t, g, sigma2_R, D, a, ks[i])
+            w = (tga * tga) / _var(a * m + D, g * g * t, D, sigma2_R, ks[i])
             d = x - mu
             num = p * math.sqrt(w) * _INV_SQRT_2PI * math.exp(-0.5 * w * d * d)
             den = (1.0 - p) * tga / max(white - bl, 1.0) + num
@@ -585,7 +587,8 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
     # buffers run without scalar remainders; padded columns hold no usable sample (x NaN).
     block = 8192
     Wp = (W + 63) // 64 * 64
-    # Per-frame constants of the weights (see _weigh): t g, g^2 t, (t g)^2, k, sigma_R^2 (1 + k),
+    # Per-frame constants of the weights (see _weigh): t g, g^2 t, (t g)^2, k, sigma_R^2 (1 + k)
+    # (the range check of the shared division),
     # and the scalars, in the precision of the weights.
     FR = np.empty((n, 5), proto.dtype)
     for i in range(n):
@@ -594,7 +597,7 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
         FR[i, 1] = g * tg
         FR[i, 2] = tg * tg
         FR[i, 3] = ks[i]
-        FR[i, 4] = sigma2_R * (1.0 + ks[i])
+        FR[i, 4] = _var(0.0, g * tg, 0.0, sigma2_R, ks[i])  # the variance at u = D = 0
     SC = np.empty(2, proto.dtype)
     SC[0] = sigma2_R
     SC[1] = sat2

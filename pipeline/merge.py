@@ -39,6 +39,7 @@ from .io import RawFrame, check_exposure_time, check_frames
 from .darks import DarkResolver, default_strategy
 from .noise import DarkStrategy, dark_factor
 from .params import Calibration
+from .times import same_exposure
 
 __all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy"]
 
@@ -239,6 +240,7 @@ class MergeAccumulator:
         self._kinds: list[int] = []
         self._coefs: list[float] = []
         self._ks: list[float] = []
+        self._shares: list[Any] = []  # what the frame's dark level is shared by (see _dark_groups)
         self._strats: list[DarkStrategy] = []
         self._ndark: list[float] = []
         self.stream = bool(stream)
@@ -314,11 +316,51 @@ class MergeAccumulator:
         self._kinds.append(kind)
         self._coefs.append(coef)
         self._ks.append(k)
+        # The dark level's identity: the caller's dark frame object (kept alive by the
+        # reference), or the single master dark; None where the frame has no dark frame.
+        self._shares.append(dark if kind == 0 else (self.master_dark if kind == 2 else None))
         self._strats.append(s)
         self._ndark.append(float(n) if s is DarkStrategy.MASTER else (1.0 if s is DarkStrategy.MATCHED else 0.0))
 
     def __len__(self) -> int:
         return len(self._values)
+
+    def _dark_groups(self) -> list[int]:
+        """Per frame, the number of frames in its shared-dark group: the frames of the same
+        exposure time (:func:`pipeline.times.same_exposure`) whose dark level is the same dark
+        frame (the same array object: the :class:`pipeline.darks.DarkResolver` serves one
+        object per time) or the same single master dark; 1 for frames without a dark frame.
+
+        Returns
+        -------
+        list of int
+            Group size n per frame (>= 1).
+        """
+        sizes = []
+        for i, (src, t) in enumerate(zip(self._shares, self._times)):
+            if src is None:
+                sizes.append(1)
+                continue
+            sizes.append(sum(1 for o, u in zip(self._shares, self._times) if o is src and same_exposure(u, t)))
+        return sizes
+
+    def _shared_dark_factors(self) -> np.ndarray:
+        """The dark-level variance factor of every frame with shared darks: n k.
+
+        The n frames of a group share one dark level b: x_j = (v_j - b)/(t g a) have variance
+        [Var(v) + k Var(b)]/(t g a)^2 and covariance k Var(b)/(t g a)^2. The generalised least
+        squares solution for this covariance averages the copies and subtracts the dark once,
+        variance [Var(v)/n + k Var(b)]/(t g a)^2; it equals weighting each copy as an
+        independent sample with the dark factor n k (its n weights sum to the group's). Where
+        only some copies are usable (a copy at or above v_sat) the factor stays n k: the
+        stated variance is then an upper bound of the true one, never below it.
+
+        Returns
+        -------
+        numpy.ndarray
+            n k per frame, float64.
+        """
+        return np.asarray(self._ks, np.float64) * np.asarray(self._dark_groups(), np.float64)
 
     # -------------------------------------------------------------------------------- result
     def _single_precision_safe(self, values, darks, master) -> bool:
@@ -389,7 +431,7 @@ class MergeAccumulator:
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
             merge_kernel(values, darks,
                          FrameTable(np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
-                                    np.asarray(self._ks, np.float64), times),
+                                    self._shared_dark_factors(), times),
                          CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
                          MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
                          StartSums(self._sum, self._cnt, self.stream),
@@ -404,6 +446,7 @@ class MergeAccumulator:
             "n_dark": float(opts.n_dark) if strategy == DarkStrategy.MASTER else None,
             "dark_strategies": [s.value for s in self._strats],
             "n_dark_per_frame": list(self._ndark),
+            "dark_shared_by": self._dark_groups(),
             "master_dark": self.master_dark is not None,
             "prnu": self.prnu_used,
             "exposure_times": list(self._times),

@@ -24,6 +24,7 @@ import numpy as np
 __all__ = [
     "DarkStrategy",
     "dark_factor",
+    "variance_of_rate",
     "variance_core",
     "difference_variance",
     "exposure_variance",
@@ -78,12 +79,39 @@ def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
 
 
 
-def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
-    """Var(v_i - b_i): the raw value's variance (Eq. 3) plus k times the dark level's (Eq. 5).
-    The one place the formula is written.
+def variance_of_rate(u, g2t, D, sigma2_R, k):
+    """Var(v_i - b_i) = g^2 t (u + k D) + sigma_R^2 + k sigma_R^2: the raw value's variance
+    (Eq. 3) plus k times the dark level's (Eq. 5), from the light frame's electron rate
+    u = a max(mu, 0) + D. The one place the formula is written.
 
-    Plain arithmetic only, so that it works on numpy arrays and, compiled by numba, on scalars
-    inside the merge kernel (:mod:`pipeline.kernels`).
+    Plain arithmetic without literals, so that it works on numpy arrays and, compiled by numba
+    (inlined), on float32 or float64 scalars inside the merge kernel (:mod:`pipeline.kernels`)
+    in the precision of its arguments. With k = 0 it is Var(v_i) alone.
+
+    Parameters
+    ----------
+    u : array_like
+        Electron rate of the light frame, a max(mu, 0) + D, e-/s.
+    g2t : array_like
+        g^2 t, DN^2 s per e-.
+    D : array_like
+        Dark current, e-/s.
+    sigma2_R : array_like
+        Readout variance, DN^2.
+    k : float
+        :func:`dark_factor` (0: the variance of the raw value alone).
+
+    Returns
+    -------
+    array_like
+        Variance, DN^2.
+    """
+    return g2t * (u + k * D) + (sigma2_R + k * sigma2_R)
+
+
+def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
+    """Var(v_i - b_i) (Eq. 3, 5) of :func:`variance_of_rate` at the irradiance ``mu_pos``;
+    scalar- and array-compatible.
 
     Parameters
     ----------
@@ -93,22 +121,17 @@ def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
         Exposure time, s.
     g : float
         Gain, DN/e-.
-    sigma2_R : array_like
-        Readout variance, DN^2.
-    D : array_like
-        Dark current, e-/s.
     a : array_like
         PRNU gain (mean 1).
-    k : float
-        :func:`dark_factor` (0: the variance of the raw value alone).
+    sigma2_R, D, k
+        As :func:`variance_of_rate` (DN^2, e-/s, 1).
 
     Returns
     -------
     array_like
         Variance, DN^2.
     """
-    g2t = g * g * t
-    return g2t * (a * mu_pos + D) + sigma2_R + k * (g2t * D + sigma2_R)
+    return variance_of_rate(a * mu_pos + D, g * g * t, D, sigma2_R, k)
 
 
 def variance_core(mu_pos, t, g, sigma2_R, D, a, k):

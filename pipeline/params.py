@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SensorParams", "Calibration", "THIRD_STOP_TIMES"]
+__all__ = ["SensorParams", "Calibration", "THIRD_STOP_TIMES", "DEFECT_BITS"]
 
 _FAST = (8000, 6400, 5000, 4000, 3200, 2500, 2000, 1600, 1250, 1000, 800, 640, 500, 400, 320, 250, 200,
          160, 125, 100, 80, 60, 50, 40, 30, 25, 20, 15, 13, 10, 8, 6, 5, 4)
@@ -24,6 +24,11 @@ _SLOW = (0.3, 0.4, 0.5, 0.6, 0.8, 1, 1.3, 1.6, 2, 2.5, 3.2, 4, 5, 6, 8, 10, 13, 
 #: The usual nominal 1/3-EV shutter speeds of a camera, 1/8000 s to 30 s, ascending, seconds
 #: (55 values). Shared by the simulated camera and the planner's default ladder.
 THIRD_STOP_TIMES: tuple[float, ...] = tuple(1.0 / d for d in _FAST) + tuple(float(s) for s in _SLOW)
+
+
+#: Bits of a calibration's defect map (a uint8 per photosite): what each kind of defective
+#: photosite sets (a photosite may set several). See docs/calibration.md for the thresholds.
+DEFECT_BITS: dict[str, int] = {"dead": 1, "weak": 2, "hot": 4, "stuck": 8}
 
 
 @dataclass(frozen=True)
@@ -120,6 +125,15 @@ class Calibration:
     saturation_map : numpy.ndarray or None
         Per-photosite saturation limit, DN, float32 (from >= 3 saturation frames); ``None``
         means ``params.v_sat`` everywhere.
+    bias_map_stderr : numpy.ndarray or None
+        Standard error of each value of ``bias_map`` (sqrt(sigma2_R / n_bias)), DN, float32;
+        ``None`` if unknown.
+    dark_current_map_stderr : numpy.ndarray or None
+        Standard error of each value of ``dark_current_map`` (from the regression, after the
+        shrinkage toward D), e-/s, float32; ``None`` if unknown.
+    defect_map : numpy.ndarray or None
+        Defective photosites, uint8 bit field (:data:`DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
+        8 stuck; 0 a normal photosite); ``None`` if not measured.
     """
 
     params: SensorParams
@@ -131,6 +145,9 @@ class Calibration:
     prnu_stderr: np.ndarray | None = None
     dark_library: str | None = None
     saturation_map: np.ndarray | None = None
+    bias_map_stderr: np.ndarray | None = None
+    dark_current_map_stderr: np.ndarray | None = None
+    defect_map: np.ndarray | None = None
 
     def replace(self, **changes: Any) -> "Calibration":
         """A copy with some fields changed.

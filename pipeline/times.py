@@ -18,10 +18,17 @@ import math
 from collections.abc import Iterable, Iterator, MutableMapping
 from typing import Generic, TypeVar
 
-__all__ = ["EXPOSURE_RTOL", "same_exposure", "find_exposure", "unique_exposures", "ExposureMap"]
+__all__ = ["EXPOSURE_RTOL", "BULB_ATOL_S", "BULB_RTOL", "same_exposure", "same_bulb_exposure", "find_exposure",
+           "unique_exposures", "ExposureMap"]
 
 #: Relative tolerance within which two exposure times (seconds) are the same exposure.
 EXPOSURE_RTOL: float = 1e-3
+
+#: A bulb exposure is timed by the host (USB latency, tens of ms) and cameras write its EXIF
+#: time rounded (often to whole seconds): the file and the measured open time agree within
+#: ``max(BULB_ATOL_S, BULB_RTOL * t)``, still far less than a 1/3-EV step above 30 s (26 %).
+BULB_ATOL_S: float = 0.5
+BULB_RTOL: float = 0.01
 
 V = TypeVar("V")
 
@@ -42,6 +49,24 @@ def same_exposure(a: float, b: float, rtol: float = EXPOSURE_RTOL) -> bool:
         ``|a - b| <= rtol * max(|a|, |b|)``.
     """
     return math.isclose(float(a), float(b), rel_tol=rtol, abs_tol=0.0)
+
+
+def same_bulb_exposure(file_s: float, measured_s: float) -> bool:
+    """Whether a bulb frame's file time and the open time the host measured agree.
+
+    Parameters
+    ----------
+    file_s : float
+        Exposure time in the file (EXIF), s.
+    measured_s : float
+        Time between the shutter's press and release as measured around the release, s.
+
+    Returns
+    -------
+    bool
+        ``|file_s - measured_s| <= max(BULB_ATOL_S, BULB_RTOL * measured_s)``.
+    """
+    return abs(float(file_s) - float(measured_s)) <= max(BULB_ATOL_S, BULB_RTOL * abs(float(measured_s)))
 
 
 def find_exposure(t: float, times: Iterable[float], rtol: float = EXPOSURE_RTOL) -> int | None:

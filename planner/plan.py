@@ -27,6 +27,7 @@ All variances come from :mod:`pipeline.noise` through :mod:`planner.predict`.
 from __future__ import annotations
 
 import itertools
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
@@ -298,8 +299,11 @@ class _Context:
         self.W = np.array([tm.weight for tm in terms])
         self.CD = np.array([tm.c_dark for tm in terms])
         self.CB = np.array([tm.c_bias for tm in terms])
+        self.k_sigma = k_sigma
+        self.frame_time = self.cand + self.overhead
         self.cost_time = np.array([(t + self.overhead) * (2.0 if d == "matched" else 1.0)
                                    for t, d in zip(self.cand, self.darks)])
+        self._groups: dict[tuple[int, int], Any] = {}
         # candidates of one exposure time with another dark strategy: a plan gives each time
         # one strategy (the merge matches frames to the plan by exposure time)
         self.rival = np.array([[same_exposure(a, b) and da != db for b, db in zip(self.cand, self.darks)]
@@ -312,12 +316,26 @@ class _Context:
             out |= self.rival[i]
         return out
 
+    def _weight(self, i: int, m: int) -> np.ndarray:
+        """Summed weight of ``m`` copies of candidate ``i`` (one shared dark frame, or one
+        master dark, when its strategy takes one: :func:`planner.predict.exposure_terms`)."""
+        if m == 1 or self.darks[i] == "model":
+            return m * self.W[i]
+        key = (i, m)
+        if key not in self._groups:
+            term = exposure_terms(self.X, self.cand[i], self.cal, self.darks[i], self.n_dark[i] or 1, "threshold",
+                                  self.k_sigma, copies=m)
+            self._groups[key] = m * term.weight
+        return self._groups[key]
+
     def sums(self, idx):
         idx = list(idx)
         if not idx:
             z = np.zeros_like(self.X)
             return z, z.copy(), z.copy()
-        return self.W[idx].sum(0), self.CD[idx].sum(0), self.CB[idx].sum(0)
+        counts = Counter(idx)
+        sw = sum(self._weight(i, m) for i, m in counts.items())
+        return sw, self.CD[idx].sum(0), self.CB[idx].sum(0)
 
     def snr(self, sw, scd, scb):
         return combine_terms(self.X, sw, scd, scb, self.errors, self.prnu).snr
@@ -343,8 +361,23 @@ class _Context:
         """Eq. 18: sum over eligible pixels of Q(snr) = exp(-snr)."""
         return float(np.sum(self.w_elig * np.exp(-snr_lin)))
 
+    def marginal(self, idx) -> tuple[np.ndarray, np.ndarray]:
+        """What adding one more of each candidate to ``idx`` adds: its weight (C, bins; a copy
+        of a time already chosen adds to its shared-dark group) and its capture time (C,), s."""
+        counts = Counter(idx)
+        add_w = self.W.copy()
+        add_cost = self.cost_time.copy()
+        for i, m in counts.items():
+            add_w[i] = self._weight(i, m + 1) - self._weight(i, m)
+            add_cost[i] = self.frame_time[i]
+        return add_w, add_cost
+
     def time(self, idx) -> float:
-        return float(sum(self.cost_time[i] for i in idx))
+        """Capture time of the exposures ``idx`` (repeats allowed), s: each frame's time plus the
+        overhead, and one matched dark frame per candidate time, counted once."""
+        counts = Counter(idx)
+        return float(sum(m * self.frame_time[i] + (self.cost_time[i] - self.frame_time[i])
+                         for i, m in counts.items()))
 
 
 def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
@@ -699,19 +732,22 @@ def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = Fa
         if not fits.any():
             return chosen, "time_budget"
         # penalty after adding each candidate, all at once: (C, B)
-        snr_all = combine_terms(ctx.X[None, :], sw + ctx.W, scd + ctx.CD, scb + ctx.CB, ctx.errors, ctx.prnu).snr
+        add_w, add_cost = ctx.marginal(chosen)
+        if budget is not None:
+            fits &= used + add_cost <= budget * (1 + 1e-12)
+        snr_all = combine_terms(ctx.X[None, :], sw + add_w, scd + ctx.CD, scb + ctx.CB, ctx.errors, ctx.prnu).snr
         pen = np.sum(ctx.w_elig * np.exp(-snr_all), axis=1)
         pen = np.where(fits, pen, np.inf)
         if per_second:
-            gain = np.where(fits, (current - pen) / ctx.cost_time, -np.inf)
+            gain = np.where(fits, (current - pen) / add_cost, -np.inf)
             best = int(np.argmax(gain))
         else:
             best = int(np.argmin(pen))  # ties: the shorter time (candidates ascend)
         if not pen[best] < current * (1 - 1e-12):
             return chosen, "no_gain"
         chosen.append(best)
-        used += ctx.cost_time[best]
-        sw, scd, scb = sw + ctx.W[best], scd + ctx.CD[best], scb + ctx.CB[best]
+        used += add_cost[best]
+        sw, scd, scb = sw + add_w[best], scd + ctx.CD[best], scb + ctx.CB[best]
         current = float(pen[best])
 
 
@@ -750,7 +786,7 @@ def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
             if pos >= len(chosen):
                 continue
             base = chosen[:pos] + chosen[pos + 1:]
-            cost = ctx.cost_time[chosen[pos]]
+            cost = ctx.time(chosen) - ctx.time(base)
             # replace it by the cheapest valid alternative: one shorter exposure, or 2..4 copies
             # of a shorter one when that saves at least 10 % of its time
             found, found_cost = None, cost * (1 - 1e-9)
@@ -761,7 +797,7 @@ def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
                 if excluded[c]:
                     continue
                 for k in (1, 2, 3, 4):
-                    new_cost = k * ctx.cost_time[c]
+                    new_cost = ctx.time(base + [int(c)] * k) - ctx.time(base)
                     if new_cost >= found_cost or (k > 1 and new_cost > 0.9 * cost):
                         break
                     trial = base[:pos] + [int(c)] * k + base[pos:]

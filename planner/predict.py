@@ -24,7 +24,8 @@ from typing import Sequence
 import numpy as np
 from scipy.special import ndtr
 
-from hdrcap.pipeline.noise import exposure_variance, exposure_weight
+from hdrcap.pipeline.noise import dark_factor, exposure_variance, exposure_weight, variance_core
+from hdrcap.pipeline.times import same_exposure
 from hdrcap.pipeline.params import Calibration
 
 __all__ = [
@@ -39,6 +40,7 @@ __all__ = [
     "SnrPrediction",
     "combine_terms",
     "predict_snr",
+    "shared_dark_copies",
     "to_db",
 ]
 
@@ -225,12 +227,18 @@ class ExposureTerms:
 
 
 def exposure_terms(X, t, calibration: Calibration, dark: str = "model", n_dark: float = 1,
-                   saturation: str = "threshold", k_sigma: float = K_SIGMA, weight_at=None) -> ExposureTerms:
+                   saturation: str = "threshold", k_sigma: float = K_SIGMA, weight_at=None,
+                   copies: int = 1) -> ExposureTerms:
     """Per-irradiance contribution of one exposure of ``t`` seconds with dark strategy ``dark``.
 
     The weight is the optimal weight of Eq. 13 (from :func:`pipeline.noise.exposure_weight`)
     evaluated at ``weight_at`` (default: the true irradiance ``X``), times the usable fraction.
     ``variance`` is the true Var(x_i) at ``X``.
+
+    ``copies`` frames of this time that share one dark frame (``matched``, or one ``master``
+    dark) form a group whose generalised least-squares variance is
+    [Var(v)/n + k Var(b)]/(t g a)^2: each copy's terms are those of an independent sample with
+    the dark factor n k, so that the n copies' weights sum to the group's.
 
     Parameters
     ----------
@@ -250,6 +258,8 @@ def exposure_terms(X, t, calibration: Calibration, dark: str = "model", n_dark: 
         Margin of the threshold rule, standard deviations of the raw value.
     weight_at : array_like, optional
         Irradiance at which the weight is evaluated, e-/s.
+    copies : int
+        Frames of this time sharing its dark frame (>= 1).
 
     Returns
     -------
@@ -260,8 +270,13 @@ def exposure_terms(X, t, calibration: Calibration, dark: str = "model", n_dark: 
     D = mean_dark_current(calibration)
     mu_w = X if weight_at is None else np.asarray(weight_at, dtype=np.float64)
     u = usable_fraction(X, t, calibration, saturation, k_sigma)
-    w = exposure_weight(mu_w, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark) * u
-    var = exposure_variance(X, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark)
+    if copies == 1:
+        var = exposure_variance(X, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark)
+        w = exposure_weight(mu_w, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark) * u
+    else:
+        k = dark_factor(dark, n_dark) * copies
+        var = variance_core(np.maximum(X, 0.0), t, p.g, p.sigma2_R, D, 1.0, k)
+        w = u / variance_core(np.maximum(mu_w, 0.0), t, p.g, p.sigma2_R, D, 1.0, k)
     is_model = 1.0 if str(getattr(dark, "value", dark)) == "model" else 0.0
     return ExposureTerms(weight=w, c_dark=w * is_model, c_bias=w * is_model / (t * p.g), usable=u, variance=var)
 
@@ -340,6 +355,31 @@ def _per_exposure(values, n, name):
     return values
 
 
+def shared_dark_copies(times: Sequence[float], darks: Sequence[str], n_dark: Sequence[float]) -> list[int]:
+    """Per exposure, how many exposures share its dark frame: those of the same time
+    (:func:`pipeline.times.same_exposure`) and the same ``matched`` or ``master`` strategy (and
+    master-dark frame count), as a capture session takes one dark frame (or serves one master
+    dark) per exposure time; 1 for ``model``.
+
+    Parameters
+    ----------
+    times : sequence of float
+        Exposure times, s.
+    darks : sequence of str
+        Dark strategy per exposure.
+    n_dark : sequence of float
+        Master-dark frame count per exposure.
+
+    Returns
+    -------
+    list of int
+        Group size per exposure (>= 1).
+    """
+    keys = [(float(t), str(getattr(d, "value", d)), n) for t, d, n in zip(times, darks, n_dark)]
+    return [1 if d == "model" else sum(1 for u, e, m in keys if e == d and m == n and same_exposure(u, t))
+            for t, d, n in keys]
+
+
 def predict_snr(X, times: Sequence[float], calibration: Calibration, darks="model", n_dark=1, *,
                 errors: SystematicErrors | None = None, prnu: str = "map", saturation: str = "threshold",
                 k_sigma: float = K_SIGMA, weight_at=None) -> SnrPrediction:
@@ -350,7 +390,8 @@ def predict_snr(X, times: Sequence[float], calibration: Calibration, darks="mode
     X : array_like
         Irradiance, e-/s per photosite (pixels or histogram bins).
     times : sequence of float
-        Exposure times, s (repeats allowed).
+        Exposure times, s (repeats allowed: repeats of a ``matched`` or ``master`` time share
+        one dark frame, :func:`shared_dark_copies`).
     calibration : Calibration
         Camera model; its mean dark current and the scalar parameters are used.
     darks : str or sequence of str
@@ -383,8 +424,9 @@ def predict_snr(X, times: Sequence[float], calibration: Calibration, darks="mode
     scb = np.zeros_like(X)
     sw2v = np.zeros_like(X) if weight_at is not None else None
     nu = np.zeros_like(X)
-    for t, d, n in zip(times, darks, n_dark):
-        term = exposure_terms(X, t, calibration, d, n if n else 1, saturation, k_sigma, weight_at)
+    copies = shared_dark_copies(times, darks, n_dark)
+    for t, d, n, m in zip(times, darks, n_dark, copies):
+        term = exposure_terms(X, t, calibration, d, n if n else 1, saturation, k_sigma, weight_at, m)
         sw += term.weight
         scd += term.c_dark
         scb += term.c_bias

@@ -152,3 +152,137 @@ def test_mock_camera_shares_the_camera_types(tmp_path):
     assert isinstance(e.value, CameraError) and e.value.camera_fault == "reconnect"
     ok = MockCamera("camera-B", _scene(), seed=1)
     assert isinstance(ok.capture(tmp_path / "c.dng"), CaptureResult)
+
+
+def test_mock_reconnect_fails_n_times_then_comes_back_on_a_new_port(tmp_path):
+    faults = MockFaults(disconnect_rate=1.0, reconnect_fail_rate=1.0, reconnect_failures=2, renumber_rate=1.0)
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=faults)
+    serial, port = cam.identity.serial, cam.identity.port
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "a.dng")
+    assert fault_kind(e.value) == "reconnect"
+    for _ in range(2):  # gvfs (say) holds the device twice
+        with pytest.raises(Exception) as e:
+            cam.reconnect()
+        assert fault_kind(e.value) == "reconnect" and "-53" in str(e.value)
+        with pytest.raises(Exception) as e:
+            cam.set_exposure(0.01)
+        assert fault_kind(e.value) == "reconnect"
+    cam.reconnect()
+    assert cam.identity.port != port and cam.identity.serial == serial
+    assert cam.reconnect_failures == 2 and cam.fault_log.count("renumbered") == 1
+    assert cam.set_exposure(0.01) == pytest.approx(0.01)
+
+
+def test_mock_reconnect_faults_are_drawn_per_disconnect():
+    """Half of the disconnects (rate 0.5) are followed by failing reconnects: the draws are
+    seeded and their frequency is the rate's (binomial, 400 disconnects: 3 sigma = 30)."""
+    cam = MockCamera("camera-B", _scene((8, 8)), seed=1, faults=MockFaults(seed=3, reconnect_fail_rate=0.5,
+                                                                          reconnect_failures=2, renumber_rate=0.25))
+    failing = 0
+    for _ in range(400):
+        cam._lose_connection()
+        failed = 0
+        while True:
+            try:
+                cam.reconnect()
+                break
+            except Exception as err:
+                assert fault_kind(err) == "reconnect"
+                failed += 1
+        assert failed in (0, 2)
+        failing += failed == 2
+    assert abs(failing - 200) < 30
+    assert abs(cam.fault_log.count("renumbered") - 100) < 26  # 3 sigma of binomial(400, 0.25)
+
+
+def test_mock_hang_that_ignores_the_timeout(tmp_path):
+    import time
+
+    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(hang_rate=1.0, hang_s=0.3,
+                                                                     hang_ignores_timeout=True))
+    t0 = time.monotonic()
+    with pytest.raises(Exception) as e:
+        cam.capture(tmp_path / "a.dng", timeout=0.01)
+    assert time.monotonic() - t0 >= 0.3  # the caller's timeout did not shorten it
+    assert fault_kind(e.value) == "reconnect"
+
+
+def test_session_survives_failing_reconnects_and_a_new_port(tmp_path):
+    """Every disconnect is followed by two failed reconnects and a new port: the session keeps
+    reconnecting (each failure is logged), and every planned frame lands once."""
+    import json
+
+    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy
+
+    faults = MockFaults(seed=5, disconnect_rate=0.25, reconnect_fail_rate=1.0, reconnect_failures=2,
+                        renumber_rate=1.0)
+    cam = MockCamera("camera-B", _scene((24, 24)), seed=2, faults=faults)
+    plan = CapturePlan.bracket([1 / 250, 1 / 60, 1 / 15], None, "matched")
+    fast = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
+    res = CaptureSession(cam, tmp_path / "run", plan, retry=fast, progress=False).run()
+    disconnects = cam.fault_log.count("disconnect")
+    assert disconnects >= 1 and res.captured == len(plan.frames)
+    assert cam.reconnect_failures == 2 * disconnects and len(set(cam.ports)) == disconnects + 1
+    assert sorted(Manifest(tmp_path / "run").frames()) == sorted(f.key for f in plan.frames)
+    events = [json.loads(line) for line in (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
+    rec = [e for e in events if e["event"] == "reconnect"]
+    assert sum(not e["ok"] for e in rec) == 2 * disconnects
+    assert [e["port"] for e in rec if e["ok"]] == cam.ports[1:]
+
+
+BULB_JOB = """\
+[camera]
+backend = "mock"
+preset = "camera-B"
+size = "32x32"
+{bulb}
+
+[scene]
+name = "hdr"
+decades = 2.0
+x_max = 200.0
+
+[exposure]
+times = [1.0, 60.0]
+
+[darks]
+strategy = "matched"
+block_light = "mock"
+check = 0.5
+
+[output]
+folder = "runs/b"
+"""
+
+
+def test_bulb_exposures_beyond_30_s_are_planned_captured_and_verified(tmp_path, cli):
+    """A 60 s exposure: refused on a camera without bulb, planned exactly (not snapped to 30 s)
+    and captured on one with bulb; the frame's EXIF time is the bulb time."""
+    import json
+
+    from hdrcap.acquire.manifest import Manifest
+
+    job = tmp_path / "job.toml"
+    job.write_text(BULB_JOB.format(bulb=""))
+    no = cli("run", job, "--check")
+    assert no.returncode != 0 and "exposure 60 s is outside the camera's range" in no.stderr
+    job.write_text(BULB_JOB.format(bulb="bulb_max_s = 600"))
+    ok = cli("run", job, "--no-progress", "--json")
+    assert ok.returncode == 0, ok.stderr
+    frames = Manifest(tmp_path / "runs" / "b").frames().values()
+    long = [r for r in frames if r["requested_exposure_s"] > 30]
+    assert len(long) == 2 and {r["kind"] for r in long} == {"dark", "light"}  # matched dark too
+    for r in long:
+        assert r["applied_exposure_s"] == pytest.approx(60.0) and r["file_exposure_s"] == pytest.approx(60.0)
+    assert json.loads(ok.stdout.strip().splitlines()[-1])["frames"] == 4
+
+
+def test_bulb_verification_tolerance():
+    from hdrcap.pipeline.times import same_bulb_exposure, same_exposure
+
+    assert same_bulb_exposure(60.0, 59.9) and not same_exposure(60.0, 59.9)  # host timing: tens of ms
+    assert same_bulb_exposure(40, 40.45) and not same_bulb_exposure(40, 40.55)  # EXIF in whole seconds
+    assert same_bulb_exposure(600, 605.9) and not same_bulb_exposure(600, 606.1)  # 1 % at long times
+    assert not same_bulb_exposure(47.6, 60.0)  # never joins two 1/3-stop steps

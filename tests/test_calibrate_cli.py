@@ -56,7 +56,7 @@ def test_simulate_then_calibrate(calibration_set, tmp_path, capsys):
     assert summary["v_sat"] == pytest.approx(truth["v_sat"], rel=0.01)
     assert "photon-transfer" in summary["gain_method"]
     assert {p.split("/")[-1] for p in summary["report"]} == {"ptc.png", "prnu_hist.png", "prnu_map.png",
-                                                               "dark_current.png"}
+                                                               "dark_current.png", "defects.png"}
     index = json.loads((tmp_path / "lib" / "index.json").read_text())
     assert sorted(e["exposure_time"] for e in index["entries"]) == [0.5, 1, 2, 4, 8, 16]
     assert all(e["n_frames"] == 2 and e["temperature"] == 20 for e in index["entries"])

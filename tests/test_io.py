@@ -7,7 +7,6 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-
 from hdrcap.mock_camera.dng import exposure_rational, write_dng
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 from hdrcap.pipeline.io import (
@@ -130,10 +129,9 @@ def test_exr_round_trip_all_channels_and_attributes(tmp_path):
 
 def test_atomic_output_leaves_nothing_on_error(tmp_path):
     target = tmp_path / "x.txt"
-    with pytest.raises(RuntimeError):
-        with atomic_output(target) as tmp:
-            tmp.write_text("partial")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), atomic_output(target) as tmp:
+        tmp.write_text("partial")
+        raise RuntimeError("boom")
     assert not target.exists() and list(tmp_path.iterdir()) == []
     with pytest.raises(InputError, match="does not exist"):
         with atomic_output(tmp_path / "nofolder" / "x.txt"):
@@ -169,3 +167,92 @@ def test_emva_descriptor_errors(tmp_path):
     p.write_text("v 3.0\nb 100 1\ni a.png\nx nonsense\n")
     with pytest.raises(InputError, match=r"d.txt:4"):
         read_emva_descriptor(p)
+
+
+def test_check_frames_bracket_passes_and_sampled_twins_are_not_duplicates(tmp_path):
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap.mock_camera.scenes import make_scene
+
+    cam = SimulatedCamera(PRESETS["camera-A"], make_scene("hdr", (64, 96), 4.0, 2e5), seed=1)
+    times = (1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0)
+    bracket = [read_raw(cam.capture_to(tmp_path / f"f{i}.dng", t)) for i, t in enumerate(times)]
+    darks = [read_raw(cam.capture_to(tmp_path / f"d{i}.dng", t, dark=True)) for i, t in enumerate(times)]
+    assert len(check_frames(bracket)) == 6 and len(check_frames(darks, "dark frame")) == 6
+    # identical in every sampled row, different in one photosite elsewhere: not a duplicate
+    a = np.zeros((64, 64), np.uint16)
+    b = a.copy()
+    b[1, 1] = 1
+    c = a.copy()
+    fa, fb, fc = (read_raw(_dng(tmp_path / f"{n}.dng", x)) for n, x in (("a", a), ("b", b), ("c", c)))
+    assert len(check_frames([fa, fb])) == 2
+    with pytest.raises(InputError, match="c.dng: duplicate frame, its pixels are identical to .*a.dng"):
+        check_frames([fa, fb, fc])
+
+
+def test_check_frames_catches_a_copy_with_another_exposure_time(tmp_path):
+    data = np.random.default_rng(3).integers(0, 4096, (64, 64), dtype=np.uint16)
+    a = read_raw(_dng(tmp_path / "a.dng", data, t=1 / 250))
+    b = read_raw(_dng(tmp_path / "b.dng", data, t=1 / 60))
+    with pytest.raises(InputError, match="b.dng: duplicate frame"):
+        check_frames([a, b])
+
+
+def _merge_like_channels(shape=(20, 30)):
+    rng = np.random.default_rng(4)
+    irr = rng.lognormal(5, 3, shape).astype(np.float32)
+    return {"irradiance": irr, "sigma": (np.sqrt(irr) + 15).astype(np.float32),
+            "nexp": rng.integers(0, 7, shape).astype(np.float32)}
+
+
+@pytest.mark.parametrize("compression", ["zip", "zips", "piz", "zstd", "rle", "none"])
+def test_exr_half_sigma_and_uint_nexp_read_back_as_float32(tmp_path, compression):
+    from hdrcap.pipeline.io import HALF_RELATIVE_ERROR
+
+    ch = _merge_like_channels()
+    path = write_exr(tmp_path / "o.exr", HdrImage(ch, {"unit": "e-/s"}), compression=compression,
+                     precision={"sigma": "half", "nexp": "uint"}, threads=2)
+    back = read_exr(path)
+    assert all(back.channels[k].dtype == np.float32 for k in ch)
+    assert np.array_equal(back.channels["irradiance"], ch["irradiance"])
+    assert np.array_equal(back.channels["nexp"], ch["nexp"])
+    rel = np.abs(back.channels["sigma"] / ch["sigma"] - 1)
+    assert 0 < rel.max() <= HALF_RELATIVE_ERROR
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as exr:
+        types = {name: str(c.type()) for name, c in exr.channels().items()}
+    assert types == {"irradiance": "PixelType.FLOAT", "sigma": "PixelType.HALF", "nexp": "PixelType.UINT"}
+    assert OpenEXR.global_thread_count() == 2
+
+
+def test_exr_precision_refuses_what_it_would_lose(tmp_path):
+    ch = _merge_like_channels()
+    image = HdrImage(ch, {})
+    with pytest.raises(ValueError, match="irradiance channel is always stored as float"):
+        write_exr(tmp_path / "a.exr", image, precision={"irradiance": "half"})
+    big = HdrImage(dict(ch, sigma=np.full((20, 30), 1e5, np.float32)), {})
+    with pytest.raises(ValueError, match="'sigma': values .* outside the half range"):
+        write_exr(tmp_path / "b.exr", big, precision={"sigma": "half"})
+    frac = HdrImage(dict(ch, nexp=np.full((20, 30), 0.5, np.float32)), {})
+    with pytest.raises(ValueError, match="'nexp': uint needs whole numbers"):
+        write_exr(tmp_path / "c.exr", frac, precision={"nexp": "uint"})
+    with pytest.raises(ValueError, match="precision given for channels the image does not have: x"):
+        write_exr(tmp_path / "d.exr", image, precision={"x": "half"})
+    with pytest.raises(ValueError, match="precision must be one of"):
+        write_exr(tmp_path / "e.exr", image, precision={"sigma": "double"})
+    # infinities and zeros are stored exactly as half
+    special = HdrImage(dict(ch, sigma=np.where(ch["nexp"] == 0, np.inf, 0).astype(np.float32)), {})
+    back = read_exr(write_exr(tmp_path / "f.exr", special, precision={"sigma": "half"}))
+    assert np.array_equal(back.channels["sigma"], special.channels["sigma"])
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
+
+
+def test_exr_auto_precision_is_half_only_where_it_fits(tmp_path):
+    import OpenEXR
+
+    ch = _merge_like_channels()
+    for sigma, expect in ((ch["sigma"], "PixelType.HALF"), (ch["sigma"] * 1e4, "PixelType.FLOAT")):
+        path = write_exr(tmp_path / f"{expect}.exr", HdrImage(dict(ch, sigma=sigma), {}), precision={"sigma": "auto"})
+        with OpenEXR.File(str(path)) as exr:
+            assert str(exr.channels()["sigma"].type()) == expect

@@ -165,7 +165,7 @@ def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
     proc = cli("cameras", "--json")
     assert proc.returncode == 0
     out = json.loads(proc.stdout)
-    assert {m["preset"] for m in out["mock"]} == {"camera-A", "camera-B"}
+    assert {m["preset"] for m in out["mock"]} == {"camera-A", "camera-B", "camera-R"}
 
 
 def test_master_darks_come_from_the_dark_library(tmp_path, cli):

@@ -57,8 +57,8 @@ def _scene(spec, shape, rng):
     return np.where(near, pick, X)
 
 
-def _monte_carlo(cam, dark="matched", seeds=(0, 1, 2), shape=(256, 256), n_dark=8, **options):
-    spec = PRESETS[cam]
+def _monte_carlo(cam, dark="matched", seeds=(0, 1, 2), shape=(256, 256), n_dark=8, spec=None, **options):
+    spec = PRESETS[cam] if spec is None else spec
     p = spec.nominal_params()
     out = {k: [] for k in ("X", "err", "sigma", "nexp", "bound")}
     for seed in seeds:
@@ -140,6 +140,24 @@ def test_dark_strategies_reach_their_bound_and_beat_matched_when_dark(dark):
     expected = np.mean(mc["bound"][low]) / np.mean(ref["bound"][low])
     assert expected < 0.85
     assert mse / mse_ref == pytest.approx(expected, rel=0.08)
+
+
+@pytest.mark.parametrize("dark", ["matched", "master", "model", ("model", "master", "matched") * 2])
+def test_dark_current_comparable_to_read_noise_honest_per_decade(dark):
+    """D t of 15-150 e- at the two longest exposures against 21 e-^2 of read noise (camera-B with
+    100 e-/s and a strong DCNU): a wrong dark term in the variance shows as a z spread far from 1
+    in the low decades (without the matched dark's term, about 1.4 at 1-10 e-/s)."""
+    spec = PRESETS["camera-B"].replace(dark_current=100.0, dcnu=0.5)
+    mc = _monte_carlo("camera-B", dark, seeds=(11, 12), shape=(192, 192), n_dark=4, spec=spec)
+    _check_statistics(mc, mse_tol=0.06)
+    use = np.isfinite(mc["bound"]) & (mc["nexp"] > 0)
+    z = mc["err"][use] / mc["sigma"][use]
+    lx = np.log10(mc["X"][use])
+    for lo in range(0, 5):
+        m = (lx >= lo) & (lx < lo + 1)
+        assert m.sum() > 2000, lo
+        assert 0.95 < z[m].std() < 1.05, (lo, z[m].std())
+        assert abs(z[m].mean()) < 0.05, (lo, z[m].mean())
 
 
 def test_mixed_dark_strategies_per_exposure_reach_their_bound():

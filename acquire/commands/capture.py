@@ -16,6 +16,10 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--camera", default="mock:camera-B", show_default=True,
               help="mock:PRESET (simulator) or gphoto2[:MODEL] (a real camera; see `hdrcap cameras`).")
 @click.option("--port", default=None, help="gphoto2 port of the camera (usb:001,004).")
+@click.option("--serial", default=None, help="gphoto2 camera serial number (see `hdrcap cameras`).")
+@click.option("--iso", type=click.IntRange(min=1), default=None, help="ISO speed to set (read back and checked).")
+@click.option("--enforce", is_flag=True,
+              help="Set wrong camera settings (program, focus, RAW, ISO, long-exposure NR) instead of refusing.")
 @click.option("--times", multiple=True, type=float, help="Exposure times, s (a fixed bracket; several after one flag).")
 @click.option("--target-snr", type=float, default=None, help="Plan the exposures for this SNR, dB (meter + planner).")
 @click.option("--darks", "dark_strategy", type=click.Choice([s.value for s in DarkStrategy]), default=None,
@@ -36,7 +40,8 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--force", is_flag=True, help="Overwrite hdr.exr / preview.png in --out.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary.")
-def command(camera, port, times, target_snr, dark_strategy, dark_count, block_light, cover_command, uncover_command,
+def command(camera, port, serial, iso, enforce, times, target_snr,
+            dark_strategy, dark_count, block_light, cover_command, uncover_command,
             calibration, scene, size, seed, out, resume, force, progress, as_json):
     """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
     hash every frame into manifest.jsonl, and merge it to --out/hdr.exr."""
@@ -51,10 +56,10 @@ def command(camera, port, times, target_snr, dark_strategy, dark_count, block_li
     if backend == "mock":
         cam.update(preset=name or "camera-B", size=size, seed=seed)
     else:
-        if name:
-            cam["model"] = name
-        if port:
-            cam["port"] = port
+        cam.update({k: v for k, v in (("model", name), ("port", port), ("serial", serial)) if v})
+        cam["enforce"] = enforce
+    if iso is not None:
+        cam["iso"] = iso
     if not times and target_snr is None:
         raise InputError("give --times (a fixed bracket) or --target-snr")
     exposure = {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}

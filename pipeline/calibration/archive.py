@@ -1,9 +1,17 @@
-"""The calibration file: a compressed NumPy archive of float32 maps and JSON metadata.
+"""The calibration file: a NumPy archive of float32 maps and JSON metadata.
 
-Format (docs/calibration.md): a ``.npz`` archive with the maps ``prnu``, ``prnu_stderr``,
-``bias_map``, ``dark_current_map``, ``saturation_map`` (each optional) and a ``metadata``
-entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``, ``stderr``,
-``provenance``, ``maps``, ``dark_library``.
+Format (docs/calibration.md): a ``.npz`` archive with the float32 maps ``prnu``,
+``prnu_stderr``, ``bias_map``, ``bias_map_stderr``, ``dark_current_map``,
+``dark_current_map_stderr``, ``saturation_map``, the uint8 ``defect_map`` (each optional) and a
+``metadata`` entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``,
+``stderr``, ``provenance``, ``maps``, ``dark_library``. Files written before the standard-error
+and defect maps existed load with those fields ``None``.
+
+The maps are stored uncompressed (``np.savez``): per-photosite maps are noise-like and zlib
+saved only about 24 % of their size while costing 15 s to write and 1.3 s to read per 24 Mpixel
+map. Stored members are memory-mapped on load (copy-on-write: the file is never modified, and
+writing to a loaded map changes only this process's copy), so a merge reads only the pages it
+uses. Compressed files written by earlier versions still load (read into memory).
 """
 
 from __future__ import annotations
@@ -11,6 +19,7 @@ from __future__ import annotations
 import io as _io
 import json
 import os
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +34,10 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]
 FORMAT = "hdrcap-calibration"
 FORMAT_VERSION = 1
 
-_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "dark_current_map", "saturation_map")
+_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "bias_map_stderr", "dark_current_map", "dark_current_map_stderr",
+               "saturation_map")
+#: Maps stored with their own integer type instead of float32.
+_INT_MAPS = {"defect_map": np.uint8}
 
 
 def _jsonable(obj):
@@ -69,11 +81,11 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
 
     arrays = {}
     shape = None
-    for name in _MAP_FIELDS:
+    for name in (*_MAP_FIELDS, *_INT_MAPS):
         arr = getattr(calibration, name, None)
         if arr is None:
             continue
-        arr = np.ascontiguousarray(arr, dtype=np.float32)
+        arr = np.ascontiguousarray(arr, dtype=_INT_MAPS.get(name, np.float32))
         if shape is not None and arr.shape != shape:
             raise ValueError(f"calibration map {name} has shape {arr.shape}, expected {shape}")
         shape = arr.shape
@@ -95,9 +107,36 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
     path = Path(path)
     with atomic_output(path, force=force, suffix=".tmp") as tmp:
         buf = _io.BytesIO()
-        np.savez_compressed(buf, **arrays)
+        np.savez(buf, **arrays)
         tmp.write_bytes(buf.getvalue())
     return path
+
+
+def _memmap_member(path: Path, name: str) -> np.ndarray | None:
+    """Copy-on-write memory map of the array ``name`` of an ``.npz`` file when it is stored
+    uncompressed, else None (the caller then reads it)."""
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(f"{name}.npy")
+        if info.compress_type != zipfile.ZIP_STORED:
+            return None
+        with open(path, "rb") as fh:
+            fh.seek(info.header_offset)
+            local = fh.read(30)
+            if len(local) != 30 or local[:4] != b"PK\x03\x04":
+                return None
+            start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(
+                local[28:30], "little")
+            fh.seek(start)
+            fmt = np.lib.format
+            version = fmt.read_magic(fh)
+            if version not in ((1, 0), (2, 0)):
+                return None
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            shape, fortran, dtype = read_header(fh)
+            offset = fh.tell()
+    if dtype.hasobject or len(shape) != 2 or offset - start + dtype.itemsize * int(np.prod(shape)) > info.file_size:
+        return None
+    return np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=shape, order="F" if fortran else "C")
 
 
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
@@ -132,7 +171,9 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             if "metadata" not in z.files:
                 raise InputError(f"{path}: not an hdrcap calibration file (no metadata entry)")
             meta = json.loads(bytes(z["metadata"]).decode("utf-8"))
-            maps = {name: z[name] for name in _MAP_FIELDS if name in z.files}
+            names = [name for name in (*_MAP_FIELDS, *_INT_MAPS) if name in z.files]
+            maps = {name: _memmap_member(path, name) for name in names}
+            maps = {name: z[name] if arr is None else arr for name, arr in maps.items()}
     except InputError:
         raise
     except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError) as err:
@@ -156,6 +197,11 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         raise InputError(f"{path}: bad camera parameters ({err})") from None
     if "prnu" in maps and not np.all(maps["prnu"] > 0):
         raise InputError(f"{path}: PRNU map has non-positive gains")
+    for name in ("bias_map_stderr", "dark_current_map_stderr"):
+        if name in maps and np.any(maps[name] < 0):
+            raise InputError(f"{path}: map {name} has negative values")
+    if "defect_map" in maps and maps["defect_map"].dtype != np.uint8:
+        raise InputError(f"{path}: defect map has type {maps['defect_map'].dtype}, expected uint8")
     return Calibration(
         params=params,
         prnu=maps.get("prnu"),
@@ -166,4 +212,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         prnu_stderr=maps.get("prnu_stderr"),
         saturation_map=maps.get("saturation_map"),
         dark_library=meta.get("dark_library"),
+        bias_map_stderr=maps.get("bias_map_stderr"),
+        dark_current_map_stderr=maps.get("dark_current_map_stderr"),
+        defect_map=maps.get("defect_map"),
     )

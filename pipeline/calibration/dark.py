@@ -3,7 +3,8 @@
 Master darks are the clipped per-photosite means of N dark frames at one exposure time
 (streamed one time after the other); the dark current D comes from a straight-line fit of
 their levels against the exposure time (>= 6 times), the per-photosite dark-current map from
-the same fit at every photosite. Units: DN, DN/s, s.
+the same fit at every photosite, with its standard error, shrunk toward D by empirical Bayes
+(:func:`shrink_dark_current_map`). Units: DN, DN/s, s, e-/s.
 """
 
 from __future__ import annotations
@@ -18,7 +19,15 @@ from ..times import find_exposure, unique_exposures
 from .frames import check_shape, frame_data, frame_name, group_by_exposure
 from .stats import PixelStack, robust_mean_std
 
-__all__ = ["MasterDark", "DarkFit", "fit_dark_current", "stream_master_darks", "DarkSeries"]
+__all__ = [
+    "MasterDark",
+    "DarkFit",
+    "fit_dark_current",
+    "stream_master_darks",
+    "DarkSeries",
+    "DarkCurrentMap",
+    "shrink_dark_current_map",
+]
 
 
 @dataclass(frozen=True)
@@ -65,8 +74,11 @@ class DarkFit:
     levels: np.ndarray
 
 
-def fit_dark_current(times: Sequence[float] | np.ndarray, levels: Sequence[float] | np.ndarray,
-                     level_stderr: Sequence[float] | np.ndarray | None = None) -> DarkFit:
+def fit_dark_current(
+    times: Sequence[float] | np.ndarray,
+    levels: Sequence[float] | np.ndarray,
+    level_stderr: Sequence[float] | np.ndarray | None = None,
+) -> DarkFit:
     """Straight-line fit of master-dark levels against exposure time (>= 6 times).
 
     Weighted least squares when ``level_stderr`` is given; the slope's standard error is the
@@ -117,8 +129,7 @@ def _master(stack: PixelStack, t: float, clip: float | None) -> MasterDark:
     return MasterDark(mean_map.astype(np.float32), stack.n, float(t), float(level), level_se)
 
 
-def stream_master_darks(darks: Iterable, clip: float | None,
-                        shape: tuple[int, ...] | None) -> Iterator[MasterDark]:
+def stream_master_darks(darks: Iterable, clip: float | None, shape: tuple[int, ...] | None) -> Iterator[MasterDark]:
     """Master darks per exposure time, streamed one run of frames after the other.
 
     Parameters
@@ -173,6 +184,7 @@ class DarkSeries:
     n_frames: list[int] = field(default_factory=list)
     _sy: np.ndarray | None = None
     _sty: np.ndarray | None = None
+    _syy: np.ndarray | None = None
     _sn: float = 0.0
     _st: float = 0.0
     _stt: float = 0.0
@@ -192,9 +204,11 @@ class DarkSeries:
         if self._sy is None:
             self._sy = np.zeros(master.data.shape, np.float64)
             self._sty = np.zeros(master.data.shape, np.float64)
+            self._syy = np.zeros(master.data.shape, np.float64)
         w = float(master.n_frames)
         self._sy += w * master.data
         self._sty += (w * master.exposure_time) * master.data
+        self._syy += w * np.square(master.data, dtype=np.float64)
         self._sn += w
         self._st += w * master.exposure_time
         self._stt += w * master.exposure_time**2
@@ -230,6 +244,28 @@ class DarkSeries:
         den = self._sn * self._stt - self._st * self._st
         return ((self._sn * self._sty - self._st * self._sy) / den).astype(np.float32)
 
+    def residual_map(self) -> np.ndarray:
+        """Per-photosite weighted residual sum of squares of the straight-line fit, DN^2
+        (weights: the frame counts N_k), float64.
+
+        Returns
+        -------
+        numpy.ndarray
+        """
+        syy_c = self._syy - self._sy**2 / self._sn
+        sty_c = self._sty - self._st * self._sy / self._sn
+        stt_c = self._stt - self._st**2 / self._sn
+        return np.maximum(syy_c - sty_c**2 / stt_c, 0.0)
+
+    def design(self) -> tuple[np.ndarray, np.ndarray]:
+        """The series' exposure times (s) and frame counts N_k, float64.
+
+        Returns
+        -------
+        times, weights : numpy.ndarray
+        """
+        return np.asarray(self.times, float), np.asarray(self.n_frames, float)
+
     def to_dict(self) -> dict[str, list]:
         """The series for the provenance and the report plots (times s, levels DN).
 
@@ -237,5 +273,135 @@ class DarkSeries:
         -------
         dict
         """
-        return {"times": self.times, "levels": self.levels, "level_stderr": self.level_stderr,
-                "n_frames": self.n_frames}
+        return {
+            "times": self.times,
+            "levels": self.levels,
+            "level_stderr": self.level_stderr,
+            "n_frames": self.n_frames,
+        }
+
+
+@dataclass(frozen=True)
+class DarkCurrentMap:
+    """The per-photosite dark current, shrunk toward the scalar D, with its standard errors.
+
+    Attributes
+    ----------
+    rate, stderr : numpy.ndarray (float32)
+        Shrunk dark current D_j (>= 0) and its standard error, e-/s.
+    raw, raw_stderr : numpy.ndarray (float32)
+        The per-photosite regression slope divided by g, and its standard error, e-/s.
+    prior_mean, prior_sd : float
+        D and the spread of the dark current over normal photosites (DCNU) beyond the
+        estimation noise, e-/s.
+    outlier_fraction : float
+        Prior probability of a photosite outside the normal population (hot photosites).
+    chi2 : float
+        Residual sum of squares of the per-photosite fits over its expectation under the model
+        (the standard errors are inflated by its square root when above 1).
+    """
+
+    rate: np.ndarray
+    stderr: np.ndarray
+    raw: np.ndarray
+    raw_stderr: np.ndarray
+    prior_mean: float
+    prior_sd: float
+    outlier_fraction: float
+    chi2: float
+
+
+def _slope_variance_terms(times: np.ndarray, weights: np.ndarray) -> tuple[float, float, float, float]:
+    """Var(slope) = A sigma2_R + B g s and E[RSS] = a sigma2_R + b g s of the weighted
+    straight-line fit (weights N_k), when a master dark at t_k has the variance
+    (sigma2_R + g s t_k) / N_k (Eq. 5 averaged over N_k frames, s the dark slope in DN/s)."""
+    X = np.stack([np.ones_like(times), times], axis=1)
+    W = np.diag(weights)
+    L = np.linalg.solve(X.T @ W @ X, X.T @ W)  # coefficients: (b0, slope) = L y
+    R = np.eye(times.size) - X @ L  # residuals: r = R y
+    terms = []
+    for v in (1.0 / weights, times / weights):
+        V = np.diag(v)
+        terms.append(float(L[1] @ V @ L[1]))
+        terms.append(float(np.trace(W @ R @ V @ R.T)))
+    return terms[0], terms[2], terms[1], terms[3]
+
+
+def _population(raw: np.ndarray, clip: float = 5.0) -> np.ndarray:
+    """Photosites within ``clip`` robust standard deviations (1.4826 MAD) of the median."""
+    med = float(np.median(raw))
+    mad = 1.4826 * float(np.median(np.abs(raw - med)))
+    if mad == 0:
+        return np.ones(raw.shape, bool)
+    return np.abs(raw - med) <= clip * mad
+
+
+def shrink_dark_current_map(
+    series: DarkSeries, g: float, sigma2_R: float, D: float, D_stderr: float, min_outlier_fraction: float = 1e-4
+) -> DarkCurrentMap:
+    """Per-photosite dark current with its standard error, shrunk toward D (empirical Bayes).
+
+    The raw estimate is the per-photosite slope of the master-dark level against t (Eq. 7
+    averaged) divided by g. Its standard error follows from the variance of each master dark,
+    (sigma2_R + g^2 D_j t_k) / N_k (Eq. 5), propagated through the regression, and is inflated
+    by sqrt(chi2) when the residuals scatter more than that. The prior is a two-component
+    mixture: the normal population N(D, tau^2) (tau^2 = spread of the raw map minus the mean
+    squared standard error, at least that difference's own standard error) and, with
+    probability pi, a flat component over the range of the map (hot photosites). The result
+    is the posterior mean, floored at 0: a normal photosite moves toward D by the factor
+    se^2 / (tau^2 + se^2), a hot one keeps its regression value.
+
+    Parameters
+    ----------
+    series : DarkSeries
+        The master darks, >= 6 exposure times.
+    g : float
+        Gain, DN per electron.
+    sigma2_R : float
+        Readout variance, DN^2.
+    D, D_stderr : float
+        The scalar dark current and its standard error, e-/s (the prior's centre).
+    min_outlier_fraction : float
+        Lower bound of pi.
+
+    Returns
+    -------
+    DarkCurrentMap
+        Maps in e-/s (float32) and the prior's parameters.
+    """
+    slope = series.slope_map().astype(np.float64)  # DN/s
+    times, weights = series.design()
+    A, B, a, b = _slope_variance_terms(times, weights)
+    s_pos = np.maximum(slope, 0.0)
+    rss = series.residual_map()
+    pop = _population(slope)
+    expected = a * sigma2_R + b * g * s_pos
+    chi2 = float(np.sum(rss[pop]) / np.sum(expected[pop]))
+    raw = slope / g
+    raw_se = np.sqrt(max(chi2, 1.0) * (A * sigma2_R + B * g * s_pos)) / g
+    se2 = raw_se**2
+    # tau^2 by the method of moments, floored at its own standard error so that an unresolved
+    # DCNU is not taken as none (which would state the shrunk map too precise)
+    mean_var = float(np.mean(raw_se[pop] ** 2))
+    tau2 = max(float(np.var(raw[pop])) - mean_var, np.sqrt(2.0 / max(int(pop.sum()), 1)) * mean_var)
+    pi = max(1.0 - float(np.mean(pop)), min_outlier_fraction)
+    # posterior probability of the normal population (densities in 1/(e-/s))
+    span = max(float(raw.max() - raw.min()), 10.0 * float(np.sqrt(tau2 + np.mean(se2))))
+    var_pop = tau2 + se2
+    dens = np.exp(-0.5 * (raw - D) ** 2 / var_pop) / np.sqrt(2 * np.pi * var_pop)
+    p_pop = (1 - pi) * dens / ((1 - pi) * dens + pi / span)
+    shrink = se2 / var_pop  # B_j, the weight of the prior mean
+    m_pop = raw - shrink * (raw - D)
+    v_pop = tau2 * se2 / var_pop + (shrink * D_stderr) ** 2
+    rate = p_pop * m_pop + (1 - p_pop) * raw
+    var = p_pop * (v_pop + (m_pop - rate) ** 2) + (1 - p_pop) * (se2 + (raw - rate) ** 2)
+    return DarkCurrentMap(
+        np.maximum(rate, 0.0).astype(np.float32),
+        np.sqrt(var).astype(np.float32),
+        raw.astype(np.float32),
+        raw_se.astype(np.float32),
+        float(D),
+        float(np.sqrt(tau2)),
+        float(pi),
+        chi2,
+    )

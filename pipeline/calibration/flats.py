@@ -2,13 +2,16 @@
 
 Each flat is dark-corrected, normalised by its clipped spatial mean and accumulated with a
 weight proportional to its level; consecutive flats of one exposure time form the pairs of
-Eq. 16 and of the photon-transfer regression. Units: DN, DN/s, s; a_j is dimensionless.
+Eq. 16 and of the photon-transfer regression. Photosites at or above saturation are censored
+per frame (left out of a_j; pairs censor on the pair mean, see
+:func:`~hdrcap.pipeline.calibration.stats.pair_statistics`); a frame is refused only when most
+of it is clipped. Units: DN, DN/s, s; a_j is dimensionless.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,6 +41,15 @@ class FlatResult:
     n_frames, n_prnu_frames, n_rejected : int
     mean_level : float
         Mean level above dark of the frames in the PRNU map, DN.
+    frames : list of dict
+        Per flat, in input order: ``file``, ``t`` (s), ``level`` (DN above dark),
+        ``clipped`` (photosites at or above v_sat), ``prnu`` (whether it entered a_j) and
+        ``note`` (why not, or what was censored).
+    skipped_pairs : list of dict
+        Pairs that gave no statistics (``files``, ``t``, ``reason``).
+    n_never_measured : int
+        Photosites clipped in every flat of the PRNU map (a_j is then a lower bound with a
+        100 % standard error).
     """
 
     prnu: np.ndarray
@@ -49,14 +61,28 @@ class FlatResult:
     n_prnu_frames: int
     n_rejected: int
     mean_level: float = float("nan")
+    frames: list = field(default_factory=list)
+    skipped_pairs: list = field(default_factory=list)
+    n_never_measured: int = 0
 
 
-def _check_not_saturated(data: np.ndarray, v_sat: float, name: str) -> None:
-    """Refuse a flat with more than 1 % of its photosites at or above ``v_sat`` (DN)."""
-    sat_frac = float(np.count_nonzero(data >= v_sat)) / data.size
-    if sat_frac > 1e-2:
-        raise InputError(f"{name}: flat field is saturated ({100 * sat_frac:.1f} % of photosites at or above "
-                         f"v_sat = {v_sat:.1f} DN); lower the exposure")
+#: A flat with more than this fraction of its photosites clipped is a saturation frame.
+SATURATED_FRACTION = 0.5
+#: A flat with more than this fraction clipped stays out of the PRNU map (a_j near the clip
+#: would be a truncated mean); its pairs still serve the gain.
+PRNU_CLIPPED_FRACTION = 0.01
+
+
+def _clipped(data: np.ndarray, v_sat: float, name: str) -> np.ndarray:
+    """The photosites at or above ``v_sat`` (DN); refuse a flat that is mostly clipped."""
+    clipped = data >= v_sat
+    frac = float(np.count_nonzero(clipped)) / data.size
+    if frac > SATURATED_FRACTION:
+        raise InputError(
+            f"{name}: flat field is saturated ({100 * frac:.1f} % of photosites at or above "
+            f"v_sat = {v_sat:.1f} DN); lower the exposure"
+        )
+    return clipped
 
 
 def _dark_corrected(data: np.ndarray, dark_reference, dark_rate_map: np.ndarray | None, t: float) -> np.ndarray:
@@ -91,16 +117,25 @@ def _prnu_map(mean_map: np.ndarray, err_map: np.ndarray | None) -> tuple[np.ndar
     return prnu, err_map, prnu_std
 
 
-def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: float, sigma2_R: float,
-                   clip: float | None = DEFAULT_CLIP, dark_rate_map: np.ndarray | None = None,
-                   prnu_max_fraction: float = 0.9, mu_R: float | None = None) -> FlatResult:
+def estimate_flats(
+    frames: Iterable,
+    dark_reference: np.ndarray | float,
+    v_sat: float,
+    sigma2_R: float,
+    clip: float | None = DEFAULT_CLIP,
+    dark_rate_map: np.ndarray | None = None,
+    prnu_max_fraction: float = 0.9,
+    mu_R: float | None = None,
+) -> FlatResult:
     """Stream flat fields: the dark-corrected PRNU map a_j (Eq. 14) and the flat pairs.
 
     Each flat f_i is dark-corrected with ``dark_reference`` plus ``dark_rate_map`` * t when
     given, normalised by its clipped spatial mean, and accumulated with weight proportional to
     its level (inverse of its relative shot-noise variance); the clipped weighted mean over
-    frames is renormalised to mean 1 (Eq. 14). Frames above ``prnu_max_fraction`` of
-    saturation only serve the gain.
+    frames is renormalised to mean 1 (Eq. 14). Photosites at or above ``v_sat`` are censored
+    in that frame; frames above ``prnu_max_fraction`` of saturation, or with more than 1 % of
+    their photosites clipped, only serve the gain. Pairs censor photosites whose pair mean lies
+    near ``v_sat``.
 
     Parameters
     ----------
@@ -130,7 +165,7 @@ def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: 
     ------
     InputError
         Mixed sizes, a flat that is dark (level below 3 sigma_R above the bias) or saturated
-        (more than 1 % of photosites at or above v_sat), or no usable flat.
+        (more than half of its photosites at or above v_sat), or no flat for the PRNU map.
     """
     shape = first = None
     stack = None
@@ -139,6 +174,8 @@ def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: 
     pending = None
     n = 0
     prnu_levels: list[float] = []
+    notes: list[dict] = []
+    skipped: list[dict] = []
     sat_span = v_sat - (mu_R if mu_R is not None else float(np.mean(dark_reference)))
     for i, fr in enumerate(frames):
         data = frame_data(fr)
@@ -148,23 +185,31 @@ def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: 
             shape, first = data.shape, name
             stack = PixelStack(shape)
         t = frame_time(fr)
-        _check_not_saturated(data, v_sat, name)
+        clipped = _clipped(data, v_sat, name)
+        n_clipped = int(np.count_nonzero(clipped))
         corr = _dark_corrected(data, dark_reference, dark_rate_map, t)
         level, _, _ = robust_mean_std(corr, clip)
         if level < 3.0 * np.sqrt(sigma2_R):
-            raise InputError(f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
-                             f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)")
+            raise InputError(
+                f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
+                f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)"
+            )
         levels.append((t, float(level), name))
-        if level <= prnu_max_fraction * sat_span:
+        in_prnu, note = _prnu_use(level, sat_span, prnu_max_fraction, n_clipped, data.size)
+        if in_prnu:
             prnu_levels.append(level)
             corr /= level
-            stack.add(corr, weight=_prnu_weight(level))
-        del corr
+            stack.add(corr, weight=_prnu_weight(level), censor=clipped if n_clipped else None)
+        notes.append({"file": name, "t": t, "level": float(level), "clipped": n_clipped, "prnu": in_prnu, "note": note})
+        del corr, clipped
         if pending is not None and same_exposure(pending[1], t):
-            pairs.append(pair_statistics(pending[0], data, clip, t))
+            try:
+                pairs.append(pair_statistics(pending[0], data, clip, t, upper=v_sat))
+            except ValueError as err:  # every photosite censored or clipped away
+                skipped.append({"files": [pending[2], name], "t": t, "reason": str(err)})
             pending = None
         else:
-            pending = (data, t)
+            pending = (data, t, name)
         n += 1
     if n == 0:
         raise InputError("no flat fields given")
@@ -172,6 +217,33 @@ def estimate_flats(frames: Iterable, dark_reference: np.ndarray | float, v_sat: 
         raise InputError(f"every flat field is above {prnu_max_fraction:.0%} of saturation; none can give the PRNU map")
     mean_map, err_map, rejected = stack.result(clip)
     n_prnu = stack.n
-    del stack  # free the sums before building the maps
+    counts = stack.n_uncensored()
+    n_never = 0 if counts is None else int(np.count_nonzero(counts == 0))
+    del stack, counts  # free the sums before building the maps
     prnu, err_map, prnu_std = _prnu_map(mean_map, err_map)
-    return FlatResult(prnu, err_map, prnu_std, pairs, levels, n, n_prnu, rejected, float(np.mean(prnu_levels)))
+    return FlatResult(
+        prnu,
+        err_map,
+        prnu_std,
+        pairs,
+        levels,
+        n,
+        n_prnu,
+        rejected,
+        float(np.mean(prnu_levels)),
+        notes,
+        skipped,
+        n_never,
+    )
+
+
+def _prnu_use(level: float, sat_span: float, max_fraction: float, n_clipped: int, size: int) -> tuple[bool, str]:
+    """Whether a flat at ``level`` DN above dark (``n_clipped`` of ``size`` photosites at or
+    above v_sat; ``sat_span`` DN from bias to v_sat) enters the PRNU map, and why or how."""
+    if level > max_fraction * sat_span:
+        return False, f"above {max_fraction:.0%} of saturation: gain only"
+    if n_clipped > PRNU_CLIPPED_FRACTION * size:
+        return False, f"{100 * n_clipped / size:.2g} % of photosites clipped: gain only"
+    if n_clipped:
+        return True, f"{n_clipped} clipped photosites censored in the PRNU map"
+    return True, ""

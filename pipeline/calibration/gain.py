@@ -1,5 +1,6 @@
 """The camera gain g, DN per electron: from flat pairs (Eq. 16, 17) and by the EMVA 1288
-photon-transfer regression of the pair variance on the mean over 0-70 % of saturation."""
+photon-transfer regression of the pair variance on the mean over 0-70 % of saturation, with
+the dark temporal variance at each pair's exposure time (:class:`DarkVariance`) subtracted."""
 
 from __future__ import annotations
 
@@ -8,10 +9,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..times import unique_exposures
 from .stats import PairStats
 
-__all__ = ["prnu_correction_factor", "gain_from_pair", "gain_from_pairs", "PhotonTransferFit",
-           "photon_transfer_gain"]
+__all__ = [
+    "prnu_correction_factor",
+    "gain_from_pair",
+    "gain_from_pairs",
+    "PhotonTransferFit",
+    "photon_transfer_gain",
+    "DarkVariance",
+    "fit_dark_variance",
+    "usable_pairs",
+    "nonlinearity_warnings",
+]
 
 
 def prnu_correction_factor(mu_X: float, sigma2_a: float, mu_D: float = 0.0) -> float:
@@ -65,8 +76,9 @@ def gain_from_pair(pair: PairStats, mu_R: float, sigma2_R: float, k: float = 1.0
     return float(g), float(pair.variance_stderr / signal / k)
 
 
-def gain_from_pairs(pairs: list[PairStats], mu_R: float, sigma2_R: float, k: float = 1.0,
-                    sigma2_R_stderr: float = 0.0) -> tuple[float, float, list[float]]:
+def gain_from_pairs(
+    pairs: list[PairStats], mu_R: float, sigma2_R: float, k: float = 1.0, sigma2_R_stderr: float = 0.0
+) -> tuple[float, float, list[float]]:
     """Inverse-variance weighted average of Eq. 16 over several flat pairs.
 
     Sec. 6: "several gain estimates obtained from distinct flat frame differences should be
@@ -135,10 +147,14 @@ class PhotonTransferFit:
     saturation: float
 
 
-def photon_transfer_gain(means: Sequence[float] | np.ndarray, variances: Sequence[float] | np.ndarray,
-                         saturation: float, fit_fraction: float = 0.7,
-                         variance_stderr: Sequence[float] | np.ndarray | None = None,
-                         common_stderr: float = 0.0) -> PhotonTransferFit:
+def photon_transfer_gain(
+    means: Sequence[float] | np.ndarray,
+    variances: Sequence[float] | np.ndarray,
+    saturation: float,
+    fit_fraction: float = 0.7,
+    variance_stderr: Sequence[float] | np.ndarray | None = None,
+    common_stderr: float = 0.0,
+) -> PhotonTransferFit:
     """System gain K by the EMVA 1288 photon-transfer method.
 
     Least-squares slope through the origin of sigma^2_y - sigma^2_y.dark against
@@ -192,3 +208,190 @@ def photon_transfer_gain(means: Sequence[float] | np.ndarray, variances: Sequenc
         model = np.hypot(np.sqrt(np.sum(xu**2 * sk**2)) / sxx, common_stderr * np.sum(xu) / sxx)
         se = max(se, float(model))
     return PhotonTransferFit(g, se, x, y, used, float(saturation))
+
+
+@dataclass(frozen=True)
+class DarkVariance:
+    """Temporal variance of a dark frame against exposure time, sigma^2_y.dark(t) = a + b t.
+
+    The readout variance plus the dark shot noise g^2 D t (EMVA 1288 subtracts it, measured at
+    each exposure time, from the variance of the light pairs).
+
+    Attributes
+    ----------
+    intercept : float
+        a, DN^2.
+    slope : float
+        b, DN^2 per second.
+    cov : tuple of float
+        Covariance of (a, b): (var a, cov ab, var b), DN^4, DN^4/s, DN^4/s^2.
+    n_pairs : int
+        Dark pairs in the fit.
+    times : tuple of float
+        Their exposure times, s.
+    """
+
+    intercept: float
+    slope: float
+    cov: tuple[float, float, float]
+    n_pairs: int
+    times: tuple[float, ...]
+
+    def at(self, t: float) -> tuple[float, float]:
+        """The dark temporal variance at ``t`` seconds and its standard error, DN^2.
+
+        Parameters
+        ----------
+        t : float
+            Exposure time, s.
+
+        Returns
+        -------
+        value, stderr : float
+        """
+        va, cab, vb = self.cov
+        return self.intercept + self.slope * t, float(np.sqrt(max(va + 2 * t * cab + t * t * vb, 0.0)))
+
+
+def fit_dark_variance(pairs: Sequence[PairStats]) -> DarkVariance | None:
+    """Weighted straight-line fit of the dark pairs' temporal variance against exposure time.
+
+    Weights are the inverse squared fourth-moment standard errors of the pair variances; the
+    covariance is scaled up by the reduced chi-square when the points scatter more than their
+    errors say.
+
+    Parameters
+    ----------
+    pairs : sequence of PairStats
+        Dark pairs (variance DN^2, exposure time s).
+
+    Returns
+    -------
+    DarkVariance or None
+        None with fewer than two distinct exposure times (the line is not determined).
+    """
+    if len(unique_exposures([p.exposure_time for p in pairs])) < 2:
+        return None
+    t = np.array([p.exposure_time for p in pairs], float)
+    v = np.array([p.variance for p in pairs], float)
+    w = 1.0 / np.maximum(np.array([p.variance_stderr for p in pairs], float), 1e-12) ** 2
+    A = np.stack([np.ones_like(t), t], axis=1)
+    cov = np.linalg.inv(A.T @ (A * w[:, None]))
+    a, b = cov @ (A.T @ (w * v))
+    if t.size > 2:
+        chi2 = float(np.sum(w * (v - a - b * t) ** 2)) / (t.size - 2)
+        cov = cov * max(chi2, 1.0)
+    return DarkVariance(
+        float(a),
+        float(b),
+        (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])),
+        int(t.size),
+        tuple(float(x) for x in t),
+    )
+
+
+#: A pair is left out of the gain when more than this fraction of its photosites is censored
+#: near saturation (its statistics would describe a minority of the sensor).
+MAX_CENSORED_FRACTION = 0.5
+
+
+def usable_pairs(
+    pairs: Sequence[PairStats], mu_R: float, saturation: float, max_censored: float = MAX_CENSORED_FRACTION
+) -> tuple[list[PairStats], list[dict]]:
+    """The flat pairs that can give the gain, and a record of every pair and why.
+
+    A pair is usable when its mean lies above the bias and at most ``max_censored`` of its
+    photosites were censored near saturation; its level does not matter otherwise (censoring
+    keeps its statistics unbiased up to saturation).
+
+    Parameters
+    ----------
+    pairs : sequence of PairStats
+        The flat pairs (DN, DN^2).
+    mu_R : float
+        Bias level, DN.
+    saturation : float
+        Saturation level above the bias, DN (for the recorded fraction).
+    max_censored : float
+        Largest censored fraction of a usable pair.
+
+    Returns
+    -------
+    usable : list of PairStats
+    log : list of dict
+        Per pair: ``t`` (s), ``level`` (DN above bias), ``fraction_of_saturation``, ``n_used``,
+        ``n_censored``, ``used`` (bool) and ``reason``.
+    """
+    usable, log = [], []
+    for p in pairs:
+        level = p.mean - mu_R
+        frac = p.n_censored / max(p.n_used + p.n_rejected, 1)
+        if level <= 0:
+            reason = "at or below the bias level"
+        elif frac > max_censored:
+            reason = f"{100 * frac:.0f} % of photosites censored near saturation"
+        else:
+            reason = ""
+            usable.append(p)
+        log.append(
+            {
+                "t": p.exposure_time,
+                "level": level,
+                "fraction_of_saturation": level / saturation,
+                "n_used": p.n_used,
+                "n_censored": p.n_censored,
+                "used": not reason,
+                "reason": reason or "usable",
+            }
+        )
+    return usable, log
+
+
+def nonlinearity_warnings(
+    means: np.ndarray,
+    variances: np.ndarray,
+    variance_stderr: np.ndarray,
+    g: float,
+    saturation: float,
+    n_sigma: float = 4.0,
+    min_relative: float = 0.01,
+) -> list[str]:
+    """Photon-transfer points that depart from the straight line sigma^2 = g mu.
+
+    A point departs when its variance differs from g mu by more than ``n_sigma`` standard
+    errors and by more than ``min_relative`` of g mu; near saturation this is the sign of a
+    non-linear response (a compressing full well, a clipping ADC), which the gain must not
+    include and a merge should not trust.
+
+    Parameters
+    ----------
+    means, variances, variance_stderr : numpy.ndarray
+        Photon-transfer points: mean above dark (DN), variance above dark (DN^2) and its
+        standard error (DN^2).
+    g : float
+        The gain, DN per electron.
+    saturation : float
+        Saturation level above dark, DN.
+    n_sigma, min_relative : float
+        Thresholds.
+
+    Returns
+    -------
+    list of str
+        One warning naming the lowest departing level (empty when the points are linear).
+    """
+    x = np.asarray(means, float)
+    model = g * x
+    resid = np.asarray(variances, float) - model
+    se = np.asarray(variance_stderr, float)
+    bad = (x > 0) & (np.abs(resid) > n_sigma * se) & (np.abs(resid) > min_relative * model)
+    if not bad.any():
+        return []
+    i = int(np.flatnonzero(bad)[np.argmin(x[bad])])
+    n_above = int(np.count_nonzero(bad & (x >= x[i])))
+    return [
+        f"photon transfer is not linear from {100 * x[i] / saturation:.0f} % of saturation "
+        f"({x[i]:.0f} DN above dark): variance {100 * resid[i] / model[i]:+.1f} % from g mu "
+        f"({resid[i] / se[i]:+.1f} sigma), {n_above} of {int(np.count_nonzero(x >= x[i]))} "
+        "levels from there depart; keep flats for the PRNU map and exposures below this level"
+    ]

@@ -9,6 +9,7 @@ calibration's ``stderr`` and ``provenance["calibration"]``.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -19,12 +20,22 @@ import numpy as np
 
 from ..errors import InputError
 from ..params import Calibration, SensorParams
-from .dark import DarkFit, DarkSeries, MasterDark, stream_master_darks
+from .dark import DarkCurrentMap, DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
+from .defects import DEFECT_BITS, DefectThresholds, defect_counts, hot_defects, neutral_prnu, response_defects
 from .flats import FlatResult, estimate_flats
-from .gain import PhotonTransferFit, gain_from_pairs, photon_transfer_gain, prnu_correction_factor
+from .gain import (
+    DarkVariance,
+    PhotonTransferFit,
+    fit_dark_variance,
+    gain_from_pairs,
+    nonlinearity_warnings,
+    photon_transfer_gain,
+    prnu_correction_factor,
+    usable_pairs,
+)
 from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
-from .stats import DEFAULT_CLIP
+from .stats import DEFAULT_CLIP, PairTap
 
 __all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
 
@@ -42,6 +53,7 @@ class _Record:
     counts: dict[str, int] = field(default_factory=lambda: {"bias": 0, "saturation": 0, "flat": 0, "dark": 0})
     stderr: dict[str, float] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+    dark_variance: DarkVariance | None = None
 
 
 def _readout_step(bias: Iterable, clip: float | None, white_level: float | None, rec: _Record) -> ReadoutEstimate:
@@ -54,23 +66,25 @@ def _readout_step(bias: Iterable, clip: float | None, white_level: float | None,
 
 
 def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
-               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, np.ndarray | None]:
+               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, DarkSeries | None]:
     """Master darks per exposure time (each handed to ``dark_sink``), then the dark-current
-    fit and the per-photosite slope map (DN/s) when the series has >= 6 exposure times."""
+    fit and the series (for the per-photosite maps) when it has >= 6 exposure times."""
     if darks is None:
         return None, None
     shape = None if ro.bias_map is None else ro.bias_map.shape
     series = DarkSeries()
-    for master in stream_master_darks(darks, clip, shape):
+    tap = PairTap(darks, clip)
+    for master in stream_master_darks(tap, clip, shape):
         series.add(master)
         rec.counts["dark"] += master.n_frames
         if dark_sink is not None:
             dark_sink(master)
+    rec.dark_variance = fit_dark_variance(tap.pairs)
     if not series.times:
         return None, None
     rec.info["dark_series"] = series.to_dict()
     if series.n_times() >= 6:
-        return series.fit(), series.slope_map()
+        return series.fit(), series
     if dark_sink is None:
         raise InputError(f"dark current needs dark frames at >= 6 exposure times, got {len(series.times)} "
                          "(or give a dark library to store master darks only)")
@@ -118,45 +132,86 @@ def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: 
     return fl, prnu_stderr
 
 
-def _ptc_points(fl: FlatResult, ro: ReadoutEstimate, dark_fit: DarkFit | None) -> tuple[np.ndarray, np.ndarray]:
-    """Photon-transfer points of the flat pairs: mean above dark (DN; the dark signal at each
-    pair's time removed when known) and variance above the readout variance (DN^2)."""
-    x = np.array([p.mean - ro.mu_R for p in fl.pairs])
-    y = np.array([p.variance - ro.sigma2_R for p in fl.pairs])
-    if dark_fit is not None:
-        x = x - np.array([dark_fit.slope * p.exposure_time for p in fl.pairs])
-    return x, y
+def _response_defect_step(fl: FlatResult, prnu_stderr: np.ndarray | None, ro: ReadoutEstimate,
+                          ) -> tuple[FlatResult, np.ndarray | None, np.ndarray]:
+    """Dead, weak and stuck photosites (:mod:`.defects`); dead and stuck ones get a_j = 1 and
+    the PRNU map and spread are taken over the normal photosites."""
+    defects = response_defects(fl.prnu, prnu_stderr, fl.prnu_std, ro.bias_map, ro.mu_R, ro.sigma2_R, ro.n_frames,
+                               ro.dsnu)
+    prnu, prnu_stderr, prnu_std = neutral_prnu(fl.prnu, prnu_stderr, defects)
+    return dataclasses.replace(fl, prnu=prnu, prnu_std=prnu_std), prnu_stderr, defects
+
+
+def _hot_defect_step(defects: np.ndarray, dmap: DarkCurrentMap | None, rec: _Record) -> np.ndarray:
+    """Add the hot photosites (with a dark series) to the defect map; record the counts."""
+    if dmap is not None:
+        defects[hot_defects(dmap.raw, dmap.raw_stderr, dmap.prior_mean, dmap.prior_sd)] |= DEFECT_BITS["hot"]
+    rec.info["defects"] = {"counts": defect_counts(defects), "hot_measured": dmap is not None,
+                           "thresholds": dataclasses.asdict(DefectThresholds())}
+    return defects
+
+
+def _bias_stderr_map(ro: ReadoutEstimate) -> np.ndarray | None:
+    """Standard error of the offset map, sqrt(sigma2_R / n_bias) DN, as a float32 map."""
+    if ro.bias_map is None:
+        return None
+    return np.full(ro.bias_map.shape, np.sqrt(ro.sigma2_R / ro.n_frames), np.float32)
+
+
+def _ptc_points(pairs: list, ro: ReadoutEstimate, dark_fit: DarkFit | None,
+                dark_var: DarkVariance | None) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """Photon-transfer points of the flat pairs (EMVA 1288): mean above dark (DN) and variance
+    above the dark temporal variance (DN^2), both at each pair's exposure time.
+
+    With a dark-current fit and dark pairs at >= 2 times, the dark mean and the dark temporal
+    variance at the pair's time are subtracted; otherwise neither is (the dark signal then
+    counts as signal in both coordinates, which leaves the slope unbiased). Also returns the
+    standard error common to every point (of the subtracted variance, DN^2) and how the dark
+    was handled.
+    """
+    x = np.array([p.mean - ro.mu_R for p in pairs])
+    times = np.array([p.exposure_time for p in pairs])
+    if dark_fit is None or dark_var is None:
+        y = np.array([p.variance - ro.sigma2_R for p in pairs])
+        why = "no dark fit" if dark_fit is None else "no dark pairs at >= 2 exposure times"
+        return x, y, ro.sigma2_R_stderr, f"readout mean and variance subtracted; dark signal counted as signal ({why})"
+    x = x - dark_fit.slope * times
+    y = np.array([p.variance - dark_var.at(p.exposure_time)[0] for p in pairs])
+    common = dark_var.at(float(np.mean(times)))[1]
+    how = (f"dark mean (fit) and dark temporal variance ({dark_var.n_pairs} dark pairs, "
+           f"{dark_var.slope:.4g} DN^2/s) subtracted at each pair's exposure time")
+    return x, y, common, how
 
 
 def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: DarkFit | None, gain_method: str,
                fit_fraction: float, rec: _Record) -> tuple[float, float]:
-    """g and its standard error, DN per electron: the Eq. 16 average over the flat pairs below
-    80 % of saturation (with the Eq. 17 factor k from the flats' dark/light signal ratio) and
-    the photon-transfer regression over the levels within ``fit_fraction`` of saturation."""
+    """g and its standard error, DN per electron: the Eq. 16 average over every usable flat
+    pair, whatever its level (with the Eq. 17 factor k from the flats' dark/light signal
+    ratio), and the photon-transfer regression over the levels within ``fit_fraction`` of
+    saturation (EMVA 1288). Records which pairs served and why, and warns when the
+    photon-transfer points depart from the line near saturation."""
     t_flat = float(np.mean([p.exposure_time for p in fl.pairs]))
     dark_dn = dark_fit.slope * t_flat if dark_fit is not None else 0.0
     k = prnu_correction_factor(fl.mean_level, fl.prnu_std**2, max(dark_dn, 0.0))
     sat_span = v_sat - ro.mu_R
     g_pairs, g_pairs_se, per_pair = None, None, []
-    ok_pairs = [p for p in fl.pairs if p.mean - ro.mu_R <= 0.8 * sat_span]
+    ok_pairs, pair_log = usable_pairs(fl.pairs, ro.mu_R, sat_span)
     if ok_pairs:
         g_pairs, g_pairs_se, per_pair = gain_from_pairs(ok_pairs, ro.mu_R, ro.sigma2_R, k, ro.sigma2_R_stderr)
-    x, y = _ptc_points(fl, ro, dark_fit)
+    x, y, common_se, dark_how = _ptc_points(ok_pairs, ro, dark_fit, rec.dark_variance)
     n_levels = int(np.unique(np.round(x[(x > 0) & (x <= fit_fraction * sat_span)], 6)).size)
     ptc = None
+    var_se = np.array([p.variance_stderr for p in ok_pairs])
     if n_levels >= 3:
-        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, [p.variance_stderr for p in fl.pairs],
-                                   ro.sigma2_R_stderr)
+        ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, var_se, common_se)
     if gain_method == "ptc" and ptc is None:
         raise InputError(f"the photon-transfer regression needs flat pairs at >= 3 levels within "
                          f"{fit_fraction:.0%} of saturation; got {n_levels}")
-    if gain_method == "pairs" and g_pairs is None:
-        raise InputError("no flat pair below 80 % of saturation for Eq. 16")
+    if g_pairs is None:
+        raise InputError(f"no usable flat pair for the gain (Eq. 16): {pair_log[0]['reason']}")
     if gain_method == "ptc" or (gain_method == "auto" and ptc is not None):
         g, g_se, g_method = ptc.g, ptc.g_stderr, _PTC_METHOD
     else:
-        if g_pairs is None:
-            raise InputError("no flat pair below 80 % of saturation for the gain (Eq. 16)")
         g, g_se, g_method = g_pairs, g_pairs_se, f"flat pairs, Eq. 16-17 (k = {k:.6f}), {len(ok_pairs)} pairs"
     if not (np.isfinite(g) and g > 0):
         raise InputError(f"gain estimate {g!r} is not positive: are the flats really flat and unsaturated?")
@@ -164,6 +219,15 @@ def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: Dark
     rec.info["gain_method"] = g_method
     rec.info["gain_pairs"] = {"g": g_pairs, "g_stderr": g_pairs_se, "per_pair": per_pair, "k_eq17": k}
     rec.info["ptc"] = _ptc_info(ptc, x, y, sat_span)
+    rec.info["ptc"]["dark_correction"] = dark_how
+    for entry, in_fit in zip((e for e in pair_log if e["used"]), x <= fit_fraction * sat_span, strict=True):
+        entry["ptc_fit"] = bool(in_fit and ptc is not None)
+    rec.info["flat_pairs"] = pair_log
+    rec.info["flat_frames"] = fl.frames
+    rec.info["flat_pairs_skipped"] = fl.skipped_pairs
+    rec.info["prnu_never_measured"] = fl.n_never_measured
+    rec.info.setdefault("warnings", []).extend(
+        nonlinearity_warnings(x, y, np.hypot(var_se, common_se), g, sat_span))
     rec.info["flat_levels"] = [{"t": t, "level": lv, "file": nm} for t, lv, nm in fl.levels]
     rec.info["prnu_frames"] = fl.n_prnu_frames
     rec.info["prnu_rejected_samples"] = fl.n_rejected
@@ -178,16 +242,20 @@ def _ptc_info(ptc: PhotonTransferFit | None, x: np.ndarray, y: np.ndarray, sat_s
             "used": ptc.used.tolist(), "saturation": ptc.saturation}
 
 
-def _dark_current_step(dark_fit: DarkFit | None, dark_slope_map: np.ndarray | None, g: float, g_se: float,
-                       rec: _Record) -> tuple[float, np.ndarray | None]:
-    """D in electrons per second (clipped at 0) and the per-photosite map, from the DN/s fit."""
+def _dark_current_step(dark_fit: DarkFit | None, series: DarkSeries | None, g: float, g_se: float,
+                       sigma2_R: float, rec: _Record) -> tuple[float, Any]:
+    """D in electrons per second (clipped at 0) and the per-photosite map with its standard
+    error, shrunk toward D (:func:`~.dark.shrink_dark_current_map`), from the DN/s fit."""
     if dark_fit is None:
         return 0.0, None
     D = max(dark_fit.slope / g, 0.0)
     rec.stderr["dark_current"] = float(np.hypot(dark_fit.slope_stderr / g, D * g_se / g))
     rec.info["dark_fit"] = {"slope_DN_per_s": dark_fit.slope, "slope_stderr": dark_fit.slope_stderr,
                             "intercept_DN": dark_fit.intercept, "D_raw_e_per_s": dark_fit.slope / g}
-    return D, (dark_slope_map / g).astype(np.float32)
+    dmap = shrink_dark_current_map(series, g, sigma2_R, D, rec.stderr["dark_current"])
+    rec.info["dark_map"] = {"prior_sd_e_per_s": dmap.prior_sd, "outlier_fraction": dmap.outlier_fraction,
+                            "chi2": dmap.chi2, "raw_negative_fraction": float(np.mean(dmap.raw < 0))}
+    return D, dmap
 
 
 def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterable | None = None,
@@ -241,11 +309,14 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
         raise ValueError(f"gain_method must be auto, pairs or ptc, got {gain_method!r}")
     rec = _Record()
     ro = _readout_step(bias, clip, white_level, rec)
-    dark_fit, dark_slope_map = _dark_step(darks, ro, clip, dark_sink, rec)
+    dark_fit, dark_series = _dark_step(darks, ro, clip, dark_sink, rec)
+    dark_slope_map = dark_series.slope_map() if dark_series is not None else None
     v_sat, sat_map = _saturation_step(saturation, white_level, ro, clip, rec)
     fl, prnu_stderr = _flat_step(flats, ro, v_sat, clip, dark_slope_map, rec)
+    fl, prnu_stderr, defects = _response_defect_step(fl, prnu_stderr, ro)
     g, g_se = _gain_step(fl, ro, v_sat, dark_fit, gain_method, fit_fraction, rec)
-    D, dmap = _dark_current_step(dark_fit, dark_slope_map, g, g_se, rec)
+    D, dmap = _dark_current_step(dark_fit, dark_series, g, g_se, ro.sigma2_R, rec)
+    defects = _hot_defect_step(defects, dmap, rec)
     if fl.prnu_stderr is not None:
         rec.stderr["prnu_std"] = float(fl.prnu_std / np.sqrt(2 * fl.prnu.size)) if fl.prnu_std > 0 else 0.0
     prov: dict[str, Any] = dict(provenance or {})
@@ -258,9 +329,11 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
     prov["n_frames"] = int(sum(rec.counts.values()))
     prov["prnu_std"] = fl.prnu_std
     prov["calibration"] = rec.info
-    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map, dark_current_map=dmap,
+    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map,
+                       dark_current_map=None if dmap is None else dmap.rate,
                        stderr={k: float(v) for k, v in rec.stderr.items()}, provenance=prov,
-                       prnu_stderr=prnu_stderr, saturation_map=sat_map)
+                       prnu_stderr=prnu_stderr, saturation_map=sat_map, bias_map_stderr=_bias_stderr_map(ro),
+                       dark_current_map_stderr=None if dmap is None else dmap.stderr, defect_map=defects)
 
 
 def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None,
@@ -322,8 +395,9 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
     -------
     dict
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
-        each scalar's standard error, the frame count and the gain method, then the entries
-        above that are given.
+        each scalar's standard error, the frame count, the gain method, the defect counts
+        (``defects``: dead, weak, hot, stuck, total; None when not measured) and the warnings (e.g.
+        a non-linear photon transfer near saturation), then the entries above that are given.
     """
     p = calib.params
     prov = calib.provenance
@@ -340,6 +414,8 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
         "dark_current": p.dark_current, "dark_current_stderr": se.get("dark_current"),
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
+        "defects": prov.get("calibration", {}).get("defects", {}).get("counts"),
+        "warnings": list(prov.get("calibration", {}).get("warnings", [])),
     }
     if output is not None:
         summary["output"] = str(output)
@@ -353,7 +429,8 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
 
 
 def format_summary(summary: Mapping[str, Any]) -> str:
-    """The summary as one line of text: g, mu_R, sigma2_R, v_sat, D and the PRNU.
+    """The summary as text: g, mu_R, sigma2_R, v_sat, D, the PRNU and the defects on one line,
+    then one line per warning.
 
     Parameters
     ----------
@@ -367,4 +444,13 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     s = summary
     return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
             f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %")
+            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %" + _defect_text(s)
+            + "".join(f"\nwarning: {w}" for w in s.get("warnings") or ()))
+
+
+def _defect_text(summary: Mapping[str, Any]) -> str:
+    """``  defects: N (dead a, weak b, hot c, stuck d)`` when the summary has defect counts."""
+    c = summary.get("defects")
+    if not c:
+        return ""
+    return f"  defects: {c['total']} ({', '.join(f'{k} {c[k]}' for k in DEFECT_BITS)})"

@@ -1,0 +1,242 @@
+"""Whole-command benchmark: `hdrcap merge` against HDRMerge on a simulated bracket; prints one JSON object.
+
+Both tools run as commands from the DNG files to their output file, alternating, best of
+``--repeats`` each, in the same run (quote ratios from one run: the machine may be shared):
+
+* HDRMerge: ``hdrmerge -o out.dng frame_*.dng`` on the 6 bright frames (``QT_QPA_PLATFORM=offscreen``).
+* hdrcap: the installed ``hdrcap merge`` console script on the 6 frames + 6 matched dark frames,
+  with a calibration file that has the sensor's PRNU and dark-current maps, default options
+  and default EXR settings.
+
+Peak memory is each process's maximum resident set (``os.wait4``). The same run also times,
+in this process, the parts of hdrcap's command: reading the 12 files (direct DNG decoding,
+and LibRaw for comparison), ``check_frames``, the merge kernel on the frames in memory, and
+the EXR write; ``--exr-table`` adds the size and write time of every EXR compression and
+channel precision.
+
+Usage::
+
+    python benchmarks/bench_command.py --setup        # apt-get install -y hdrmerge
+    python benchmarks/bench_command.py [--mpix 24] [--repeats 3] [--exr-table]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+TIMES = (1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0)
+CAMERA = "camera-A"
+
+
+def shape_for(mpix: float) -> tuple[int, int]:
+    """(height, width) of a 3:2 mosaic of about ``mpix`` megapixels, even sides."""
+    w = round(np.sqrt(mpix * 1e6 * 3 / 2) / 2) * 2
+    h = round(mpix * 1e6 / w / 2) * 2
+    return h, w
+
+
+#: Runs a command and reports its wall time and its own peak RSS. A child forked from a large
+#: process inherits that process's RSS high-water mark (Linux keeps it across exec), so the
+#: command is started from this small launcher, never from the benchmark process itself.
+_LAUNCHER = r"""
+import json, os, subprocess, sys, time
+cmd, env = json.loads(sys.argv[1]), json.loads(sys.argv[2])
+t0 = time.perf_counter()
+proc = subprocess.Popen(cmd, env=env)
+_, status, usage = os.wait4(proc.pid, 0)
+wall = time.perf_counter() - t0
+print(json.dumps({"returncode": os.waitstatus_to_exitcode(status), "wall_seconds": wall,
+                  "peak_rss_mb": usage.ru_maxrss / 1024.0}), file=open(sys.argv[3], "w"))
+"""
+
+
+def run_measured(cmd, env=None, cwd=None) -> dict:
+    """Run ``cmd``; return wall time (s), peak RSS (MB, os.wait4), return code, stdout/stderr tails."""
+    with tempfile.TemporaryDirectory(prefix="bench_run_") as tmp:
+        report = Path(tmp) / "report.json"
+        out, err = Path(tmp) / "out", Path(tmp) / "err"
+        with open(out, "w") as fo, open(err, "w") as fe:
+            subprocess.run([sys.executable, "-c", _LAUNCHER, json.dumps([str(c) for c in cmd]),
+                            json.dumps(dict(os.environ if env is None else env)), str(report)],
+                           stdout=fo, stderr=fe, cwd=cwd, check=False)
+        stdout, stderr = out.read_text().strip(), err.read_text().strip()
+        res = json.loads(report.read_text()) if report.exists() else {"returncode": -1, "wall_seconds": None,
+                                                                      "peak_rss_mb": None}
+    return res | {"stdout": stdout.splitlines()[-1] if stdout else "", "stderr": stderr[-400:]}
+
+
+def ensure_hdrmerge() -> bool:
+    """Install HDRMerge with apt-get when it is missing; whether it is on PATH."""
+    if shutil.which("hdrmerge") is None:
+        env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+        if subprocess.call(["apt-get", "install", "-y", "hdrmerge"], env=env) != 0:
+            subprocess.call(["apt-get", "update", "-qq"], env=env)
+            subprocess.call(["apt-get", "install", "-y", "hdrmerge"], env=env)
+    return shutil.which("hdrmerge") is not None
+
+
+def simulate(work: Path, shape) -> dict:
+    """Write the 6 + 6 DNG bracket and a calibration file with PRNU and dark-current maps."""
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.mock_camera.backend import SimulatedCamera
+    from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.pipeline.calibration import save_calibration
+    from hdrcap.pipeline.params import Calibration
+
+    spec = PRESETS[CAMERA]
+    cam = SimulatedCamera(spec, make_scene("hdr", shape, 4.0, 2e5), seed=1)
+    frames = [cam.capture_to(work / f"frame_{i}.dng", t) for i, t in enumerate(TIMES)]
+    darks = [cam.capture_to(work / f"dark_{i}.dng", t, dark=True) for i, t in enumerate(TIMES)]
+    cal = Calibration(spec.nominal_params(), prnu=cam.sensor.prnu.astype(np.float32),
+                      dark_current_map=cam.sensor.dark_current_map().astype(np.float32))
+    cal_path = save_calibration(work / "calibration.npz", cal, force=True)
+    return {"frames": frames, "darks": darks, "calibration": cal_path}
+
+
+def hdrcap_cmd(sim: dict, out: Path) -> list:
+    exe = Path(sys.executable).with_name("hdrcap")
+    return [exe if exe.exists() else "hdrcap", "merge", *sim["frames"], "--darks", *sim["darks"], "--calibration",
+            sim["calibration"], "-o", out, "--force", "--json"]
+
+
+def compare_commands(sim: dict, work: Path, repeats: int, with_hdrmerge: bool) -> dict:
+    """Both commands alternating, one warm-up run each (page cache, numba cache), best of ``repeats``."""
+    henv = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_RUNTIME_DIR=str(work))
+    hdr_out = work / "hdrmerge.dng"
+    runs: dict[str, list] = {"hdrcap": [], "hdrmerge": []}
+
+    def one(tool):
+        if tool == "hdrcap":
+            return run_measured(hdrcap_cmd(sim, work / "hdrcap.exr"))
+        hdr_out.unlink(missing_ok=True)
+        return run_measured(["hdrmerge", "-o", hdr_out, *sim["frames"]], env=henv)
+
+    tools = ["hdrcap"] + (["hdrmerge"] if with_hdrmerge else [])
+    for tool in tools:
+        one(tool)  # warm-up, not counted
+    for _ in range(repeats):
+        for tool in tools:
+            runs[tool].append(one(tool))
+    out = {}
+    for tool in tools:
+        ok = [r for r in runs[tool] if r["returncode"] == 0]
+        best = min(ok, key=lambda r: r["wall_seconds"]) if ok else runs[tool][-1]
+        out[tool] = {"best_seconds": best["wall_seconds"] if ok else None,
+                     "all_seconds": [round(r["wall_seconds"], 3) for r in runs[tool]],
+                     "peak_rss_mb": max(r["peak_rss_mb"] for r in runs[tool]),
+                     "returncode": best["returncode"], "stderr": best["stderr"] if not ok else ""}
+    if out.get("hdrmerge", {}).get("best_seconds") and out["hdrcap"]["best_seconds"]:
+        out["ratio_hdrcap_to_hdrmerge"] = out["hdrcap"]["best_seconds"] / out["hdrmerge"]["best_seconds"]
+    return out
+
+
+def _best(fn, repeats: int):
+    """(best wall time in s, last result) of ``repeats`` calls of ``fn``."""
+    best, res = float("inf"), None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, res
+
+
+def time_parts(sim: dict, repeats: int) -> dict:
+    """hdrcap's command in parts, in this process: read, check_frames, kernel, EXR write."""
+    from hdrcap.pipeline import io as pio
+    from hdrcap.pipeline.calibration import load_calibration
+    from hdrcap.pipeline.merge import merge_arrays
+
+    paths = [*sim["frames"], *sim["darks"]]
+    parts: dict[str, float] = {}
+    parts["read_seconds"], frames = _best(lambda: [pio.read_frame(p) for p in paths], repeats)
+    parts["read_and_touch_seconds"], _ = _best(lambda: [int(pio.read_frame(p).data.max()) for p in paths], repeats)
+    parts["read_libraw_seconds"], _ = _best(lambda: [pio._libraw_decode(Path(p)) for p in paths], repeats)
+    parts["check_frames_seconds"], _ = _best(lambda: (pio.check_frames(frames[:6]),
+                                                      pio.check_frames(frames[6:], "dark frame")), repeats)
+    cal = load_calibration(sim["calibration"])
+    values, darks = [f.data for f in frames[:6]], [f.data for f in frames[6:]]
+    times = [f.exposure_time for f in frames[:6]]
+    small = cal.replace(prnu=cal.prnu[:64], dark_current_map=cal.dark_current_map[:64])
+    merge_arrays([v[:64] for v in values], times, small, darks=[d[:64] for d in darks])  # compile or load the cache
+    parts["kernel_seconds"], res = _best(lambda: merge_arrays(values, times, cal, darks=darks), repeats)
+    image = pio.HdrImage({"irradiance": res.irradiance, "sigma": res.sigma, "nexp": res.nexp}, {"unit": "e-/s"})
+    with tempfile.TemporaryDirectory(prefix="bench_exr_") as tmp:
+        parts["write_seconds"], _ = _best(lambda: pio.write_exr(Path(tmp) / "o.exr", image, force=True), repeats)
+    return parts, image
+
+
+EXR_VARIANTS = {"float32 x3": {}, "sigma half": {"sigma": "half"}, "sigma half, nexp uint": {"sigma": "half",
+                                                                                            "nexp": "uint"}}
+
+
+def exr_table(image, repeats: int) -> dict:
+    """Size (MB) and write time (s) of every compression x precision, and the loss of half sigma."""
+    from hdrcap.pipeline import io as pio
+
+    table = {}
+    sig = image.channels["sigma"]
+    with tempfile.TemporaryDirectory(prefix="bench_exr_") as tmp:
+        path = Path(tmp) / "o.exr"
+        for comp in pio.EXR_COMPRESSIONS:
+            for label, prec in EXR_VARIANTS.items():
+                try:
+                    sec, _ = _best(partial(pio.write_exr, path, image, force=True, compression=comp, precision=prec),
+                                   repeats)
+                except ValueError as err:
+                    table[f"{comp}, {label}"] = {"error": str(err)}
+                    continue
+                read_sec, _ = _best(partial(pio.read_exr, path), 1)
+                table[f"{comp}, {label}"] = {"write_seconds": round(sec, 3), "read_seconds": round(read_sec, 3),
+                                             "megabytes": round(path.stat().st_size / 1e6, 1)}
+        for threads in (1, 2):
+            sec, _ = _best(partial(pio.write_exr, path, image, force=True, threads=threads), repeats)
+            table[f"zip, float32 x3, {threads} thread(s)"] = {"write_seconds": round(sec, 3)}
+    finite = np.isfinite(sig) & (sig != 0)
+    rel = np.abs(sig[finite].astype(np.float16).astype(np.float32) / sig[finite] - 1)
+    table["sigma_half_max_relative_error"] = float(rel.max()) if rel.size else None
+    table["sigma_range"] = [float(np.abs(sig[finite]).min()), float(np.abs(sig[finite]).max())]
+    return table
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--setup", action="store_true", help="install HDRMerge with apt-get, then exit")
+    ap.add_argument("--mpix", type=float, default=24.0, help="megapixels per frame (default 24)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each command (best is reported)")
+    ap.add_argument("--no-hdrmerge", action="store_true", help="time hdrcap only")
+    ap.add_argument("--exr-table", action="store_true", help="also time every EXR compression and precision")
+    ap.add_argument("--work", type=Path, help="keep the simulated files in this folder (default: a temporary one)")
+    args = ap.parse_args(argv)
+    if args.setup:
+        return 0 if ensure_hdrmerge() else 1
+    with_hdrmerge = not args.no_hdrmerge and shutil.which("hdrmerge") is not None
+    shape = shape_for(args.mpix)
+    report = {"mpix": args.mpix, "shape": list(shape), "cpu_count": os.cpu_count(), "frames": len(TIMES),
+              "darks": len(TIMES), "calibration": "PRNU and dark-current maps", "exr": "default (zip, float32)"}
+    if not args.no_hdrmerge and not with_hdrmerge:
+        report["hdrmerge"] = "not on PATH: run with --setup"
+    with tempfile.TemporaryDirectory(prefix="bench_command_") as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        sim = simulate(work, shape)
+        report["commands"] = compare_commands(sim, work, args.repeats, with_hdrmerge)
+        report["hdrcap_parts"], image = time_parts(sim, args.repeats)
+        if args.exr_table:
+            report["exr"] = exr_table(image, args.repeats)
+    print(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
