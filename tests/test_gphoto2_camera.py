@@ -688,7 +688,9 @@ def test_capture_command_sets_iso_and_enforces_on_the_virtual_camera(tmp_path, c
     from hdrcap.acquire.cliutil import resolve_calibration
     from hdrcap.pipeline.calibration.archive import save_calibration
 
-    calib = save_calibration(tmp_path / "calib.npz", resolve_calibration(None, "camera-B"))
+    # a calibration of this camera (the compatibility check refuses a simulator preset's)
+    calib = save_calibration(tmp_path / "calib.npz", resolve_calibration(None, "camera-B").replace(
+        provenance={"camera": "NIKON CORPORATION NIKON D750"}))
     base = ["capture", "--camera", "gphoto2", "--times", "0.01", "--darks", "model", "--block-light", "none",
             "--calibration", calib, "--out", tmp_path / "run", "--no-progress"]
     refused = cli(*base, env=env)

@@ -1,5 +1,6 @@
 """The unattended-rig soak: `hdrcap run` on the simulated camera through its command line, 310
-frames with 20 % busy, 2 % disconnects, 1 % corrupt files and hangs, one full disk (ENOSPC) in
+frames with 20 % busy, 2 % disconnects (half of them followed by two failed reconnects, some
+coming back on a new port), 1 % corrupt files, hangs that ignore the timeout, one full disk (ENOSPC) in
 the middle and one SIGTERM, each followed by `--resume`: every planned frame exactly once,
 hashes right, the HDR output written, every stop reported with its documented exit code."""
 
@@ -59,7 +60,8 @@ backend = "mock"
 preset = "camera-B"
 size = "32x24"
 seed = 21
-faults = { seed = 5, busy_rate = 0.20, disconnect_rate = 0.02, corrupt_rate = 0.01, hang_rate = 0.01, hang_s = 0.01 }
+faults = { seed = 5, busy_rate = 0.20, disconnect_rate = 0.02, corrupt_rate = 0.01, hang_rate = 0.005, hang_s = 0.05, \
+           hang_ignores_timeout = true, reconnect_fail_rate = 0.5, reconnect_failures = 2, renumber_rate = 0.3 }
 
 [scene]
 name = "hdr"
@@ -154,8 +156,12 @@ def test_soak_unattended_rig(tmp_path):
     faults = Counter(e["kind"] for e in events if e["event"] == "fault")
     hangs = sum(1 for e in events if e["event"] == "fault" and "timeout" in e["error"])
     assert faults["busy"] >= 40 and faults["reconnect"] >= 4 and faults["recapture"] >= 1 and hangs >= 1
-    assert sum(1 for e in events if e["event"] == "reconnect" and e["ok"]) >= faults["reconnect"]
+    reconnects = [e for e in events if e["event"] == "reconnect"]
+    failed_reconnects = sum(1 for e in reconnects if not e["ok"])
+    ports = {e.get("port") for e in reconnects if e["ok"]}
+    assert failed_reconnects >= 4 and len(ports) >= 2  # reconnects that failed twice; the port renumbered
     names = [e["event"] for e in events]
     assert names.count("resume") == 2 and names.count("done") == 1  # the 4th start did not touch the run
-    print(f"soak: 310 frames, {sum(faults.values())} faults {dict(faults)} ({hangs} hangs), stops at {n_full} "
-          f"(ENOSPC) and {n_term} (SIGTERM) frames, {time.monotonic() - t0:.1f} s")
+    print(f"soak: 310 frames, {sum(faults.values())} faults {dict(faults)} ({hangs} hangs), {failed_reconnects} failed "
+          f"reconnects, {len(ports)} ports, stops at {n_full} (ENOSPC) and {n_term} (SIGTERM) frames, "
+          f"{time.monotonic() - t0:.1f} s")
