@@ -98,8 +98,8 @@ def resolve_calibration(calibration: str | None, camera: str | None, temperature
         if camera not in PRESETS:
             raise InputError(f"unknown camera preset {camera!r}; choose from {', '.join(PRESETS)}")
         spec = PRESETS[camera]
-        return Calibration(
-            params=spec.nominal_params(temperature),
-            provenance={"source": f"preset {camera} (nominal simulator parameters)"},
-        )
+        prov = {"source": f"preset {camera} (nominal simulator parameters)", "camera": spec.model, "iso": spec.iso}
+        if temperature is not None:
+            prov["temperature"] = temperature
+        return Calibration(params=spec.nominal_params(temperature), provenance=prov)
     raise InputError("no camera model: give --calibration FILE (from `hdrcap calibrate`) or --camera PRESET")
