@@ -75,8 +75,10 @@ def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **m
         click.echo(f"{output}: {len(report.committed)} runs merged, {len(report.skipped)} already there, "
                    f"{len(report.failed)} failed, {report.seconds:.1f} s")
     if report.failed:
-        raise BatchIncomplete(f"{len(report.failed)} of {len(report.failed) + len(report.committed)} runs failed; "
+        err = BatchIncomplete(f"{len(report.failed)} of {len(report.failed) + len(report.committed)} runs failed; "
                               f"recorded in {output} (attribute hdrcap_failed_runs); run again to retry them")
+        err.reported = as_json  # the report above is the JSON answer; no second JSON object
+        raise err
 
 
 command.params.extend(p for p in _merge.params if p.name in SHARED)
