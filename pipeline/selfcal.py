@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .io import RawFrame
+from .io import RawFrame, check_frames
 from .params import Calibration, SensorParams
 
 __all__ = ["SELF_CALIBRATED", "PairEstimate", "SelfCalibration", "check_bracket", "cfa_black_tile",
@@ -490,11 +490,12 @@ def self_calibrate(frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SA
     Raises
     ------
     InputError
-        Mixed cameras, sizes, CFA patterns or ISO; no photosite exposed and unsaturated in
-        two frames of the bracket.
+        Mixed cameras, sizes, CFA patterns or ISO; a frame given twice; no photosite exposed
+        and unsaturated in two frames of the bracket.
     """
     frames = list(frames)
     check_bracket(frames)
+    check_frames(frames)
     notes: list[str] = []
 
     def note(msg: str) -> None:

@@ -16,7 +16,7 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.command("merge")
 @click.argument("frames", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--darks", multiple=True, type=click.Path(path_type=Path), help="Dark frames, one per exposure time (several after one flag); for master exposures, the master dark of that time (several of one time are averaged).")
-@click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate` (its dark library serves master darks).")
+@click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate` (its dark library serves master darks). Without it and --camera the bracket calibrates itself (docs/selfcal.md).")
 @click.option("--camera", help="Use a simulator preset's nominal parameters as the calibration (camera-A, camera-B).")
 @click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).")
 @click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path), help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.")
