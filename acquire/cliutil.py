@@ -106,9 +106,11 @@ def resolve_calibration(calibration: str | None, camera: str | None, temperature
 
 
 def resolve_merge_calibration(calibration: str | None, camera: str | None, frame_paths, times=None, *,
-                              darks: bool = False, warn=None, temperature: float | None = None):
-    """The camera model of a merge: a calibration file or preset when given, else a
-    self-calibration from the bracket (:mod:`pipeline.selfcal`).
+                              darks: bool = False, warn=None, temperature: float | None = None, say=None):
+    """The camera model of a merge: a calibration file or preset when given, else the
+    calibration library's entry for the frames' camera model, ISO and size
+    (:mod:`pipeline.calibration_library`), else a self-calibration from the bracket
+    (:mod:`pipeline.selfcal`).
 
     Parameters
     ----------
@@ -124,6 +126,8 @@ def resolve_merge_calibration(calibration: str | None, camera: str | None, frame
         tolerance (and says so).
     warn : callable, optional
         Called with one-line messages on what was assumed.
+    say : callable, optional
+        Called with one line saying which calibration is used when none was given.
 
     Returns
     -------
@@ -137,7 +141,19 @@ def resolve_merge_calibration(calibration: str | None, camera: str | None, frame
     from hdrcap.pipeline.selfcal import self_calibrate
     from hdrcap.pipeline.times import same_exposure
 
-    sc = self_calibrate(read_frames(frame_paths, times or None), warn=warn)
+    from hdrcap.pipeline.calibration_library import find_calibration, library_dir
+
+    frames = read_frames(frame_paths, times or None)
+    first = frames[0]
+    found = find_calibration(first.camera, first.iso, first.shape)
+    if found is not None:
+        if say is not None:
+            say(f"no --calibration: using {found[0].path} from the calibration library")
+        return found[1], (list(times) if times else None), None
+    sc = self_calibrate(frames, warn=warn)
+    if say is not None:
+        say(f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
+            f"{sc.calibration.provenance['source']}")
     use = list(sc.effective_times)
     if darks and not all(same_exposure(a, b) for a, b in zip(sc.effective_times, sc.nominal_times)):
         if warn is not None:

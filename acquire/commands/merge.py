@@ -68,10 +68,10 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     t0 = time.perf_counter()
     warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
     calib, times, selfcal = resolve_merge_calibration(str(calibration) if calibration else None, camera, frames,
-                                                      times, darks=bool(darks), warn=warn)
-    if selfcal is not None and not as_json:
-        click.echo(f"no --calibration: {selfcal.calibration.provenance['source']} "
-                   f"({_selfcal_summary(selfcal)})", err=True)
+                                                      times, darks=bool(darks), warn=warn,
+                                                      say=lambda m: click.echo(m, err=True))
+    if selfcal is not None:
+        click.echo(f"  {_selfcal_summary(selfcal)}", err=True)
     lib_root = library_root(calib, calibration)
     if dark_strategy == DarkStrategy.MASTER and not (darks or master_dark or lib_root):
         raise InputError("--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
