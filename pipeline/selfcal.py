@@ -167,7 +167,8 @@ class SelfCalibration:
             "gain": {"value": p.g, "stderr": self.fit.get("g_stderr"), "unit": "DN per electron",
                      "estimated": self.gain_known},
             "read_noise_variance": {"value": p.sigma2_R, "stderr": self.fit.get("sigma2_R_stderr"), "unit": "DN^2"},
-            "photon_transfer_fit": {k: self.fit[k] for k in ("reduced_chi2", "n_bins", "n_photosites") if k in self.fit},
+            "photon_transfer_fit": {k: self.fit[k] for k in ("reduced_chi2", "n_bins", "n_photosites")
+                                    if k in self.fit},
             "black_level_per_cfa_position": np.asarray(self.black_tile).tolist(),
             "black_level_source": "file metadata",
             "white_level": p.white_level,
