@@ -74,7 +74,15 @@ def build_hdr_image(result, frames, calibration, extra=None):
     }
     if extra:
         attrs.update(extra)
-    return HdrImage({"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}, attrs)
+    channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
+    quality = getattr(result, "quality", None)
+    if quality is not None:
+        from hdrcap.pipeline.merge import QUALITY_BITS
+
+        channels["quality"] = quality.astype(np.float32)
+        attrs["quality"] = ("bit field, 0 a trusted measurement; any bit: nexp = 0, not a measurement: "
+                            + ", ".join(f"{bit} {name}" for name, bit in QUALITY_BITS.items()))
+    return HdrImage(channels, attrs)
 
 
 def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
@@ -89,15 +97,18 @@ def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
 
 def summary(result) -> dict:
     """Figures of a merge: shape, irradiance range (e-/s), median relative sigma, photosites
-    saturated everywhere, whether everything is finite."""
+    saturated everywhere (defects not counted), defective photosites flagged, whether everything
+    is finite."""
     irr, sig, nexp = result.irradiance, result.sigma, result.nexp
     ok = nexp > 0
+    n_defects = int(result.info.get("defects_flagged", 0))  # nexp = 0 too, saturated or not
     return {
         "shape": list(irr.shape),
         "irradiance_min": float(irr.min()),
         "irradiance_max": float(irr.max()),
         "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
-        "saturated_everywhere": int((~ok).sum()),
+        "saturated_everywhere": int((~ok).sum()) - n_defects,
+        "defects_flagged": n_defects,
         "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
     }
 

@@ -13,7 +13,9 @@ For every photosite, from N exposures (v_i, b_i, t_i):
   average until the change is below ``tolerance`` times max(|mu|, sigma) (Fig. 3). The estimate
   is never clipped (dark photosites may be negative);
 * optionally the full saturation model (Eq. 8-10), maximised by Newton steps;
-* photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound.
+* photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound;
+* defective photosites (the calibration's ``defect_map``): ``nexp = 0``, ``sigma = 0``, and
+  the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value.
 
 Dark strategies (each with its own variance term, see :mod:`pipeline.noise`): ``matched``
 (one dark frame per exposure), ``master`` (per-exposure master darks, or one master dark,
@@ -38,10 +40,17 @@ from .errors import InputError
 from .io import RawFrame, check_exposure_time, check_frames
 from .darks import DarkResolver, default_strategy
 from .noise import DarkStrategy, dark_factor
-from .params import Calibration
+from .params import DEFECT_BITS, Calibration
 from .times import same_exposure
 
-__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy"]
+__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy",
+           "QUALITY_BITS", "quality_channel"]
+
+#: Bits of the per-photosite ``quality`` channel (uint8; 0 a trusted measurement): the
+#: calibration's defect bits (:data:`pipeline.params.DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
+#: 8 stuck) and the merge's own flags (16: saturated in every exposure, the irradiance is a
+#: lower bound). Any bit set means ``nexp = 0`` and ``sigma = 0``: not a measurement.
+QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16}
 
 _SATURATION_MODELS = ("threshold", "probabilistic")
 _PRNU_MODES = ("map", "scalar")
@@ -76,12 +85,14 @@ def as_strategy(value: DarkStrategy | str | None) -> DarkStrategy | None:
 class MergeResult:
     """Irradiance (e-/s per photosite), its standard deviation (same unit) and the number of
     unsaturated exposures used per photosite (0: saturated everywhere, irradiance is a lower
-    bound and sigma is 0). ``info`` records the options and inputs."""
+    bound and sigma is 0; or a defective photosite). ``quality`` says why (uint8 bit field of
+    :data:`QUALITY_BITS`, 0 a trusted measurement). ``info`` records the options and inputs."""
 
     irradiance: np.ndarray
     sigma: np.ndarray
     nexp: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+    quality: np.ndarray | None = None  # uint8 bit field of QUALITY_BITS (None: not computed)
 
 
 @dataclass(frozen=True)
@@ -143,6 +154,42 @@ class MergeOptions:
         out = dataclasses.asdict(self)
         out["dark_strategy"] = None if self.dark_strategy is None else self.dark_strategy.value
         return out
+
+
+def quality_channel(nexp: np.ndarray, defect_map: np.ndarray | None) -> np.ndarray:
+    """The per-photosite quality bit field (:data:`QUALITY_BITS`).
+
+    Parameters
+    ----------
+    nexp : numpy.ndarray
+        Unsaturated exposures used per photosite, as the iterations left it (0: saturated in
+        every exposure, or no usable sample).
+    defect_map : numpy.ndarray or None
+        The calibration's defect bits (uint8, :data:`pipeline.params.DEFECT_BITS`), or None.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8, the shape of ``nexp``: defect bits | 16 where ``nexp == 0``.
+    """
+    q = np.where(nexp == 0, np.uint8(QUALITY_BITS["saturated"]), np.uint8(0)).astype(np.uint8)
+    if defect_map is not None:
+        dm = np.asarray(defect_map)
+        if dm.shape != q.shape:
+            raise InputError(f"calibration defect map has shape {dm.shape}, the frames {q.shape}")
+        q |= dm.astype(np.uint8) & np.uint8(sum(DEFECT_BITS.values()))
+    return q
+
+
+def _flag_defects(irr: np.ndarray, sig: np.ndarray, nexp: np.ndarray, defect_map) -> tuple[np.ndarray, int]:
+    """Defective photosites are no measurement: ``nexp = 0`` and ``sigma = 0`` in place (the
+    irradiance keeps the kernel's value, which must not be used); returns the quality channel
+    (:func:`quality_channel`, from ``nexp`` before the change) and the number of defects."""
+    quality = quality_channel(nexp, defect_map)
+    bad = (quality & np.uint8(sum(DEFECT_BITS.values()))) != 0
+    nexp[bad] = 0
+    sig[bad] = 0
+    return quality, int(bad.sum())
 
 
 def _as_frame(arr, shape, what) -> np.ndarray:
@@ -439,6 +486,7 @@ class MergeAccumulator:
                                           opts.saturation == "probabilistic"),
                          MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
         sat = int(stats[:, 0].sum())
+        quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
             **opts.to_dict(),
@@ -453,12 +501,13 @@ class MergeAccumulator:
             "n_frames": len(self._values),
             "n_darks": len(own) + (1 if has_master and 2 in self._kinds else 0),
             "saturated_everywhere": sat,
+            "defects_flagged": n_defects,
             "iterations_used_mean": float(stats[:, 1].sum() / max(irr.size, 1)),
             "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
             "weights_precision": "float32" if single else "float64",
         }
-        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info)
+        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality)
 
 
 def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None,
