@@ -67,6 +67,7 @@ def build_hdr_image(result, frames, calibration, extra=None):
         "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
+        "exposure_times_effective": result.info.get("exposure_times", [fr.exposure_time for fr in frames]),
         "source_files": [fr.path for fr in frames],
         "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
         "hdrcap_version": __version__,
@@ -113,10 +114,12 @@ def summary(result) -> dict:
     }
 
 
-def merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas):
-    """Keyword options of :func:`pipeline.merge.merge_arrays` from the command-line knobs."""
+def merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas,
+                  exposure_times="effective"):
+    """Keyword options of :func:`pipeline.merge.merge_arrays` from the command-line knobs
+    (``exposure_times``: ``effective``, estimated from the bracket, or ``nominal``)."""
     opts = {"iterations": iterations, "tolerance": tolerance, "saturation": saturation, "prnu": prnu,
-            "saturation_sigmas": saturation_sigmas}
+            "saturation_sigmas": saturation_sigmas, "exposure_times": exposure_times}
     if dark_strategy:
         opts["dark_strategy"] = DarkStrategy(dark_strategy)
     if master_dark_frames is not None:

@@ -42,3 +42,15 @@ def calibrated_sensor(spec, seed, shape, *, flat_level=0.75, n_flats=16, n_darks
         dark_sink=dark_sink,
     )
     return sensor, cal
+
+
+def bracket(sensor, X, times, seed):
+    """A bracket of ``X`` (e-/s) at ``times`` (s) and a matched dark frame per time, as
+    RawFrames (seeded)."""
+    rng = np.random.default_rng([seed, 59])
+    white = sensor.spec.white_level
+    frames = [RawFrame(sensor.expose(X, t, rng=rng), t, path=f"f{i}.dng", white_level=white)
+              for i, t in enumerate(times)]
+    darks = [RawFrame(sensor.expose(X, t, dark=True, rng=rng), t, path=f"d{i}.dng", white_level=white)
+             for i, t in enumerate(times)]
+    return frames, darks

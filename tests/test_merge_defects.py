@@ -5,13 +5,13 @@ EXR carries the channel; the denoiser never uses them. Checked against the simul
 
 import numpy as np
 import pytest
-from simcal import calibrated_sensor
+from simcal import bracket, calibrated_sensor
 
 from hdrcap.acquire.filemerge import build_hdr_image, summary
 from hdrcap.mock_camera import preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.denoise import DenoiseSettings, denoise
-from hdrcap.pipeline.io import RawFrame, read_exr, write_exr
+from hdrcap.pipeline.io import read_exr, write_exr
 from hdrcap.pipeline.merge import QUALITY_BITS, merge_frames
 from hdrcap.pipeline.params import DEFECT_BITS
 
@@ -26,11 +26,7 @@ def merged():
     spec = preset("camera-R", stuck_fraction=1e-3, shutter_error=0.0, shutter_jitter=0.0)
     sensor, cal = calibrated_sensor(spec, seed=8, shape=SHAPE)
     X = make_scene("gradient", SHAPE, decades=3.0, x_max=2e5)
-    rng = np.random.default_rng([8, 1])
-    frames = [RawFrame(sensor.expose(X, t, rng=rng), t, path=f"f{i}.dng", white_level=4095)
-              for i, t in enumerate(TIMES)]
-    darks = [RawFrame(sensor.expose(X, t, dark=True, rng=rng), t, path=f"d{i}.dng", white_level=4095)
-             for i, t in enumerate(TIMES)]
+    frames, darks = bracket(sensor, X, TIMES, seed=8)
     res = merge_frames(frames, cal, darks)
     return sensor, cal, X, frames, res
 
