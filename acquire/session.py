@@ -480,6 +480,9 @@ class StreamingMerge:
         Exposure time (s) -> DarkStrategy (or its name); a string: one for all.
     options : dict, optional
         Further :class:`pipeline.merge.MergeOptions` fields (iterations, saturation, prnu, ...).
+        ``exposure_times`` defaults to ``"effective"``: :meth:`result` estimates each frame's
+        effective exposure time from the frames (``pipeline.exposure_ratio``) before the
+        iterations.
     """
 
     def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = DarkStrategy.MATCHED,
@@ -492,6 +495,7 @@ class StreamingMerge:
         self._darks = DarkResolver()
         self.streamed = True
         opts = {k: v for k, v in (options or {}).items() if k not in ("dark_strategy", "n_dark")}
+        opts.setdefault("exposure_times", "effective")  # estimated by the accumulator at the end
         uniform = strategy_for if isinstance(strategy_for, str) and strategy_for != "mixed" else None
         self._acc = MergeAccumulator(calibration, self.shape, dark_strategy=uniform, **opts)
 

@@ -30,13 +30,14 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--dark-strategy", type=click.Choice([s.value for s in DarkStrategy]), default=None, help="For every exposure (overrides a --plan's). Default: the plan's per exposure; else matched with --darks, master with --master-dark, model otherwise. master without --darks/--master-dark: the calibration's dark library.")
 @click.option("--master-dark", type=click.Path(path_type=Path), help="One master dark frame (raw file or 16-bit image) for the master exposures.")
 @click.option("--master-dark-frames", type=click.FloatRange(min=1), default=None, help="Number of frames averaged into each master dark file given here (N; library masters carry their own).")
+@click.option("--exposure-times", "exposure_times", type=click.Choice(["effective", "nominal"]), default="effective", show_default=True, help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.")
 @click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip", show_default=True, help="EXR compression (none/rle write fastest, zip is about a third smaller; zstd is smaller and faster but needs OpenEXR >= 3.4 to read).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
 def command(ctx, frames, darks, calibration, camera, times, plan_file, output, weighting, iterations, tolerance,
-            saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exr_compression,
-            force, as_json):
+            saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exposure_times,
+            exr_compression, force, as_json):
     """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR.
 
     The EXR holds float32 channels irradiance (e-/s per photosite), sigma (its standard
@@ -79,7 +80,7 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     if weighting != "optimal" and weighting not in WEIGHTING_METHODS:
         raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(WEIGHTING_METHODS)}")
     options = merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames,
-                            saturation_sigmas)
+                            saturation_sigmas, exposure_times)
     done = merge_files(frames, calib, options, dark_paths=darks, times=times, weighting=weighting, plan=plan,
                        plan_file=str(plan_file) if plan_file else None, dark_strategy=dark_strategy,
                        master_dark=master_dark, master_dark_frames=master_dark_frames, library=lib_root, given=given,
