@@ -46,10 +46,15 @@ import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ArchiveRun", "Archive", "CHANNELS", "RUN_COORDS", "read_run", "open_archive", "stage_channels"]
+__all__ = ["ArchiveRun", "Archive", "CHANNELS", "OPTIONAL_FILL", "RUN_COORDS", "complete_channels", "read_run", "open_archive", "stage_channels"]
 
 #: The per-photosite variables, as in the EXR of ``hdrcap merge``.
-CHANNELS = ("irradiance", "sigma", "nexp")
+CHANNELS = ("irradiance", "sigma", "nexp", "quality", "sigma_calibration")
+#: Channels a merge may leave out, and the value that stands for "not given" in the archive
+#: (quality 0: no flag; sigma_calibration NaN: not computed). :func:`read_run` leaves
+#: sigma_calibration out again when it is NaN everywhere, so an exported EXR has the merge's
+#: own channels (every merge writes quality).
+OPTIONAL_FILL = {"quality": 0.0, "sigma_calibration": float("nan")}
 #: Coordinates along ``run`` that hold JSON text.
 _JSON_COORDS = ("exposure_times", "plan", "merge_options", "calibration", "header")
 #: Every coordinate along ``run`` (besides ``run`` itself).
@@ -65,7 +70,30 @@ _VAR_ATTRS = {
     "sigma": {"long_name": "standard deviation of irradiance", "units": "count s-1"},
     "nexp": {"long_name": "number of unsaturated exposures used", "units": "1",
              "comment": "0: saturated in every exposure; irradiance is then a lower bound"},
+    "quality": {"long_name": "quality flags (bit field)", "units": "1",
+                "comment": "0: trusted; 1 dead, 2 weak, 4 hot, 8 stuck photosite, 16 saturated in every exposure"},
+    "sigma_calibration": {"long_name": "calibration part of sigma (systematic; averaging does not reduce it)",
+                          "units": "count s-1", "comment": "NaN: not computed for this run"},
 }
+
+
+def complete_channels(channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Every archive channel of a merge's channels as float32, the optional ones filled where
+    the merge left them out (:data:`OPTIONAL_FILL`).
+
+    Parameters
+    ----------
+    channels : dict of str to numpy.ndarray
+        At least ``irradiance``, ``sigma`` and ``nexp`` (2-D, one shape).
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        One contiguous float32 array per name of :data:`CHANNELS`.
+    """
+    shape = np.shape(channels["irradiance"])
+    return {name: np.ascontiguousarray(channels[name], dtype=np.float32) if name in channels
+            else np.full(shape, OPTIONAL_FILL[name], dtype=np.float32) for name in CHANNELS}
 _COORD_ATTRS = {
     "run": {"long_name": "run number in the archive (commit order)"},
     "start_time": {"long_name": "start of the run (UTC)", "standard_name": "time"},
@@ -113,6 +141,10 @@ class ArchiveRun:
     calibration: dict[str, Any] = field(default_factory=dict)
     staged: dict[str, str] = field(default_factory=dict)
     staged_shape: tuple[int, int] = (0, 0)
+
+    def __post_init__(self) -> None:
+        if self.channels:
+            object.__setattr__(self, "channels", complete_channels(self.channels))  # frozen dataclass
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -241,7 +273,14 @@ def read_run(path, index: int):
         raise InputError(f"{path}: run {index} is not in the archive (it holds runs 0..{n - 1})"
                          if n else f"{path}: the archive holds no run yet")
     one = ds.isel(run=index)
-    channels = {name: np.asarray(one[name].values, dtype=np.float32) for name in CHANNELS}
+    channels = {}
+    for name in CHANNELS:
+        if name not in one:
+            continue
+        arr = np.asarray(one[name].values, dtype=np.float32)
+        if name == "sigma_calibration" and np.all(np.isnan(arr)):
+            continue
+        channels[name] = arr
     return HdrImage(channels, json.loads(str(one["header"].values)))
 
 
@@ -485,6 +524,7 @@ def stage_channels(staging: tuple[str, str] | None, key: str, channels: dict[str
     except OSError:
         return {}
     codec, out = _codec(), {}
+    channels = complete_channels(channels)
     for name in CHANNELS:
         final = folder / f"{key}.{name}"
         tmp = folder / f".{key}.{name}.{os.getpid()}.partial"

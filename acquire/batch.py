@@ -258,7 +258,7 @@ def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, st
 def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
     import numpy as np
 
-    from hdrcap.acquire.archive import CHANNELS, ArchiveRun, stage_channels
+    from hdrcap.acquire.archive import ArchiveRun, complete_channels, stage_channels
     from hdrcap.acquire.filemerge import build_hdr_image, library_root, merge_files
 
     calib = _calibration(settings.calibration, settings.camera)
@@ -281,7 +281,7 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
                        library=library_root(calib, settings.calibration), given=lambda n: n in settings.given,
                        warn=warnings.append)
     img = build_hdr_image(done.result, done.frames, calib, done.extra)
-    channels = {k: np.ascontiguousarray(img.channels[k], dtype=np.float32) for k in CHANNELS}
+    channels = complete_channels(img.channels)
     staged = stage_channels(staging, _task_key(source), channels)
     run = ArchiveRun(folder=source.folder, start_time=_start_time(source, done.frames),
                      channels={} if staged else channels, staged=staged, staged_shape=img.shape,

@@ -299,10 +299,11 @@ def preset(name: str, realistic: bool = False, **changes) -> SensorSpec:
     return spec.replace(**changes) if changes else spec
 
 
-def _time_key(t: float) -> int:
-    """An integer naming the nominal exposure time ``t`` (s): nanoseconds below 1 s, else
-    microseconds (so that 1/125 computed two ways maps to one key)."""
-    return int(round(t * 1e9)) if t < 1 else int(round(t * 1e6)) << 1
+def _time_key(t: float) -> tuple[int, int]:
+    """Two integers naming the nominal exposure time ``t`` (s): a unit tag and the time in
+    nanoseconds below 1 s, else in microseconds (so that 1/125 computed two ways maps to one
+    key, and no two distinct times share one)."""
+    return (0, int(round(t * 1e9))) if t < 1 else (1, int(round(t * 1e6)))
 
 
 class SimulatedSensor:
@@ -376,7 +377,7 @@ class SimulatedSensor:
         """
         if self.spec.shutter_error == 0 or t <= 0:
             return 1.0
-        u = np.random.default_rng([self.seed, 5, _time_key(t)]).random()
+        u = np.random.default_rng([self.seed, 5, *_time_key(t)]).random()
         return 1.0 + self.spec.shutter_error * (2.0 * u - 1.0)
 
     def _electrons(

@@ -177,3 +177,14 @@ def test_soft_nonlinearity_near_full_well():
 def test_invalid_effects_refused(bad):
     with pytest.raises(ValueError):
         preset("camera-A", **bad)
+
+
+def test_shutter_errors_of_distinct_times_are_independent():
+    """Times below and above 1 s never share a shutter error (t and 500 t once did), and one
+    nominal time computed two ways keeps one error."""
+    from hdrcap.mock_camera.sensor import SimulatedSensor, preset
+
+    sensor = SimulatedSensor(preset("camera-R"), (24, 24), seed=1)
+    for t in (0.08, 0.6, 0.01, 0.002):
+        assert sensor.shutter_factor(t) != sensor.shutter_factor(500 * t)
+    assert sensor.shutter_factor(1 / 125) == sensor.shutter_factor(0.008)
