@@ -84,6 +84,9 @@ class BatchSettings:
         Frames averaged into each dark file of a master exposure.
     calibration_id : dict
         Calibration identity recorded with every run (:func:`calibration_identity`).
+    sigma_precision : str
+        Storage precision of the uncertainty channels, as ``hdrcap merge --sigma-precision``
+        (the archive holds the values an EXR of ``hdrcap merge`` would hold).
     """
 
     calibration: str | None
@@ -94,6 +97,7 @@ class BatchSettings:
     dark_strategy: str | None = None
     master_dark_frames: float | None = None
     calibration_id: dict[str, Any] = field(default_factory=dict)
+    sigma_precision: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -259,7 +263,8 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
     import numpy as np
 
     from hdrcap.acquire.archive import ArchiveRun, complete_channels, stage_channels
-    from hdrcap.acquire.filemerge import build_hdr_image, library_root, merge_files
+    from hdrcap.acquire.filemerge import build_hdr_image, exr_precision, library_root, merge_files
+    from hdrcap.pipeline.io import as_stored
 
     calib = _calibration(settings.calibration, settings.camera)
     plan = None
@@ -281,7 +286,7 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
                        library=library_root(calib, settings.calibration), given=lambda n: n in settings.given,
                        warn=warnings.append)
     img = build_hdr_image(done.result, done.frames, calib, done.extra)
-    channels = complete_channels(img.channels)
+    channels = complete_channels(as_stored(img.channels, exr_precision(img.channels, settings.sigma_precision)))
     staged = stage_channels(staging, _task_key(source), channels)
     run = ArchiveRun(folder=source.folder, start_time=_start_time(source, done.frames),
                      channels={} if staged else channels, staged=staged, staged_shape=img.shape,

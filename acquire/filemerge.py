@@ -86,6 +86,27 @@ def build_hdr_image(result, frames, calibration, extra=None):
     return HdrImage(channels, attrs)
 
 
+def exr_precision(channels, sigma: str = "auto") -> dict[str, str]:
+    """Storage precision of each merge channel: irradiance float32; sigma and
+    sigma_calibration as ``sigma`` says (``auto``: half where the channel fits half's range, at
+    most 0.05 % lost); nexp and quality as uint (whole numbers, lossless).
+
+    Parameters
+    ----------
+    channels : mapping of str to array
+        The image's channels (only present ones get an entry).
+    sigma : {"auto", "half", "float"}
+        Precision of the uncertainty channels.
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> precision for :func:`hdrcap.pipeline.io.write_exr`.
+    """
+    wanted = {"sigma": sigma, "sigma_calibration": sigma, "nexp": "uint", "quality": "uint"}
+    return {name: p for name, p in wanted.items() if name in channels}
+
+
 def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
     """Median of sigma/|irradiance| over usable photosites (a regular subsample of at most
     ``max_samples`` of them on large images)."""

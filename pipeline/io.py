@@ -46,6 +46,7 @@ __all__ = [
     "read_raw",
     "sha256_file",
     "write_exr",
+    "as_stored",
 ]
 
 RAW_EXTENSIONS = {".dng", ".nef", ".cr2", ".cr3", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
@@ -686,6 +687,27 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
         if not (whole and (arr == np.round(arr)).all()):
             raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
     return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
+
+
+def as_stored(channels, precision: dict[str, str] | None = None) -> dict[str, np.ndarray]:
+    """The channels as :func:`write_exr` stores and :func:`read_exr` returns them: float32,
+    rounded through each channel's storage precision (half keeps 11 significant bits).
+
+    Parameters
+    ----------
+    channels : mapping of str to array
+        2-D channels.
+    precision : dict, optional
+        Channel name -> precision, as for :func:`write_exr` (default float for every channel).
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        float32 arrays equal to what reading the written file gives.
+    """
+    precision = precision or {}
+    return {name: np.ascontiguousarray(_exr_channel(name, arr, precision.get(name, "float")), dtype=np.float32)
+            for name, arr in channels.items()}
 
 
 def _set_exr_threads(openexr, threads: int | None) -> None:

@@ -19,7 +19,7 @@ class BatchIncomplete(HdrcapError):
 
 #: The options of ``hdrcap merge`` that ``hdrcap batch`` takes too (the same click options).
 SHARED = ("calibration", "camera", "weighting", "iterations", "tolerance", "saturation", "saturation_sigmas", "prnu",
-          "dark_strategy", "master_dark_frames")
+          "dark_strategy", "master_dark_frames", "exposure_times", "sigma_precision")
 
 
 @click.command("batch")
@@ -60,9 +60,10 @@ def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **m
     settings = BatchSettings(
         calibration=calibration, camera=o["camera"],
         options=merge_options(o["iterations"], o["tolerance"], o["saturation"], o["prnu"], o["dark_strategy"],
-                              o["master_dark_frames"], o["saturation_sigmas"]),
+                              o["master_dark_frames"], o["saturation_sigmas"], o["exposure_times"]),
         given=given, weighting=o["weighting"], dark_strategy=o["dark_strategy"],
-        master_dark_frames=o["master_dark_frames"], calibration_id=calibration_identity(calibration, o["camera"]))
+        master_dark_frames=o["master_dark_frames"], calibration_id=calibration_identity(calibration, o["camera"]),
+        sigma_precision=o["sigma_precision"])
     report = run_batch(runs, output, settings, workers=workers, scheduler=scheduler, force=force,
                        progress=progress if progress is not None else (None if not as_json else False))
     for w in report.warnings:

@@ -32,12 +32,13 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--master-dark-frames", type=click.FloatRange(min=1), default=None, help="Number of frames averaged into each master dark file given here (N; library masters carry their own).")
 @click.option("--exposure-times", "exposure_times", type=click.Choice(["effective", "nominal"]), default="effective", show_default=True, help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.")
 @click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip", show_default=True, help="EXR compression (none/rle write fastest, zip is about a third smaller; zstd is smaller and faster but needs OpenEXR >= 3.4 to read).")
+@click.option("--sigma-precision", type=click.Choice(["auto", "half", "float"]), default="auto", show_default=True, help="Storage of sigma (and sigma_calibration): half loses at most 0.05 %% of sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always float32; nexp and quality are stored as uint (lossless).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
 def command(ctx, frames, darks, calibration, camera, times, plan_file, output, weighting, iterations, tolerance,
             saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exposure_times,
-            exr_compression, force, as_json):
+            exr_compression, sigma_precision, force, as_json):
     """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR.
 
     The EXR holds float32 channels irradiance (e-/s per photosite), sigma (its standard
@@ -47,7 +48,14 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     """
     from click.core import ParameterSource
 
-    from hdrcap.acquire.filemerge import build_hdr_image, library_root, merge_files, merge_options, summary
+    from hdrcap.acquire.filemerge import (
+        build_hdr_image,
+        exr_precision,
+        library_root,
+        merge_files,
+        merge_options,
+        summary,
+    )
     from hdrcap.pipeline.io import write_exr
     from hdrcap.pipeline.weighting import WEIGHTING_METHODS
     from hdrcap.planner.planfile import read_plan
@@ -90,7 +98,8 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
         from hdrcap.pipeline.selfcal import apply_self_calibration
 
         apply_self_calibration(image, selfcal, times_applied=list(times) == list(selfcal.effective_times))
-    write_exr(output, image, force=force, compression=exr_compression)
+    write_exr(output, image, force=force, compression=exr_compression,
+              precision=exr_precision(image.channels, sigma_precision))
     info = summary(done.result) | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3),
                                    "n_frames": len(done.frames), "n_darks": len(done.darks)}
     if selfcal is not None:
