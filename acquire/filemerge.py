@@ -63,7 +63,9 @@ def build_hdr_image(result, frames, calibration, extra=None):
 
     attrs = {
         "unit": "electrons per second per photosite",
-        "sigma": "standard deviation of irradiance, same unit",
+        "sigma": "total standard uncertainty of irradiance (noise plus calibration error), same unit",
+        "sigma_calibration": "the calibration's part of sigma alone (systematic: more frames do not reduce it), "
+                             "same unit",
         "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
@@ -74,7 +76,10 @@ def build_hdr_image(result, frames, calibration, extra=None):
     }
     if extra:
         attrs.update(extra)
-    return HdrImage({"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}, attrs)
+    channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
+    if getattr(result, "sigma_calibration", None) is not None:
+        channels["sigma_calibration"] = result.sigma_calibration
+    return HdrImage(channels, attrs)
 
 
 def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):

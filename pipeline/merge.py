@@ -37,7 +37,7 @@ import numpy as np
 from .errors import InputError
 from .io import RawFrame, check_exposure_time, check_frames
 from .darks import DarkResolver, default_strategy
-from .noise import DarkStrategy, dark_factor
+from .noise import DarkStrategy, calibration_variance, dark_factor, variance_core
 from .params import Calibration
 from .times import same_exposure
 
@@ -74,14 +74,19 @@ def as_strategy(value: DarkStrategy | str | None) -> DarkStrategy | None:
 
 @dataclass
 class MergeResult:
-    """Irradiance (e-/s per photosite), its standard deviation (same unit) and the number of
-    unsaturated exposures used per photosite (0: saturated everywhere, irradiance is a lower
-    bound and sigma is 0). ``info`` records the options and inputs."""
+    """Irradiance (e-/s per photosite), its total standard uncertainty ``sigma`` (same unit:
+    photon, read and dark-frame noise plus the calibration's per-photosite error), the
+    calibration part alone ``sigma_calibration`` (e-/s; what averaging more frames cannot
+    reduce; zeros when the calibration has no standard errors) and the number of unsaturated
+    exposures used per photosite (0: saturated everywhere, irradiance is a lower bound and
+    both sigmas are 0). ``info`` records the options and inputs (``calibration_error``: which
+    standard errors entered and the common relative scale error of the gain)."""
 
     irradiance: np.ndarray
     sigma: np.ndarray
     nexp: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+    sigma_calibration: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -438,6 +443,8 @@ class MergeAccumulator:
                          IterationOptions(int(opts.iterations), float(opts.tolerance), float(opts.saturation_sigmas),
                                           opts.saturation == "probabilistic"),
                          MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
+        sig_cal, cal_info = self._calibration_budget(irr, nexp)
+        np.sqrt(np.square(sig, dtype=np.float64) + np.square(sig_cal, dtype=np.float64), out=sig, casting="unsafe")
         sat = int(stats[:, 0].sum())
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
@@ -457,8 +464,105 @@ class MergeAccumulator:
             "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
             "weights_precision": "float32" if single else "float64",
+            "calibration_error": cal_info,
         }
-        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info)
+        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, sigma_calibration=sig_cal)
+
+    def _calibration_errors(self) -> tuple[Any, Any, Any, dict[str, Any]]:
+        """The standard errors of the bias level (DN), the dark current (e-/s) and the PRNU gain
+        a_j (dimensionless) the merge uses, as maps or scalars (0: unknown), and a description.
+
+        Without a bias map the photosite's offset is taken as mu_R: its error is the offset
+        non-uniformity (``bias_dsnu_DN`` of the calibration) with the error of mu_R. With
+        ``prnu="scalar"`` (a = 1) the error of a_j is the PRNU spread itself (``prnu_std``)."""
+        cal = self.calibration
+        se = cal.stderr or {}
+        prov = cal.provenance or {}
+        used, missing = [], []
+
+        def pick(name, map_, scalar):
+            if map_ is not None:
+                used.append(f"{name} map")
+                return np.asarray(map_, np.float32)
+            if scalar is not None and np.isfinite(scalar) and scalar > 0:
+                used.append(name)
+                return float(scalar)
+            missing.append(name)
+            return 0.0
+
+        if cal.bias_map is not None:
+            s_b = pick("bias", cal.bias_map_stderr, None)
+        else:
+            dsnu = (prov.get("calibration") or {}).get("bias_dsnu_DN")
+            s_b = pick("bias", None, math.hypot(float(se.get("mu_R", 0.0)), float(dsnu or 0.0)) or None)
+        if cal.dark_current_map is not None:
+            s_d = pick("dark current", cal.dark_current_map_stderr, None)
+        else:
+            s_d = pick("dark current", None, se.get("dark_current"))
+        if self.prnu_used == "map":
+            s_a = pick("PRNU", cal.prnu_stderr, None)
+        else:
+            s_a = pick("PRNU spread (prnu scalar)", None, prov.get("prnu_std"))
+        g_rel = float(se.get("g", 0.0)) / float(cal.params.g)
+        desc = {"included": used, "missing": missing, "gain_relative_stderr": g_rel,
+                "note": "sigma includes the calibration's per-photosite error (sigma_calibration); the gain's "
+                        "relative error is common to every photosite and not included"}
+        return s_b, s_d, s_a, desc
+
+    def _calibration_budget(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, dict]:
+        """sigma_calibration (e-/s, float32) of every photosite: :func:`pipeline.noise.calibration_variance`
+        with the weights at the estimate (Eq. 13) of the samples the merge kept (Eq. 11 and the
+        near-saturation rule, evaluated at the final estimate), computed in blocks of ``rows``."""
+        s_b, s_d, s_a, desc = self._calibration_errors()
+        out = np.zeros(self.shape, np.float32)
+        if not desc["included"]:
+            return out, desc
+        p = self.calibration.params
+        g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
+        sat2 = float(self.options.saturation_sigmas) ** 2
+        times = np.asarray(self._times, np.float64)
+        nk = self._shared_dark_factors()
+        kinds = np.asarray(self._kinds)
+        bias_used = (kinds == 1).astype(np.float64)
+        coefs = np.where(kinds == 0, 0.0, np.asarray(self._coefs, np.float64))
+
+        def block(arg, sl):
+            arr, is_map, scalar = arg
+            return arr[sl].astype(np.float64) if is_map else scalar
+
+        def err_block(e, sl):
+            return e[sl].astype(np.float64) if isinstance(e, np.ndarray) else e
+
+        # Only frames whose dark level comes from the calibration's maps need their weights.
+        needs_weights = bool(np.any(bias_used > 0) or np.any(coefs != 0))
+        for r0 in range(0, self.shape[0], rows):
+            sl = slice(r0, r0 + rows)
+            mu = irr[sl].astype(np.float64)
+            a = block(self._a, sl)
+            if not needs_weights:  # the PRNU term alone: (mu sigma_a / a)^2
+                sa = np.asarray(err_block(s_a, sl), np.float64)
+                out[sl] = np.where(nexp[sl] > 0, np.abs(mu) * sa / a, 0.0)
+                continue
+            D, bias = block(self._D, sl), block(self._bias, sl)
+            u = a * np.maximum(mu, 0.0) + D
+            w = np.empty((len(times),) + mu.shape)
+            for i, (v, d, kind, coef, t) in enumerate(zip(self._values, self._darks, kinds, coefs, times)):
+                if kind == 0:
+                    b = d[sl].astype(np.float64)
+                elif kind == 1:
+                    b = bias + coef * D
+                else:
+                    b = self.master_dark[sl].astype(np.float64) + coef * D
+                vv = v[sl].astype(np.float64)
+                ok = (vv < v_sat) & (b < v_sat) & np.isfinite(vv - b)
+                if sat2 > 0:
+                    gap = v_sat - bias - t * g * u
+                    ok &= (gap > 0) & (gap * gap > sat2 * (g * g * t * u + s2))
+                w[i] = np.where(ok, 1.0 / variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i]), 0.0)
+            var = calibration_variance(mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl),
+                                       err_block(s_a, sl), a)
+            out[sl] = np.where(nexp[sl] > 0, np.sqrt(var), 0.0)
+        return out, desc
 
 
 def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None,
