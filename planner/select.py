@@ -191,7 +191,8 @@ def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Cali
     Parameters
     ----------
     errors : SystematicErrors
-        Its ``prnu`` is the relative PRNU spread.
+        Its ``prnu`` is the relative PRNU spread (what a scalar gain leaves), ``prnu_map`` the
+        map's own relative error (what the map leaves).
     target_lin : float
         Target SNR, linear.
     calibration : Calibration
@@ -204,7 +205,8 @@ def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Cali
     dict
         The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
     """
-    loss = float(10.0 * np.log10(1.0 + (target_lin * errors.prnu) ** 2))
+    # SNR lost at the target by a scalar gain, relative to the map (which has its own error)
+    loss = float(10.0 * np.log10((1.0 + (target_lin * errors.prnu) ** 2) / (1.0 + (target_lin * errors.prnu_map) ** 2)))
     if calibration.prnu is None:
         return {"choice": "scalar", "reason": "the calibration has no PRNU map", "figure": loss,
                 "unit": "dB lost at the target with a scalar gain"}
@@ -212,7 +214,8 @@ def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Cali
         why = f"scalar gain: the PRNU spread {100 * errors.prnu:.3g} % costs {loss:.3f} dB at the target"
         choice = "scalar"
     else:
-        why = f"per-photosite PRNU map: a scalar gain would cost {loss:.3f} dB (spread {100 * errors.prnu:.3g} %)"
+        why = (f"per-photosite PRNU map: a scalar gain would cost {loss:.3f} dB more (spread {100 * errors.prnu:.3g} %, "
+               f"map error {100 * errors.prnu_map:.3g} %)")
         choice = "map"
     return {"choice": choice, "reason": why, "figure": loss, "unit": "dB lost at the target with a scalar gain"}
 
