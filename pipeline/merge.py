@@ -367,6 +367,33 @@ class MergeAccumulator:
         """
         return np.asarray(self._ks, np.float64) * np.asarray(self._dark_groups(), np.float64)
 
+    def _shares_timed_master(self) -> np.ndarray:
+        """Per frame, whether its dark level is the single master dark taken at a known time
+        t_ref (extrapolated by g (t - t_ref) D): such frames, of whatever exposure time, share
+        that master dark's noise, whose variance is (g^2 t_ref D + sigma_R^2)/N (Eq. 5 at
+        t_ref, averaged over N frames).
+
+        Returns
+        -------
+        numpy.ndarray
+            bool per frame.
+        """
+        timed = self.options.master_dark_time is not None
+        return np.array([timed and kind == 2 for kind in self._kinds], bool)
+
+    def _dark_factors(self) -> np.ndarray:
+        """The kernel's dark-level variance factor per frame: :meth:`_shared_dark_factors`, and 0
+        for the frames that share one timed master dark: its noise is common to all of them
+        (whatever their exposure times), so it is added after the kernel as one shared term
+        (:meth:`_shared_terms`), not per frame.
+
+        Returns
+        -------
+        numpy.ndarray
+            Factor per frame, float64.
+        """
+        return np.where(self._shares_timed_master(), 0.0, self._shared_dark_factors())
+
     # -------------------------------------------------------------------------------- result
     def _single_precision_safe(self, values, darks, master) -> bool:
         """Whether the weights and their sums may be computed in float32 (twice the SIMD width):
@@ -436,15 +463,16 @@ class MergeAccumulator:
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
             merge_kernel(values, darks,
                          FrameTable(np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
-                                    self._shared_dark_factors(), times),
+                                    self._dark_factors(), times),
                          CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
                          MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
                          StartSums(self._sum, self._cnt, self.stream),
                          IterationOptions(int(opts.iterations), float(opts.tolerance), float(opts.saturation_sigmas),
                                           opts.saturation == "probabilistic"),
                          MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
-        sig_cal, cal_info = self._calibration_budget(irr, nexp)
-        np.sqrt(np.square(sig, dtype=np.float64) + np.square(sig_cal, dtype=np.float64), out=sig, casting="unsafe")
+        sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp)
+        np.sqrt(np.square(sig, dtype=np.float64) + np.square(sig_cal, dtype=np.float64)
+                + np.square(sig_master, dtype=np.float64), out=sig, casting="unsafe")
         sat = int(stats[:, 0].sum())
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
@@ -509,22 +537,38 @@ class MergeAccumulator:
                         "relative error is common to every photosite and not included"}
         return s_b, s_d, s_a, desc
 
-    def _calibration_budget(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, dict]:
-        """sigma_calibration (e-/s, float32) of every photosite: :func:`pipeline.noise.calibration_variance`
-        with the weights at the estimate (Eq. 13) of the samples the merge kept (Eq. 11 and the
-        near-saturation rule, evaluated at the final estimate), computed in blocks of ``rows``."""
+    def _shared_terms(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The errors common to all exposures of a photosite, propagated to X at the estimate
+        with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
+        rule, evaluated at the final estimate), in blocks of ``rows``:
+
+        * sigma_calibration: :func:`pipeline.noise.calibration_variance` of the calibration's
+          bias, dark-current and PRNU maps;
+        * the noise of one master dark taken at t_ref and shared by every frame extrapolated
+          from it: d mu / d M = -sum_i w_i / (t_i g a) / W over those frames, variance
+          (g^2 t_ref D + sigma_R^2)/N.
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray, dict)
+            sigma_calibration and the master dark's term, e-/s, float32; the description of the
+            calibration's errors.
+        """
         s_b, s_d, s_a, desc = self._calibration_errors()
         out = np.zeros(self.shape, np.float32)
-        if not desc["included"]:
-            return out, desc
+        out_m = np.zeros(self.shape, np.float32)
+        master_used = self._shares_timed_master().astype(np.float64)
+        if not desc["included"] and not master_used.any():
+            return out, out_m, desc
         p = self.calibration.params
         g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
         sat2 = float(self.options.saturation_sigmas) ** 2
         times = np.asarray(self._times, np.float64)
-        nk = self._shared_dark_factors()
+        nk = self._dark_factors()
         kinds = np.asarray(self._kinds)
         bias_used = (kinds == 1).astype(np.float64)
         coefs = np.where(kinds == 0, 0.0, np.asarray(self._coefs, np.float64))
+        t_ref, n_master = self.options.master_dark_time, float(self.options.n_dark)
 
         def block(arg, sl):
             arr, is_map, scalar = arg
@@ -534,7 +578,7 @@ class MergeAccumulator:
             return e[sl].astype(np.float64) if isinstance(e, np.ndarray) else e
 
         # Only frames whose dark level comes from the calibration's maps need their weights.
-        needs_weights = bool(np.any(bias_used > 0) or np.any(coefs != 0))
+        needs_weights = bool(np.any(bias_used > 0) or np.any(coefs != 0) or master_used.any())
         for r0 in range(0, self.shape[0], rows):
             sl = slice(r0, r0 + rows)
             mu = irr[sl].astype(np.float64)
@@ -559,10 +603,16 @@ class MergeAccumulator:
                     gap = v_sat - bias - t * g * u
                     ok &= (gap > 0) & (gap * gap > sat2 * (g * g * t * u + s2))
                 w[i] = np.where(ok, 1.0 / variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i]), 0.0)
-            var = calibration_variance(mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl),
-                                       err_block(s_a, sl), a)
-            out[sl] = np.where(nexp[sl] > 0, np.sqrt(var), 0.0)
-        return out, desc
+            used = nexp[sl] > 0
+            if desc["included"]:
+                var = calibration_variance(mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl),
+                                           err_block(s_a, sl), a)
+                out[sl] = np.where(used, np.sqrt(var), 0.0)
+            if master_used.any():
+                sd_m = np.sqrt((g * g * t_ref * D + s2) / n_master)
+                var = calibration_variance(mu, w, times, g, master_used, 0.0 * coefs, sd_m, 0.0, 0.0, a)
+                out_m[sl] = np.where(used, np.sqrt(var), 0.0)
+        return out, out_m, desc
 
 
 def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None,
