@@ -311,7 +311,8 @@ def test_full_models_selected_where_they_matter():
     d = plan.decisions
     assert plan.feasible
     assert "matched" in plan.darks and d["prnu"]["choice"] == "map"
-    assert d["saturation"]["choice"] == "probabilistic"
+    # the probabilistic model would gain, but is biased near clip levels: not chosen automatically
+    assert d["saturation"]["choice"] == "threshold" and d["saturation"]["figure"] > 0.2
     Xe = np.array(plan.curve["irradiance"])
     # each simpler model would cost more than 0.2 dB somewhere
     simpler_dark = predict_snr(Xe, plan.exposures, cal, "model", errors=errors, prnu="map").snr_db
@@ -476,7 +477,9 @@ def test_saturation_and_iteration_decisions_match_the_real_merge():
                       dark_current_map=sensor.dark_current_map().astype(np.float32))
     plan = plan_exposures(cal, X, 24.0)
     opts = plan.merge_options()
-    assert opts["saturation"] == "probabilistic" and opts["iterations"] >= 2
+    # the probabilistic model's gain is predicted (and checked below) but it is not chosen: it is
+    # biased near each exposure's clip level (benchmarks/bench_honesty.py)
+    assert opts["saturation"] == "threshold" and opts["iterations"] >= 2
     thr = _measured_db(sensor, X, plan.exposures, cal, saturation="threshold", iterations=20)
     prob = _measured_db(sensor, X, plan.exposures, cal, saturation="probabilistic", iterations=20)
     one = _measured_db(sensor, X, plan.exposures, cal, saturation="threshold", iterations=1)
