@@ -243,10 +243,10 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
 
     The merge's probabilistic model (Eq. 8-10) treats the kept samples near v_sat as unbiased
     (a truncated, not a censored, likelihood): its estimate is biased near each exposure's clip
-    level (z mean -0.25 to -0.5 within two sigma of a clip on camera-A, camera-B and camera-R,
-    ``benchmarks/bench_honesty.py``; the threshold rule's is within +-0.05 there once the gain
-    error is removed). Until the censored (Tobit) likelihood is in the merge, a user asks for it
-    with ``--saturation probabilistic``.
+    level (z mean -0.26 to -0.32 for k = (E v - v_sat)/sigma_v in -1..+1 on camera-A and camera-B,
+    against -0.05..+0.01 for the threshold rule, gain error removed; ``benchmarks/bench_honesty.py``;
+    the threshold rule's own bias is in -3..-1, -0.25 to -0.10). Until the censored (Tobit)
+    likelihood is in the merge, a user asks for it with ``--saturation probabilistic``.
 
     Parameters
     ----------
