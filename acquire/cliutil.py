@@ -10,7 +10,7 @@ import click
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ManyValuesCommand", "many_values", "echo_json", "resolve_calibration"]
+__all__ = ["ManyValuesCommand", "many_values", "echo_json", "resolve_calibration", "resolve_merge_calibration"]
 
 
 class ManyValuesCommand(click.Command):
@@ -98,8 +98,66 @@ def resolve_calibration(calibration: str | None, camera: str | None, temperature
         if camera not in PRESETS:
             raise InputError(f"unknown camera preset {camera!r}; choose from {', '.join(PRESETS)}")
         spec = PRESETS[camera]
-        return Calibration(
-            params=spec.nominal_params(temperature),
-            provenance={"source": f"preset {camera} (nominal simulator parameters)"},
-        )
+        prov = {"source": f"preset {camera} (nominal simulator parameters)", "camera": spec.model, "iso": spec.iso}
+        if temperature is not None:
+            prov["temperature"] = temperature
+        return Calibration(params=spec.nominal_params(temperature), provenance=prov)
     raise InputError("no camera model: give --calibration FILE (from `hdrcap calibrate`) or --camera PRESET")
+
+
+def resolve_merge_calibration(calibration: str | None, camera: str | None, frame_paths, times=None, *,
+                              darks: bool = False, warn=None, temperature: float | None = None, say=None):
+    """The camera model of a merge: a calibration file or preset when given, else the
+    calibration library's entry for the frames' camera model, ISO and size
+    (:mod:`pipeline.calibration_library`), else a self-calibration from the bracket
+    (:mod:`pipeline.selfcal`).
+
+    Parameters
+    ----------
+    calibration, camera : str or None
+        As :func:`resolve_calibration`.
+    frame_paths : sequence of path
+        The bracket.
+    times : sequence of float, optional
+        Exposure times (s) overriding the files'.
+    darks : bool
+        Dark frames are given: they are matched to the frames by nominal exposure time, so the
+        merge keeps the nominal times where an effective one differs by more than the matching
+        tolerance (and says so).
+    warn : callable, optional
+        Called with one-line messages on what was assumed.
+    say : callable, optional
+        Called with one line saying which calibration is used when none was given.
+
+    Returns
+    -------
+    (Calibration, list of float or None, SelfCalibration or None)
+        The calibration, the exposure times to merge with (None: the files'), and the
+        self-calibration when one was made.
+    """
+    if calibration or camera:
+        return resolve_calibration(calibration, camera, temperature), (list(times) if times else None), None
+    from hdrcap.acquire.filemerge import read_frames
+    from hdrcap.pipeline.selfcal import self_calibrate
+    from hdrcap.pipeline.times import same_exposure
+
+    from hdrcap.pipeline.calibration_library import find_calibration, library_dir
+
+    frames = read_frames(frame_paths, times or None)
+    first = frames[0]
+    found = find_calibration(first.camera, first.iso, first.shape)
+    if found is not None:
+        if say is not None:
+            say(f"no --calibration: using {found[0].path} from the calibration library")
+        return found[1], (list(times) if times else None), None
+    sc = self_calibrate(frames, warn=warn)
+    if say is not None:
+        say(f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
+            f"{sc.calibration.provenance['source']}")
+    use = list(sc.effective_times)
+    if darks and not all(same_exposure(a, b) for a, b in zip(sc.effective_times, sc.nominal_times)):
+        if warn is not None:
+            warn("effective exposure times differ from the nominal ones, but dark frames are matched by nominal "
+                 "time: the merge uses the nominal times")
+        use = list(sc.nominal_times)
+    return sc.calibration, use, sc

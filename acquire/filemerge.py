@@ -69,6 +69,7 @@ def build_hdr_image(result, frames, calibration, extra=None):
         "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
+        "exposure_times_effective": result.info.get("exposure_times", [fr.exposure_time for fr in frames]),
         "source_files": [fr.path for fr in frames],
         "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
         "hdrcap_version": __version__,
@@ -79,6 +80,13 @@ def build_hdr_image(result, frames, calibration, extra=None):
     channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
     if getattr(result, "sigma_calibration", None) is not None:
         channels["sigma_calibration"] = result.sigma_calibration
+    quality = getattr(result, "quality", None)
+    if quality is not None:
+        from hdrcap.pipeline.merge import QUALITY_BITS
+
+        channels["quality"] = quality.astype(np.float32)
+        attrs["quality"] = ("bit field, 0 a trusted measurement; any bit: nexp = 0, not a measurement: "
+                            + ", ".join(f"{bit} {name}" for name, bit in QUALITY_BITS.items()))
     return HdrImage(channels, attrs)
 
 
@@ -94,23 +102,28 @@ def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
 
 def summary(result) -> dict:
     """Figures of a merge: shape, irradiance range (e-/s), median relative sigma, photosites
-    saturated everywhere, whether everything is finite."""
+    saturated everywhere (defects not counted), defective photosites flagged, whether everything
+    is finite."""
     irr, sig, nexp = result.irradiance, result.sigma, result.nexp
     ok = nexp > 0
+    n_defects = int(result.info.get("defects_flagged", 0))  # nexp = 0 too, saturated or not
     return {
         "shape": list(irr.shape),
         "irradiance_min": float(irr.min()),
         "irradiance_max": float(irr.max()),
         "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
-        "saturated_everywhere": int((~ok).sum()),
+        "saturated_everywhere": int((~ok).sum()) - n_defects,
+        "defects_flagged": n_defects,
         "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
     }
 
 
-def merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas):
-    """Keyword options of :func:`pipeline.merge.merge_arrays` from the command-line knobs."""
+def merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas,
+                  exposure_times="effective"):
+    """Keyword options of :func:`pipeline.merge.merge_arrays` from the command-line knobs
+    (``exposure_times``: ``effective``, estimated from the bracket, or ``nominal``)."""
     opts = {"iterations": iterations, "tolerance": tolerance, "saturation": saturation, "prnu": prnu,
-            "saturation_sigmas": saturation_sigmas}
+            "saturation_sigmas": saturation_sigmas, "exposure_times": exposure_times}
     if dark_strategy:
         opts["dark_strategy"] = DarkStrategy(dark_strategy)
     if master_dark_frames is not None:

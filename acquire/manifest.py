@@ -2,9 +2,12 @@
 
 A run folder holds ``manifest.jsonl``: a first ``{"type": "run", ...}`` record with the plan's
 fingerprint, then one ``{"type": "frame", ...}`` record per verified frame (file, sha256,
-requested and applied settings, timestamps, temperature, camera identity). Lines are only
-ever appended, each written in one ``write`` and flushed to disk (fsync) before the session
-goes on, so a crash loses at most the line being written; a torn last line is ignored on
+requested and applied settings, timestamps, temperature, camera identity), and a last
+``{"type": "complete", "summary": ...}`` once the outputs are written (``--resume`` on such a
+run only re-reports the summary). Lines are only
+ever appended, each written whole (a short ``write`` is continued; one that cannot finish is
+cut back) and flushed to disk (fsync) before the session goes on, so a crash loses at most
+the line being written; a torn last line is ignored on
 reading and the next append starts a fresh line. ``events.jsonl`` logs everything that
 happened (retries, reconnects, light blocking), also as JSON lines.
 """
@@ -12,7 +15,9 @@ happened (retries, reconnects, light blocking), also as JSON lines.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any, Iterator
@@ -44,10 +49,30 @@ def _append_line(path: Path, record: dict) -> None:
                 f.seek(size - 1)
                 if f.read(1) != b"\n":
                     data = b"\n" + data
-        os.write(fd, data)
+        _write_all(fd, data, size)
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _write_all(fd: int, data: bytes, size: int) -> None:
+    """Write all of ``data`` (``os.write`` may write less than asked: a full disk, a signal);
+    when the rest cannot be written the file is cut back to ``size`` bytes, so no torn record
+    stays behind, and the error is raised."""
+    view, done = memoryview(data), 0
+    try:
+        while done < len(data):
+            n = os.write(fd, view[done:])
+            if n <= 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            done += n
+    except OSError:
+        if done:
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass
+        raise
 
 
 def _read_lines(path: Path) -> Iterator[tuple[int, dict | None]]:
@@ -99,6 +124,10 @@ class Manifest:
                 out.pop(rec["key"], None)
         return out
 
+    def completion(self) -> dict | None:
+        """The last ``{"type": "complete"}`` record (written once the run's outputs exist), or None."""
+        return next((r for r in reversed(self.records()) if r["type"] == "complete"), None)
+
     def append(self, record: dict) -> None:
         if "type" not in record:
             raise ValueError("a manifest record needs a type")
@@ -116,14 +145,41 @@ class Manifest:
         return bad
 
 
+#: Log level of each event on the ``hdrcap.run`` logger (others, also ``stop``, whose error the
+#: command prints anyway: INFO).
+EVENT_LEVELS = {"fault": logging.WARNING, "void": logging.WARNING,
+                "reject": logging.WARNING, "frame": logging.INFO}
+_LOG = logging.getLogger("hdrcap.run")
+
+
 class EventLog:
-    """``events.jsonl``: one JSON object per event, always written."""
+    """``events.jsonl``: one JSON object per event, always written, and logged on the
+    ``hdrcap.run`` logger (level :data:`EVENT_LEVELS`; ``hdrcap -v`` shows them all)."""
 
     def __init__(self, run_dir: Path):
         self.path = Path(run_dir) / EVENTS_NAME
 
     def emit(self, event: str, **fields: Any) -> dict:
+        """Append one event and log it.
+
+        Parameters
+        ----------
+        event : str
+            Its name (``start``, ``frame``, ``fault``, ``stop``, ...).
+        **fields
+            JSON-serialisable details.
+
+        Returns
+        -------
+        dict
+            The record written.
+        """
         rec = {"time": utc_now(), "event": event, **fields}
+        level = EVENT_LEVELS.get(event, logging.INFO)
+        if event == "reconnect" and not fields.get("ok", True):
+            level = logging.WARNING
+        if _LOG.isEnabledFor(level):
+            _LOG.log(level, "%s %s %s", self.path.parent.name, event, _json(fields))
         _append_line(self.path, rec)
         return rec
 

@@ -22,17 +22,20 @@ Guarantees
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
 import shutil
 import subprocess
 import sys
-import tempfile
+import signal
+import threading
 import time
-from dataclasses import asdict, dataclass, field
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -42,6 +45,7 @@ from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.times import ExposureMap, find_exposure, same_bulb_exposure, same_exposure
 
 from .camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
+from .compat import CameraProfile, CompatibilityError, check_compatible
 from .manifest import EventLog, Manifest, utc_now
 
 __all__ = [
@@ -50,11 +54,18 @@ __all__ = [
     "RetryPolicy",
     "LightBlocker",
     "SessionError",
+    "RunConflictError",
+    "LocalIOError",
+    "VerificationError",
+    "RunInterrupted",
+    "EXIT_CODES",
     "SessionResult",
     "CaptureSession",
     "StreamingMerge",
     "frame_stem",
     "lock_dir",
+    "stop_on_signals",
+    "hold_run_locks",
 ]
 
 #: Frame kinds; the first two feed the HDR merge, the rest are calibration series.
@@ -63,10 +74,52 @@ DARK_KINDS = ("dark", "bias", "darkseries")
 KINDS = ("light", "dark", "bias", "flat", "saturation", "darkseries")
 
 
+#: Exit statuses of ``hdrcap run``/``capture`` (documented in docs/acquisition.md): what stopped a run.
+EXIT_CODES = {
+    0: "done (or --resume on a finished run: nothing to do)",
+    2: "bad input or configuration (job file, options, calibration of another camera); fix it first",
+    3: "an output file exists; use --force or another run folder",
+    4: "the camera stopped the run (card full, camera gone, gave up retrying); resumable with --resume",
+    5: "conflict: the run folder or camera is locked by another session, or holds another run",
+    6: "local I/O error (disk full, permissions, read-only file system); free space, then --resume",
+    7: "verification failed (a dark frame saw light, a file does not match the plan); fix it, then --resume",
+    130: "interrupted (SIGINT); resumable with --resume",
+    143: "terminated (SIGTERM); resumable with --resume",
+}
+
+
 class SessionError(HdrcapError):
-    """The session stopped (camera gone, card full, gave up retrying, locked run folder)."""
+    """The session stopped on the camera's side (camera gone, card full, gave up retrying):
+    resumable with ``--resume``."""
 
     exit_code = 4
+
+
+class RunConflictError(SessionError):
+    """The run folder or the camera is locked by another session, or the folder holds another run."""
+
+    exit_code = 5
+
+
+class LocalIOError(SessionError):
+    """Our side failed: disk full, permissions, a read-only or vanished file system."""
+
+    exit_code = 6
+
+
+class VerificationError(SessionError):
+    """A frame or the run folder does not match what was planned (light not blocked, wrong file)."""
+
+    exit_code = 7
+
+
+class RunInterrupted(SessionError):
+    """SIGINT or SIGTERM stopped the run between two frames; the run folder is consistent and
+    resumable. ``exit_code`` is 128 + the signal number."""
+
+    def __init__(self, message: str, signum: int = 2):
+        super().__init__(message)
+        self.exit_code = 128 + int(signum)
 
 
 @dataclass(frozen=True)
@@ -288,16 +341,118 @@ class LightBlocker:
 
 def _default_prompt(message: str) -> None:
     if not sys.stdin or not sys.stdin.isatty():
-        raise SessionError(f"light blocking needs a person at a terminal ({message}); "
+        raise InputError(f"light blocking needs a person at a terminal ({message}); "
                            "use block_light = \"command\" for unattended runs")
     input(message + " ")
 
 
+class StopEvent(threading.Event):
+    """A :class:`threading.Event` that remembers the signal that set it (``signum``)."""
+
+    signum: int = 15
+
+    def stop(self, signum: int) -> None:
+        self.signum = int(signum)
+        self.set()
+
+
+@contextmanager
+def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM, signal.SIGINT)) -> Iterator[StopEvent]:
+    """Turn SIGTERM and SIGINT into a clean stop while the block runs.
+
+    The first signal sets the yielded :class:`StopEvent`: a :class:`CaptureSession` given it
+    (``stop=``) ends before the next frame or retry with :class:`RunInterrupted` (exit status
+    128 + the signal number) after logging a ``stop`` event, and the caller closes the camera;
+    the run folder stays resumable. A second signal raises :class:`RunInterrupted` at once.
+    Outside the main thread (where Python cannot install handlers) the event is only yielded.
+
+    Yields
+    ------
+    StopEvent
+        Set by the first signal.
+    """
+    event = StopEvent()
+    if threading.current_thread() is not threading.main_thread():
+        yield event
+        return
+
+    def handler(signum, _frame):
+        if event.is_set():
+            raise RunInterrupted(f"stopped by signal {signum} (second signal); run again with --resume", signum)
+        event.stop(signum)
+
+    previous = {sig: signal.signal(sig, handler) for sig in signals}
+    try:
+        yield event
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
 def lock_dir() -> Path:
-    """Folder of the per-camera lock files (``HDRCAP_LOCK_DIR`` or the system temp folder)."""
-    d = Path(os.environ.get("HDRCAP_LOCK_DIR") or Path(tempfile.gettempdir()) / "hdrcap-locks")
-    d.mkdir(parents=True, exist_ok=True)
+    """Folder of the lock files: ``$HDRCAP_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/hdrcap/locks``
+    (per user, emptied at boot), else the user's state folder
+    (``${XDG_STATE_HOME:-~/.local/state}/hdrcap/locks``). Not the shared /tmp: another user's
+    lock there would be unwritable, and systemd's PrivateTmp gives each service its own /tmp.
+
+    Returns
+    -------
+    Path
+        The folder (created, private to the user).
+    """
+    if os.environ.get("HDRCAP_LOCK_DIR"):
+        d = Path(os.environ["HDRCAP_LOCK_DIR"])
+    elif os.environ.get("XDG_RUNTIME_DIR") and Path(os.environ["XDG_RUNTIME_DIR"]).is_dir():
+        d = Path(os.environ["XDG_RUNTIME_DIR"]) / "hdrcap" / "locks"
+    else:
+        state = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
+        d = Path(state) / "hdrcap" / "locks"
+    try:
+        d.mkdir(parents=True, exist_ok=True, mode=0o700)
+    except OSError as err:
+        raise InputError(f"{d}: cannot create the lock folder ({err.strerror}); set HDRCAP_LOCK_DIR") from None
     return d
+
+
+@contextmanager
+def hold_run_locks(run_dir, camera_key: str | None = None) -> Iterator[None]:
+    """Locks taken before the camera is opened and metering runs: one for the run folder and,
+    when ``camera_key`` is given (a real camera named by the job), one for that camera. Both
+    live in :func:`lock_dir` (the run folder need not exist yet); a held one is a
+    :class:`RunConflictError` (exit 5) before anything touches the camera.
+
+    Parameters
+    ----------
+    run_dir : path
+        The run folder.
+    camera_key : str, optional
+        Names the camera the job asks for (``gphoto2-SERIAL``, ``gphoto2-MODEL``, ...).
+    """
+    from filelock import FileLock, Timeout
+
+    folder = hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
+    wanted = [(f"run-{folder}", f"{run_dir}: another hdrcap session is using this run folder")]
+    if camera_key:
+        wanted.append((f"open-{_safe(camera_key)}", f"camera {camera_key} is in use by another hdrcap session"))
+    held = []
+    try:
+        for name, message in wanted:
+            lock = FileLock(str(lock_dir() / f"{name}.lock"))
+            try:
+                lock.acquire(timeout=0)
+            except Timeout:
+                raise RunConflictError(message) from None
+            held.append(lock)
+        yield
+    finally:
+        for lock in reversed(held):
+            lock.release()
+
+
+def _safe(text: str) -> str:
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
 
 
 def _identity(camera) -> dict:
@@ -325,6 +480,9 @@ class StreamingMerge:
         Exposure time (s) -> DarkStrategy (or its name); a string: one for all.
     options : dict, optional
         Further :class:`pipeline.merge.MergeOptions` fields (iterations, saturation, prnu, ...).
+        ``exposure_times`` defaults to ``"effective"``: :meth:`result` estimates each frame's
+        effective exposure time from the frames (``pipeline.exposure_ratio``) before the
+        iterations.
     """
 
     def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = DarkStrategy.MATCHED,
@@ -337,6 +495,7 @@ class StreamingMerge:
         self._darks = DarkResolver()
         self.streamed = True
         opts = {k: v for k, v in (options or {}).items() if k not in ("dark_strategy", "n_dark")}
+        opts.setdefault("exposure_times", "effective")  # estimated by the accumulator at the end
         uniform = strategy_for if isinstance(strategy_for, str) and strategy_for != "mixed" else None
         self._acc = MergeAccumulator(calibration, self.shape, dark_strategy=uniform, **opts)
 
@@ -411,13 +570,24 @@ class CaptureSession:
     merge_options : dict, optional
         Options of the merge (:class:`pipeline.merge.MergeOptions` fields such as iterations,
         saturation, prnu), e.g. the planner's decisions.
+    stop : threading.Event, optional
+        Set (by a SIGTERM/SIGINT handler, :func:`stop_on_signals`) to end the run cleanly before
+        the next frame or retry: :class:`RunInterrupted`, the run folder resumable.
+    expect : acquire.compat.CameraProfile, optional
+        The camera and ISO every frame must come from (:func:`acquire.compat.check_compatible`
+        on its EXIF make/model and ISO; a mismatch stops the run with :class:`VerificationError`).
+        Without an ISO the first frame's ISO (or the recorded frames' on resume) is the run's.
+        On resume the camera must be the one recorded in the manifest.
     """
 
     def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
                  retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
                  meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05,
-                 master_darks: dict | None = None, merge_options: dict | None = None):
+                 master_darks: dict | None = None, merge_options: dict | None = None, stop=None,
+                 expect: CameraProfile | None = None):
         self.camera = camera
+        self.stop = stop
+        self.expect = expect
         self.run_dir = Path(run_dir)
         self.plan = plan
         self.calibration = calibration
@@ -426,15 +596,16 @@ class CaptureSession:
         self.resume = resume
         self.progress = progress
         self.meta = meta or {}
-        self.sleep = sleep
+        self.sleep = stop.wait if stop is not None and sleep is time.sleep else sleep
         self.check_dark = check_dark
         self.master_darks: ExposureMap[tuple] = ExposureMap((float(t), v) for t, v in (master_darks or {}).items())
         self.merge_options = dict(merge_options or {})
         missing = [t for t in plan.library_times if t not in self.master_darks]
         if missing:
-            raise SessionError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
+            raise InputError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
         self.retries: dict[str, int] = {}
         self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
+        self._frame_bytes = 0
 
     # ------------------------------------------------------------------ public
     def run(self) -> SessionResult:
@@ -453,12 +624,12 @@ class CaptureSession:
         try:
             run_lock.acquire(timeout=0)
         except Timeout:
-            raise SessionError(f"{self.run_dir}: another hdrcap session is using this run folder") from None
+            raise RunConflictError(f"{self.run_dir}: another hdrcap session is using this run folder") from None
         try:
             try:
                 cam_lock.acquire(timeout=0)
             except Timeout:
-                raise SessionError(f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use "
+                raise RunConflictError(f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use "
                                    "by another hdrcap session") from None
             try:
                 return self._run_locked(ident, t0)
@@ -479,6 +650,7 @@ class CaptureSession:
             shutil.rmtree(partial_dir)
         partial_dir.mkdir()
         adopted = self._adopt_landed(done, frames_dir, ident, manifest, log)
+        self._check_free_space(done, log)
         merger = self._replay(done)
         captured, merger = self._capture_missing(done, merger, ident, manifest, log, partial_dir, frames_dir)
         result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
@@ -495,18 +667,28 @@ class CaptureSession:
         """Start the manifest, or (resume) check it was made from this plan and void the frames
         whose file is missing or changed. Returns (frames recorded by key, their number)."""
         fp = self.plan.fingerprint()
-        if not manifest.exists():
+        head = manifest.header() if manifest.exists() else None
+        if head is None and manifest.exists() and (not self.resume or manifest.frames()):
+            # a torn or unreadable header: the plan cannot be checked, so frames are not trusted
+            raise VerificationError(f"{manifest.path}: the run record (first line) is unreadable, so the plan of the "
+                                    "frames there cannot be checked; move the run folder aside and start again")
+        if head is None:  # a new run, or a crash while its first line was written
             manifest.append({"type": "run", "time": utc_now(), "plan_fingerprint": fp, "camera": ident,
                              "plan": self.plan.to_dict(), **self.meta})
             log.emit("start", frames=len(self.plan.frames), camera=ident, run_dir=str(self.run_dir))
             return {}, 0
         if not self.resume:
-            raise SessionError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
-                               "to continue it or choose another run folder")
-        head = manifest.header()
-        if head is not None and head.get("plan_fingerprint") != fp:
-            raise SessionError(f"{self.run_dir}: the run there was made from a different plan; "
-                               "resume with the same job or choose another run folder")
+            raise RunConflictError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
+                                   "to continue it or choose another run folder")
+        if head.get("camera"):
+            try:
+                check_compatible(CameraProfile.from_record(head["camera"], f"the run in {self.run_dir}"),
+                                 CameraProfile.from_record(ident, "the connected camera"))
+            except CompatibilityError as err:
+                raise RunConflictError(f"{err}; resume it with its own camera") from None
+        if head.get("plan_fingerprint") != fp:
+            raise RunConflictError(f"{self.run_dir}: the run there was made from a different plan; "
+                                   "resume with the same job or choose another run folder")
         done = manifest.frames()
         bad = manifest.verify_hashes()
         for key in bad:
@@ -516,6 +698,9 @@ class CaptureSession:
                              "time": utc_now()})
             log.emit("void", key=key, file=rec["file"])
         log.emit("resume", frames_done=len(done), torn_manifest_lines=manifest.torn_lines, voided=len(bad))
+        isos = {r.get("iso") for r in done.values() if r.get("iso") is not None}
+        if self.expect is not None and self.expect.iso is None and len(isos) == 1:
+            self.expect = replace(self.expect, iso=float(isos.pop()))
         return done, len(done)
 
     def _adopt_landed(self, done: dict, frames_dir: Path, ident: dict, manifest: Manifest, log: EventLog) -> int:
@@ -551,7 +736,8 @@ class CaptureSession:
     def _capture_missing(self, done: dict, merger: StreamingMerge | None, ident: dict, manifest: Manifest,
                          log: EventLog, partial_dir: Path, frames_dir: Path) -> tuple[int, StreamingMerge | None]:
         """Capture every planned frame not yet done (light blocked as each needs), feeding the
-        merge; a stop is logged with its reason. Returns (frames captured, the merge)."""
+        merge; a ``frame`` event follows each frame, a stop is logged with its reason and exit
+        code. Returns (frames captured, the merge)."""
         from tqdm import tqdm
 
         todo = [(i, s) for i, s in enumerate(self.plan.frames) if s.key not in done]
@@ -559,33 +745,46 @@ class CaptureSession:
         bar = tqdm(total=len(self.plan.frames), initial=len(self.plan.frames) - len(todo), desc="capture",
                    unit="frame", disable=not show, dynamic_ncols=True)
         captured = 0
+        eta = _Eta([s.exposure_s for _i, s in todo])
         try:
             for i, spec in todo:
+                self._check_stop()
                 self.light.set(self.camera, spec.dark, log)
                 rec, values = self._capture_one(i, spec, ident, manifest, log, partial_dir, frames_dir)
                 done[spec.key] = rec
                 captured += 1
                 if self.calibration is not None:
                     merger = self._feed(merger, rec, values)
+                eta.frame_done(spec.exposure_s)
+                log.emit("frame", key=spec.key, index=i, done=len(done), total=len(self.plan.frames),
+                         eta_s=eta.remaining_s(), temperature_c=rec.get("temperature_c"))
                 bar.update(1)
             if self.light.covered:
                 self.light.set(self.camera, False, log)
-        except CameraError as err:
-            log.emit("stop", reason=str(err), kind=fault_kind(err))
-            raise
-        except SessionError as err:
-            log.emit("stop", reason=str(err))
-            raise
         except OSError as err:  # our side: disk full, permissions
-            log.emit("stop", reason=f"{type(err).__name__}: {err}")
-            raise SessionError(f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
-                               "permissions, then run again with --resume") from None
+            stop = LocalIOError(f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
+                                "permissions, then run again with --resume")
+            _emit_stop(log, stop, kind="local_io")
+            raise stop from None
+        except CameraError as err:
+            _emit_stop(log, err, kind=fault_kind(err))
+            raise
+        except HdrcapError as err:
+            _emit_stop(log, err)
+            raise
         except BaseException as err:
-            log.emit("stop", reason=f"{type(err).__name__}: {err}")
+            _emit_stop(log, err)
             raise
         finally:
             bar.close()
         return captured, merger
+
+    def _check_stop(self) -> None:
+        """Raise :class:`RunInterrupted` when the stop event is set (SIGTERM/SIGINT)."""
+        if self.stop is not None and self.stop.is_set():
+            signum = getattr(self.stop, "signum", 15)
+            raise RunInterrupted(f"{self.run_dir}: stopped by signal {signum} between two frames; "
+                                 "run again with --resume", signum)
 
     def _feed(self, merger: StreamingMerge | None, rec: dict, values: np.ndarray) -> StreamingMerge | None:
         """Hand a verified frame to the merge (created with the first frame: its size)."""
@@ -606,6 +805,7 @@ class CaptureSession:
                      partial_dir: Path, frames_dir: Path):
         last = None
         for attempt in range(1, self.retry.max_attempts + 1):
+            self._check_stop()
             tmp = partial_dir / f"{frame_stem(i, spec)}.try{attempt}.dng"
             try:
                 started = utc_now()
@@ -626,6 +826,7 @@ class CaptureSession:
                     log.emit("recovered", key=spec.key, attempts=attempt)
                 return rec, values
             except Exception as err:  # classify; anything that is not a camera fault propagates
+                _raise_if_local_io(err, partial_dir, self._frame_bytes)
                 kind = fault_kind(err)
                 if kind is None:
                     raise
@@ -663,7 +864,7 @@ class CaptureSession:
         from hdrcap.pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
         if path.suffix.lower() not in RAW_EXTENSIONS | IMAGE_EXTENSIONS:
-            raise SessionError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
+            raise InputError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
                                "image format to RAW (job: [camera] settings = {{ imageformat = \"RAW\" }})")
         try:
             frame = read_frame(path)
@@ -674,12 +875,8 @@ class CaptureSession:
         if frame.shape != self.shape:
             raise CorruptFrameError(f"{path.name}: size {frame.shape} differs from the camera's {self.shape}")
         if spec.dark and self.check_dark:
-            black = frame.black_level or 0.0
-            white = frame.white_level or 65535.0
-            level = float((np.median(frame.data) - black) / max(white - black, 1.0))
-            if level > self.check_dark:
-                raise SessionError(f"{spec.key}: the light is not blocked (dark frame median at {level:.1%} of the "
-                                   f"range); check the light blocking ({self.light.method}) and run again with --resume")
+            self._check_dark(spec, frame)
+        self._check_frame_camera(path, frame)
         bulb = bool(getattr(res, "bulb", False))
         if not (same_bulb_exposure if bulb else same_exposure)(frame.exposure_time, applied):
             raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
@@ -700,9 +897,59 @@ class CaptureSession:
         }
         return rec, frame.data
 
+    def _check_dark(self, spec: FrameSpec, frame) -> None:
+        """A dark frame must be dark: its median below ``check_dark`` of the raw range and, with a
+        calibration, within :func:`dark_excess_limit` of the level the calibration predicts
+        (which catches a light leak at short exposures, far below a fraction of the range)."""
+        black = frame.black_level or 0.0
+        white = frame.white_level or 65535.0
+        median = float(np.median(frame.data))
+        level = (median - black) / max(white - black, 1.0)
+        why = f"dark frame median at {level:.1%} of the range" if level > self.check_dark else ""
+        if not why and self.calibration is not None:
+            p = self.calibration.params
+            expected = p.mu_R + p.g * p.dark_current * frame.exposure_time
+            limit = dark_excess_limit(p, frame.exposure_time, frame.data.size)
+            if median - expected > limit:
+                why = (f"dark frame median {median - expected:.1f} DN above the calibrated dark level "
+                       f"{expected:.1f} DN, more than {limit:.1f} DN")
+        if why:
+            raise VerificationError(f"{spec.key}: the light is not blocked ({why}); check the light blocking "
+                                    f"({self.light.method}) and run again with --resume")
+
+    def _check_frame_camera(self, path: Path, frame) -> None:
+        """The frame's EXIF camera and ISO against :attr:`expect` (the first frame fixes the
+        run's ISO when nothing else did); VerificationError on a mismatch."""
+        if self.expect is None:
+            return
+        got = CameraProfile(f"frame {path.name}", frame.camera or "", "", frame.iso)
+        try:
+            check_compatible(replace(self.expect, temperature_c=None), got)
+        except CompatibilityError as err:
+            raise VerificationError(f"{err}; check the camera's settings (fixed ISO), then run again with "
+                                    "--resume") from None
+        if self.expect.iso is None and frame.iso is not None:
+            self.expect = replace(self.expect, iso=float(frame.iso))
+
+    def _check_free_space(self, done: dict, log: EventLog) -> None:
+        """Refuse to start (LocalIOError, exit 6) when the run folder's file system has no room
+        for the frames still to take and the outputs (:func:`estimate_run_bytes`)."""
+        todo = sum(1 for f in self.plan.frames if f.key not in done)
+        if not todo:
+            return
+        self._frame_bytes = max([self._frame_bytes] + [int(r.get("bytes") or 0) for r in done.values()])
+        need = estimate_run_bytes(todo, self.shape, self._frame_bytes or None, merge=self.calibration is not None)
+        free = shutil.disk_usage(self.run_dir).free
+        if free < need:
+            stop = LocalIOError(f"{self.run_dir}: {free / 1e6:.0f} MB free, the {todo} frames still to take and the "
+                                f"outputs need about {need / 1e6:.0f} MB; free space, then run again with --resume")
+            _emit_stop(log, stop, kind="local_io")
+            raise stop
+
     def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict) -> dict:
         from hdrcap.pipeline.io import sha256_file
 
+        self._frame_bytes = max(self._frame_bytes, final.stat().st_size)
         return {"file": str(final.relative_to(self.run_dir)), "sha256": sha256_file(final),
                 "bytes": final.stat().st_size, "index": i, "camera": ident}
 
@@ -724,12 +971,133 @@ class CaptureSession:
         os.replace(path, target)
 
 
-def _link_new(src: Path, dst: Path) -> None:
-    """Put ``src`` at ``dst`` without ever replacing an existing file."""
+class _Eta:
+    """Time left in a run: the exposures still to take plus the mean overhead per frame so far, s."""
+
+    def __init__(self, exposures: list[float]):
+        self.left = float(sum(exposures))
+        self.t0 = time.monotonic()
+        self.n = 0
+        self.exposed = 0.0
+        self.frames_left = len(exposures)
+
+    def frame_done(self, exposure_s: float) -> None:
+        self.n += 1
+        self.frames_left -= 1
+        self.exposed += exposure_s
+        self.left -= exposure_s
+
+    def remaining_s(self) -> float:
+        overhead = max(0.0, (time.monotonic() - self.t0 - self.exposed) / max(self.n, 1))
+        return round(max(0.0, self.left) + overhead * self.frames_left, 3)
+
+
+#: Bytes of a raw file when neither an earlier frame nor the sensor size tells (a 24 MP raw is
+#: 25-50 MB).
+UNKNOWN_FRAME_BYTES = 50_000_000
+#: Room kept free besides the run's files (manifest, events, file-system slack), bytes.
+FREE_SPACE_MARGIN = 16_000_000
+#: errno values that mean our side failed, not the camera: full disk or quota, read-only or
+#: vanished file system, permissions.
+LOCAL_IO_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.ENODEV})
+
+
+def estimate_run_bytes(n_frames: int, shape: tuple[int, int] | None = None, frame_bytes: int | None = None,
+                       merge: bool = True) -> int:
+    """Disk space a run still needs, bytes: its raw files and (``merge``) the EXR and PNG outputs.
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames still to take.
+    shape : (int, int), optional
+        Raw mosaic size, photosites.
+    frame_bytes : int, optional
+        Size of one raw file, bytes (an earlier frame's); else 2 bytes per photosite plus 1 MB,
+        else :data:`UNKNOWN_FRAME_BYTES`.
+    merge : bool
+        The run writes the merged EXR (4 float32 channels) and a preview PNG.
+
+    Returns
+    -------
+    int
+        Bytes, with :data:`FREE_SPACE_MARGIN`.
+    """
+    pixels = int(np.prod(shape)) if shape else 0
+    per = frame_bytes or (2 * pixels + 1_000_000 if pixels else UNKNOWN_FRAME_BYTES)
+    outputs = (4 * 4 + 3) * pixels if merge else 0
+    return int(n_frames * per + outputs + FREE_SPACE_MARGIN)
+
+
+def dark_excess_limit(params, t: float, n_pixels: int) -> float:
+    """How far a dark frame's median may lie above the calibrated dark level ``mu_R + g D t``
+    before the light counts as not blocked, DN: 2 DN (bias drift, quantisation of the median),
+    plus the dark signal itself (the dark current may double with a few degrees C), plus five
+    standard errors of the median, 1.25 sigma / sqrt(N), with the noise of Eq. (5)
+    sigma^2 = sigma2_R + g^2 D t.
+
+    Parameters
+    ----------
+    params : pipeline.params.SensorParams
+    t : float
+        Exposure time, s.
+    n_pixels : int
+        Photosites in the frame.
+
+    Returns
+    -------
+    float
+        DN.
+    """
+    dark_dn = params.g * params.dark_current * t
+    sigma = float(np.sqrt(params.sigma2_R + params.g * dark_dn))
+    return 2.0 + dark_dn + 5 * 1.25 * sigma / np.sqrt(max(int(n_pixels), 1))
+
+
+def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> None:
+    """A failed download whose cause is our disk (ENOSPC and its kin anywhere in the exception
+    chain, or less room left than one frame) is a LocalIOError, not the camera's fault."""
+    seen, e = set(), err
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in LOCAL_IO_ERRNOS:
+            raise LocalIOError(f"{e.filename or folder}: {e.strerror or e}; free space or fix permissions, then "
+                               "run again with --resume") from None
+        e = e.__cause__ or e.__context__
+    if fault_kind(err) is not None and frame_bytes:
+        try:
+            free = shutil.disk_usage(folder).free
+        except OSError:
+            return
+        if free < frame_bytes:
+            raise LocalIOError(f"{folder}: {free / 1e6:.1f} MB free, less than one frame ({frame_bytes / 1e6:.1f} MB):"
+                               f" the download failed on this computer's disk ({err}); free space, then run again "
+                               "with --resume") from None
+
+
+def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
+    """The ``stop`` event: reason and exit code. A failing event log (disk full) does not hide
+    the error that stopped the run."""
+    fields = {"reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
+              "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130)}
+    kind = kind or ("local_io" if isinstance(err, LocalIOError) else None)
+    if kind:
+        fields["kind"] = kind
     try:
-        os.link(src, dst)
+        log.emit("stop", **fields)
+    except OSError:
+        pass
+
+
+def _link_new(src: Path, dst: Path) -> None:
+    """Put ``src`` at ``dst`` without ever replacing an existing file (also on file systems
+    without hard links, :func:`pipeline.io.place_new`)."""
+    from hdrcap.pipeline.io import place_new
+
+    try:
+        place_new(src, dst)
     except FileExistsError:
-        raise SessionError(f"{dst}: exists already; the run folder is inconsistent") from None
+        raise VerificationError(f"{dst}: exists already; the run folder is inconsistent") from None
 
 
 def _temp(camera) -> float | None:
@@ -740,12 +1108,9 @@ def _temp(camera) -> float | None:
 
 
 def _lock_key(ident: dict) -> str:
-    import re
-
     # a real camera is one device whatever port it is on (serial); a simulated one is one object (port)
     who = ident["serial"] if ident["serial"] and ident["backend"] != "mock" else ident["port"]
-    key = f"{ident['backend']}-{ident['model']}-{who}"
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", key)
+    return _safe(f"{ident['backend']}-{ident['model']}-{who}")
 
 
 def _jsonable(obj):

@@ -83,6 +83,11 @@ class SimulatedCamera:
         else:
             try:
                 os.link(tmp, path)
+            except FileExistsError:
+                raise
+            except OSError:  # no hard links (exFAT/FAT): claim the name exclusively, then rename onto it
+                os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))
+                os.replace(tmp, path)
             finally:
-                tmp.unlink()
+                tmp.unlink(missing_ok=True)
         return path

@@ -43,8 +43,11 @@ single-channel image with steps of one photosite.
 Saturated photosites
 --------------------
 Photosites with ``nexp == 0`` (saturated in every exposure: the irradiance is only a lower
-bound, Sec. 5) are copied unchanged (value and sigma) and are never used as neighbours of
-other photosites: a lower bound is not a measurement to average with.
+bound, Sec. 5; or a defective photosite) are copied unchanged (value and sigma) and are never
+used as neighbours of other photosites: a lower bound is not a measurement to average with.
+The same holds for every photosite whose ``quality`` bit field (the merge's
+``pipeline.merge.QUALITY_BITS``: dead, weak, hot, stuck, saturated) is not 0, whatever its
+``nexp`` says: a defect is treated as missing in the bilateral weights.
 
 What the output ``sigma`` means
 -------------------------------
@@ -307,7 +310,8 @@ def _bilateral_kernel(irr, sig, valid, spatial, stride, adaptive, scale, bandwid
 
 
 def check_denoise_inputs(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = None,
-                         name: str = "input") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         name: str = "input", quality: ArrayLike | None = None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate and convert the merge's channels for the filter.
 
     Parameters
@@ -318,12 +322,14 @@ def check_denoise_inputs(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLik
         Unsaturated exposures per photosite (0: a lower bound).
     name : str
         Prefix of error messages (e.g. the file name).
+    quality : array_like, optional
+        The merge's quality bit field (whole numbers >= 0; 0 a trusted measurement).
 
     Returns
     -------
     (irradiance, sigma, valid)
         C-contiguous float32 irradiance and sigma (e-/s) and a boolean mask of the photosites
-        with ``nexp > 0`` (all True when ``nexp`` is None).
+        with ``nexp > 0`` and ``quality == 0`` (all True when both are None).
 
     Raises
     ------
@@ -359,11 +365,19 @@ def check_denoise_inputs(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLik
             f"{name}: sigma must be finite and > 0 where nexp > 0; sigma[{i},{j}] = {sig[i, j]!r} "
             f"({bad.sum()} photosites)"
         )
+    if quality is not None:
+        q = np.asarray(quality)
+        if q.shape != irr.shape:
+            raise InputError(f"{name}: quality has shape {q.shape}, irradiance {irr.shape}; channel sizes differ")
+        if not (np.all(np.isfinite(q)) and np.all(q >= 0)):
+            raise InputError(f"{name}: quality must be a bit field of whole numbers >= 0")
+        valid = valid & (q == 0)
     return irr, sig, valid
 
 
 def denoise(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = None,
-            settings: DenoiseSettings | None = None, name: str = "input", **options: Any) -> DenoiseResult:
+            settings: DenoiseSettings | None = None, name: str = "input", *, quality: ArrayLike | None = None,
+            **options: Any) -> DenoiseResult:
     """Bilateral filtering of a merged HDR image with adaptive or constant range bandwidth (Sec. 9).
 
     Parameters
@@ -379,6 +393,9 @@ def denoise(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = No
         Filter settings; alternatively give its fields as keyword ``options``.
     name : str
         Used in error messages (e.g. the file name).
+    quality : (H, W) array, optional
+        The merge's quality bit field; photosites with any bit set are left unchanged and never
+        used as neighbours, like ``nexp == 0``.
     **options
         Fields of :class:`DenoiseSettings`, when ``settings`` is not given.
 
@@ -392,15 +409,15 @@ def denoise(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = No
         settings = DenoiseSettings(**options)
     elif options:
         raise TypeError("give either settings or keyword options, not both")
-    irr, sig, valid = check_denoise_inputs(irradiance, sigma, nexp, name)
+    irr, sig, valid = check_denoise_inputs(irradiance, sigma, nexp, name, quality)
     out = np.empty_like(irr)
     out_sig = np.empty_like(sig)
     spatial = spatial_kernel(int(settings.radius), float(settings.spatial_sigma))
     adaptive = settings.method == "adaptive"
     invalid = ~valid
     n_invalid = int(invalid.sum())
-    # lower bounds: weight 0 as neighbours; their sigma (often 0) is replaced by 1 inside the
-    # kernel only, to keep the arithmetic finite, and restored below
+    # lower bounds and defects: weight 0 as neighbours; their sigma (often 0) is replaced by 1
+    # inside the kernel only, to keep the arithmetic finite, and restored below
     sig_k = np.where(valid, sig, np.float32(1.0)) if n_invalid else sig
     _bilateral_kernel(
         irr, sig_k, valid.astype(np.float32), spatial,

@@ -9,6 +9,7 @@ with a one-line message naming the file.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -550,12 +551,51 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
+#: errno values of file systems without hard links (exFAT/FAT, some network and FUSE mounts).
+NO_HARD_LINKS = frozenset(e for e in (getattr(errno, n, None) for n in ("EPERM", "ENOTSUP", "EOPNOTSUPP", "ENOSYS",
+                                                                        "EMLINK", "EXDEV")) if e is not None)
+
+
+def place_new(src, dst) -> None:
+    """Move ``src`` to ``dst`` without ever replacing an existing ``dst``.
+
+    A hard link (``os.link`` fails when ``dst`` exists), then ``src`` is removed. Where the
+    file system has no hard links (:data:`NO_HARD_LINKS`: exFAT/FAT USB sticks and SD cards),
+    ``dst`` is first created exclusively (``O_CREAT | O_EXCL``: it fails when ``dst`` exists)
+    and ``src`` renamed onto that placeholder; a crash in between leaves an empty ``dst``,
+    which a reader rejects as unreadable.
+
+    Parameters
+    ----------
+    src, dst : path
+        Same folder (or file system).
+
+    Raises
+    ------
+    FileExistsError
+        ``dst`` exists.
+    """
+    try:
+        os.link(src, dst)
+    except FileExistsError:
+        raise
+    except OSError as err:
+        if err.errno not in NO_HARD_LINKS:
+            raise
+        fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        os.close(fd)
+        os.replace(src, dst)
+        return
+    os.unlink(src)
+
+
 @contextlib.contextmanager
 def atomic_output(path, force: bool = False, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it into place atomically.
 
     Without ``force`` an existing ``path`` is never replaced (checked up front and again at
-    the final step, which uses a hard link so that a file created meanwhile is not clobbered).
+    the final step, :func:`place_new`: a hard link, or on file systems without hard links an
+    exclusive create and a rename, so that a file created meanwhile is not clobbered).
     On error the temporary file is removed and ``path`` is untouched.
     """
     path = Path(path)
@@ -578,14 +618,9 @@ def atomic_output(path, force: bool = False, suffix: str | None = None) -> Itera
             os.replace(tmp, path)
         else:
             try:
-                os.link(tmp, path)
+                place_new(tmp, path)
             except FileExistsError:
                 raise OutputExistsError(f"{path}: appeared while writing; use --force to overwrite") from None
-            except OSError:
-                # file systems without hard links: fall back to a checked rename
-                if path.exists():
-                    raise OutputExistsError(f"{path}: exists; use --force to overwrite") from None
-                os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()

@@ -164,6 +164,14 @@ def _fill_row(out, arr, is_map, scalar, r):
             out[c] = scalar
 
 
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _floor_row(out):
+    """Clamp a row buffer at 0 in place: the dark current inside a variance (a negative
+    estimate of it would let the variance of Eq. 3, 5 go negative at long exposures)."""
+    for c in range(out.shape[0]):
+        out[c] = max(out[c], 0.0)
+
+
 @numba.njit(inline="always", cache=True)
 def _keep(sample, xrow, S, CNT, c):
     """Store a sample (x, usable) of :func:`_sample` (NaN where not usable) and add it to the
@@ -316,15 +324,18 @@ def _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, A, U, SW, SWX, v_sat, inv
 
 @numba.njit(inline="always", cache=True)
 def _estimate(m, a, D, U, SW, SWX, c, u_lo, u_hi):
-    """u = a max(mu, 0) + D, the estimate the weights of the next pass are taken at (Eq. 13),
-    into U; clears the sums of that pass. Returns 1 when u + k D (0 <= k <= 1) may leave
+    """u = a max(mu, 0) + max(D, 0), the estimate the weights of the next pass are taken at
+    (Eq. 13), into U; clears the sums of that pass. Every term of u is floored at 0 (and the
+    variance's own D term, the caller's DW row, too), so that no variance can go negative
+    whatever the dark-current map holds. Returns 1 when u + k D (0 <= k <= 1) may leave
     [u_lo, u_hi], the range in which every frame's variance allows the shared division, else 0
     (an integer count: vectorises, unlike a floating-point min/max)."""
-    u = a * (m if m > 0.0 else 0.0) + D
+    dp = D if D > 0.0 else 0.0
+    u = a * (m if m > 0.0 else 0.0) + dp
     U[c] = u
     SW[c] = _ZERO32
     SWX[c] = _ZERO32
-    out = (u + min(D, 0.0) < u_lo) | (u + max(D, 0.0) > u_hi) | (u != u)
+    out = (u < u_lo) | (u + dp > u_hi) | (u != u)
     return 1 if out else 0
 
 
@@ -343,7 +354,8 @@ def _row_usable(X, n, NU, c0, c1):
 def _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, A, DD, U, it, tol2, u_lo, u_hi, c0, c1):
     """Eq. 12 for the photosites not yet converged: mu = sum w x / sum w, sigma^2 = 1/sum w;
     converged when the change is within tol * max(|mu|, sigma) (Fig. 3); no usable sample left
-    (sum w = 0: every weight of a usable sample is > 0) flags the photosite. Prepares the next
+    (sum w = 0: every weight of a usable sample is > 0, every variance is floored) flags the
+    photosite: it keeps nexp = 0, never a placeholder sigma. Prepares the next
     pass (:func:`_estimate`). Returns the number of photosites still iterating and the number
     outside the next pass's range."""
     active = 0
@@ -351,8 +363,8 @@ def _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, A, DD, U, it, tol2, u_lo, u_
     for c in range(numba.uint64(c0), numba.uint64(c1)):
         live = DONE[c] == 0.0
         sw = SW[c]
-        none = sw == 0.0
-        var = float(_ONE32 / (sw if sw > _ZERO32 else _ONE32))  # in the precision of the sums
+        none = not (sw > _ZERO32)
+        var = float(_ONE32 / (sw if sw > _ZERO32 else _ONE32))  # in the precision of the sums; unused where none
         new = SWX[c] * var
         m = MU[c]
         delta = new - m
@@ -418,6 +430,7 @@ def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, maste
     v_clip = v_sat + 3.0 * sigma_R
     nu = 0.0
     steps = 0
+    Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
     for _ in range(max_iter):
         m = mu if mu > 0.0 else 0.0
         L1 = 0.0
@@ -450,7 +463,7 @@ def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, maste
             p = 1.0
             if full_well:
                 ev = bl + g * t * D + tga * m  # E(v_i) without clipping, DN
-                sv = math.sqrt(_var(a * m + D, g * g * t, D, sigma2_R, 0.0))
+                sv = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, 0.0))
                 pu = 1.0 - 0.5 * math.erfc((v_clip - ev) / (_SQRT2 * sv))
                 zu = (v - ev) / sv
                 zc = (v - v_clip) / sigma_R
@@ -459,7 +472,7 @@ def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, maste
                 p = 1.0 / (1.0 + math.exp(min(lb - la, 700.0)))
             if p <= 0.0:
                 continue
-            w = (tga * tga) / _var(a * m + D, g * g * t, D, sigma2_R, ks[i])
+            w = (tga * tga) / _var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i])
             d = x - mu
             num = p * math.sqrt(w) * _INV_SQRT_2PI * math.exp(-0.5 * w * d * d)
             den = (1.0 - p) * tga / max(white - bl, 1.0) + num
@@ -642,6 +655,7 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
         _fill_row(A2, a_map, False, 1.0, 0)
         _fill_row(DD, D_map, False, D_scalar, 0)
         _fill_row(DW, D_map, False, D_scalar, 0)
+        _floor_row(DW)
         _fill_row(BL, bias, False, bias_scalar, 0)
         _fill_row(VSB, bias, False, v_sat - bias_scalar, 0)
         n0 = 0
@@ -656,6 +670,7 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
             if D_is_map:
                 _fill_row(DD, D_map, True, D_scalar, r)
                 _fill_row(DW, D_map, True, D_scalar, r)
+                _floor_row(DW)
             if bias_is_map:
                 _fill_row(BL, bias, True, bias_scalar, r)
                 for c in range(W):

@@ -13,7 +13,9 @@ For every photosite, from N exposures (v_i, b_i, t_i):
   average until the change is below ``tolerance`` times max(|mu|, sigma) (Fig. 3). The estimate
   is never clipped (dark photosites may be negative);
 * optionally the full saturation model (Eq. 8-10), maximised by Newton steps;
-* photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound.
+* photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound;
+* defective photosites (the calibration's ``defect_map``): ``nexp = 0``, ``sigma = 0``, and
+  the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value.
 
 Dark strategies (each with its own variance term, see :mod:`pipeline.noise`): ``matched``
 (one dark frame per exposure), ``master`` (per-exposure master darks, or one master dark,
@@ -37,11 +39,19 @@ import numpy as np
 from .errors import InputError
 from .io import RawFrame, check_exposure_time, check_frames
 from .darks import DarkResolver, default_strategy
+from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios
 from .noise import DarkStrategy, calibration_variance, dark_factor, variance_core
-from .params import Calibration
+from .params import DEFECT_BITS, Calibration
 from .times import same_exposure
 
-__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy"]
+__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy",
+           "QUALITY_BITS", "quality_channel"]
+
+#: Bits of the per-photosite ``quality`` channel (uint8; 0 a trusted measurement): the
+#: calibration's defect bits (:data:`pipeline.params.DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
+#: 8 stuck) and the merge's own flags (16: saturated in every exposure, the irradiance is a
+#: lower bound). Any bit set means ``nexp = 0`` and ``sigma = 0``: not a measurement.
+QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16}
 
 _SATURATION_MODELS = ("threshold", "probabilistic")
 _PRNU_MODES = ("map", "scalar")
@@ -79,13 +89,16 @@ class MergeResult:
     calibration part alone ``sigma_calibration`` (e-/s; what averaging more frames cannot
     reduce; zeros when the calibration has no standard errors) and the number of unsaturated
     exposures used per photosite (0: saturated everywhere, irradiance is a lower bound and
-    both sigmas are 0). ``info`` records the options and inputs (``calibration_error``: which
-    standard errors entered and the common relative scale error of the gain)."""
+    both sigmas are 0; or a defective photosite). ``quality`` says why (uint8 bit field of
+    :data:`QUALITY_BITS`, 0 a trusted measurement). ``info`` records the options and inputs
+    (``calibration_error``: which standard errors entered and the common relative scale error
+    of the gain)."""
 
     irradiance: np.ndarray
     sigma: np.ndarray
     nexp: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+    quality: np.ndarray | None = None  # uint8 bit field of QUALITY_BITS (None: not computed)
     sigma_calibration: np.ndarray | None = None
 
 
@@ -115,6 +128,11 @@ class MergeOptions:
     master_dark_time : float or None
         Exposure time (s) of a single master dark; the dark current over the difference to
         each exposure time is added from the calibration. None: the master dark is used as is.
+    exposure_times : {"nominal", "effective"}
+        ``effective``: each frame's actual exposure time, estimated from the bracket itself
+        (:mod:`pipeline.exposure_ratio`, Sec. 7), replaces the nominal one before the
+        iterations (:func:`merge_frames`, the file merge and the capture session default to
+        it); ``nominal``: the times as given (the default of the array-level API).
     """
 
     iterations: int = 20
@@ -125,6 +143,7 @@ class MergeOptions:
     dark_strategy: DarkStrategy | None = None
     n_dark: float = 1
     master_dark_time: float | None = None
+    exposure_times: str = "nominal"
 
     def __post_init__(self) -> None:
         if not isinstance(self.iterations, (int, np.integer)) or self.iterations < 1:
@@ -142,12 +161,50 @@ class MergeOptions:
             raise InputError(f"n_dark (frames in the master dark) must be >= 1, got {self.n_dark!r}")
         if self.master_dark_time is not None and not (np.isfinite(self.master_dark_time) and self.master_dark_time >= 0):
             raise InputError(f"master dark exposure time must be finite and >= 0, got {self.master_dark_time!r}")
+        if self.exposure_times not in EXPOSURE_TIME_MODES:
+            raise InputError(f"exposure_times must be effective or nominal, got {self.exposure_times!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """The options as JSON-ready data (the dark strategy by its name)."""
         out = dataclasses.asdict(self)
         out["dark_strategy"] = None if self.dark_strategy is None else self.dark_strategy.value
         return out
+
+
+def quality_channel(nexp: np.ndarray, defect_map: np.ndarray | None) -> np.ndarray:
+    """The per-photosite quality bit field (:data:`QUALITY_BITS`).
+
+    Parameters
+    ----------
+    nexp : numpy.ndarray
+        Unsaturated exposures used per photosite, as the iterations left it (0: saturated in
+        every exposure, or no usable sample).
+    defect_map : numpy.ndarray or None
+        The calibration's defect bits (uint8, :data:`pipeline.params.DEFECT_BITS`), or None.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8, the shape of ``nexp``: defect bits | 16 where ``nexp == 0``.
+    """
+    q = np.where(nexp == 0, np.uint8(QUALITY_BITS["saturated"]), np.uint8(0)).astype(np.uint8)
+    if defect_map is not None:
+        dm = np.asarray(defect_map)
+        if dm.shape != q.shape:
+            raise InputError(f"calibration defect map has shape {dm.shape}, the frames {q.shape}")
+        q |= dm.astype(np.uint8) & np.uint8(sum(DEFECT_BITS.values()))
+    return q
+
+
+def _flag_defects(irr: np.ndarray, sig: np.ndarray, nexp: np.ndarray, defect_map) -> tuple[np.ndarray, int]:
+    """Defective photosites are no measurement: ``nexp = 0`` and ``sigma = 0`` in place (the
+    irradiance keeps the kernel's value, which must not be used); returns the quality channel
+    (:func:`quality_channel`, from ``nexp`` before the change) and the number of defects."""
+    quality = quality_channel(nexp, defect_map)
+    bad = (quality & np.uint8(sum(DEFECT_BITS.values()))) != 0
+    nexp[bad] = 0
+    sig[bad] = 0
+    return quality, int(bad.sum())
 
 
 def _as_frame(arr, shape, what) -> np.ndarray:
@@ -430,6 +487,65 @@ class MergeAccumulator:
         small = [s2, w_lo, (tg_lo * a_lo) ** 2]
         return bool(np.all(np.isfinite(bounds + small)) and max(bounds) <= 1e30 and min(small) >= 1e-30)
 
+    def _subsample(self, max_photosites: int = 250_000) -> tuple[slice, slice]:
+        """A regular grid of at most about ``max_photosites`` photosites (both CFA phases of
+        each axis kept: an odd step)."""
+        h, w = self.shape
+        step = max(1, int(math.ceil(math.sqrt(h * w / max_photosites))))
+        step += 1 - step % 2
+        return slice(0, h, step), slice(0, w, step)
+
+    def _dark_level(self, i: int, window) -> np.ndarray:
+        """Frame ``i``'s dark level b_i on the photosites ``window``, DN (float64)."""
+        kind, coef = self._kinds[i], self._coefs[i]
+        if kind == 0:
+            return np.asarray(self._darks[i][window], np.float64)
+        base = self._bias if kind == 1 else (self.master_dark, True, 0.0)
+        b = base[0][window] if base[1] else base[2]
+        D = self._D[0][window] if self._D[1] else self._D[2]
+        return np.asarray(b, np.float64) + coef * np.asarray(D, np.float64)
+
+    def apply_exposure_times(self) -> ExposureRatios | None:
+        """With the option ``exposure_times="effective"``: estimate every frame's effective
+        exposure time from the frames added (:func:`pipeline.exposure_ratio.
+        estimate_exposure_ratios`, Sec. 7) and use it from now on (x_i of Eq. 6 and the dark
+        current's t g coefficient); once (later calls return the same estimate). The streamed
+        first pass is then recomputed by the iterations (its x_i used the nominal times).
+
+        Returns
+        -------
+        ExposureRatios or None
+            None with ``exposure_times="nominal"`` or fewer than two frames.
+        """
+        if self.options.exposure_times != "effective" or len(self._values) < 2:
+            return None
+        if getattr(self, "_ratios", None) is not None:
+            return self._ratios
+        p = self.calibration.params
+        win = self._subsample()
+        dm = self.calibration.defect_map
+        ratios = estimate_exposure_ratios(
+            [v[win] for v in self._values], [self._dark_level(i, win) for i in range(len(self._values))],
+            self._times, float(p.g), float(p.sigma2_R), float(p.v_sat), dark_factors=self._ks,
+            exclude=None if dm is None else np.asarray(dm)[win] != 0)
+        t_ref = self.options.master_dark_time
+        for i, t in enumerate(ratios.effective):
+            if self._kinds[i] == 1:
+                self._coefs[i] = float(p.g) * t
+            elif self._kinds[i] == 2 and t_ref is not None:
+                self._coefs[i] = float(p.g) * (t - t_ref)
+        self._times = list(ratios.effective)
+        self.stream = False  # the iterations recompute the starting average with the new times
+        self._ratios = ratios
+        return ratios
+
+    def _exposure_info(self) -> dict[str, Any]:
+        """The header entries of the exposure times: nominal, effective and the estimate."""
+        ratios = getattr(self, "_ratios", None)
+        if ratios is None:
+            return {"exposure_times_nominal": list(self._times), "exposure_time_ratios": None}
+        return {"exposure_times_nominal": list(ratios.nominal), "exposure_time_ratios": ratios.to_dict()}
+
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
         from .kernels import (CameraConstants, FrameTable, IterationOptions, MapArg, MapSet, MergeOutputs,
@@ -439,6 +555,7 @@ class MergeAccumulator:
 
         if not self._values:
             raise InputError("no frames to merge")
+        self.apply_exposure_times()
         opts = self.options
         p = self.calibration.params
         strategy = self.dark_strategy
@@ -474,6 +591,7 @@ class MergeAccumulator:
         np.sqrt(np.square(sig, dtype=np.float64) + np.square(sig_cal, dtype=np.float64)
                 + np.square(sig_master, dtype=np.float64), out=sig, casting="unsafe")
         sat = int(stats[:, 0].sum())
+        quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
             **opts.to_dict(),
@@ -485,16 +603,19 @@ class MergeAccumulator:
             "master_dark": self.master_dark is not None,
             "prnu": self.prnu_used,
             "exposure_times": list(self._times),
+            **self._exposure_info(),
             "n_frames": len(self._values),
             "n_darks": len(own) + (1 if has_master and 2 in self._kinds else 0),
             "saturated_everywhere": sat,
+            "defects_flagged": n_defects,
             "iterations_used_mean": float(stats[:, 1].sum() / max(irr.size, 1)),
             "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
             "weights_precision": "float32" if single else "float64",
             "calibration_error": cal_info,
         }
-        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, sigma_calibration=sig_cal)
+        sig_cal[quality != 0] = 0.0  # not a measurement (as sigma)
+        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality, sigma_calibration=sig_cal)
 
     def _calibration_errors(self) -> tuple[Any, Any, Any, dict[str, Any]]:
         """The standard errors of the bias level (DN), the dark current (e-/s) and the PRNU gain
@@ -726,7 +847,8 @@ def merge_frames(
     dark_strategies, n_darks : sequences aligned with ``frames``, optional
         Per-frame dark strategy and master-dark frame count (see :func:`merge_arrays`).
     **options
-        Fields of :class:`MergeOptions`.
+        Fields of :class:`MergeOptions`; ``exposure_times`` defaults to ``"effective"`` here
+        (each frame's exposure time estimated from the bracket, :mod:`pipeline.exposure_ratio`).
 
     Returns
     -------
@@ -736,6 +858,7 @@ def merge_frames(
     frames = check_frames(frames)
     shape = frames[0].shape
     n = len(frames)
+    options.setdefault("exposure_times", "effective")
     strategies = [as_strategy(s) for s in _per_frame(dark_strategies, n, "dark strategies")]
     n_darks = _per_frame(n_darks, n, "master-dark frame counts")
     asked = as_strategy(options.get("dark_strategy"))

@@ -80,7 +80,7 @@ def test_bad_inputs_one_line_errors(bracket, cli, tmp_path):
         "differs": ["merge", frames[0], str(tmp_path / "small.dng"), "--camera", "camera-B", "-o", o],
         "exposure time": ["merge", str(tmp_path / "a.png"), "--camera", "camera-B", "-o", o],
         "twice": ["merge", frames[0], frames[0], "--camera", "camera-B", "-o", o],
-        "no camera model": ["merge", frames[0], "-o", o],
+        "at least two frames": ["merge", frames[0], "-o", o],
         "unknown camera preset": ["merge", frames[0], "--camera", "camera-Z", "-o", o],
         "--times gives": ["merge", frames[0], "--times", "0.1", "0.2", "--camera", "camera-B", "-o", o],
         "no dark frame": ["merge", *frames, "--darks", str(out / "dark_000_0.002s.dng"), "--camera", "camera-B", "-o", o],

@@ -274,3 +274,21 @@ def test_cli_subprocess_entry_point(tmp_path, cli):
     assert json.loads(proc.stdout)["settings"]["method"] == "adaptive"
     proc = cli("denoise", tmp_path / "missing.exr", "-o", tmp_path / "x.exr")
     assert proc.returncode == 2 and proc.stderr.startswith("hdrcap: error:") and "Traceback" not in proc.stderr
+
+
+def test_quality_flagged_photosites_are_missing_in_the_weights():
+    """A defect the merge flagged (quality bit set) is never a neighbour and is left unchanged,
+    even where its nexp says it was measured (an old or foreign file)."""
+    irr = np.full((20, 20), 100.0, np.float32)
+    sig = np.full_like(irr, 5.0)
+    nexp = np.full_like(irr, 3.0)
+    quality = np.zeros_like(irr)
+    irr[10, 10], quality[10, 10] = 105.0, 8.0  # a stuck photosite, within the range bandwidth
+    r = denoise(irr, sig, nexp, DenoiseSettings(method="constant", bandwidth=np.inf, layout="mono"), quality=quality)
+    assert r.irradiance[10, 10] == np.float32(105.0) and r.sigma[10, 10] == np.float32(5.0)
+    np.testing.assert_allclose(np.delete(r.irradiance.ravel(), 10 * 20 + 10), 100.0, rtol=1e-6)
+    assert r.info["unchanged_nexp0"] == 1
+    unflagged = denoise(irr, sig, nexp, DenoiseSettings(method="constant", bandwidth=np.inf, layout="mono"))
+    assert unflagged.irradiance[10, 11] > 100.01  # the test can fail: used, it pulls its neighbours
+    with pytest.raises(InputError, match="quality has shape"):
+        denoise(irr, sig, nexp, DenoiseSettings(), quality=quality[:5])

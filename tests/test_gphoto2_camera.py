@@ -354,14 +354,20 @@ def test_job_check_against_the_virtual_camera(tmp_path, cli):
 def test_session_on_the_virtual_camera_refuses_jpeg(tmp_path, cli):
     """The whole chain (job -> Gphoto2Camera -> session) on the virtual camera, which only
     delivers JPEG: the session stops at once with a clear message instead of merging JPEGs."""
+    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.pipeline.calibration import save_calibration
+
+    # a calibration of this camera (the compatibility check refuses a simulator preset's)
+    cal = resolve_calibration(None, "camera-B")
+    save_calibration(tmp_path / "cal.json", cal.replace(provenance={"camera": "NIKON CORPORATION NIKON D750"}))
     job = tmp_path / "job.toml"
     job.write_text('[camera]\nbackend = "gphoto2"\nenforce = true\n\n[exposure]\ntimes = [0.01]\n\n'
                    '[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
-                   '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
+                   '[calibration]\nfile = "cal.json"\n\n[output]\nfolder = "runs/x"\n')
     env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
            "HDRCAP_LOCK_DIR": str(tmp_path / "locks")}
     proc = cli("run", job, "--no-progress", env=env)
-    assert proc.returncode == 4 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr  # a configuration error
     assert "delivers .jpg files, not raw" in proc.stderr and "imageformat" in proc.stderr
     events = [json.loads(l) for l in (tmp_path / "runs" / "x" / "events.jsonl").read_text().splitlines()]
     assert events[0]["camera"]["model"] == "Nikon DSC D750" and events[-1]["event"] == "stop"
@@ -682,7 +688,9 @@ def test_capture_command_sets_iso_and_enforces_on_the_virtual_camera(tmp_path, c
     from hdrcap.acquire.cliutil import resolve_calibration
     from hdrcap.pipeline.calibration.archive import save_calibration
 
-    calib = save_calibration(tmp_path / "calib.npz", resolve_calibration(None, "camera-B"))
+    # a calibration of this camera (the compatibility check refuses a simulator preset's)
+    calib = save_calibration(tmp_path / "calib.npz", resolve_calibration(None, "camera-B").replace(
+        provenance={"camera": "NIKON CORPORATION NIKON D750"}))
     base = ["capture", "--camera", "gphoto2", "--times", "0.01", "--darks", "model", "--block-light", "none",
             "--calibration", calib, "--out", tmp_path / "run", "--no-progress"]
     refused = cli(*base, env=env)

@@ -143,10 +143,11 @@ def test_repeat_every_makes_separate_runs(tmp_path, cli):
     runs = [json.loads(l) for l in proc.stdout.strip().splitlines()]
     assert [Path(r["run_dir"]).name for r in runs] == ["t-00", "t-01"]
     # the two repetitions are independent captures (different noise)
-    a, b = (json.loads((Path(r["run_dir"]) / "manifest.jsonl").read_text().splitlines()[-1])["sha256"] for r in runs)
+    a, b = ([json.loads(line) for line in (Path(r["run_dir"]) / "manifest.jsonl").read_text().splitlines()
+             if '"type":"frame"' in line][-1]["sha256"] for r in runs)
     assert a != b
     again = cli("run", p, "--no-progress")
-    assert again.returncode != 0 and "--resume" in again.stderr and "Traceback" not in again.stderr
+    assert again.returncode == 5 and "--resume" in again.stderr and "Traceback" not in again.stderr
 
 
 def test_capture_command_plans_for_a_target_snr(tmp_path, cli):

@@ -97,7 +97,7 @@ def test_card_full_stops_cleanly_then_resume_completes(tmp_path):
     assert len(Manifest(tmp_path / "run").frames()) == 5
     with pytest.raises(SessionError, match="--resume"):
         CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False).run()
-    res = CaptureSession(_camera(seed=1), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
+    res = CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
     assert res.resumed == 5 and res.captured == len(plan.frames) - 5
     _check_run(tmp_path / "run", plan)
 
@@ -111,7 +111,7 @@ def test_resume_adopts_landed_frame_and_voids_tampered_one(tmp_path):
     mpath.write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2])
     first = json.loads(lines[1])
     (tmp_path / "run" / first["file"]).write_bytes(b"tampered")
-    res = CaptureSession(_camera(seed=2), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
+    res = CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False, resume=True).run()
     assert res.adopted == 1 and res.captured == 1  # the tampered one was taken again
     _check_run(tmp_path / "run", plan)
     assert (tmp_path / "run" / "rejected").is_dir()
@@ -163,7 +163,8 @@ from hdrcap.acquire.cliutil import resolve_calibration
 run, seed, kill = Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 faults = MockFaults(seed=seed, busy_rate=0.20, disconnect_rate=0.02, corrupt_rate=0.01, truncate_rate=0.005,
                     hang_rate=0.005, hang_s=0.01, kill_after=kill or None)
-cam = MockCamera("camera-B", make_scene("hdr", (32, 32), decades=3.0, x_max=2e4), seed=seed, faults=faults)
+# one camera (seed 11: its serial and fixed patterns) restarted with other fault draws each time
+cam = MockCamera("camera-B", make_scene("hdr", (32, 32), decades=3.0, x_max=2e4), seed=11, faults=faults)
 times = [1/4000, 1/1000, 1/250, 1/60, 1/15, 1/4, 1.0, 2.0, 4.0, 8.0]
 plan = CapturePlan.bracket(times, cam.allowed_exposure_times(), "matched", repeats=20)
 res = CaptureSession(cam, run, plan, calibration=resolve_calibration(None, "camera-B"),
@@ -296,7 +297,7 @@ def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
     ok = m.nexp > 0
     z = (m.irradiance[ok] - cam.sim.scene[ok]) / m.sigma[ok]
     assert 0.7 < 1.4826 * np.median(np.abs(z - np.median(z))) < 1.3
-    with pytest.raises(SessionError, match="no master dark"):
+    with pytest.raises(InputError, match="no master dark"):
         CaptureSession(_camera(), tmp_path / "run2", plan, progress=False, master_darks={TIMES[0]: masters[TIMES[0]]})
 
 
@@ -318,3 +319,45 @@ def test_capture_plan_per_exposure_strategies_and_old_manifests():
     p = CapturePlan.from_dict(old)
     assert p == CapturePlan.bracket([0.001], None, "master", n_dark=2) and p.strategy_for(0.001) == "master"
     assert p.fingerprint() == old["fingerprint"]
+
+
+def test_a_torn_manifest_header_is_not_trusted(tmp_path):
+    plan = CapturePlan.bracket(TIMES[:2], None, "matched")
+    CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False).run()
+    mpath = tmp_path / "run" / "manifest.jsonl"
+    lines = mpath.read_text().splitlines(keepends=True)
+    mpath.write_text(lines[0][: len(lines[0]) // 2] + "\n" + "".join(lines[1:]))
+    other = CapturePlan.bracket(TIMES[2:4], None, "matched")  # would have passed unchecked before
+    from hdrcap.acquire.session import VerificationError
+
+    with pytest.raises(VerificationError, match="unreadable"):
+        CaptureSession(_camera(), tmp_path / "run", other, retry=FAST, progress=False, resume=True).run()
+    # a crash while the very first line was written: nothing recorded, the run starts over
+    (tmp_path / "new").mkdir()
+    (tmp_path / "new" / "manifest.jsonl").write_text('{"type": "run", "plan_fin')
+    res = CaptureSession(_camera(), tmp_path / "new", plan, retry=FAST, progress=False, resume=True).run()
+    assert res.captured == len(plan.frames)
+    _check_run(tmp_path / "new", plan)
+
+
+def test_a_light_leak_at_a_short_exposure_is_caught_with_a_calibration(tmp_path):
+    """At 1/60 s the lit scene's median is ~1 % of the range: below the 5 % rule, yet ~10 DN
+    above the calibrated dark level, far beyond the noise of a 32x32 median."""
+    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.session import VerificationError
+
+    cal = resolve_calibration(None, "camera-B")
+    plan = CapturePlan.bracket([1 / 60], None, "matched")
+    leaky = _camera()
+    leaky.cover = lambda: None  # the lens cap fell off
+    CaptureSession(leaky, tmp_path / "weak", plan, light=LightBlocker("none"), retry=FAST, progress=False).run()
+    leaky = _camera()
+    leaky.cover = lambda: None
+    with pytest.raises(VerificationError, match="above the calibrated dark level"):
+        CaptureSession(leaky, tmp_path / "run", plan, calibration=cal, light=LightBlocker("none"), retry=FAST,
+                       progress=False).run()
+    # no false alarm for real dark frames up to 30 s, also 5 C warmer than the calibration
+    warm = MockCamera("camera-B", _scene((32, 32)), seed=4, temperature=25.0)
+    times = [1 / 8000, 1 / 60, 1.0, 8.0, 30.0]
+    CaptureSession(warm, tmp_path / "ok", CapturePlan.bracket(times, None, "matched"), calibration=cal, retry=FAST,
+                   progress=False).run()

@@ -53,8 +53,12 @@ _FRAMES = click.Path(path_type=Path)
 @click.option("--iso", type=float, help="ISO for the provenance (default: from EXIF).")
 @click.option("--temperature", type=float,
               help="Sensor temperature, degrees C, for the provenance and the dark library.")
+@click.option("--save-to-library", is_flag=True,
+              help="Also store the calibration in the calibration library (keyed by camera model, serial and ISO; "
+                   "`hdrcap merge` without --calibration finds it there; see `hdrcap calibrations`).")
 def command(bias, saturation, flat, dark, times, emva, output, force, as_json, report, dark_library, gain_method,
-            clip, no_clip, saturation_criterion, white_level, camera_name, serial, iso, temperature):
+            clip, no_clip, saturation_criterion, white_level, camera_name, serial, iso, temperature,
+            save_to_library):
     """Calibrate the camera noise model (Sec. 6 of the paper, EMVA 1288) into a calibration file.
 
     From frame lists: mu_R and sigma2_R from bias frames (pair difference), v_sat from a
@@ -85,14 +89,23 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
                                 gain_method=gain_method, white_level=white_level, provenance=prov,
                                 dark_library=dark_library, force=force)
     save_calibration(output, calib, force=force)
+    stored = None
+    if save_to_library:
+        from hdrcap.pipeline.calibration_library import store_calibration
+
+        stored = store_calibration(calib, force=force)
     plots = []
     if report is not None:
         from hdrcap.pipeline.calibration_report import write_report
 
         plots = write_report(calib, report, force=force)
     summary = calibration_summary(calib, output=output, seconds=time.perf_counter() - t0, emva=emva_res, report=plots)
+    if stored is not None:
+        summary["library_file"] = str(stored)
     if as_json:
         echo_json(summary)
     else:
         click.echo(format_summary(summary))
         click.echo(f"wrote {output} ({summary['n_frames']} frames, {summary['seconds']:.1f} s)")
+        if stored is not None:
+            click.echo(f"stored in the calibration library as {stored}")

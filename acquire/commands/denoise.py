@@ -73,7 +73,8 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
         raise InputError(f"{input_exr}: channel sizes differ ({sizes})")
     chosen_layout = layout_from_metadata(image.attrs) if layout == "auto" else layout
     settings = settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma, chosen_layout)
-    result = denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings, name=str(input_exr))
+    result = denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings, name=str(input_exr),
+                     quality=ch.get("quality"))
     channels = dict(ch)  # other channels are carried over unchanged
     channels["irradiance"] = result.irradiance
     channels["sigma"] = result.sigma

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from hdrcap.acquire.cliutil import echo_json, many_values, resolve_calibration
+from hdrcap.acquire.cliutil import echo_json, many_values, resolve_merge_calibration
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
 
@@ -16,7 +16,7 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.command("merge")
 @click.argument("frames", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--darks", multiple=True, type=click.Path(path_type=Path), help="Dark frames, one per exposure time (several after one flag); for master exposures, the master dark of that time (several of one time are averaged).")
-@click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate` (its dark library serves master darks).")
+@click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate` (its dark library serves master darks). Without it and --camera the bracket calibrates itself (docs/selfcal.md).")
 @click.option("--camera", help="Use a simulator preset's nominal parameters as the calibration (camera-A, camera-B).")
 @click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).")
 @click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path), help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.")
@@ -30,13 +30,14 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--dark-strategy", type=click.Choice([s.value for s in DarkStrategy]), default=None, help="For every exposure (overrides a --plan's). Default: the plan's per exposure; else matched with --darks, master with --master-dark, model otherwise. master without --darks/--master-dark: the calibration's dark library.")
 @click.option("--master-dark", type=click.Path(path_type=Path), help="One master dark frame (raw file or 16-bit image) for the master exposures.")
 @click.option("--master-dark-frames", type=click.FloatRange(min=1), default=None, help="Number of frames averaged into each master dark file given here (N; library masters carry their own).")
+@click.option("--exposure-times", "exposure_times", type=click.Choice(["effective", "nominal"]), default="effective", show_default=True, help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.")
 @click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip", show_default=True, help="EXR compression (none/rle write fastest, zip is about a third smaller; zstd is smaller and faster but needs OpenEXR >= 3.4 to read).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
 def command(ctx, frames, darks, calibration, camera, times, plan_file, output, weighting, iterations, tolerance,
-            saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exr_compression,
-            force, as_json):
+            saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exposure_times,
+            exr_compression, force, as_json):
     """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR.
 
     The EXR holds float32 channels irradiance (e-/s per photosite), sigma (its standard
@@ -66,7 +67,12 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     if master_dark and dark_strategy not in (None, DarkStrategy.MASTER):
         raise InputError(f"--master-dark needs --dark-strategy master, not {dark_strategy}")
     t0 = time.perf_counter()
-    calib = resolve_calibration(str(calibration) if calibration else None, camera)
+    warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
+    calib, times, selfcal = resolve_merge_calibration(str(calibration) if calibration else None, camera, frames,
+                                                      times, darks=bool(darks), warn=warn,
+                                                      say=lambda m: click.echo(m, err=True))
+    if selfcal is not None:
+        click.echo(f"  {_selfcal_summary(selfcal)}", err=True)
     lib_root = library_root(calib, calibration)
     if dark_strategy == DarkStrategy.MASTER and not (darks or master_dark or lib_root):
         raise InputError("--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
@@ -74,18 +80,34 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     if weighting != "optimal" and weighting not in WEIGHTING_METHODS:
         raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(WEIGHTING_METHODS)}")
     options = merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames,
-                            saturation_sigmas)
+                            saturation_sigmas, exposure_times)
     done = merge_files(frames, calib, options, dark_paths=darks, times=times, weighting=weighting, plan=plan,
                        plan_file=str(plan_file) if plan_file else None, dark_strategy=dark_strategy,
                        master_dark=master_dark, master_dark_frames=master_dark_frames, library=lib_root, given=given,
-                       progress=not as_json, warn=lambda m: click.echo(f"hdrcap: warning: {m}", err=True))
-    write_exr(output, build_hdr_image(done.result, done.frames, calib, done.extra), force=force,
-              compression=exr_compression)
+                       progress=not as_json, warn=warn)
+    image = build_hdr_image(done.result, done.frames, calib, done.extra)
+    if selfcal is not None:
+        from hdrcap.pipeline.selfcal import apply_self_calibration
+
+        apply_self_calibration(image, selfcal, times_applied=list(times) == list(selfcal.effective_times))
+    write_exr(output, image, force=force, compression=exr_compression)
     info = summary(done.result) | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3),
                                    "n_frames": len(done.frames), "n_darks": len(done.darks)}
+    if selfcal is not None:
+        info["calibration"] = selfcal.calibration.provenance["source"]
+        info["unit"] = selfcal.unit
     if as_json:
         echo_json(info)
     else:
         click.echo(f"wrote {output}: {info['shape'][1]}x{info['shape'][0]}, irradiance "
                    f"{info['irradiance_min']:.4g}..{info['irradiance_max']:.4g} e-/s, "
                    f"{info['saturated_everywhere']} photosites saturated everywhere, {info['seconds']:.2f} s")
+
+
+def _selfcal_summary(sc) -> str:
+    """One line: the estimated gain and read noise with their standard errors."""
+    f = sc.fit
+    if not sc.gain_known:
+        return "gain not estimable: irradiance in DN/s, sigma relative"
+    return (f"g = {f['g']:.4g} +- {f['g_stderr']:.2g} DN/e-, sigma_R^2 = {f['sigma2_R']:.3g} +- "
+            f"{f['sigma2_R_stderr']:.2g} DN^2, from {f['n_photosites']} photosites in {len(sc.pairs)} pairs")

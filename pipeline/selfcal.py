@@ -1,0 +1,629 @@
+"""Self-calibration from the bracket: the camera model of a merge without a calibration.
+
+What the files say is taken from their metadata: black level per CFA position, white level,
+CFA pattern, exposure time and ISO. What they do not say is estimated from the bracket itself,
+from the photosites that are exposed and unsaturated in two frames i < j (times t_i < t_j):
+
+* the exposure ratio r = t_j / t_i (the effective one, shutter errors included) as
+  sum (v_j - b) / sum (v_i - b) over those photosites (PRNU cancels: both frames see the same
+  photosite);
+* the gain g and the readout variance sigma_R^2 by a photon-transfer fit (EMVA 1288 style)
+  of the variance of the pair difference d = (v_j - b) - r (v_i - b) against the signal: with
+  Var(v) = g m + sigma_R^2 for a signal of m DN above black (Eq. 3),
+
+      Var(d) = g m_j (1 + r) + sigma_R^2 (1 + r^2),
+
+  fitted by weighted least squares over signal bins of every pair, with standard errors. The
+  signal of a photosite is taken from v_i + v_j (uncorrelated with d where shot noise
+  dominates), so that selecting photosites by their signal does not bias the variances.
+
+PRNU is taken as 1 and dark current as 0 (a dark frame subtracts it where given). The
+effective exposure times are the chain of estimated ratios, scaled so that their geometric
+mean equals that of the nominal times. The statistical uncertainty of g and of every effective
+time is a systematic relative error of the irradiance (Eq. 6: x = (v - b) / (t g)); it is
+added to sigma by :func:`calibration_sigma`.
+
+Where the gain cannot be estimated (too few pairs or signal levels), the result says so: the
+merge then works in DN per second (g = 1 DN/e- assumed) and its sigma is relative only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .io import RawFrame, check_frames
+from .params import Calibration, SensorParams
+
+__all__ = ["SELF_CALIBRATED", "PairEstimate", "SelfCalibration", "check_bracket", "cfa_black_tile",
+           "saturation_level", "pair_estimate", "photon_transfer_fit", "self_calibrate", "calibration_sigma",
+           "apply_self_calibration"]
+
+#: The provenance source of a self-calibration (written in the EXR header).
+SELF_CALIBRATED = "self-calibrated from the bracket"
+
+#: Photosites a pair contributes at most (a regular subsample of rows of larger frames).
+MAX_PAIR_SAMPLES = 2_000_000
+
+#: Fewest photosites a pair needs for its ratio and its variances (fewer: no overlap).
+MIN_PAIR_PHOTOSITES = 200
+
+#: Fewest photosites a signal bin needs to enter the photon-transfer fit.
+MIN_BIN_PHOTOSITES = 50
+
+#: Signal bins per pair (logarithmic in the long frame's signal).
+BINS_PER_PAIR = 24
+
+#: Upper end of the signals used, as a fraction of the range from black to saturation (EMVA
+#: 1288 fits up to 70 %; the long frame's noise must not reach saturation).
+MAX_SIGNAL_FRACTION = 0.7
+
+#: Largest relative standard error of the gain for the gain to count as estimated.
+MAX_GAIN_RELATIVE_ERROR = 0.2
+
+#: Outlier rejection within a signal bin, in robust standard deviations (hot photosites,
+#: motion): a Gaussian sample is rejected with probability 2e-9.
+CLIP_SIGMAS = 6.0
+
+
+@dataclass(frozen=True)
+class PairEstimate:
+    """What one pair of frames (short i, long j) gives.
+
+    Attributes
+    ----------
+    short, long : int
+        Indices of the frames in the bracket (as given).
+    ratio : float
+        Effective exposure ratio t_j / t_i (dimensionless); the nominal one without overlap.
+    ratio_stderr : float
+        Its standard error (0 when nominal).
+    n_photosites : int
+        Photosites used (exposed and unsaturated in both frames, outliers removed).
+    signal : numpy.ndarray
+        Mean signal of the long frame per bin, DN above black.
+    variance : numpy.ndarray
+        Variance of the pair difference d per bin, DN^2.
+    count : numpy.ndarray
+        Photosites per bin.
+    """
+
+    short: int
+    long: int
+    ratio: float
+    ratio_stderr: float
+    n_photosites: int
+    signal: np.ndarray = field(repr=False)
+    variance: np.ndarray = field(repr=False)
+    count: np.ndarray = field(repr=False)
+
+    @property
+    def overlap(self) -> bool:
+        """Whether the pair had photosites exposed and unsaturated in both frames."""
+        return self.n_photosites >= MIN_PAIR_PHOTOSITES
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """A camera model estimated from a bracket, with the uncertainty of every estimate.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The model the merge uses (g, sigma_R^2, black level(s), v_sat, D = 0, PRNU 1).
+    effective_times : tuple of float
+        Per frame (in the order given), s: the estimated exposure ratios chained, with the
+        geometric mean of the nominal times.
+    nominal_times : tuple of float
+        Per frame, s (file metadata or ``--times``).
+    time_relative_stderr : tuple of float
+        Per frame, the relative standard error of its effective time (dimensionless).
+    gain_known : bool
+        Whether g was estimated; False: g = 1 DN/e- is assumed and the irradiance is in DN/s.
+    pairs : tuple of PairEstimate
+        The pairs of consecutive exposures.
+    fit : dict
+        The photon-transfer fit: g, sigma2_R, their standard errors (DN/e-, DN^2), reduced
+        chi^2, number of bins.
+    black_tile : numpy.ndarray
+        Black level per 2x2 CFA position, DN.
+    notes : tuple of str
+        What was assumed (warnings the command line prints).
+    """
+
+    calibration: Calibration
+    effective_times: tuple[float, ...]
+    nominal_times: tuple[float, ...]
+    time_relative_stderr: tuple[float, ...]
+    gain_known: bool
+    pairs: tuple[PairEstimate, ...]
+    fit: dict[str, Any]
+    black_tile: np.ndarray
+    notes: tuple[str, ...] = ()
+
+    @property
+    def unit(self) -> str:
+        """The irradiance unit of a merge with this model."""
+        if self.gain_known:
+            return "electrons per second per photosite"
+        return "DN per second per photosite (gain unknown: not electrons)"
+
+    @property
+    def gain_relative_stderr(self) -> float:
+        """Relative standard error of g (0 when g is assumed)."""
+        return self.fit["g_stderr"] / self.fit["g"] if self.gain_known else 0.0
+
+    def header(self) -> dict[str, Any]:
+        """The EXR header attribute: every estimated value with its standard error, what was
+        assumed, and the nominal and effective exposure times."""
+        p = self.calibration.params
+        return {
+            "source": SELF_CALIBRATED,
+            "gain": {"value": p.g, "stderr": self.fit.get("g_stderr"), "unit": "DN per electron",
+                     "estimated": self.gain_known},
+            "read_noise_variance": {"value": p.sigma2_R, "stderr": self.fit.get("sigma2_R_stderr"), "unit": "DN^2"},
+            "photon_transfer_fit": {k: self.fit[k] for k in ("reduced_chi2", "n_bins", "n_photosites")
+                                    if k in self.fit},
+            "black_level_per_cfa_position": np.asarray(self.black_tile).tolist(),
+            "black_level_source": "file metadata",
+            "white_level": p.white_level,
+            "saturation_level": p.v_sat,
+            "nominal_exposure_times": list(self.nominal_times),
+            "effective_exposure_times": list(self.effective_times),
+            "effective_time_relative_stderr": list(self.time_relative_stderr),
+            "time_scale": "geometric mean of the effective times = that of the nominal times",
+            "exposure_ratios": [{"short": q.short, "long": q.long, "ratio": q.ratio, "stderr": q.ratio_stderr,
+                                 "photosites": q.n_photosites} for q in self.pairs],
+            "assumed": {"prnu": 1.0, "dark_current": 0.0},
+            "sigma": ("includes the statistical uncertainty of the gain and of the effective exposure times"
+                      if self.gain_known else
+                      "relative only: computed with an assumed gain of 1 DN/e-, not a measured uncertainty"),
+            "notes": list(self.notes),
+        }
+
+
+# ---------------------------------------------------------------------------------- metadata
+
+
+def check_bracket(frames: Sequence[RawFrame]) -> None:
+    """Refuse a bracket whose frames cannot share one self-calibration.
+
+    Parameters
+    ----------
+    frames : sequence of RawFrame
+        The bracket.
+
+    Raises
+    ------
+    InputError
+        Frames of different cameras, sizes, CFA patterns, ISO, or white levels; fewer than two
+        frames.
+    """
+    if len(frames) < 2:
+        raise InputError("a merge without a calibration needs at least two frames (the bracket calibrates itself)")
+    first = frames[0]
+    for fr in frames[1:]:
+        for what, a, b in (("camera", first.camera, fr.camera), ("CFA pattern", first.cfa_pattern, fr.cfa_pattern),
+                           ("ISO", first.iso, fr.iso), ("white level", first.white_level, fr.white_level)):
+            if a != b:
+                raise InputError(f"{fr.path}: {what} {b} differs from {first.path}'s ({a}); merge frames of one "
+                                 "camera and setting, or give --calibration")
+        if fr.shape != first.shape:
+            raise InputError(f"{fr.path}: size {fr.shape[1]}x{fr.shape[0]} differs from {first.path}'s "
+                             f"({first.shape[1]}x{first.shape[0]})")
+
+
+def cfa_black_tile(frame: RawFrame) -> np.ndarray:
+    """Black level of each position of the 2x2 CFA tile, DN, from the file's metadata.
+
+    Raw files are asked through LibRaw (``black_level_per_channel`` by ``raw_pattern``);
+    frames without metadata (PNG/TIFF) give the frame's own black level, or 0.
+
+    Parameters
+    ----------
+    frame : RawFrame
+        A frame of the bracket.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape (2, 2), DN.
+    """
+    scalar = float(frame.black_level or 0.0)
+    tile = np.full((2, 2), scalar)
+    if frame.path is None or frame.black_level is None:
+        return tile
+    try:
+        import rawpy
+
+        with rawpy.imread(str(frame.path)) as raw:
+            per = np.asarray(raw.black_level_per_channel, float)
+            pattern = raw.raw_pattern
+            if pattern is not None and np.shape(pattern) == (2, 2) and per.size == 4:
+                tile = per[np.asarray(pattern)]
+    except Exception:  # noqa: BLE001  (LibRaw cannot open it: the frame's own level)
+        pass
+    return tile
+
+
+def _black_rows(tile: np.ndarray, rows: np.ndarray, width: int) -> np.ndarray:
+    """The black level (DN) of the photosites in ``rows`` of a frame ``width`` wide."""
+    cols = np.arange(width) % 2
+    return tile[(rows % 2)[:, None], cols[None, :]]
+
+
+def saturation_level(longest: np.ndarray, white_level: float, black: float) -> float:
+    """The raw value from which a sample counts as saturated, DN.
+
+    Where the ADC clips first, values pile up at the white level: ``white_level``. Where the
+    full well clips first, they pile up below it, spread by the read noise: the pile-up's
+    median minus 3 robust standard deviations (Sec. 6: v_sat = mean - 3 std of a saturation
+    frame). Without a pile-up, the white level.
+
+    Parameters
+    ----------
+    longest : numpy.ndarray
+        The longest exposure of the bracket (or a subsample), DN.
+    white_level : float
+        The file's white level, DN.
+    black : float
+        Mean black level, DN.
+
+    Returns
+    -------
+    float
+        v_sat, DN.
+    """
+    v = np.asarray(longest).ravel()
+    n = v.size
+    if n == 0 or np.count_nonzero(v >= white_level - 0.5) >= max(1, 1e-4 * n):
+        return float(white_level)
+    top = v[v > black + 0.5 * (white_level - black)]
+    if top.size < max(20, 1e-4 * n):
+        return float(white_level)
+    hist, edges = np.histogram(top, bins=256)
+    peak = int(np.argmax(hist))
+    if hist[peak] < 10 * max(np.median(hist), 1):
+        return float(white_level)
+    centre = 0.5 * (edges[peak] + edges[peak + 1])
+    near = top[np.abs(top - centre) <= 4 * (edges[1] - edges[0]) + 8]
+    med = float(np.median(near))
+    spread = 1.4826 * float(np.median(np.abs(near - med)))
+    return float(min(white_level, med - 3.0 * max(spread, 0.5)))
+
+
+# ---------------------------------------------------------------------------------- pairs
+
+
+def _row_sample(shape: tuple[int, int], max_samples: int) -> np.ndarray:
+    """Rows of a regular subsample of at most ``max_samples`` photosites (an odd step, so that
+    both CFA row parities stay)."""
+    h, w = shape
+    step = max(1, math.ceil(h * w / max_samples))
+    step += 1 - step % 2 if step > 1 else 0
+    return np.arange(0, h, step)
+
+
+def _bin_stats(level, d, edges):
+    """Per bin of ``level``: mean level, variance of ``d`` after outlier rejection, count, and
+    the inlier mask."""
+    idx = np.digitize(level, edges) - 1
+    keep = np.zeros(level.shape, bool)
+    rows = []
+    for b in range(len(edges) - 1):
+        sel = np.flatnonzero(idx == b)
+        if sel.size < MIN_BIN_PHOTOSITES:
+            continue
+        db = d[sel]
+        med = np.median(db)
+        mad = 1.4826 * np.median(np.abs(db - med))
+        ok = np.abs(db - med) <= CLIP_SIGMAS * max(mad, 1e-9) if mad > 0 else np.ones(sel.size, bool)
+        keep[sel[ok]] = True
+        good = db[ok]
+        if good.size < MIN_BIN_PHOTOSITES:
+            continue
+        rows.append((float(np.mean(level[sel[ok]])), float(np.var(good, ddof=1)), good.size))
+    return rows, keep
+
+
+def _signal_level(a, b, r, noise):
+    """The long frame's signal m_j (DN) from both frames, as the combination of a = v_i - b_i
+    and b = v_j - b_j that is uncorrelated with d = b - r a: weights alpha (long) and beta
+    (short) with beta / alpha = Var(v_j) / (r Var(v_i)) and alpha + beta / r = 1. Without a
+    noise model (g, sigma_R^2), shot noise alone: alpha = beta = r / (1 + r)."""
+    shot = (a + b) * r / (1.0 + r)
+    if noise is None:
+        return shot
+    g, s2 = noise
+    m = np.maximum(shot, 0.0)
+    q = (g * m + s2) / (r * (g * m / r + s2))
+    alpha = 1.0 / (1.0 + q / r)
+    return alpha * (b + q * a)
+
+
+def pair_estimate(short: np.ndarray, long: np.ndarray, black: np.ndarray, v_sat: float, nominal_ratio: float,
+                  i: int = 0, j: int = 1, noise: tuple[float, float] | None = None) -> PairEstimate:
+    """Exposure ratio and difference variances of one pair of frames (see module docstring).
+
+    Parameters
+    ----------
+    short, long : numpy.ndarray
+        Raw values of the shorter and the longer exposure, same photosites, DN.
+    black : numpy.ndarray
+        Black level of those photosites, DN.
+    v_sat : float
+        Saturation level, DN.
+    nominal_ratio : float
+        t_j / t_i from the metadata (the starting value and the fallback), >= 1.
+    i, j : int
+        Indices of the two frames in the bracket (recorded).
+    noise : (float, float), optional
+        A provisional (g, sigma_R^2) (DN/e-, DN^2) for the signal level of a photosite (see
+        :func:`_signal_level`); None: shot noise alone (biased where read noise dominates).
+
+    Returns
+    -------
+    PairEstimate
+    """
+    vi = short.astype(np.float64) - black
+    vj = long.astype(np.float64) - black
+    headroom = v_sat - float(np.mean(black))
+    unsat = (short > 0) & (long > 0) & (short < v_sat) & (long < v_sat)
+    r = float(nominal_ratio)
+    empty = np.zeros(0)
+    for _ in range(2):
+        level = _signal_level(vi, vj, r, noise)
+        sel = unsat & (level > 0) & (level < MAX_SIGNAL_FRACTION * headroom)
+        if np.count_nonzero(sel) < MIN_PAIR_PHOTOSITES:
+            return PairEstimate(i, j, float(nominal_ratio), 0.0, 0, empty, empty, np.zeros(0, int))
+        lv, a, b = level[sel], vi[sel], vj[sel]
+        lo = max(float(np.min(lv)), 1e-3 * headroom, 1.0)
+        edges = np.geomspace(lo, MAX_SIGNAL_FRACTION * headroom, BINS_PER_PAIR + 1)
+        edges[0] = 0.0
+        _, keep = _bin_stats(lv, b - r * a, edges)
+        if np.count_nonzero(keep) < MIN_PAIR_PHOTOSITES or np.sum(a[keep]) <= 0:
+            return PairEstimate(i, j, float(nominal_ratio), 0.0, 0, empty, empty, np.zeros(0, int))
+        r = float(np.sum(b[keep]) / np.sum(a[keep]))
+    d = b - r * a
+    rows, keep = _bin_stats(lv, d, edges)
+    se = float(np.sqrt(np.sum(d[keep] ** 2)) / np.sum(a[keep]))
+    sig, var, cnt = (np.array(c) for c in zip(*rows)) if rows else (empty, empty, np.zeros(0, int))
+    return PairEstimate(i, j, r, se, int(np.count_nonzero(keep)), sig, var, cnt.astype(int))
+
+
+def photon_transfer_fit(pairs: Sequence[PairEstimate]) -> dict[str, Any] | None:
+    """Gain and readout variance from the difference variances of every pair (Eq. 3):
+    Var(d) = g m_j (1 + r) + sigma_R^2 (1 + r^2), weighted least squares with weights
+    n / (2 Var^2) (the variance of a sample variance), iterated once on the fitted variance.
+
+    Parameters
+    ----------
+    pairs : sequence of PairEstimate
+
+    Returns
+    -------
+    dict or None
+        ``g`` (DN/e-), ``sigma2_R`` (DN^2), their standard errors (scaled by the square root of
+        the reduced chi^2 when it exceeds 1), ``reduced_chi2``, ``n_bins``, ``n_photosites``;
+        None with fewer than 3 bins or a signal range under a factor 4.
+    """
+    x1, x2, y, n = [], [], [], []
+    for q in pairs:
+        if not q.overlap or not q.count.size:
+            continue
+        x1.append(q.signal * (1.0 + q.ratio))
+        x2.append(np.full(q.signal.size, 1.0 + q.ratio ** 2))
+        y.append(q.variance)
+        n.append(q.count)
+    if not y:
+        return None
+    x1, x2, y, n = (np.concatenate(c) for c in (x1, x2, y, n))
+    sig = x1 / np.maximum(x2, 1)
+    if y.size < 3 or sig.max() < 4 * max(sig.min(), 1e-12):
+        return None
+    A = np.column_stack([x1, x2])
+    pred = y
+    for _ in range(3):
+        w = n / (2.0 * np.maximum(pred, 1e-12) ** 2)
+        cov = np.linalg.inv(A.T @ (A * w[:, None]))
+        coef = cov @ (A.T @ (w * y))
+        pred = np.maximum(A @ coef, 1e-12)
+    resid = (y - pred) ** 2 * (n / (2.0 * pred ** 2))
+    dof = max(y.size - 2, 1)
+    chi2 = float(resid.sum() / dof)
+    cov = cov * max(chi2, 1.0)
+    return {"g": float(coef[0]), "sigma2_R": float(coef[1]), "g_stderr": float(np.sqrt(cov[0, 0])),
+            "sigma2_R_stderr": float(np.sqrt(cov[1, 1])), "reduced_chi2": chi2, "n_bins": int(y.size),
+            "n_photosites": int(n.sum())}
+
+
+# ---------------------------------------------------------------------------------- the model
+
+
+def _chain_times(nominal: np.ndarray, order: np.ndarray, pairs: Sequence[PairEstimate]):
+    """Effective times (s, frame order) from the ratios of consecutive pairs in ``order``,
+    scaled to the nominal geometric mean, and their relative standard errors."""
+    k = len(order)
+    log_rel = np.zeros(k)
+    A = np.zeros((k, max(k - 1, 1)))
+    for m, q in enumerate(pairs):
+        log_rel[m + 1] = log_rel[m] + math.log(q.ratio)
+        A[m + 1:, m] = 1.0
+    shift = float(np.mean(np.log(nominal[order]) - log_rel))
+    se_log = np.array([q.ratio_stderr / q.ratio for q in pairs] or [0.0])
+    Ac = A - A.mean(axis=0)
+    var = (Ac ** 2) @ (se_log ** 2)
+    eff = np.empty(k)
+    rel = np.empty(k)
+    eff[order] = np.exp(log_rel + shift)
+    rel[order] = np.sqrt(var)
+    return eff, rel
+
+
+def _pairs(data, order, nominal, black, v_sat, noise) -> list[PairEstimate]:
+    """The :class:`PairEstimate` of every pair of consecutive exposures in ``order``."""
+    return [pair_estimate(data[a], data[b], black, v_sat, nominal[b] / nominal[a], int(a), int(b), noise)
+            for a, b in zip(order[:-1], order[1:])]
+
+
+def self_calibrate(frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SAMPLES,
+                   warn: Callable[[str], None] | None = None) -> SelfCalibration:
+    """Estimate the camera model of a bracket from the bracket itself (see module docstring).
+
+    Parameters
+    ----------
+    frames : sequence of RawFrame
+        The bracket: one camera, one ISO, any order, at least two frames.
+    max_samples : int
+        Photosites per pair at most (a regular subsample of rows).
+    warn : callable, optional
+        Called with a one-line message for each assumption made (also kept in ``notes``).
+
+    Returns
+    -------
+    SelfCalibration
+
+    Raises
+    ------
+    InputError
+        Mixed cameras, sizes, CFA patterns or ISO; a frame given twice; no photosite exposed
+        and unsaturated in two frames of the bracket.
+    """
+    frames = list(frames)
+    check_bracket(frames)
+    check_frames(frames)
+    notes: list[str] = []
+
+    def note(msg: str) -> None:
+        notes.append(msg)
+        if warn is not None:
+            warn(msg)
+
+    first = frames[0]
+    if first.black_level is None:
+        note(f"{first.path}: no black level in the file; 0 DN assumed")
+    if first.white_level is None:
+        note(f"{first.path}: no white level in the file; 65535 DN assumed")
+    white = float(first.white_level or 65535.0)
+    tile = cfa_black_tile(first)
+    levels = {fr.black_level for fr in frames}
+    if len(levels) > 1:
+        note(f"black levels differ between frames ({', '.join(f'{b:g}' for b in sorted(levels, key=float))} DN); "
+             f"{first.path}'s used")
+    nominal = np.array([fr.exposure_time for fr in frames], float)
+    order = np.argsort(nominal, kind="stable")
+    rows = _row_sample(first.shape, max_samples)
+    black = _black_rows(tile, rows, first.shape[1])
+    longest = np.asarray(frames[order[-1]].data)[rows]
+    v_sat = saturation_level(longest, white, float(tile.mean()))
+    if v_sat < white:
+        note(f"values pile up below the white level ({white:g} DN): saturation taken at {v_sat:.1f} DN")
+    data = [np.asarray(fr.data)[rows] for fr in frames]
+    pairs = _pairs(data, order, nominal, black, v_sat, None)
+    fit = photon_transfer_fit(pairs)
+    if fit and fit["g"] > 0:  # again, with the signal level uncorrelated with d where read noise counts
+        pairs = _pairs(data, order, nominal, black, v_sat, (fit["g"], max(fit["sigma2_R"], 1.0 / 12.0)))
+        fit = photon_transfer_fit(pairs)
+    for q in pairs:
+        a, b = q.short, q.long
+        if not q.overlap:
+            note(f"no photosite is exposed and unsaturated in both {frames[a].path} and {frames[b].path}: "
+                 f"their nominal exposure ratio {nominal[b] / nominal[a]:.4g} is assumed")
+    if not any(q.overlap for q in pairs):
+        raise InputError("no overlap between the exposures: no photosite is exposed and unsaturated in two frames, "
+                         "so the bracket cannot calibrate itself; give --calibration or a denser bracket")
+    eff, rel_t = _chain_times(nominal, order, pairs)
+    gain_known = bool(fit and fit["g"] > 0 and fit["g_stderr"] < MAX_GAIN_RELATIVE_ERROR * fit["g"])
+    if not gain_known:
+        note("too few photosites or signal levels to estimate the gain: irradiance in DN/s (g = 1 DN/e- assumed), "
+             "sigma relative only")
+        fit = {"g": 1.0, "g_stderr": None, "sigma2_R": (fit or {}).get("sigma2_R", 1.0), "sigma2_R_stderr": None,
+               **{k: v for k, v in (fit or {}).items() if k in ("reduced_chi2", "n_bins", "n_photosites")}}
+    s2 = float(fit["sigma2_R"])
+    if not s2 >= 1.0 / 12.0:
+        note(f"the fitted read-noise variance {s2:.3g} DN^2 is below quantisation; 1/12 DN^2 used")
+        s2 = 1.0 / 12.0
+    mu = float(tile.mean())
+    bias_map = None
+    if np.ptp(tile) > 0:
+        h, w = first.shape
+        bias_map = _black_rows(tile, np.arange(h), w).astype(np.float32)
+    params = SensorParams(g=float(fit["g"]), mu_R=mu, sigma2_R=s2, v_sat=float(v_sat), white_level=white,
+                          dark_current=0.0, name=first.camera or "")
+    stderr = {k: fit[f"{k}_stderr"] for k in ("g", "sigma2_R") if fit.get(f"{k}_stderr") is not None}
+    calib = Calibration(params=params, bias_map=bias_map, stderr=stderr,
+                        provenance={"source": SELF_CALIBRATED, "camera": first.camera, "iso": first.iso,
+                                    "cfa_pattern": first.cfa_pattern, "gain_estimated": gain_known})
+    return SelfCalibration(calibration=calib, effective_times=tuple(float(t) for t in eff),
+                           nominal_times=tuple(float(t) for t in nominal),
+                           time_relative_stderr=tuple(float(x) for x in rel_t), gain_known=gain_known,
+                           pairs=tuple(pairs), fit=fit, black_tile=tile, notes=tuple(notes))
+
+
+def calibration_sigma(irradiance: np.ndarray, nexp: np.ndarray, selfcal: SelfCalibration) -> np.ndarray:
+    """The irradiance's standard uncertainty due to the self-calibration's own estimates.
+
+    x = (v - b) / (t g) (Eq. 6): a relative error of g or of an effective time is the same
+    relative error of x. The exposure that dominates a photosite's estimate is its longest
+    unsaturated one (the ``nexp``-th shortest: a longer exposure saturates first), so
+    sigma_cal = |x| sqrt((s_g / g)^2 + (s_t / t)^2) of that exposure. Systematic: averaging
+    over photosites does not reduce it.
+
+    Parameters
+    ----------
+    irradiance : numpy.ndarray
+        The merged irradiance, e-/s (or DN/s).
+    nexp : numpy.ndarray
+        Unsaturated exposures used per photosite.
+    selfcal : SelfCalibration
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, same unit as ``irradiance``; 0 where ``nexp`` is 0.
+    """
+    rel_t = np.asarray(selfcal.time_relative_stderr, float)[np.argsort(selfcal.nominal_times, kind="stable")]
+    idx = np.clip(np.asarray(nexp).astype(np.int64) - 1, 0, rel_t.size - 1)
+    rel = np.sqrt(selfcal.gain_relative_stderr ** 2 + rel_t[idx] ** 2)
+    out = np.abs(irradiance) * rel
+    return np.where(np.asarray(nexp) > 0, out, 0.0).astype(np.float32)
+
+
+
+def apply_self_calibration(image, selfcal: SelfCalibration, *, times_applied: bool = True):
+    """Make a merge's EXR content state its self-calibration: the unit, the header attribute
+    ``self_calibration`` (:meth:`SelfCalibration.header`), sigma including the calibration's
+    own uncertainty (:func:`calibration_sigma`, added in quadrature) and that part alone as
+    the channel ``sigma_calibration``.
+
+    Parameters
+    ----------
+    image : pipeline.io.HdrImage
+        Channels ``irradiance``, ``sigma``, ``nexp``; changed in place.
+    selfcal : SelfCalibration
+    times_applied : bool
+        Whether the merge used the effective exposure times (False: the nominal ones, recorded).
+
+    Returns
+    -------
+    pipeline.io.HdrImage
+        ``image``.
+    """
+    ch = image.channels
+    cal = calibration_sigma(ch["irradiance"], ch["nexp"], selfcal)
+    ch["sigma"] = np.sqrt(np.square(ch["sigma"], dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(
+        np.float32)
+    ch["sigma_calibration"] = cal
+    head = selfcal.header()
+    head["merged_with"] = "effective exposure times" if times_applied else "nominal exposure times"
+    image.attrs["self_calibration"] = head
+    image.attrs["calibration_source"] = SELF_CALIBRATED
+    image.attrs["unit"] = selfcal.unit
+    image.attrs["sigma"] = f"standard deviation of irradiance, same unit; {head['sigma']}"
+    image.attrs["sigma_calibration"] = "the part of sigma due to the self-calibration's estimates (systematic)"
+    return image

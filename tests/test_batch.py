@@ -1,0 +1,169 @@
+"""``hdrcap batch`` on dask.distributed: every run of the archive bit-identical to ``hdrcap merge``
+of that run, a corrupt run recorded while the others land, resume, a killed worker loses nothing,
+and a time series of one photosite with its sigma against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from hdrcap.acquire.cli import main as cli_main
+from hdrcap.acquire.simulation import simulate_bracket
+from hdrcap.pipeline.io import read_exr
+
+pytestmark = pytest.mark.slow
+
+CAMERA = "camera-A"
+TIMES = [0.001, 0.01, 0.1]
+
+
+def _bracket(folder: Path, seed: int) -> Path:
+    """A simulated bracket with matching dark frames: the same scene, a new noise draw per seed."""
+    simulate_bracket(CAMERA, "hdr", TIMES, folder, True, (48, 64), 4.0, 2e5, seed, None, False, progress=False)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    good = [_bracket(root / f"b{i}", seed=10 + i) for i in range(3)]
+    cap = root / "cap"  # a capture run folder with its manifest
+    assert cli_main(["capture", "--camera", f"mock:{CAMERA}", "--times", *map(str, TIMES), "--out", str(cap),
+                     "--size", "64x48", "--seed", "7", "--no-progress"]) == 0
+    planned = root / "planned"  # a capture run the planner planned (per-exposure dark strategies, options)
+    assert cli_main(["capture", "--camera", "mock:camera-B", "--target-snr", "20", "--out", str(planned),
+                     "--size", "64x48", "--seed", "8", "--no-progress"]) == 0
+    bad = _bracket(root / "bad", seed=99)
+    frame = sorted(bad.glob("frame_*.dng"))[1]
+    frame.write_bytes(frame.read_bytes()[: frame.stat().st_size // 3])  # truncated raw file
+    return {"good": good, "capture": cap, "planned": planned, "bad": bad}
+
+
+def _merge_exr(tmp: Path, name: str, frames, darks, *extra) -> Path:
+    out = tmp / f"{name}.exr"
+    assert cli_main(["merge", *map(str, frames), "--darks", *map(str, darks), "--camera", CAMERA, "-o", str(out),
+                     *extra]) == 0
+    return out
+
+
+def test_batch_cli_identical_to_merge_records_failure_and_resumes(runs, tmp_path, cli):
+    archive = tmp_path / "a.zarr"
+    folders = [*runs["good"], runs["capture"], runs["bad"]]
+    proc = cli("batch", *folders, "--camera", CAMERA, "-o", archive, "--workers", "2", "--json")
+    assert proc.returncode == 1, proc.stderr  # one run failed: non-zero status, the others landed
+    report = json.loads(proc.stdout)
+    assert report["committed"] == 4 and list(report["failed"]) == [str(runs["bad"].resolve())]
+    assert "Traceback" not in proc.stderr and "run failed" in proc.stderr
+    ds = xr.open_zarr(archive)
+    by_folder = {str(f): i for i, f in enumerate(ds["folder"].values)}
+    assert sorted(by_folder) == sorted(str(f.resolve()) for f in folders[:4])  # each run exactly once
+    assert str(runs["bad"].resolve()) in json.loads(ds.attrs["hdrcap_failed_runs"])
+    # Every run is bit-identical to `hdrcap merge` of that run, arrays and header (via `hdrcap export`).
+    for k, folder in enumerate(folders[:4]):
+        folder = folder.resolve()
+        if folder == runs["capture"].resolve():
+            frames, darks = sorted(folder.glob("frames/*_light_*.dng")), sorted(folder.glob("frames/*_dark_*.dng"))
+            ref = read_exr(_merge_exr(tmp_path, f"m{k}", frames, darks, "--dark-strategy", "matched"))
+        else:
+            ref = read_exr(_merge_exr(tmp_path, f"m{k}", sorted(folder.glob("frame_*.dng")),
+                                      sorted(folder.glob("dark_*.dng"))))
+        i = by_folder[str(folder)]
+        for name, arr in ref.channels.items():
+            got = ds[name].isel(run=i).values
+            assert got.dtype == arr.dtype and np.array_equal(got, arr, equal_nan=True), (folder, name)
+        back = read_exr(_export(archive, i, tmp_path / f"e{k}.exr"))
+        assert back.attrs == ref.attrs
+        assert all(np.array_equal(back.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
+    # Re-running resumes: the runs there are skipped, only the failed one is tried again.
+    proc = cli("batch", *folders, "--camera", CAMERA, "-o", archive, "--workers", "1", "--json")
+    report = json.loads(proc.stdout)
+    assert proc.returncode == 1 and report["committed"] == 0 and report["skipped"] == 4 and len(report["failed"]) == 1
+    assert xr.open_zarr(archive).sizes["run"] == 4
+
+
+def test_planned_run_follows_its_recorded_plan_as_merge_plan_does(runs, tmp_path):
+    from hdrcap.acquire.manifest import Manifest
+
+    folder = runs["planned"].resolve()
+    archive = tmp_path / "p.zarr"
+    assert cli_main(["batch", str(folder), "--camera", "camera-B", "-o", str(archive), "--workers", "1",
+                     "--no-progress"]) == 0
+    plan = Manifest(folder).header()["planning"]["plan"]
+    plan_file = tmp_path / "plan.json"
+    plan_file.write_text(json.dumps(plan))
+    ref = tmp_path / "ref.exr"
+    assert cli_main(["merge", *map(str, sorted(folder.glob("frames/*_light_*.dng"))), "--camera", "camera-B",
+                     "--plan", str(plan_file), "-o", str(ref)]) == 0
+    ref, got = read_exr(ref), read_exr(_export(archive, 0, tmp_path / "got.exr"))
+    assert got.attrs["merge"] == ref.attrs["merge"] and got.attrs["merge"]["saturation"] == plan["merge_options"][
+        "saturation"]
+    assert all(np.array_equal(got.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
+    assert got.attrs["planner"]["plan_file"] == str(folder / "manifest.jsonl")
+
+
+def _export(archive: Path, run: int, out: Path) -> Path:
+    assert cli_main(["export", str(archive), "--run", str(run), "-o", str(out)]) == 0
+    return out
+
+
+def test_killed_worker_loses_nothing(runs, tmp_path):
+    from hdrcap.acquire.batch import BatchSettings, calibration_identity, run_batch
+
+    archive = tmp_path / "k.zarr"
+    settings = BatchSettings(calibration=None, camera=CAMERA, calibration_id=calibration_identity(None, CAMERA))
+    killed = []
+
+    def kill_one_busy_worker(client):
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # wait until a worker is busy with a run, then kill its process
+            busy = [w for w, tasks in client.processing().items() if tasks]
+            if busy:
+                pid = client.run(os.getpid, workers=[busy[0]])[busy[0]]
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                return
+            time.sleep(0.05)
+
+    folders = [*runs["good"], runs["capture"]]
+    report = run_batch(folders, archive, settings, workers=2, on_submit=kill_one_busy_worker, progress=False)
+    assert killed and not report.failed and len(report.committed) == 4
+    ds = xr.open_zarr(archive)
+    assert sorted(map(str, ds["folder"].values)) == sorted(str(f.resolve()) for f in folders)  # exactly once
+    # ... and the runs are the merge's: the same as a batch without the kill (other test's archive layout).
+    from hdrcap.acquire.batch import find_runs, merge_run
+
+    for src in find_runs(folders[:1]):
+        ref = merge_run(src, settings).run
+        i = list(map(str, ds["folder"].values)).index(src.folder)
+        for name in ("irradiance", "sigma", "nexp"):
+            assert np.array_equal(ds[name].isel(run=i).values, ref.channels[name], equal_nan=True)
+
+
+def test_time_series_of_one_photosite_with_sigma(runs, tmp_path):
+    """Three runs of the same scene: the archive's time series of a photosite scatters about the
+    simulator's truth as its sigma says."""
+    from hdrcap.acquire.batch import BatchSettings, calibration_identity, run_batch
+
+    archive = tmp_path / "t.zarr"
+    settings = BatchSettings(calibration=None, camera=CAMERA, calibration_id=calibration_identity(None, CAMERA))
+    report = run_batch(runs["good"], archive, settings, workers=1, progress=False)
+    assert len(report.committed) == 3
+    ds = xr.open_zarr(archive).sortby("start_time")
+    truth = read_exr(runs["good"][0] / "truth.exr").channels["irradiance"]
+    y, x = np.unravel_index(np.argsort(truth, axis=None)[truth.size // 2], truth.shape)  # a mid-range photosite
+    series = ds[["irradiance", "sigma", "nexp"]].isel(y=int(y), x=int(x)).compute()
+    assert series["irradiance"].dims == ("run",) and series.sizes["run"] == 3
+    assert (series["nexp"] > 0).all() and (series["sigma"] > 0).all()
+    z = (series["irradiance"] - truth[y, x]) / series["sigma"]
+    assert np.all(np.abs(z) < 5)
+    # the same per photosite over the frame: normalised errors of unit spread in every run
+    ok = (ds["nexp"] > 0).values
+    zall = ((ds["irradiance"].values - truth[None]) / ds["sigma"].values)[ok]
+    assert 0.85 < zall.std() < 1.15 and abs(zall.mean()) < 0.1
