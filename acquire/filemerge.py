@@ -63,7 +63,9 @@ def build_hdr_image(result, frames, calibration, extra=None):
 
     attrs = {
         "unit": "electrons per second per photosite",
-        "sigma": "standard deviation of irradiance, same unit",
+        "sigma": "total standard uncertainty of irradiance (noise plus calibration error), same unit",
+        "sigma_calibration": "the calibration's part of sigma alone (systematic: more frames do not reduce it), "
+                             "same unit",
         "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
@@ -76,6 +78,8 @@ def build_hdr_image(result, frames, calibration, extra=None):
     if extra:
         attrs.update(extra)
     channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
+    if getattr(result, "sigma_calibration", None) is not None:
+        channels["sigma_calibration"] = result.sigma_calibration
     quality = getattr(result, "quality", None)
     if quality is not None:
         from hdrcap.pipeline.merge import QUALITY_BITS

@@ -40,7 +40,7 @@ from .errors import InputError
 from .io import RawFrame, check_exposure_time, check_frames
 from .darks import DarkResolver, default_strategy
 from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios
-from .noise import DarkStrategy, dark_factor
+from .noise import DarkStrategy, calibration_variance, dark_factor, variance_core
 from .params import DEFECT_BITS, Calibration
 from .times import same_exposure
 
@@ -84,16 +84,22 @@ def as_strategy(value: DarkStrategy | str | None) -> DarkStrategy | None:
 
 @dataclass
 class MergeResult:
-    """Irradiance (e-/s per photosite), its standard deviation (same unit) and the number of
-    unsaturated exposures used per photosite (0: saturated everywhere, irradiance is a lower
-    bound and sigma is 0; or a defective photosite). ``quality`` says why (uint8 bit field of
-    :data:`QUALITY_BITS`, 0 a trusted measurement). ``info`` records the options and inputs."""
+    """Irradiance (e-/s per photosite), its total standard uncertainty ``sigma`` (same unit:
+    photon, read and dark-frame noise plus the calibration's per-photosite error), the
+    calibration part alone ``sigma_calibration`` (e-/s; what averaging more frames cannot
+    reduce; zeros when the calibration has no standard errors) and the number of unsaturated
+    exposures used per photosite (0: saturated everywhere, irradiance is a lower bound and
+    both sigmas are 0; or a defective photosite). ``quality`` says why (uint8 bit field of
+    :data:`QUALITY_BITS`, 0 a trusted measurement). ``info`` records the options and inputs
+    (``calibration_error``: which standard errors entered and the common relative scale error
+    of the gain)."""
 
     irradiance: np.ndarray
     sigma: np.ndarray
     nexp: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
     quality: np.ndarray | None = None  # uint8 bit field of QUALITY_BITS (None: not computed)
+    sigma_calibration: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -418,6 +424,33 @@ class MergeAccumulator:
         """
         return np.asarray(self._ks, np.float64) * np.asarray(self._dark_groups(), np.float64)
 
+    def _shares_timed_master(self) -> np.ndarray:
+        """Per frame, whether its dark level is the single master dark taken at a known time
+        t_ref (extrapolated by g (t - t_ref) D): such frames, of whatever exposure time, share
+        that master dark's noise, whose variance is (g^2 t_ref D + sigma_R^2)/N (Eq. 5 at
+        t_ref, averaged over N frames).
+
+        Returns
+        -------
+        numpy.ndarray
+            bool per frame.
+        """
+        timed = self.options.master_dark_time is not None
+        return np.array([timed and kind == 2 for kind in self._kinds], bool)
+
+    def _dark_factors(self) -> np.ndarray:
+        """The kernel's dark-level variance factor per frame: :meth:`_shared_dark_factors`, and 0
+        for the frames that share one timed master dark: its noise is common to all of them
+        (whatever their exposure times), so it is added after the kernel as one shared term
+        (:meth:`_shared_terms`), not per frame.
+
+        Returns
+        -------
+        numpy.ndarray
+            Factor per frame, float64.
+        """
+        return np.where(self._shares_timed_master(), 0.0, self._shared_dark_factors())
+
     # -------------------------------------------------------------------------------- result
     def _single_precision_safe(self, values, darks, master) -> bool:
         """Whether the weights and their sums may be computed in float32 (twice the SIMD width):
@@ -547,13 +580,16 @@ class MergeAccumulator:
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
             merge_kernel(values, darks,
                          FrameTable(np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
-                                    self._shared_dark_factors(), times),
+                                    self._dark_factors(), times),
                          CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
                          MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
                          StartSums(self._sum, self._cnt, self.stream),
                          IterationOptions(int(opts.iterations), float(opts.tolerance), float(opts.saturation_sigmas),
                                           opts.saturation == "probabilistic"),
                          MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
+        sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp)
+        np.sqrt(np.square(sig, dtype=np.float64) + np.square(sig_cal, dtype=np.float64)
+                + np.square(sig_master, dtype=np.float64), out=sig, casting="unsafe")
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         info = {
@@ -576,8 +612,128 @@ class MergeAccumulator:
             "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
             "weights_precision": "float32" if single else "float64",
+            "calibration_error": cal_info,
         }
-        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality)
+        sig_cal[quality != 0] = 0.0  # not a measurement (as sigma)
+        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality, sigma_calibration=sig_cal)
+
+    def _calibration_errors(self) -> tuple[Any, Any, Any, dict[str, Any]]:
+        """The standard errors of the bias level (DN), the dark current (e-/s) and the PRNU gain
+        a_j (dimensionless) the merge uses, as maps or scalars (0: unknown), and a description.
+
+        Without a bias map the photosite's offset is taken as mu_R: its error is the offset
+        non-uniformity (``bias_dsnu_DN`` of the calibration) with the error of mu_R. With
+        ``prnu="scalar"`` (a = 1) the error of a_j is the PRNU spread itself (``prnu_std``)."""
+        cal = self.calibration
+        se = cal.stderr or {}
+        prov = cal.provenance or {}
+        used, missing = [], []
+
+        def pick(name, map_, scalar):
+            if map_ is not None:
+                used.append(f"{name} map")
+                return np.asarray(map_, np.float32)
+            if scalar is not None and np.isfinite(scalar) and scalar > 0:
+                used.append(name)
+                return float(scalar)
+            missing.append(name)
+            return 0.0
+
+        if cal.bias_map is not None:
+            s_b = pick("bias", cal.bias_map_stderr, None)
+        else:
+            dsnu = (prov.get("calibration") or {}).get("bias_dsnu_DN")
+            s_b = pick("bias", None, math.hypot(float(se.get("mu_R", 0.0)), float(dsnu or 0.0)) or None)
+        if cal.dark_current_map is not None:
+            s_d = pick("dark current", cal.dark_current_map_stderr, None)
+        else:
+            s_d = pick("dark current", None, se.get("dark_current"))
+        if self.prnu_used == "map":
+            s_a = pick("PRNU", cal.prnu_stderr, None)
+        else:
+            s_a = pick("PRNU spread (prnu scalar)", None, prov.get("prnu_std"))
+        g_rel = float(se.get("g", 0.0)) / float(cal.params.g)
+        desc = {"included": used, "missing": missing, "gain_relative_stderr": g_rel,
+                "note": "sigma includes the calibration's per-photosite error (sigma_calibration); the gain's "
+                        "relative error is common to every photosite and not included"}
+        return s_b, s_d, s_a, desc
+
+    def _shared_terms(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, np.ndarray, dict]:
+        """The errors common to all exposures of a photosite, propagated to X at the estimate
+        with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
+        rule, evaluated at the final estimate), in blocks of ``rows``:
+
+        * sigma_calibration: :func:`pipeline.noise.calibration_variance` of the calibration's
+          bias, dark-current and PRNU maps;
+        * the noise of one master dark taken at t_ref and shared by every frame extrapolated
+          from it: d mu / d M = -sum_i w_i / (t_i g a) / W over those frames, variance
+          (g^2 t_ref D + sigma_R^2)/N.
+
+        Returns
+        -------
+        (numpy.ndarray, numpy.ndarray, dict)
+            sigma_calibration and the master dark's term, e-/s, float32; the description of the
+            calibration's errors.
+        """
+        s_b, s_d, s_a, desc = self._calibration_errors()
+        out = np.zeros(self.shape, np.float32)
+        out_m = np.zeros(self.shape, np.float32)
+        master_used = self._shares_timed_master().astype(np.float64)
+        if not desc["included"] and not master_used.any():
+            return out, out_m, desc
+        p = self.calibration.params
+        g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
+        sat2 = float(self.options.saturation_sigmas) ** 2
+        times = np.asarray(self._times, np.float64)
+        nk = self._dark_factors()
+        kinds = np.asarray(self._kinds)
+        bias_used = (kinds == 1).astype(np.float64)
+        coefs = np.where(kinds == 0, 0.0, np.asarray(self._coefs, np.float64))
+        t_ref, n_master = self.options.master_dark_time, float(self.options.n_dark)
+
+        def block(arg, sl):
+            arr, is_map, scalar = arg
+            return arr[sl].astype(np.float64) if is_map else scalar
+
+        def err_block(e, sl):
+            return e[sl].astype(np.float64) if isinstance(e, np.ndarray) else e
+
+        # Only frames whose dark level comes from the calibration's maps need their weights.
+        needs_weights = bool(np.any(bias_used > 0) or np.any(coefs != 0) or master_used.any())
+        for r0 in range(0, self.shape[0], rows):
+            sl = slice(r0, r0 + rows)
+            mu = irr[sl].astype(np.float64)
+            a = block(self._a, sl)
+            if not needs_weights:  # the PRNU term alone: (mu sigma_a / a)^2
+                sa = np.asarray(err_block(s_a, sl), np.float64)
+                out[sl] = np.where(nexp[sl] > 0, np.abs(mu) * sa / a, 0.0)
+                continue
+            D, bias = block(self._D, sl), block(self._bias, sl)
+            u = a * np.maximum(mu, 0.0) + D
+            w = np.empty((len(times),) + mu.shape)
+            for i, (v, d, kind, coef, t) in enumerate(zip(self._values, self._darks, kinds, coefs, times)):
+                if kind == 0:
+                    b = d[sl].astype(np.float64)
+                elif kind == 1:
+                    b = bias + coef * D
+                else:
+                    b = self.master_dark[sl].astype(np.float64) + coef * D
+                vv = v[sl].astype(np.float64)
+                ok = (vv < v_sat) & (b < v_sat) & np.isfinite(vv - b)
+                if sat2 > 0:
+                    gap = v_sat - bias - t * g * u
+                    ok &= (gap > 0) & (gap * gap > sat2 * (g * g * t * u + s2))
+                w[i] = np.where(ok, 1.0 / variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i]), 0.0)
+            used = nexp[sl] > 0
+            if desc["included"]:
+                var = calibration_variance(mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl),
+                                           err_block(s_a, sl), a)
+                out[sl] = np.where(used, np.sqrt(var), 0.0)
+            if master_used.any():
+                sd_m = np.sqrt((g * g * t_ref * D + s2) / n_master)
+                var = calibration_variance(mu, w, times, g, master_used, 0.0 * coefs, sd_m, 0.0, 0.0, a)
+                out_m[sl] = np.where(used, np.sqrt(var), 0.0)
+        return out, out_m, desc
 
 
 def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None,

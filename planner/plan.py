@@ -27,11 +27,13 @@ All variances come from :mod:`pipeline.noise` through :mod:`planner.predict`.
 from __future__ import annotations
 
 import itertools
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+from scipy.special import logsumexp
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.params import Calibration
@@ -358,8 +360,9 @@ class _Context:
         return self.quantile_db(snr_lin) >= self.target_db - 1e-9
 
     def penalty(self, snr_lin) -> float:
-        """Eq. 18: sum over eligible pixels of Q(snr) = exp(-snr)."""
-        return float(np.sum(self.w_elig * np.exp(-snr_lin)))
+        """Eq. 18 in the log domain: log of the sum over eligible pixels of Q(snr) = exp(-snr)
+        (:func:`log_penalty`; exp(-snr) itself underflows above snr = 745, 57.4 dB)."""
+        return float(log_penalty(self.w_elig, snr_lin))
 
     def marginal(self, idx) -> tuple[np.ndarray, np.ndarray]:
         """What adding one more of each candidate to ``idx`` adds: its weight (C, bins; a copy
@@ -711,9 +714,35 @@ def _make_plan(ctx: _Context, chosen: list[int], ok: bool, limit: str, decisions
                 float(ctx.overhead))
 
 
+def log_penalty(weights, snr_lin, axis=-1):
+    """log sum_j w_j exp(-snr_j) (Eq. 18) by log-sum-exp: finite for any SNR (the direct sum
+    underflows to 0 above snr = 745, 57.4 dB, and every plan then looks equally good).
+
+    Parameters
+    ----------
+    weights : array_like
+        Histogram weight of each eligible irradiance bin (0: not eligible), >= 0.
+    snr_lin : array_like
+        Linear SNR per bin, broadcast with ``weights``.
+    axis : int
+        Axis of the bins.
+
+    Returns
+    -------
+    numpy.ndarray or float
+        The log penalty; -inf when no bin has weight.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    snr_lin = np.asarray(snr_lin, dtype=np.float64)
+    w, snr_lin = np.broadcast_arrays(w, snr_lin)
+    with np.errstate(divide="ignore"):
+        return logsumexp(np.where(w > 0, -snr_lin, -np.inf), b=w, axis=axis)
+
+
 def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = False, seed=()):
     """Eq. 18 greedily: starting from ``seed`` (candidate indices), add the candidate that lowers
-    sum exp(-snr) most until the target holds (``per_second``: most per second of capture time).
+    sum exp(-snr) most until the target holds (``per_second``: most per second of capture time),
+    comparing the penalties in the log domain (:func:`log_penalty`).
 
     Returns the chosen candidate indices (in order) and the reason the search stopped when the
     target was not reached ("" when reached).
@@ -736,14 +765,16 @@ def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = Fa
         if budget is not None:
             fits &= used + add_cost <= budget * (1 + 1e-12)
         snr_all = combine_terms(ctx.X[None, :], sw + add_w, scd + ctx.CD, scb + ctx.CB, ctx.errors, ctx.prnu).snr
-        pen = np.sum(ctx.w_elig * np.exp(-snr_all), axis=1)
+        pen = log_penalty(ctx.w_elig[None, :], snr_all, axis=1)
         pen = np.where(fits, pen, np.inf)
         if per_second:
-            gain = np.where(fits, (current - pen) / add_cost, -np.inf)
+            # (P_now - P_new) / cost is proportional to -expm1(log P_new - log P_now) / cost
+            with np.errstate(invalid="ignore", over="ignore"):
+                gain = np.where(fits, -np.expm1(pen - current) / add_cost, -np.inf)
             best = int(np.argmax(gain))
         else:
             best = int(np.argmin(pen))  # ties: the shorter time (candidates ascend)
-        if not pen[best] < current * (1 - 1e-12):
+        if not pen[best] < current + math.log1p(-1e-12):
             return chosen, "no_gain"
         chosen.append(best)
         used += add_cost[best]

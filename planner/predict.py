@@ -81,14 +81,18 @@ class SystematicErrors:
     prnu : float
         Relative RMS spread of the per-photosite gain a (dimensionless); a scalar gain leaves
         a relative error of this size in every photosite's estimate.
+    prnu_map : float
+        Relative RMS standard error of the PRNU map a_j (dimensionless): what the map itself
+        leaves in every photosite's estimate (the merge's ``sigma_calibration``).
     """
 
     dark_current: float = 0.0
     bias: float = 0.0
     prnu: float = 0.0
+    prnu_map: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("dark_current", "bias", "prnu"):
+        for name in ("dark_current", "bias", "prnu", "prnu_map"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"SystematicErrors.{name} must be finite and >= 0, got {v!r}")
@@ -112,16 +116,29 @@ def mean_dark_current(calibration: Calibration) -> float:
     return float(calibration.params.dark_current)
 
 
+def _rms(arr) -> float:
+    """Root mean square of a map (float64 accumulation), 0 for None."""
+    if arr is None:
+        return 0.0
+    a = np.asarray(arr, dtype=np.float64)
+    return float(np.sqrt(np.mean(np.square(a)))) if a.size else 0.0
+
+
 def systematic_errors_from_calibration(calibration: Calibration,
                                        dark_rel_error: float | None = None) -> SystematicErrors:
-    """Default :class:`SystematicErrors` of a calibration.
+    """Default :class:`SystematicErrors` of a calibration: the per-photosite errors that the
+    merge puts into ``sigma_calibration`` (RMS over the photosites; the standard error of a
+    spatial mean would be 40-100 times too small).
 
-    * dark current: the standard error of the calibrated D combined with a relative error
-      ``dark_rel_error`` of the mean dark current: 0.05 with a per-photosite dark-current map
-      (temperature drift of ~0.3 C with the 6.3 C doubling law), 0.3 without one (a scalar D
-      ignores the dark-current non-uniformity, typically tens of percent);
-    * bias: the standard error of mu_R (a bias map is assumed exact);
-    * PRNU: the spread of the calibration's PRNU map (0 without a map: nothing to choose).
+    * dark current: the RMS standard error of the dark-current map (without a map: the
+      standard error of the calibrated D), combined with a relative error ``dark_rel_error``
+      of the mean dark current: 0.05 with a map (temperature drift of ~0.3 C with the 6.3 C
+      doubling law), 0.3 without one (a scalar D ignores the dark-current non-uniformity,
+      typically tens of percent);
+    * bias: the RMS standard error of the bias map (without a map: the offset non-uniformity
+      ``bias_dsnu_DN`` combined with the standard error of mu_R);
+    * PRNU: the spread of the calibration's PRNU map (what ``prnu="scalar"`` leaves; 0 without
+      a map: nothing to choose) and the RMS standard error of the map itself (``prnu_map``).
 
     Parameters
     ----------
@@ -138,10 +155,19 @@ def systematic_errors_from_calibration(calibration: Calibration,
     if dark_rel_error is None:
         dark_rel_error = 0.05 if calibration.dark_current_map is not None else 0.3
     se = calibration.stderr or {}
-    dark = float(np.hypot(float(se.get("dark_current", 0.0)), dark_rel_error * D))
-    bias = float(se.get("mu_R", 0.0))
+    if calibration.dark_current_map is not None and calibration.dark_current_map_stderr is not None:
+        dark_se = _rms(calibration.dark_current_map_stderr)
+    else:
+        dark_se = float(se.get("dark_current", 0.0))
+    dark = float(np.hypot(dark_se, dark_rel_error * D))
+    if calibration.bias_map is not None:
+        bias = _rms(calibration.bias_map_stderr)
+    else:
+        dsnu = ((calibration.provenance or {}).get("calibration") or {}).get("bias_dsnu_DN") or 0.0
+        bias = float(np.hypot(float(se.get("mu_R", 0.0)), float(dsnu)))
     prnu = float(np.std(calibration.prnu)) if calibration.prnu is not None else 0.0
-    return SystematicErrors(dark_current=dark, bias=bias, prnu=prnu)
+    prnu_map = _rms(calibration.prnu_stderr) if calibration.prnu is not None else 0.0
+    return SystematicErrors(dark_current=dark, bias=bias, prnu=prnu, prnu_map=prnu_map)
 
 
 def predicted_value(X, t, calibration: Calibration):
@@ -319,7 +345,8 @@ def combine_terms(X, sum_w, sum_cd, sum_cb, errors: SystematicErrors, prnu: str 
     errors : SystematicErrors
         Systematic errors of the simpler models.
     prnu : {"map", "scalar"}
-        The PRNU model (a scalar gain adds ``errors.prnu * X``).
+        The PRNU model (a scalar gain adds ``errors.prnu * X``, the map its own error
+        ``errors.prnu_map * X``).
     sum_w2v : numpy.ndarray, optional
         Sum of W^2 Var(x_i), when the weights are not the inverse variances.
 
@@ -338,7 +365,9 @@ def combine_terms(X, sum_w, sum_cd, sum_cb, errors: SystematicErrors, prnu: str 
     bias2 = (errors.dark_current * sum_cd / safe) ** 2 + (errors.bias * sum_cb / safe) ** 2
     if prnu == "scalar":
         bias2 = bias2 + (errors.prnu * X) ** 2
-    elif prnu != "map":
+    elif prnu == "map":
+        bias2 = bias2 + (errors.prnu_map * X) ** 2
+    else:
         raise ValueError(f"prnu must be 'map' or 'scalar', got {prnu!r}")
     bias2 = np.where(ok, bias2, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -89,3 +89,32 @@ def test_sigma_is_inverse_root_of_weight_sum_at_the_estimate(single, monkeypatch
     # The dark term matters here: D t exceeds the read noise variance (in e-^2).
     D_t = cal.dark_current_map.mean() * max(TIMES)
     assert D_t > p.sigma2_R / p.g**2
+
+
+def test_master_dark_at_t_ref_honest_per_decade():
+    """One master dark of N frames at t_ref, extrapolated to each exposure: its variance is
+    (g^2 t_ref D + s_R^2)/N (Eq. 5 at t_ref), not that at the light frame's time. Large dark
+    current (40 e-/s), t_ref = 4 s, exposures 0.1 s and 0.25 s (true calibration): z spread per
+    decade 0.95-1.05 against the simulator's truth (with the light frame's time: about 1.5-2)."""
+    spec = PRESETS["camera-B"].replace(dark_current=40.0, dcnu=0.3)
+    zs = {}
+    for seed in (1, 2):
+        sensor = SimulatedSensor(spec, (128, 128), seed=seed)
+        rng = np.random.default_rng([seed, 8])
+        X = 10 ** rng.uniform(0.5, 3.0, (128, 128))
+        times = [0.1, 0.25]
+        values = [sensor.expose(X, t, rng=rng) for t in times]
+        master = np.mean([sensor.expose(X, 4.0, dark=True, rng=rng) for _ in range(4)], axis=0).astype(np.float32)
+        cal = Calibration(spec.nominal_params(), prnu=sensor.prnu.astype(np.float32),
+                          dark_current_map=sensor.dark_current_map().astype(np.float32))
+        res = pm.merge_arrays(values, times, cal, master, n_dark=4, master_dark_time=4.0)
+        z = (res.irradiance.astype(np.float64) - X) / res.sigma
+        lx = np.log10(X)
+        for lo in (0.5, 1, 2):
+            m = (res.nexp > 0) & (lx >= lo) & (lx < np.floor(lo) + 1)
+            zs.setdefault(lo, []).append(z[m])
+    for lo, parts in zs.items():
+        z = np.concatenate(parts)
+        assert z.size > 3000
+        assert 0.95 < z.std() < 1.05, (lo, z.std())
+        assert abs(z.mean()) < 0.05, (lo, z.mean())
