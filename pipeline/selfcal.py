@@ -598,8 +598,9 @@ def calibration_sigma(irradiance: np.ndarray, nexp: np.ndarray, selfcal: SelfCal
 def apply_self_calibration(image, selfcal: SelfCalibration, *, times_applied: bool = True):
     """Make a merge's EXR content state its self-calibration: the unit, the header attribute
     ``self_calibration`` (:meth:`SelfCalibration.header`), sigma including the calibration's
-    own uncertainty (:func:`calibration_sigma`, added in quadrature) and that part alone as
-    the channel ``sigma_calibration``.
+    own uncertainty (:func:`calibration_sigma`, added in quadrature) and the calibration part
+    as the channel ``sigma_calibration`` (added in quadrature to the merge's own calibration part
+    when it has one).
 
     Parameters
     ----------
@@ -618,7 +619,9 @@ def apply_self_calibration(image, selfcal: SelfCalibration, *, times_applied: bo
     cal = calibration_sigma(ch["irradiance"], ch["nexp"], selfcal)
     ch["sigma"] = np.sqrt(np.square(ch["sigma"], dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(
         np.float32)
-    ch["sigma_calibration"] = cal
+    prior = ch.get("sigma_calibration")  # the merge's own calibration part (maps), if any
+    ch["sigma_calibration"] = cal if prior is None else np.sqrt(
+        np.square(prior, dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(np.float32)
     head = selfcal.header()
     head["merged_with"] = "effective exposure times" if times_applied else "nominal exposure times"
     image.attrs["self_calibration"] = head
