@@ -58,7 +58,22 @@ def normalise_model(name: str | None) -> str:
 
 
 def entry_name(camera: str, serial: str | None, iso: float) -> str:
-    """The file name of a library entry (camera model, serial or ``any``, ISO)."""
+    """The file name of a library entry (camera model, serial or ``any``, ISO).
+
+    Parameters
+    ----------
+    camera : str
+        Camera model as the files or libgphoto2 name it (normalised here).
+    serial : str or None
+        Serial number, when known.
+    iso : float
+        ISO speed.
+
+    Returns
+    -------
+    str
+        ``<model>__<serial|any>__iso<ISO>.cal``.
+    """
     model = normalise_model(camera)
     if not model:
         raise InputError("a library calibration needs the camera model (--camera-name, or from the files)")
@@ -189,6 +204,11 @@ def find_calibration(camera: str | None, iso: float | None, shape: tuple[int, in
 
 def remove_calibration(name: str) -> Path:
     """Delete the library entry ``name`` (its file name, with or without ``.cal``).
+
+    Parameters
+    ----------
+    name : str
+        The entry's file name (``hdrcap calibrations list`` shows it).
 
     Returns
     -------

@@ -598,6 +598,28 @@ def atomic_output(path, force: bool = False, suffix: str | None = None) -> Itera
     the final step, :func:`place_new`: a hard link, or on file systems without hard links an
     exclusive create and a rename, so that a file created meanwhile is not clobbered).
     On error the temporary file is removed and ``path`` is untouched.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The output file.
+    force : bool
+        Replace an existing file.
+    suffix : str, optional
+        Suffix of the temporary file (default: that of ``path``), for writers that choose the
+        format by the file name.
+
+    Yields
+    ------
+    pathlib.Path
+        The temporary file to write; it becomes ``path`` when the block ends without error.
+
+    Raises
+    ------
+    OutputExistsError
+        ``path`` exists (or appears while writing) and ``force`` is not given.
+    InputError
+        The output folder does not exist or is not writable.
     """
     path = Path(path)
     if path.exists() and not force:

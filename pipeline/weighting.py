@@ -88,7 +88,23 @@ def weighting_function_MannPicard(v, t, params: SensorParams, **model) -> np.nda
 
     The certainty of an output value is the inverse of the quantisation step in log
     exposure. Linear sensor: g(v) = v/g, d/dv log g(v) = 1/v, hence **w = v** (clipped at 0).
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     return np.broadcast_to(_pos(v), np.broadcast(np.asarray(v), np.asarray(t)).shape).copy()
 
@@ -97,7 +113,23 @@ def weighting_function_DebevecMalik(v, t, params: SensorParams, **model) -> np.n
     """Debevec & Malik (1997), Table 1 hat: w = min(v - v_min, v_max - v).
 
     Linear sensor: v_min = 0 (the black level), v_max = v_sat - mu_R; clipped at 0.
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     v = np.asarray(v, dtype=np.float64)
     w = np.maximum(np.minimum(v, _v_max(params) - v), 0.0)
@@ -109,7 +141,23 @@ def weighting_function_MitsunagaNayar(v, t, params: SensorParams, **model) -> np
 
     Linear sensor: g(v)/g'(v) = (v/g)/(1/g) = **v** (clipped at 0); in expectation
     v = g mu_X t, i.e. w ~ t, the optimal weight when readout noise vanishes (Appendix A).
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     return weighting_function_MannPicard(v, t, params)
 
@@ -118,7 +166,23 @@ def weighting_function_Reinhard(v, t, params: SensorParams, **model) -> np.ndarr
     """Reinhard et al. (2005), Table 1 SNR times hat: w = g(v)/g'(v) [1 - (v/v_mid - 1)^12].
 
     Linear sensor: w = v [1 - (v/v_mid - 1)^12] with v_mid = (v_sat - mu_R)/2, clipped at 0.
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     v = np.asarray(v, dtype=np.float64)
     v_mid = 0.5 * _v_max(params)
@@ -131,7 +195,23 @@ def weighting_function_Robertson(v, t, params: SensorParams, **model) -> np.ndar
 
     The output variance is replaced by the Mann-Picard term. Linear sensor: **w = t^2 v**
     (clipped at 0), ~ t^3 at constant irradiance (Sec. 7).
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     t = np.asarray(t, dtype=np.float64)
     return t * t * _pos(v)
@@ -154,7 +234,23 @@ def weighting_function_Tsin(v, t, params: SensorParams, **model) -> np.ndarray:
     sigma_v^2 = g v + sigma2_R (Eq. 3 with E = v/g). Since Var(x_i) = sigma_g(v)^2 / t^2, the
     weight is **w = 1 / sqrt(Var(x_i)) = t g / sqrt(g v + sigma2_R)**: the square root of the
     inverse variance, hence sub-optimal (it over-weights values near the noise floor).
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     return 1.0 / np.sqrt(_observed_variance(v, t, params))
 
@@ -165,7 +261,23 @@ def weighting_function_KirkAndersen(v, t, params: SensorParams, **model) -> np.n
     Linear sensor, their simplified noise model (shot + readout noise, no dark-current shot
     noise, no spatial noise) evaluated at the observed value: sigma_v^2 = g v + sigma2_R,
     g'(v) = 1/g, hence **w = t^2 g^2 / (g v + sigma2_R) = 1 / Var(x_i | observed v)**.
-    Same parameters as :func:`weighting_function_Uniform`.
+
+    Parameters
+    ----------
+    v : array_like
+        Observed raw value minus black level, DN.
+    t : array_like
+        Exposure time, s.
+    params : SensorParams
+        Camera model: g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN).
+    **model
+        Ignored (keeps one signature for every method).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights, float64, the broadcast shape of ``v`` and ``t`` (relative: only their ratios
+        across exposures matter).
     """
     return 1.0 / _observed_variance(v, t, params)
 
@@ -191,6 +303,12 @@ def weighting_function_Optimal(v, t, params: SensorParams, *, a=1.0, D=None, dar
         Dark strategy.
     n_dark : float
         Frames in a master dark.
+
+    Returns
+    -------
+    numpy.ndarray
+        Inverse variances of the single-sample estimates, s^2 e-^-2 (float64), the broadcast
+        shape of ``v`` and ``t``.
     """
     D = params.dark_current if D is None else D
     t = np.asarray(t, dtype=np.float64)
