@@ -205,7 +205,7 @@ def write_float_dng(path, image: HdrImage, *, bits: int = 32, force: bool = Fals
     """
     import tifffile
 
-    irr = np.asarray(image.channels["irradiance"], dtype=np.float64)
+    irr = np.asarray(image.channels["irradiance"], dtype=np.float32)
     if irr.ndim != 2:
         raise InputError(f"float DNG: the irradiance must be a 2-D mosaic, got shape {irr.shape}")
     cfa = str(image.attrs.get("cfa_pattern", "none"))
@@ -216,7 +216,9 @@ def write_float_dng(path, image: HdrImage, *, bits: int = 32, force: bool = Fals
         source = sources[0] if sources else None
     colour = source_colour_tags(source) if source is not None else []
     unit = image.attrs.get("unit", "electrons per second per photosite")
-    stored = (irr / layout.scale).astype(np.float32 if bits == 32 else np.float16)
+    # A power of two scales a float32 exactly: the only rounding is float16's, when bits is 16.
+    stored = irr if layout.exponent == 0 else irr * np.float32(2.0 ** -layout.exponent)
+    stored = stored.astype(np.float32 if bits == 32 else np.float16, copy=False)
     from hdrcap import __version__
 
     description = f"hdrcap merged irradiance: value * 2^{layout.exponent} = irradiance in {unit}"

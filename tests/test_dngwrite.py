@@ -150,5 +150,26 @@ def test_darktable_develops_the_float_dng(merged, tmp_path):
     proc = subprocess.run(["darktable-cli", str(d / "m.dng"), str(out), "--core", "--configdir", str(tmp_path / "cfg")],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    img = tifffile.imread(out)
-    assert img.shape[:2] == read_exr(d / "m.exr").shape and img.max() > 0
+    lum = tifffile.imread(out).astype(np.float64).mean(axis=2)
+    irr = read_exr(d / "m.exr").channels["irradiance"].astype(np.float64)
+    assert lum.shape == irr.shape
+    # The developed picture follows the scene: rank correlation of 2x2 means (one Bayer tile).
+    h, w = irr.shape
+
+    def tiles(a):
+        return a.reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3)).ravel()
+
+    ranks = [np.argsort(np.argsort(tiles(a))) for a in (lum, irr)]
+    assert np.corrcoef(*ranks)[0, 1] > 0.9
+
+
+def test_format_option_and_help(merged, tmp_path):
+    from tests.conftest import run_cli
+
+    _, _, frames = merged
+    run_cli("merge", *frames, "--camera", "camera-A", "-o", tmp_path / "x.raw", "--format", "dng", "--dng-bits", "16",
+            check=True)
+    tags, data = _tags(tmp_path / "x.raw")
+    assert data.dtype == np.float16 and tuple(tags[50706]) == (1, 4, 0, 0)
+    text = run_cli("merge", "--help", check=True).stdout
+    assert "--format" in text and "cannot hold sigma or nexp" in " ".join(text.split())
