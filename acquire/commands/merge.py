@@ -20,9 +20,15 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--camera", help="Use a simulator preset's nominal parameters as the calibration (camera-A, camera-B).")
 @click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).")
 @click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path), help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output file: EXR (default), or a float DNG when it ends in .dng or with --format dng.")
-@click.option("--format", "out_format", type=click.Choice(["exr", "dng"]), default=None, help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, nexp and the header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour matrices, white balance, orientation) that raw developers open like any raw; it cannot hold sigma or nexp (docs/merge.md, Float DNG).")
-@click.option("--dng-bits", type=click.Choice(["32", "16"]), default="32", show_default=True, help="Float width of the DNG; 16 scales the irradiance by a power of two written in the file.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Output file: EXR (default), or a float DNG when it ends in .dng or with --format dng.")
+@click.option("--format", "out_format", type=click.Choice(["exr", "dng"]), default=None,
+              help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, nexp and the "
+                   "header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour "
+                   "matrices, white balance, orientation) that raw developers open like any raw; it cannot hold "
+                   "sigma or nexp (docs/merge.md, Float DNG).")
+@click.option("--dng-bits", type=click.Choice(["32", "16"]), default="32", show_default=True,
+              help="Float width of the DNG; 16 scales the irradiance by a power of two written in the file.")
 @click.option("--weighting", default="optimal", show_default=True, help="Weighting: 'optimal' (iterative ML merge) or a baseline name from hdrcap.pipeline.weighting.")
 @click.option("--iterations", type=click.IntRange(min=1), default=20, show_default=True, help="Maximum re-weighting steps per photosite.")
 @click.option("--tolerance", type=click.FloatRange(min=0), default=1e-6, show_default=True, help="Stop when the change is below this times max(|estimate|, sigma).")
