@@ -156,9 +156,15 @@ def _camera_tags(ifd: _IFD, cap: _Capture, make: str, model: str, software: str,
     ifd.add(34855, _SHORT, cap.iso)
 
 
-def _dng_tags(ifd: _IFD, unique_model: str, serial: str, black_level: float, white_level: int) -> None:
-    """DNG 1.4 tags: version, camera model, CFA layout, black and white levels, an identity
-    colour matrix, neutral white balance, serial number and the D65 illuminant."""
+def _dng_tags(ifd: _IFD, unique_model: str, serial: str, black_level: float, white_level: int,
+              color_matrix=None, as_shot_neutral=None) -> None:
+    """DNG 1.4 tags: version, camera model, CFA layout, black and white levels, the colour
+    matrix (XYZ to camera, default identity), the white balance (AsShotNeutral, default neutral),
+    serial number and the D65 illuminant."""
+    matrix = np.eye(3) if color_matrix is None else np.asarray(color_matrix, dtype=float)
+    neutral = (1.0, 1.0, 1.0) if as_shot_neutral is None else tuple(float(v) for v in as_shot_neutral)
+    if matrix.shape != (3, 3) or len(neutral) != 3 or not all(v > 0 for v in neutral):
+        raise ValueError("the colour matrix must be 3x3 and AsShotNeutral three positive values")
     ifd.add(50706, _BYTE, [1, 4, 0, 0])  # DNGVersion
     ifd.add(50707, _BYTE, [1, 1, 0, 0])  # DNGBackwardVersion
     ifd.add(50708, _ASCII, unique_model)  # UniqueCameraModel
@@ -167,8 +173,8 @@ def _dng_tags(ifd: _IFD, unique_model: str, serial: str, black_level: float, whi
     ifd.add(50713, _SHORT, [1, 1])  # BlackLevelRepeatDim
     ifd.add(50714, _RATIONAL, [_rational(black_level, 1000)])
     ifd.add(50717, _LONG, int(white_level))
-    ifd.add(50721, _SRATIONAL, [(1, 1), (0, 1), (0, 1), (0, 1), (1, 1), (0, 1), (0, 1), (0, 1), (1, 1)])
-    ifd.add(50728, _RATIONAL, [(1, 1), (1, 1), (1, 1)])  # AsShotNeutral
+    ifd.add(50721, _SRATIONAL, [_rational(v, 10000) for v in matrix.ravel()])  # ColorMatrix1
+    ifd.add(50728, _RATIONAL, [_rational(v, 10000) for v in neutral])  # AsShotNeutral
     ifd.add(50735, _ASCII, serial)  # CameraSerialNumber
     ifd.add(50778, _SHORT, 21)  # CalibrationIlluminant1: D65
 
@@ -219,6 +225,8 @@ def write_dng(
     f_number: float = 8.0,
     software: str = "hdrcap",
     description: str = "",
+    color_matrix=None,
+    as_shot_neutral=None,
 ) -> None:
     """Write ``mosaic`` (2-D uint16 CFA data) as a DNG to the binary file object ``fileobj``.
 
@@ -243,12 +251,16 @@ def write_dng(
         Capture time (DateTime, DateTimeOriginal); defaults to now (UTC).
     f_number : float
         Aperture, written as a rational.
+    color_matrix : array_like, optional
+        3x3 ColorMatrix1 (XYZ to camera, D65), written as signed rationals; default identity.
+    as_shot_neutral : sequence of 3 float, optional
+        AsShotNeutral (camera-space white balance, > 0); default (1, 1, 1).
 
     Raises
     ------
     ValueError
         A mosaic that is not 2-D uint16 or is too small; an exposure time that is not a
-        positive finite rational.
+        positive finite rational; a colour matrix that is not 3x3 or a non-positive neutral.
     """
     mosaic = _check_mosaic(mosaic)
     h, w = mosaic.shape
@@ -258,6 +270,6 @@ def write_dng(
     ifd0 = _IFD()
     _image_tags(ifd0, h, w, cfa)
     _camera_tags(ifd0, cap, make, model, software, description)
-    _dng_tags(ifd0, f"{make} {model}", serial, black_level, white_level)
+    _dng_tags(ifd0, f"{make} {model}", serial, black_level, white_level, color_matrix, as_shot_neutral)
     fileobj.write(_layout(ifd0, _exif_ifd(cap)))
     fileobj.write(mosaic.astype("<u2", copy=False).tobytes())

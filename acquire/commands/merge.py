@@ -1,4 +1,4 @@
-"""``hdrcap merge``: raw bracket (+ dark frames) -> EXR with irradiance, sigma and nexp."""
+"""``hdrcap merge``: raw bracket (+ dark frames) -> EXR with irradiance, sigma and nexp, or a float DNG."""
 
 from __future__ import annotations
 
@@ -20,7 +20,15 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.option("--camera", help="Use a simulator preset's nominal parameters as the calibration (camera-A, camera-B).")
 @click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).")
 @click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path), help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output EXR file.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="Output file: EXR (default), or a float DNG when it ends in .dng or with --format dng.")
+@click.option("--format", "out_format", type=click.Choice(["exr", "dng"]), default=None,
+              help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, nexp and the "
+                   "header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour "
+                   "matrices, white balance, orientation) that raw developers open like any raw; it cannot hold "
+                   "sigma or nexp (docs/merge.md, Float DNG).")
+@click.option("--dng-bits", type=click.Choice(["32", "16"]), default="32", show_default=True,
+              help="Float width of the DNG; 16 scales the irradiance by a power of two written in the file.")
 @click.option("--weighting", default="optimal", show_default=True, help="Weighting: 'optimal' (iterative ML merge) or a baseline name from hdrcap.pipeline.weighting.")
 @click.option("--iterations", type=click.IntRange(min=1), default=20, show_default=True, help="Maximum re-weighting steps per photosite.")
 @click.option("--tolerance", type=click.FloatRange(min=0), default=1e-6, show_default=True, help="Stop when the change is below this times max(|estimate|, sigma).")
@@ -38,13 +46,14 @@ from hdrcap.pipeline.noise import DarkStrategy
 @click.pass_context
 def command(ctx, frames, darks, calibration, camera, times, plan_file, output, weighting, iterations, tolerance,
             saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exposure_times,
-            exr_compression, sigma_precision, force, as_json):
-    """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR.
+            exr_compression, sigma_precision, force, as_json, out_format, dng_bits):
+    """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR (or a float DNG).
 
     The EXR holds float32 channels irradiance (e-/s per photosite), sigma (its standard
     deviation) and nexp (unsaturated exposures used), and header attributes with the unit, CFA
     pattern, exposure times, calibration, all merge options, the dark frame of every exposure
-    and, with --plan, the planner's decisions.
+    and, with --plan, the planner's decisions. With --format dng (or OUTPUT.dng) the irradiance
+    alone is written as a linear float CFA DNG for raw developers.
     """
     from click.core import ParameterSource
 
@@ -63,6 +72,7 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
     def given(name):
         return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
 
+    out_format = out_format or ("dng" if output.suffix.lower() == ".dng" else "exr")
     if output.exists() and not force:
         raise InputError(f"{output}: exists; use --force to overwrite")
     plan = read_plan(plan_file) if plan_file else None
@@ -98,8 +108,13 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
         from hdrcap.pipeline.selfcal import apply_self_calibration
 
         apply_self_calibration(image, selfcal, times_applied=list(times) == list(selfcal.effective_times))
-    write_exr(output, image, force=force, compression=exr_compression,
-              precision=exr_precision(image.channels, sigma_precision))
+    if out_format == "dng":
+        from hdrcap.pipeline.dngwrite import write_float_dng
+
+        write_float_dng(output, image, bits=int(dng_bits), force=force)
+    else:
+        write_exr(output, image, force=force, compression=exr_compression,
+                  precision=exr_precision(image.channels, sigma_precision))
     info = summary(done.result) | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3),
                                    "n_frames": len(done.frames), "n_darks": len(done.darks)}
     if selfcal is not None:
