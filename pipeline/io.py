@@ -212,7 +212,8 @@ def _tag_complaint(message: str) -> str:
 
     m = _BAD_TAG.search(message)
     if m is None:
-        return re.sub(r"<tifffile\.TiffPage \d+ @(\d+)>", r"IFD at byte \1:", message).replace("<tifffile.", "").strip()
+        return re.sub(r"<(tifffile\.)?[\w.]+(?: \d+)?(?: @(\d+))?>", lambda k: f"at byte {k[2]}:" if k[2] else "",
+                      message).strip()
     code, offset, reason = int(m.group(1)), int(m.group(2)), m.group(3).strip()
     name = tifffile.TIFF.TAGS.get(code, "unknown tag")
     return f"IFD entry at byte {offset} (tag {code}, {name}): {reason}"
@@ -224,6 +225,30 @@ def _refuse_corrupt_dng(path: Path, page, complaints: list[str]) -> None:
     is_dng = path.suffix.lower() == ".dng" or 50706 in page.tags
     if is_dng and complaints:
         raise InputError(f"{path}: corrupt DNG directory: {_tag_complaint(complaints[0])}")
+
+
+#: Largest ratio of the raw image's size (bits per sample times photosites) to the bytes it is
+#: stored in: lossless raw codecs reach about 2 on sensor data; more means corrupt dimensions,
+#: which LibRaw would allocate before it notices that the data are missing.
+MAX_RAW_COMPRESSION = 8
+
+
+def _refuse_impossible_size(path: Path, tif) -> None:
+    """Refuse a raw image whose stated dimensions cannot fit in its stored data."""
+    from .dngread import raw_page
+
+    try:
+        page = raw_page(tif)
+        if page is None:
+            return
+        stored = sum(page.databytecounts)
+        bits = page.bitspersample if isinstance(page.bitspersample, int) else max(page.bitspersample)
+        need = page.imagewidth * page.imagelength * bits / 8
+    except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
+        return
+    if need > MAX_RAW_COMPRESSION * max(stored, 1):
+        raise InputError(f"{path}: impossible raw image dimensions {page.imagewidth}x{page.imagelength} "
+                         f"({bits}-bit) for {stored} bytes of image data (corrupt file)")
 
 
 def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
@@ -255,6 +280,7 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
             exif = _exif_values(page, path)
             if ends and max(ends) > size:
                 raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
+            _refuse_impossible_size(path, tif)
             try:
                 direct = decode_dng(path, tif, mmap=mmap)
             except InputError:
@@ -455,19 +481,22 @@ def read_image16(path, exposure_time: float) -> RawFrame:
         raise InputError(f"{path}: a PNG/TIFF frame needs an explicit exposure time (--times)")
     t = check_exposure_time(exposure_time, path)
     suffix = path.suffix.lower()
-    try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile
+    with _tiff_complaints() as complaints:
+        try:
+            if suffix in (".tif", ".tiff"):
+                import tifffile
 
-            data = tifffile.imread(path)
-        else:
-            from PIL import Image
+                data = tifffile.imread(path)
+            else:
+                from PIL import Image
 
-            with Image.open(path) as im:
-                im.load()
-                data = np.array(im)
-    except Exception as err:  # PIL/tifffile raise many types for bad files
-        raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
+                with Image.open(path) as im:
+                    im.load()
+                    data = np.array(im)
+        except Exception as err:  # PIL/tifffile raise many types for bad files
+            raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
+    if complaints:  # a directory entry or page tifffile skipped: the pixels may be anything
+        raise InputError(f"{path}: corrupt TIFF: {_tag_complaint(complaints[0])}")
     if data.ndim != 2:
         raise InputError(f"{path}: expected a single-channel (raw mosaic) image, got shape {data.shape}")
     if data.dtype not in (np.uint8, np.uint16):
@@ -685,6 +714,8 @@ def read_emva_descriptor(path) -> EmvaDataset:
                     if current is None:
                         raise ValueError("image line before any b/d step")
                     rel = rest.strip().replace("\\", "/")
+                    if not rel.isprintable():
+                        raise ValueError(f"image path {rel!r} holds control characters")
                     current["images"].append(base / rel)
                 else:
                     raise ValueError(f"unknown line type {key!r}")
@@ -917,7 +948,7 @@ def read_exr(path) -> HdrImage:
     path = Path(path)
     _check_readable(path)
     try:
-        with OpenEXR.File(str(path)) as exr:
+        with _quiet_stderr(), OpenEXR.File(str(path)) as exr:  # OpenEXR's own messages: ours says it
             # read everything inside the context: the header is released when the file closes
             meta = exr.header().get(_META_KEY)
             channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}

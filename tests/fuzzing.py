@@ -31,14 +31,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 from hypothesis import strategies as st
 
 DATA = Path(__file__).resolve().parent / "data" / "fuzz"
 
-#: Seconds one parser call may take before it counts as a hang.
-CALL_TIMEOUT_S = 60
+#: Seconds one call may take before it counts as a hang (the seeds take well under 1 s).
+CALL_TIMEOUT_S = 20
 
 
 # ------------------------------------------------------------------------------- seed corpus
@@ -121,6 +121,39 @@ exr = "hdr.exr"
 """
 
 
+def _libraw_dng(src: Path, dst: Path) -> Path:
+    """``src`` (a simulator DNG) without DateTimeOriginal, so that :func:`read_raw` leaves it to
+    LibRaw: the tag of that entry in the EXIF IFD becomes DateTimeDigitized (36868)."""
+    import struct
+
+    blob = bytearray(src.read_bytes())
+    ifd0 = struct.unpack_from("<I", blob, 4)[0]
+    entries = [ifd0 + 2 + 12 * i for i in range(struct.unpack_from("<H", blob, ifd0)[0])]
+    exif = next(struct.unpack_from("<I", blob, e + 8)[0] for e in entries if struct.unpack_from("<H", blob, e)[0] == 34665)
+    for i in range(struct.unpack_from("<H", blob, exif)[0]):
+        pos = exif + 2 + 12 * i
+        if struct.unpack_from("<H", blob, pos)[0] == 36867:
+            struct.pack_into("<H", blob, pos, 36868)
+    dst.write_bytes(bytes(blob))
+    return dst
+
+
+def _tiff_frames(frames: tuple[Path, ...], folder: Path) -> tuple[Path, ...]:
+    """The mosaics of ``frames`` as single-channel 16-bit TIFF files (exposure times via --times)."""
+    import tifffile
+
+    from hdrcap.pipeline.io import read_raw
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i, frame in enumerate(frames):
+        path = folder / f"frame_{i}.tif"
+        if not path.exists():
+            tifffile.imwrite(path, read_raw(frame, mmap=False).data)
+        out.append(path)
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class Corpus:
     """Valid seed files, one or more per parser."""
@@ -128,6 +161,9 @@ class Corpus:
     root: Path
     frames: tuple[Path, ...]
     darks: tuple[Path, ...]
+    libraw_dng: Path
+    tiffs: tuple[Path, ...]
+    times: tuple[float, ...]
     exr: Path
     merged: Path
     calibration: Path
@@ -187,7 +223,12 @@ def build_corpus(root: Path) -> Corpus:
     emva = emva_dir / "EMVA1288_Data.txt"
     if not emva.exists():
         _emva_set(emva_dir)
-    return Corpus(root, frames, darks, sim / "truth.exr", run_dir / "hdr.exr", cal, plan, plan_frames, plan_darks, job, run_dir / "manifest.jsonl",
+    from hdrcap.pipeline.io import read_raw
+
+    libraw_dng = _libraw_dng(frames[0], root / "libraw.dng")
+    times = tuple(read_raw(f).exposure_time for f in frames)
+    return Corpus(root, frames, darks, libraw_dng, _tiff_frames(frames, root / "tiff"), times, sim / "truth.exr",
+                  run_dir / "hdr.exr", cal, plan, plan_frames, plan_darks, job, run_dir / "manifest.jsonl",
                   run_dir / "events.jsonl", emva)
 
 
@@ -304,17 +345,52 @@ def _time_limit(seconds: int):
 
 @dataclass(frozen=True)
 class Outcome:
+    """What one call of a target gave: exit status, its output streams, and whether the EXR it
+    wrote (if any) is finite everywhere."""
+
     rc: int
     stdout: str
     stderr: str
+    output_finite: bool = True
+
+
+#: Peak resident memory (MiB) of the fuzzing process that counts as unbounded: the inputs are
+#: a few kB to a few hundred kB, their results a few MB.
+MEMORY_LIMIT_MIB = 1024
+
+
+def _reset_peak() -> None:
+    """Reset the process's peak resident memory (Linux: ``5`` to /proc/self/clear_refs)."""
+    with contextlib.suppress(OSError):
+        Path("/proc/self/clear_refs").write_text("5")
+
+
+def _peak_mib() -> float:
+    """Peak resident memory since the last :func:`_reset_peak`, MiB (0 where unknown)."""
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return 0.0
+    return next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmHWM:")), 0.0)
+
+
+def _exr_is_finite(path: Path) -> bool:
+    import numpy as np
+
+    from hdrcap.pipeline.io import read_exr
+
+    return all(np.isfinite(ch).all() for ch in read_exr(path).channels.values())
 
 
 def check_outcome(outcome: Outcome, what: str) -> None:
-    """The contract: exit 0, or exit 2 with one ``hdrcap: error:`` line (warnings allowed)."""
+    """The contract: exit 0 (with nothing but ``hdrcap: warning:`` lines on stderr and a finite
+    output), or exit 2 with one ``hdrcap: error:`` line (warnings allowed)."""
     lines = [ln for ln in outcome.stderr.splitlines() if ln.strip() and not ln.startswith("hdrcap: warning:")]
     assert "Traceback" not in outcome.stderr, f"{what}: traceback\n{outcome.stderr}"
     assert "internal error" not in outcome.stderr, f"{what}: {outcome.stderr.strip()}"
     if outcome.rc == 0:
+        assert not lines, f"{what}: a success that printed more than warnings on stderr:\n{outcome.stderr}"
+        assert outcome.output_finite, f"{what}: a success whose output holds NaN or infinite values"
         return
     assert outcome.rc == 2, f"{what}: exit status {outcome.rc}: {outcome.stderr.strip()}"
     assert len(lines) == 1 and lines[0].startswith("hdrcap: error: "), (
@@ -325,15 +401,21 @@ def run_target(target: str, corpus: Corpus, data: bytes, work: Path) -> Outcome:
     """Write ``data`` as the input of ``target`` in ``work`` and run the command that parses it."""
     work.mkdir(parents=True, exist_ok=True)
     out = work / "out.exr"
+    out.unlink(missing_ok=True)
     f = TARGETS[target]
     path = work / f.name
     path.write_bytes(data)
     args = f.args(corpus, path, out)
+    _reset_peak()
     with _time_limit(CALL_TIMEOUT_S):
         if callable(args):
-            return args()
-        rc, so, se = _cli(*args)
-    return Outcome(rc, so, se)
+            outcome = args()
+        else:
+            outcome = Outcome(*_cli(*args))
+    assert _peak_mib() < MEMORY_LIMIT_MIB, f"{target}: peak memory {_peak_mib():.0f} MiB"
+    if outcome.rc == 0 and out.exists():
+        outcome = Outcome(outcome.rc, outcome.stdout, outcome.stderr, _exr_is_finite(out))
+    return outcome
 
 
 def _library_call(fn: Callable[[], object]) -> Callable[[], Outcome]:
@@ -395,6 +477,12 @@ TARGETS: dict[str, Target] = {
     "dng": Target(
         "input.dng", lambda c: c.frames[0].read_bytes(), mutated,
         lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"]),
+    "dng-libraw": Target(
+        "input.dng", lambda c: c.libraw_dng.read_bytes(), mutated,
+        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"]),
+    "tiff": Target(
+        "input.tif", lambda c: c.tiffs[0].read_bytes(), mutated,
+        lambda c, p, o: ["merge", p, *c.tiffs[1:], "--times", *c.times, "--camera", "camera-B", "-o", o, "--force"]),
     "dark-dng": Target(
         "dark.dng", lambda c: c.darks[0].read_bytes(), mutated,
         lambda c, p, o: ["merge", *c.frames, "--darks", p, *c.darks[1:], "--camera", "camera-B", "-o", o,
@@ -430,29 +518,35 @@ TARGETS: dict[str, Target] = {
 
 def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
     """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure."""
-    from hypothesis import HealthCheck, given, settings
+    from hypothesis import HealthCheck, Verbosity, given, settings
 
     corpus = build_corpus(corpus_dir)
     failed = 0
     for name in targets:
         target = TARGETS[name]
         seed = target.seed(corpus)
-        count = {"n": 0}
+        count = {"n": 0, "slowest": 0.0, "peak": 0.0, "rc": {}}
         failing: dict[str, bytes] = {}
         deadline = time.monotonic() + minutes * 60
 
         @settings(max_examples=10**9, deadline=None, database=None, derandomize=False,
-                  suppress_health_check=list(HealthCheck))
+                  suppress_health_check=list(HealthCheck), verbosity=Verbosity.quiet)
         @given(target.strategy(seed))
         def one(data: bytes) -> None:
-            if time.monotonic() > deadline:
+            if time.monotonic() > deadline and not failing:  # never cut a shrinking short
                 raise _Done
             count["n"] += 1
+            t0 = time.monotonic()
             try:
-                check_outcome(run_target(name, corpus, data, work / name), name)
+                outcome = run_target(name, corpus, data, work / name)
+                check_outcome(outcome, name)
             except Exception:
                 failing["data"] = data  # the last failing call replays the shrunk example
                 raise
+            finally:
+                count["slowest"] = max(count["slowest"], time.monotonic() - t0)
+                count["peak"] = max(count["peak"], _peak_mib())
+            count["rc"][outcome.rc] = count["rc"].get(outcome.rc, 0) + 1
 
         t0 = time.monotonic()
         error = None
@@ -472,7 +566,9 @@ def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, sa
             saved = folder / (hashlib.sha256(failing["data"]).hexdigest()[:16] + ".bin")
             saved.write_bytes(failing["data"])
         print(json.dumps({"target": name, "executions": count["n"], "seconds": round(time.monotonic() - t0, 1),
-                          "failure": error, "saved": str(saved) if saved else None}), flush=True)
+                          "exit_status": count["rc"], "slowest_call_s": round(count["slowest"], 2),
+                          "peak_mib": round(count["peak"]), "failure": error, "saved": str(saved) if saved else None}),
+              flush=True)
     return 1 if failed else 0
 
 

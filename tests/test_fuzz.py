@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 
 from fuzzing import DATA, TARGETS, build_corpus, check_outcome, run_target
 
-EXAMPLES = 12
+EXAMPLES = 30
 
 
 @pytest.fixture(scope="module")

@@ -160,3 +160,12 @@ def test_the_corrupt_dng_is_refused_by_the_merge_command(frames, tmp_path):
         rc = main(["merge", str(bad), str(frames[1]), "--camera", "camera-B", "-o", str(out)])
     assert rc == 2 and not out.exists()
     assert err.getvalue().count("\n") == 1 and err.getvalue().startswith(f"hdrcap: error: {bad}: corrupt DNG")
+
+
+def test_dimensions_the_data_cannot_hold_are_refused_before_decoding(frames, decoder, tmp_path):
+    """30000x30000 compressed photosites in 6 kB: LibRaw allocated 1.7 GB and returned zeros."""
+    blob = frames[0].read_bytes()
+    for tag, value in ((256, 30000), (257, 30000), (278, 30000), (259, 7)):
+        blob = _put(blob, _entry(blob, tag) + 8, "<I", value)
+    with pytest.raises(InputError, match=r"big.dng: impossible raw image dimensions 30000x30000 \(16-bit\)"):
+        pio.read_raw(_write(tmp_path, "big.dng", blob))
