@@ -29,9 +29,9 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Callable
 
 from hypothesis import strategies as st
 
@@ -129,7 +129,9 @@ def _libraw_dng(src: Path, dst: Path) -> Path:
     blob = bytearray(src.read_bytes())
     ifd0 = struct.unpack_from("<I", blob, 4)[0]
     entries = [ifd0 + 2 + 12 * i for i in range(struct.unpack_from("<H", blob, ifd0)[0])]
-    exif = next(struct.unpack_from("<I", blob, e + 8)[0] for e in entries if struct.unpack_from("<H", blob, e)[0] == 34665)
+    exif = next(
+        struct.unpack_from("<I", blob, e + 8)[0] for e in entries if struct.unpack_from("<H", blob, e)[0] == 34665
+    )
     for i in range(struct.unpack_from("<H", blob, exif)[0]):
         pos = exif + 2 + 12 * i
         if struct.unpack_from("<H", blob, pos)[0] == 36867:
@@ -181,15 +183,41 @@ def build_corpus(root: Path) -> Corpus:
     root = Path(root)
     sim = root / "sim"
     if not (sim / "truth.exr").exists():
-        _must("simulate", "--camera", "camera-B", "--size", "64x48", "--times", "0.001", "0.01", "0.1",
-              "--darks", "--seed", "2", "--out", sim, "--force")
+        _must(
+            "simulate",
+            "--camera",
+            "camera-B",
+            "--size",
+            "64x48",
+            "--times",
+            "0.001",
+            "0.01",
+            "0.1",
+            "--darks",
+            "--seed",
+            "2",
+            "--out",
+            sim,
+            "--force",
+        )
     frames = tuple(sorted(sim.glob("frame_*.dng")))
     darks = tuple(sorted(sim.glob("dark_*.dng")))
     cal_dir = root / "calset"
     cal = root / "camera.cal"
     if not cal.exists():
-        _must("simulate", "--camera", "camera-B", "--size", "64x48", "--calibration-set", "--seed", "3",
-              "--out", cal_dir, "--force")
+        _must(
+            "simulate",
+            "--camera",
+            "camera-B",
+            "--size",
+            "64x48",
+            "--calibration-set",
+            "--seed",
+            "3",
+            "--out",
+            cal_dir,
+            "--force",
+        )
         bias = sorted(cal_dir.glob("bias_*"))
         sat = sorted(cal_dir.glob("sat*"))
         flats = sorted(cal_dir.glob("flat_*"))
@@ -200,13 +228,27 @@ def build_corpus(root: Path) -> Corpus:
         _must(*args, "-o", cal, "--force")
     plan = root / "plan.json"
     if not plan.exists():
-        plan.write_text(_must("plan", "--camera", "camera-B", "--irradiance", sim / "truth.exr",
-                              "--target-snr-db", "20", "--json"))
+        plan.write_text(
+            _must("plan", "--camera", "camera-B", "--irradiance", sim / "truth.exr", "--target-snr-db", "20", "--json")
+        )
     plan_sim = root / "plansim"
     if not (plan_sim / "truth.exr").exists():
         times = sorted({float(t) for t in json.loads(plan.read_text())["exposures"]})
-        _must("simulate", "--camera", "camera-B", "--size", "64x48", "--times", *times, "--darks", "--seed", "4",
-              "--out", plan_sim, "--force")
+        _must(
+            "simulate",
+            "--camera",
+            "camera-B",
+            "--size",
+            "64x48",
+            "--times",
+            *times,
+            "--darks",
+            "--seed",
+            "4",
+            "--out",
+            plan_sim,
+            "--force",
+        )
     plan_frames = tuple(sorted(plan_sim.glob("frame_*.dng")))
     plan_darks = tuple(sorted(plan_sim.glob("dark_*.dng")))
     job = root / "job.toml"
@@ -227,9 +269,24 @@ def build_corpus(root: Path) -> Corpus:
 
     libraw_dng = _libraw_dng(frames[0], root / "libraw.dng")
     times = tuple(read_raw(f).exposure_time for f in frames)
-    return Corpus(root, frames, darks, libraw_dng, _tiff_frames(frames, root / "tiff"), times, sim / "truth.exr",
-                  run_dir / "hdr.exr", cal, plan, plan_frames, plan_darks, job, run_dir / "manifest.jsonl",
-                  run_dir / "events.jsonl", emva)
+    return Corpus(
+        root,
+        frames,
+        darks,
+        libraw_dng,
+        _tiff_frames(frames, root / "tiff"),
+        times,
+        sim / "truth.exr",
+        run_dir / "hdr.exr",
+        cal,
+        plan,
+        plan_frames,
+        plan_darks,
+        job,
+        run_dir / "manifest.jsonl",
+        run_dir / "events.jsonl",
+        emva,
+    )
 
 
 # --------------------------------------------------------------------------------- mutations
@@ -252,26 +309,32 @@ def mutated(draw, seed: bytes, header: int = 4096) -> bytes:
             data[pos] = draw(st.integers(0, 255))
         elif op == "word":
             word = draw(st.sampled_from([0, 0xFFFFFFFF, 0x7FFFFFFF, 0x80000000, 1, n, n + 1, 2 * n]))
-            data[pos:pos + 4] = word.to_bytes(4, draw(st.sampled_from(["little", "big"])))
+            data[pos : pos + 4] = word.to_bytes(4, draw(st.sampled_from(["little", "big"])))
         elif op == "truncate":
             del data[pos:]
         elif op == "insert":
             data[pos:pos] = draw(st.binary(min_size=1, max_size=16))
         elif op == "duplicate":
             size = draw(st.integers(1, 64))
-            data[pos:pos] = data[pos:pos + size]
+            data[pos:pos] = data[pos : pos + size]
         else:
             size = draw(st.integers(1, 256))
-            data[pos:pos + size] = bytes(len(data[pos:pos + size]))
+            data[pos : pos + size] = bytes(len(data[pos : pos + size]))
     return bytes(data)
 
 
 _JSON_LEAF = st.one_of(
-    st.none(), st.booleans(), st.integers(-(2**63), 2**63), st.floats(allow_nan=True, allow_infinity=True),
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**63), 2**63),
+    st.floats(allow_nan=True, allow_infinity=True),
     st.text(max_size=12),
 )
-JSON_VALUES = st.recursive(_JSON_LEAF, lambda inner: st.one_of(
-    st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=12), inner, max_size=5)), max_leaves=20)
+JSON_VALUES = st.recursive(
+    _JSON_LEAF,
+    lambda inner: st.one_of(st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=12), inner, max_size=5)),
+    max_leaves=20,
+)
 
 
 @st.composite
@@ -298,9 +361,12 @@ def json_like(draw, seed: bytes) -> bytes:
 
 
 TOML_VALUES = st.one_of(
-    st.integers(-(2**70), 2**70).map(str), st.floats(allow_nan=True, allow_infinity=True).map(
-        lambda f: {"nan": "nan", "inf": "inf", "-inf": "-inf"}.get(str(f), repr(f))),
-    st.text(max_size=12).map(json.dumps), st.sampled_from(["true", "false", "[]", "{}", "[1, 2]", '""', "-0", "1e308"]),
+    st.integers(-(2**70), 2**70).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(
+        lambda f: {"nan": "nan", "inf": "inf", "-inf": "-inf"}.get(str(f), repr(f))
+    ),
+    st.text(max_size=12).map(json.dumps),
+    st.sampled_from(["true", "false", "[]", "{}", "[1, 2]", '""', "-0", "1e308"]),
 )
 
 
@@ -394,7 +460,8 @@ def check_outcome(outcome: Outcome, what: str) -> None:
         return
     assert outcome.rc == 2, f"{what}: exit status {outcome.rc}: {outcome.stderr.strip()}"
     assert len(lines) == 1 and lines[0].startswith("hdrcap: error: "), (
-        f"{what}: expected one 'hdrcap: error:' line, got:\n{outcome.stderr}")
+        f"{what}: expected one 'hdrcap: error:' line, got:\n{outcome.stderr}"
+    )
 
 
 def run_target(target: str, corpus: Corpus, data: bytes, work: Path) -> Outcome:
@@ -475,101 +542,169 @@ class Target:
 
 TARGETS: dict[str, Target] = {
     "dng": Target(
-        "input.dng", lambda c: c.frames[0].read_bytes(), mutated,
-        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"]),
+        "input.dng",
+        lambda c: c.frames[0].read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"],
+    ),
     "dng-libraw": Target(
-        "input.dng", lambda c: c.libraw_dng.read_bytes(), mutated,
-        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"]),
+        "input.dng",
+        lambda c: c.libraw_dng.read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"],
+    ),
     "tiff": Target(
-        "input.tif", lambda c: c.tiffs[0].read_bytes(), mutated,
-        lambda c, p, o: ["merge", p, *c.tiffs[1:], "--times", *c.times, "--camera", "camera-B", "-o", o, "--force"]),
+        "input.tif",
+        lambda c: c.tiffs[0].read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", p, *c.tiffs[1:], "--times", *c.times, "--camera", "camera-B", "-o", o, "--force"],
+    ),
     "dark-dng": Target(
-        "dark.dng", lambda c: c.darks[0].read_bytes(), mutated,
-        lambda c, p, o: ["merge", *c.frames, "--darks", p, *c.darks[1:], "--camera", "camera-B", "-o", o,
-                         "--force"]),
+        "dark.dng",
+        lambda c: c.darks[0].read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", *c.frames, "--darks", p, *c.darks[1:], "--camera", "camera-B", "-o", o, "--force"],
+    ),
     "exr-denoise": Target(
-        "input.exr", lambda c: c.merged.read_bytes(), mutated,
-        lambda c, p, o: ["denoise", p, "-o", o, "--force"]),
+        "input.exr", lambda c: c.merged.read_bytes(), mutated, lambda c, p, o: ["denoise", p, "-o", o, "--force"]
+    ),
     "exr-plan": Target(
-        "map.exr", lambda c: c.exr.read_bytes(), mutated,
-        lambda c, p, o: ["plan", "--camera", "camera-B", "--irradiance", p, "--target-snr-db", "20"]),
+        "map.exr",
+        lambda c: c.exr.read_bytes(),
+        mutated,
+        lambda c, p, o: ["plan", "--camera", "camera-B", "--irradiance", p, "--target-snr-db", "20"],
+    ),
     "calibration": Target(
-        "camera.cal", lambda c: c.calibration.read_bytes(), mutated,
-        lambda c, p, o: ["merge", *c.frames, "--calibration", p, "-o", o, "--force"]),
+        "camera.cal",
+        lambda c: c.calibration.read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", *c.frames, "--calibration", p, "-o", o, "--force"],
+    ),
     "plan-json": Target(
-        "plan.json", lambda c: c.plan.read_bytes(), lambda s: st.one_of(json_like(s), mutated(s)),
-        lambda c, p, o: ["merge", *c.plan_frames, "--darks", *c.plan_darks, "--camera", "camera-B", "--plan", p,
-                         "-o", o, "--force"]),
+        "plan.json",
+        lambda c: c.plan.read_bytes(),
+        lambda s: st.one_of(json_like(s), mutated(s)),
+        lambda c, p, o: [
+            "merge",
+            *c.plan_frames,
+            "--darks",
+            *c.plan_darks,
+            "--camera",
+            "camera-B",
+            "--plan",
+            p,
+            "-o",
+            o,
+            "--force",
+        ],
+    ),
     "job-toml": Target(
-        "job.toml", lambda c: c.job.read_bytes(), lambda s: st.one_of(toml_like(s), mutated(s)),
-        lambda c, p, o: ["run", p, "--check"]),
+        "job.toml",
+        lambda c: c.job.read_bytes(),
+        lambda s: st.one_of(toml_like(s), mutated(s)),
+        lambda c, p, o: ["run", p, "--check"],
+    ),
     "manifest": Target(
-        "manifest.jsonl", lambda c: c.manifest.read_bytes(), lambda s: st.one_of(mutated(s), json_like(s)),
-        _manifest_target),
-    "events": Target(
-        "events.jsonl", lambda c: c.events.read_bytes(), mutated, _events_target),
-    "emva": Target(
-        "EMVA1288_Data.txt", lambda c: c.emva.read_bytes(), mutated, _emva_target),
+        "manifest.jsonl",
+        lambda c: c.manifest.read_bytes(),
+        lambda s: st.one_of(mutated(s), json_like(s)),
+        _manifest_target,
+    ),
+    "events": Target("events.jsonl", lambda c: c.events.read_bytes(), mutated, _events_target),
+    "emva": Target("EMVA1288_Data.txt", lambda c: c.emva.read_bytes(), mutated, _emva_target),
 }
 
 
 # --------------------------------------------------------------------------- nightly command
 
 
-def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
-    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure."""
+def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Path | None = None) -> dict:
+    """Run one target for ``minutes`` of mutated inputs (hypothesis, random seed).
+
+    Returns
+    -------
+    dict
+        ``target``, ``executions``, ``seconds``, ``exit_status`` (count of each), the slowest
+        call (s) and the largest peak memory of a call (MiB), the ``failure`` (None if the
+        contract held) and where the input it was reduced to was ``saved``.
+    """
     from hypothesis import HealthCheck, Verbosity, given, settings
 
+    seed = TARGETS[name].seed(corpus)
+    stats = {"n": 0, "slowest": 0.0, "peak": 0.0, "rc": {}}
+    failing: dict[str, bytes] = {}
+    deadline = time.monotonic() + minutes * 60
+
+    @settings(
+        max_examples=10**9,
+        deadline=None,
+        database=None,
+        derandomize=False,
+        suppress_health_check=list(HealthCheck),
+        verbosity=Verbosity.quiet,
+    )
+    @given(TARGETS[name].strategy(seed))
+    def one(data: bytes) -> None:
+        if time.monotonic() > deadline and not failing:  # never cut a shrinking short
+            raise _Done
+        stats["n"] += 1
+        t0 = time.monotonic()
+        try:
+            outcome = run_target(name, corpus, data, work / name)
+            check_outcome(outcome, name)
+        except Exception:
+            failing["data"] = data  # the last failing call replays the shrunk example
+            raise
+        finally:
+            stats["slowest"] = max(stats["slowest"], time.monotonic() - t0)
+            stats["peak"] = max(stats["peak"], _peak_mib())
+        stats["rc"][outcome.rc] = stats["rc"].get(outcome.rc, 0) + 1
+
+    t0 = time.monotonic()
+    error = saved = None
+    try:
+        one()
+    except _Done:
+        pass
+    except Exception as err:  # a contract violation, reduced by hypothesis
+        error = _describe(err)
+    if error and "data" in failing and save is not None:
+        import hashlib
+
+        (save / name).mkdir(parents=True, exist_ok=True)
+        saved = save / name / (hashlib.sha256(failing["data"]).hexdigest()[:16] + ".bin")
+        saved.write_bytes(failing["data"])
+    return {
+        "target": name,
+        "executions": stats["n"],
+        "seconds": round(time.monotonic() - t0, 1),
+        "exit_status": stats["rc"],
+        "slowest_call_s": round(stats["slowest"], 2),
+        "peak_mib": round(stats["peak"]),
+        "failure": error,
+        "saved": str(saved) if saved else None,
+    }
+
+
+def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
+    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure."""
     corpus = build_corpus(corpus_dir)
     failed = 0
     for name in targets:
-        target = TARGETS[name]
-        seed = target.seed(corpus)
-        count = {"n": 0, "slowest": 0.0, "peak": 0.0, "rc": {}}
-        failing: dict[str, bytes] = {}
-        deadline = time.monotonic() + minutes * 60
-
-        @settings(max_examples=10**9, deadline=None, database=None, derandomize=False,
-                  suppress_health_check=list(HealthCheck), verbosity=Verbosity.quiet)
-        @given(target.strategy(seed))
-        def one(data: bytes) -> None:
-            if time.monotonic() > deadline and not failing:  # never cut a shrinking short
-                raise _Done
-            count["n"] += 1
-            t0 = time.monotonic()
-            try:
-                outcome = run_target(name, corpus, data, work / name)
-                check_outcome(outcome, name)
-            except Exception:
-                failing["data"] = data  # the last failing call replays the shrunk example
-                raise
-            finally:
-                count["slowest"] = max(count["slowest"], time.monotonic() - t0)
-                count["peak"] = max(count["peak"], _peak_mib())
-            count["rc"][outcome.rc] = count["rc"].get(outcome.rc, 0) + 1
-
-        t0 = time.monotonic()
-        error = None
-        try:
-            one()
-        except _Done:
-            pass
-        except Exception as err:  # a contract violation, reduced by hypothesis
-            error = f"{type(err).__name__}: {err}"[:4000]
-            failed += 1
-        saved = None
-        if error and "data" in failing and save is not None:
-            import hashlib
-
-            folder = save / name
-            folder.mkdir(parents=True, exist_ok=True)
-            saved = folder / (hashlib.sha256(failing["data"]).hexdigest()[:16] + ".bin")
-            saved.write_bytes(failing["data"])
-        print(json.dumps({"target": name, "executions": count["n"], "seconds": round(time.monotonic() - t0, 1),
-                          "exit_status": count["rc"], "slowest_call_s": round(count["slowest"], 2),
-                          "peak_mib": round(count["peak"]), "failure": error, "saved": str(saved) if saved else None}),
-              flush=True)
+        result = fuzz_target(name, corpus, work, minutes, save)
+        failed += result["failure"] is not None
+        print(json.dumps(result), flush=True)
     return 1 if failed else 0
+
+
+def _describe(err: BaseException) -> str:
+    """The violated rule(s) of a failure, without hypothesis's repr of the (large) input."""
+    parts = list(getattr(err, "exceptions", None) or [err])
+    return " | ".join(
+        f"{type(e).__name__}: {str(e).splitlines()[0][:500] if str(e) else ''}"
+        + (f" ({_describe(e)})" if getattr(e, "exceptions", None) else "")
+        for e in parts
+    )
 
 
 class _Done(BaseException):
@@ -584,7 +719,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=30.0, help="time budget per target (default 30)")
     ap.add_argument("--target", action="append", choices=sorted(TARGETS), help="target (repeatable; default all)")
     ap.add_argument("--corpus", type=Path, default=None, help="folder for the seed corpus (default: temporary)")
-    ap.add_argument("--save", type=Path, default=DATA, help="where to store shrunk failing inputs (default: tests/data/fuzz)")
+    ap.add_argument(
+        "--save", type=Path, default=DATA, help="where to store shrunk failing inputs (default: tests/data/fuzz)"
+    )
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="hdrcap-fuzz-") as tmp:
         corpus_dir = args.corpus or Path(tmp) / "corpus"

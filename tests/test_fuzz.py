@@ -8,9 +8,8 @@ Every input must end in a result or a one-line ``hdrcap: error:`` with exit stat
 from __future__ import annotations
 
 import pytest
-from hypothesis import HealthCheck, given, settings
-
 from fuzzing import DATA, TARGETS, build_corpus, check_outcome, run_target
+from hypothesis import HealthCheck, given, settings
 
 EXAMPLES = 30
 
@@ -34,8 +33,9 @@ def test_mutated_inputs_keep_the_contract(name, corpus, tmp_path_factory):
     target = TARGETS[name]
     work = tmp_path_factory.mktemp(f"fuzz-{name}")
 
-    @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
-              suppress_health_check=list(HealthCheck))
+    @settings(
+        max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
+    )
     @given(target.strategy(target.seed(corpus)))
     def check(data):
         check_outcome(run_target(name, corpus, data, work), name)

@@ -8,6 +8,7 @@ import struct
 from pathlib import Path
 
 import pytest
+
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.backend import SimulatedCamera
 from hdrcap.mock_camera.scenes import make_scene
@@ -54,7 +55,7 @@ def _value_offset(blob: bytes, tag: int) -> int:
 
 def _flip4(blob: bytes, offset: int) -> bytes:
     out = bytearray(blob)
-    out[offset:offset + 4] = bytes(b ^ 0xFF for b in out[offset:offset + 4])
+    out[offset : offset + 4] = bytes(b ^ 0xFF for b in out[offset : offset + 4])
     return bytes(out)
 
 
@@ -117,7 +118,7 @@ def test_black_level_above_the_white_level_is_refused(frames, decoder, tmp_path)
 def test_exposure_time_zero_is_refused(frames, decoder, tmp_path):
     blob = frames[0].read_bytes()
     ifd0 = _value_offset(blob, 33434)
-    exif = blob.index(blob[ifd0:ifd0 + 8], _value_offset(blob, 34665))  # the same rational in the EXIF IFD
+    exif = blob.index(blob[ifd0 : ifd0 + 8], _value_offset(blob, 34665))  # the same rational in the EXIF IFD
     assert exif != ifd0
     zero_in_ifd0 = _write(tmp_path, "t0.dng", _put(blob, ifd0, "<II", 0, 1))
     with pytest.raises(InputError, match=r"t0.dng: the metadata contradicts itself: ExposureTime 0.0 s in IFD0"):
@@ -144,8 +145,14 @@ def test_frames_contradicting_their_set_are_refused(frames, tmp_path):
     white = _write(tmp_path, "white.dng", _put(blob, _entry(blob, 50717) + 8, "<I", 4095))
     with pytest.raises(InputError, match=r"white.dng: white level 4095 DN differs from .*a.dng \(1023 DN\)"):
         pio.check_frames([a, pio.read_raw(white)])
-    mono = pio.RawFrame(data=b.data, exposure_time=b.exposure_time, black_level=b.black_level,
-                        white_level=b.white_level, cfa_pattern=None, path="mono.dng")
+    mono = pio.RawFrame(
+        data=b.data,
+        exposure_time=b.exposure_time,
+        black_level=b.black_level,
+        white_level=b.white_level,
+        cfa_pattern=None,
+        path="mono.dng",
+    )
     with pytest.raises(InputError, match=r"mono.dng: CFA pattern None differs from .*a.dng \(RGGB\)"):
         pio.check_frames([a, mono])
 

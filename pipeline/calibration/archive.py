@@ -21,6 +21,7 @@ import json
 import math
 import os
 import struct
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -176,7 +177,7 @@ def _memmap_member(path: Path, zf: zipfile.ZipFile, name: str) -> np.ndarray | N
 #: What zipfile, zlib and numpy raise for a damaged archive (a corrupt member name, CRC,
 #: compressed stream, npy header or JSON).
 _ARCHIVE_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError,
-                   RuntimeError, TypeError, OverflowError, struct.error)
+                   RuntimeError, TypeError, OverflowError, struct.error, SyntaxError, tokenize.TokenError)
 
 
 def _read_archive(path: Path) -> tuple[Any, dict[str, np.ndarray]]:
@@ -218,6 +219,9 @@ def _check_metadata(path: Path, meta: Any) -> tuple[int, ...] | None:
     stderr = meta.get("stderr") or {}
     if not all(v is None or (type(v) in (int, float) and math.isfinite(v) and v >= 0) for v in stderr.values()):
         raise InputError(f"{path}: standard errors must be finite numbers >= 0")
+    if meta.get("maps") is not None and not (isinstance(meta["maps"], list)
+                                             and all(isinstance(m, str) for m in meta["maps"])):
+        raise InputError(f"{path}: metadata entry 'maps' is not a list of map names")
     if meta.get("dark_library") is not None and not isinstance(meta["dark_library"], str):
         raise InputError(f"{path}: dark_library must be a folder name")
     return tuple(shape) if shape else None
@@ -272,6 +276,9 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         raise InputError(f"{path}: is a folder, not a calibration file")
     meta, maps = _read_archive(path)
     shape = _check_metadata(path, meta)
+    missing = sorted(set(meta.get("maps") or ()) - set(maps))
+    if missing:
+        raise InputError(f"{path}: map {missing[0]} is listed in the metadata but missing from the archive")
     for name, arr in maps.items():
         if arr.ndim != 2 or (shape is not None and arr.shape != shape):
             raise InputError(f"{path}: map {name} has shape {arr.shape}, the file says {shape}")
