@@ -37,6 +37,9 @@ from hypothesis import strategies as st
 
 DATA = Path(__file__).resolve().parent / "data" / "fuzz"
 
+#: Seconds hypothesis may go on shrinking a failure after a target's time budget.
+SHRINK_S = 300
+
 #: Seconds one call may take before it counts as a hang (the seeds take well under 1 s).
 CALL_TIMEOUT_S = 20
 
@@ -59,6 +62,11 @@ def _must(*args) -> str:
     if rc != 0:
         raise RuntimeError(f"seed corpus: hdrcap {' '.join(map(str, args))} failed ({rc}): {err}")
     return out
+
+
+def _simulate(out: Path, seed: int, *options) -> None:
+    """``hdrcap simulate`` of 64x48 camera-B files into ``out``."""
+    _must("simulate", "--camera", "camera-B", "--size", "64x48", *options, "--seed", seed, "--out", out, "--force")
 
 
 def _emva_set(folder: Path) -> Path:
@@ -183,41 +191,13 @@ def build_corpus(root: Path) -> Corpus:
     root = Path(root)
     sim = root / "sim"
     if not (sim / "truth.exr").exists():
-        _must(
-            "simulate",
-            "--camera",
-            "camera-B",
-            "--size",
-            "64x48",
-            "--times",
-            "0.001",
-            "0.01",
-            "0.1",
-            "--darks",
-            "--seed",
-            "2",
-            "--out",
-            sim,
-            "--force",
-        )
+        _simulate(sim, 2, "--times", "0.001", "0.01", "0.1", "--darks")
     frames = tuple(sorted(sim.glob("frame_*.dng")))
     darks = tuple(sorted(sim.glob("dark_*.dng")))
     cal_dir = root / "calset"
     cal = root / "camera.cal"
     if not cal.exists():
-        _must(
-            "simulate",
-            "--camera",
-            "camera-B",
-            "--size",
-            "64x48",
-            "--calibration-set",
-            "--seed",
-            "3",
-            "--out",
-            cal_dir,
-            "--force",
-        )
+        _simulate(cal_dir, 3, "--calibration-set")
         bias = sorted(cal_dir.glob("bias_*"))
         sat = sorted(cal_dir.glob("sat*"))
         flats = sorted(cal_dir.glob("flat_*"))
@@ -234,21 +214,7 @@ def build_corpus(root: Path) -> Corpus:
     plan_sim = root / "plansim"
     if not (plan_sim / "truth.exr").exists():
         times = sorted({float(t) for t in json.loads(plan.read_text())["exposures"]})
-        _must(
-            "simulate",
-            "--camera",
-            "camera-B",
-            "--size",
-            "64x48",
-            "--times",
-            *times,
-            "--darks",
-            "--seed",
-            "4",
-            "--out",
-            plan_sim,
-            "--force",
-        )
+        _simulate(plan_sim, 4, "--times", *times, "--darks")
     plan_frames = tuple(sorted(plan_sim.glob("frame_*.dng")))
     plan_darks = tuple(sorted(plan_sim.glob("dark_*.dng")))
     job = root / "job.toml"
@@ -645,7 +611,8 @@ def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Pat
     )
     @given(TARGETS[name].strategy(seed))
     def one(data: bytes) -> None:
-        if time.monotonic() > deadline and not failing:  # never cut a shrinking short
+        now = time.monotonic()
+        if (now > deadline and not failing) or now > deadline + SHRINK_S:  # shrinking gets SHRINK_S more
             raise _Done
         stats["n"] += 1
         t0 = time.monotonic()
@@ -665,7 +632,8 @@ def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Pat
     try:
         one()
     except _Done:
-        pass
+        if failing:  # shrinking ran out of time: the last failing input, not the smallest
+            error = "contract broken; shrinking stopped after SHRINK_S s: replay the saved input"
     except Exception as err:  # a contract violation, reduced by hypothesis
         error = _describe(err)
     if error and "data" in failing and save is not None:
