@@ -192,6 +192,8 @@ def _check_values(job: Job) -> None:
         scene = job["scene"]["name"]
         if scene not in SCENES and not scene.lower().endswith(".exr"):
             raise job.error("scene", "name", f"unknown scene {scene!r}; choose from {', '.join(SCENES)} or an .exr")
+        if cam["seed"] < 0:
+            raise job.error("camera", "seed", f"must be >= 0, got {cam['seed']!r}")
         for key in ("decades", "x_max"):
             value = job["scene"][key]
             if not (value > 0 and math.isfinite(value)):

@@ -345,6 +345,8 @@ def _libraw_decode(path: Path) -> _Decoded:
                 iso=float(other.iso_speed) if other.iso_speed else None,
                 timestamp=other.timestamp.isoformat() if other.timestamp else None,
             )
+    except NotImplementedError as err:  # rawpy: a CFA layout it cannot describe (e.g. "filters: 148")
+        raise InputError(f"{path}: unsupported colour filter layout ({err})") from None
     except rawpy.LibRawFileUnsupportedError:
         raise InputError(f"{path}: not a raw file LibRaw can read") from None
     except rawpy.LibRawIOError:
