@@ -195,6 +195,12 @@ def _check_values(job: Job) -> None:
         scene = job["scene"]["name"]
         if scene not in SCENES and not scene.lower().endswith(".exr"):
             raise job.error("scene", "name", f"unknown scene {scene!r}; choose from {', '.join(SCENES)} or an .exr")
+        if cam["seed"] < 0:
+            raise job.error("camera", "seed", f"must be >= 0, got {cam['seed']!r}")
+        for key in ("decades", "x_max"):
+            value = job["scene"][key]
+            if not (value > 0 and math.isfinite(value)):
+                raise job.error("scene", key, f"must be a positive number, got {value!r}")
     elif "faults" in cam:
         raise job.error("camera", "faults", "fault injection is for the mock camera only")
     if exp["mode"] not in ("bracket", "snr"):

@@ -105,7 +105,8 @@ class Manifest:
             return []
         out, self.torn_lines = [], 0
         for _lineno, rec in _read_lines(self.path):
-            if rec is None or "type" not in rec:
+            if rec is None or "type" not in rec or (rec["type"] in ("frame", "void")
+                                                     and not isinstance(rec.get("key"), str)):
                 self.torn_lines += 1
             else:
                 out.append(rec)

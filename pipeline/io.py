@@ -12,7 +12,10 @@ import contextlib
 import errno
 import hashlib
 import json
+import logging
+import math
 import os
+import re
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
@@ -36,6 +39,7 @@ __all__ = [
     "EmvaStep",
     "HdrImage",
     "RawFrame",
+    "adc_maximum",
     "atomic_output",
     "check_exposure_time",
     "check_frames",
@@ -133,10 +137,25 @@ def check_exposure_time(t, where=None) -> float:
     return t
 
 
-def _exif_values(page) -> dict[str, Any]:
-    """Exact ExposureTime (s), ISO, timestamp and camera from IFD0 or its EXIF IFD."""
+def _rational_seconds(value) -> float | None:
+    """A TIFF RATIONAL/number as a float; None for a zero denominator or a non-number."""
+    if isinstance(value, tuple) and len(value) == 2:
+        return float(Fraction(int(value[0]), int(value[1]))) if value[1] else None
+    if isinstance(value, (int, float)):
+        return float(value)
+    return None
+
+
+def _exif_values(page, path: Path) -> dict[str, Any]:
+    """Exact ExposureTime (s), ISO, timestamp and camera from IFD0 or its EXIF IFD.
+
+    Raises :class:`InputError` when IFD0 and the EXIF IFD both give an exposure time and they
+    differ (one of them is corrupt, and nothing tells which), or when the one given is 0/0.
+    """
     tags = page.tags
     exif = tags["ExifTag"].value if "ExifTag" in tags else {}
+    if not isinstance(exif, dict):
+        exif = {}
     out: dict[str, Any] = {}
     for key, code in (("ExposureTime", 33434), ("ISOSpeedRatings", 34855), ("DateTimeOriginal", 36867)):
         val = exif.get(key)
@@ -145,46 +164,132 @@ def _exif_values(page) -> dict[str, Any]:
         out[key] = val
     out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
     t = out["ExposureTime"]
-    if isinstance(t, tuple) and len(t) == 2:
-        out["ExposureTime"] = float(Fraction(int(t[0]), int(t[1]))) if t[1] else None
-    elif t is not None:
-        out["ExposureTime"] = float(t)
+    if t is not None:
+        out["ExposureTime"] = _rational_seconds(t)
+        if out["ExposureTime"] is None:
+            raise InputError(f"{path}: corrupt EXIF ExposureTime {t!r}")
+        if 33434 in tags and "ExposureTime" in exif:
+            t0 = _rational_seconds(tags[33434].value)
+            if t0 is None or not math.isclose(t0, out["ExposureTime"], rel_tol=1e-6):
+                raise InputError(f"{path}: the metadata contradicts itself: ExposureTime {t0!r} s in IFD0, "
+                                 f"{out['ExposureTime']!r} s in the EXIF IFD (corrupt file)")
     iso = out["ISOSpeedRatings"]
     if isinstance(iso, (tuple, list)):
         out["ISOSpeedRatings"] = iso[0] if iso else None
     return out
 
 
+#: Tag of tifffile's message for an IFD entry it could not read: code, byte offset, reason.
+_BAD_TAG = re.compile(r"TiffTag (\d+) @(\d+)> ([^'\"]+)")
+
+
+class _TiffComplaints(logging.Handler):
+    """Collects what tifffile logs (unreadable tag entries, bad IFD offsets) in this thread."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.thread = threading.get_ident()
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _tiff_complaints() -> Iterator[list[str]]:
+    """Yield the list that receives tifffile's warnings logged by this thread meanwhile."""
+    logger = logging.getLogger("tifffile")
+    handler = _TiffComplaints()
+    logger.addHandler(handler)
+    try:
+        yield handler.messages
+    finally:
+        logger.removeHandler(handler)
+
+
+def _tag_complaint(message: str) -> str:
+    """tifffile's message about a broken IFD entry, as a short phrase naming the tag."""
+    import tifffile
+
+    m = _BAD_TAG.search(message)
+    if m is None:
+        return re.sub(r"<(tifffile\.)?[\w.]+(?: \d+)?(?: @(\d+))?>", lambda k: f"at byte {k[2]}:" if k[2] else "",
+                      message).strip()
+    code, offset, reason = int(m.group(1)), int(m.group(2)), m.group(3).strip()
+    name = tifffile.TIFF.TAGS.get(code, "unknown tag")
+    return f"IFD entry at byte {offset} (tag {code}, {name}): {reason}"
+
+
+def _refuse_corrupt_dng(path: Path, page, complaints: list[str]) -> None:
+    """A DNG whose directory tifffile could not read in full is refused: a dropped tag (white
+    level, CFA pattern, strip offsets, ...) would silently become its default value."""
+    is_dng = path.suffix.lower() == ".dng" or 50706 in page.tags
+    if is_dng and complaints:
+        raise InputError(f"{path}: corrupt DNG directory: {_tag_complaint(complaints[0])}")
+
+
+#: Largest ratio of the raw image's size (bits per sample times photosites) to the bytes it is
+#: stored in: lossless raw codecs reach about 2 on sensor data; more means corrupt dimensions,
+#: which LibRaw would allocate before it notices that the data are missing.
+MAX_RAW_COMPRESSION = 8
+
+
+def _refuse_impossible_size(path: Path, tif) -> None:
+    """Refuse a raw image whose stated dimensions cannot fit in its stored data."""
+    from .dngread import raw_page
+
+    try:
+        page = raw_page(tif)
+        if page is None:
+            return
+        stored = sum(page.databytecounts)
+        bits = page.bitspersample if isinstance(page.bitspersample, int) else max(page.bitspersample)
+        need = page.imagewidth * page.imagelength * bits / 8
+    except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
+        return
+    if need > MAX_RAW_COMPRESSION * max(stored, 1):
+        raise InputError(f"{path}: impossible raw image dimensions {page.imagewidth}x{page.imagelength} "
+                         f"({bits}-bit) for {stored} bytes of image data (corrupt file)")
+
+
 def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
     """EXIF values and, for a simple DNG, its decoded raw image (else None) of a TIFF-based raw
     file (DNG, NEF, ...); ``({}, None)`` for other formats.
 
-    Raises :class:`InputError` when the image data runs past the end of the file.
+    Raises :class:`InputError` when the image data runs past the end of the file, when a DNG
+    has directory entries tifffile cannot read, or when its metadata contradicts itself.
     """
     import tifffile
 
     from .dngread import decode_dng
 
-    try:
-        tif = tifffile.TiffFile(path)
-    except Exception:  # noqa: BLE001  (not a TIFF container, e.g. CR3, RAF: LibRaw's values are used)
-        return {}, None
-    with tif:
+    with _tiff_complaints() as complaints:
         try:
-            page = tif.pages[0]
-            exif = _exif_values(page)
-            size = path.stat().st_size
-            ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts)]
-        except Exception:  # noqa: BLE001  (a TIFF header but no readable first IFD: LibRaw decides)
+            tif = tifffile.TiffFile(path)
+        except Exception:  # noqa: BLE001  (not a TIFF container, e.g. CR3, RAF: LibRaw's values are used)
             return {}, None
-        if ends and max(ends) > size:
-            raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
-        try:
-            direct = decode_dng(path, tif, mmap=mmap)
-        except InputError:
-            raise
-        except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
-            direct = None
+        with tif:
+            try:
+                page = tif.pages[0]
+                exif_tag = page.tags.get(34665)
+                if exif_tag is not None:
+                    exif_tag.value  # noqa: B018  (parse the EXIF IFD now, inside the complaint log)
+                size = path.stat().st_size
+                ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts)]
+            except Exception:  # noqa: BLE001  (a TIFF header but no readable first IFD: LibRaw decides)
+                return {}, None
+            exif = _exif_values(page, path)
+            if ends and max(ends) > size:
+                raise InputError(f"{path}: truncated raw file (image data runs past the end of the file)")
+            _refuse_impossible_size(path, tif)
+            try:
+                direct = decode_dng(path, tif, mmap=mmap)
+            except InputError:
+                raise
+            except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
+                direct = None
+            _refuse_corrupt_dng(path, page, complaints)  # IFD0, the EXIF IFD and the raw image's SubIFD
     return exif, direct
 
 
@@ -242,6 +347,8 @@ def _libraw_decode(path: Path) -> _Decoded:
                 iso=float(other.iso_speed) if other.iso_speed else None,
                 timestamp=other.timestamp.isoformat() if other.timestamp else None,
             )
+    except NotImplementedError as err:  # rawpy: a CFA layout it cannot describe (e.g. "filters: 148")
+        raise InputError(f"{path}: unsupported colour filter layout ({err})") from None
     except rawpy.LibRawFileUnsupportedError:
         raise InputError(f"{path}: not a raw file LibRaw can read") from None
     except rawpy.LibRawIOError:
@@ -250,9 +357,60 @@ def _libraw_decode(path: Path) -> _Decoded:
         raise InputError(f"{path}: cannot decode raw data ({type(err).__name__})") from None
 
 
+def adc_maximum(white_level: float) -> int:
+    """The largest value an ADC whose white level is ``white_level`` can write, DN.
+
+    The white level rounded up to a whole number of bits (2**bits - 1): LibRaw's white level of
+    some cameras lies a little below the largest raw value, but no value can exceed the bit
+    depth the white level implies.
+
+    Parameters
+    ----------
+    white_level : float
+        DN, > 0.
+
+    Returns
+    -------
+    int
+        DN, 2**bits - 1 with bits the bit length of ``ceil(white_level)``, at most 65535.
+    """
+    return min((1 << int(math.ceil(white_level)).bit_length()) - 1, 65535)
+
+
+#: Colours of a 2x2 CFA tile that make a colour mosaic (Bayer RGB, or four-colour CMYG).
+_CFA_COLOURS = ({"R", "G", "B"}, {"C", "M", "Y", "G"})
+
+
+def _check_decoded(path: Path, dec: _Decoded) -> None:
+    """Refuse decoded raw data that cannot be what a sensor wrote.
+
+    Impossible dimensions, levels that contradict each other (black level not below the white
+    level, negative or non-finite), a 2x2 CFA tile that is no colour mosaic, and pixel values
+    above the ADC range the white level implies (:func:`adc_maximum`): all signs of a corrupt
+    file or a wrong decode, never merged silently.
+    """
+    data = dec.data
+    if data.ndim != 2 or min(data.shape) < 2:
+        raise InputError(f"{path}: impossible raw image dimensions {'x'.join(map(str, data.shape[::-1]))}")
+    black, white = dec.black, dec.white
+    if not (math.isfinite(white) and 0 < white <= 65535):
+        raise InputError(f"{path}: impossible white level {white!r} DN (corrupt metadata)")
+    if not (math.isfinite(black) and 0 <= black < white):
+        raise InputError(f"{path}: black level {black!r} DN is not between 0 and the white level {white:g} DN "
+                         "(corrupt metadata)")
+    if dec.cfa is not None and not any(set(dec.cfa) == colours for colours in _CFA_COLOURS):
+        raise InputError(f"{path}: CFA pattern {dec.cfa!r} is not a colour filter mosaic (corrupt metadata)")
+    top = adc_maximum(white)
+    high = int(data.max())
+    if high > top:
+        n = int(np.count_nonzero(data > top))
+        raise InputError(f"{path}: {n} photosites above the white level ({high} DN > {top} DN, "
+                         f"the {top.bit_length()}-bit range of white level {white:g} DN): corrupt raw data")
+
+
 def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bool:
     """Whether the EXIF values leave nothing for LibRaw to supply (time, ISO, timestamp)."""
-    has_time = exposure_time is not None or bool(exif.get("ExposureTime"))
+    has_time = exposure_time is not None or exif.get("ExposureTime") is not None
     return has_time and bool(exif.get("ISOSpeedRatings")) and bool(exif.get("DateTimeOriginal"))
 
 
@@ -288,7 +446,9 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
         dec = _Decoded(data=direct.data, cfa=direct.cfa_pattern, black=direct.black_level, white=direct.white_level)
     else:
         dec = _libraw_decode(path)
-    t = exposure_time if exposure_time is not None else (exif.get("ExposureTime") or dec.shutter)
+    _check_decoded(path, dec)
+    t = exposure_time if exposure_time is not None else exif.get("ExposureTime")
+    t = t if t is not None else dec.shutter
     if t is None:
         raise InputError(f"{path}: no exposure time in EXIF; give it explicitly (--times)")
     return RawFrame(
@@ -325,19 +485,22 @@ def read_image16(path, exposure_time: float) -> RawFrame:
         raise InputError(f"{path}: a PNG/TIFF frame needs an explicit exposure time (--times)")
     t = check_exposure_time(exposure_time, path)
     suffix = path.suffix.lower()
-    try:
-        if suffix in (".tif", ".tiff"):
-            import tifffile
+    with _tiff_complaints() as complaints:
+        try:
+            if suffix in (".tif", ".tiff"):
+                import tifffile
 
-            data = tifffile.imread(path)
-        else:
-            from PIL import Image
+                data = tifffile.imread(path)
+            else:
+                from PIL import Image
 
-            with Image.open(path) as im:
-                im.load()
-                data = np.array(im)
-    except Exception as err:  # PIL/tifffile raise many types for bad files
-        raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
+                with Image.open(path) as im:
+                    im.load()
+                    data = np.array(im)
+        except Exception as err:  # PIL/tifffile raise many types for bad files
+            raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
+    if complaints:  # a directory entry or page tifffile skipped: the pixels may be anything
+        raise InputError(f"{path}: corrupt TIFF: {_tag_complaint(complaints[0])}")
     if data.ndim != 2:
         raise InputError(f"{path}: expected a single-channel (raw mosaic) image, got shape {data.shape}")
     if data.dtype not in (np.uint8, np.uint16):
@@ -404,8 +567,31 @@ def _pixel_sample(data: np.ndarray) -> bytes:
     return hashlib.blake2b(head + np.ascontiguousarray(data[rows]).tobytes(), digest_size=16).digest()
 
 
+#: Largest difference of the black levels of two frames of one set, as a fraction of the white
+#: level (LibRaw measures some cameras' black level per frame from masked photosites).
+BLACK_LEVEL_SPREAD = 0.01
+
+
+def _check_same_sensor(frame: RawFrame, first: RawFrame, what: str) -> None:
+    """Refuse a frame whose file metadata contradicts the first frame's: another CFA pattern,
+    white level or black level (a corrupt tag that fell back to its default)."""
+    name, ref = frame.path or "<array>", first.path or f"the first {what}"
+    if frame.cfa_pattern != first.cfa_pattern:
+        raise InputError(f"{name}: CFA pattern {frame.cfa_pattern} differs from {ref} ({first.cfa_pattern})")
+    if None in (frame.white_level, first.white_level):
+        return
+    if frame.white_level != first.white_level:
+        raise InputError(f"{name}: white level {frame.white_level:g} DN differs from {ref} ({first.white_level:g} DN)")
+    if abs((frame.black_level or 0.0) - (first.black_level or 0.0)) > BLACK_LEVEL_SPREAD * first.white_level:
+        raise InputError(f"{name}: black level {frame.black_level or 0:g} DN differs from {ref} "
+                         f"({first.black_level or 0:g} DN)")
+
+
 def check_frames(frames: Iterable[RawFrame], what: str = "frame") -> list[RawFrame]:
-    """Check a set of frames can be merged together: same size, no duplicates.
+    """Check a set of frames can be merged together: same size and sensor metadata, no duplicates.
+
+    Frames must share their size, CFA pattern and white level, and their black levels may differ
+    by at most :data:`BLACK_LEVEL_SPREAD` of the white level.
 
     Duplicates are the same file given twice or two frames with identical pixel data. Frames are
     paired by a sample of their pixels (a few whole rows) and a pair is confirmed by comparing
@@ -436,6 +622,7 @@ def check_frames(frames: Iterable[RawFrame], what: str = "frame") -> list[RawFra
                 f"{name}: size {fr.shape[1]}x{fr.shape[0]} differs from {frames[0].path or 'the first ' + what} "
                 f"({shape[1]}x{shape[0]})"
             )
+        _check_same_sensor(fr, frames[0], what)
         if fr.path is not None:
             real = os.path.realpath(fr.path)
             if real in seen_paths:
@@ -531,6 +718,8 @@ def read_emva_descriptor(path) -> EmvaDataset:
                     if current is None:
                         raise ValueError("image line before any b/d step")
                     rel = rest.strip().replace("\\", "/")
+                    if not rel.isprintable():
+                        raise ValueError(f"image path {rel!r} holds control characters")
                     current["images"].append(base / rel)
                 else:
                     raise ValueError(f"unknown line type {key!r}")
@@ -840,7 +1029,7 @@ def read_exr(path) -> HdrImage:
     path = Path(path)
     _check_readable(path)
     try:
-        with OpenEXR.File(str(path)) as exr:
+        with _quiet_stderr(), OpenEXR.File(str(path)) as exr:  # OpenEXR's own messages: ours says it
             # read everything inside the context: the header is released when the file closes
             meta = exr.header().get(_META_KEY)
             channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}

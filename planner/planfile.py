@@ -26,6 +26,10 @@ __all__ = ["PLAN_OPTIONS", "PlanFile", "read_plan", "check_plan", "plan_from_dic
 #: Merge options a plan may decide (a user's own value of any of them wins).
 PLAN_OPTIONS = ("iterations", "tolerance", "saturation", "saturation_sigmas", "prnu")
 
+#: JSON types of the merge options a plan may decide (their ranges are the merge's to check).
+_OPTION_TYPES = {"iterations": (int,), "tolerance": (int, float), "saturation": (str,),
+                 "saturation_sigmas": (int, float), "prnu": (str,)}
+
 
 @dataclass
 class PlanFile:
@@ -75,6 +79,10 @@ class PlanFile:
                                  f"({type(err).__name__}: {err})") from None
         if not isinstance(mo, dict):
             raise InputError(f"{self.path}: merge_options must be a JSON object")
+        for name, kinds in _OPTION_TYPES.items():
+            value = mo.get(name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, kinds)):
+                raise InputError(f"{self.path}: merge option {name} = {value!r} is not a {kinds[-1].__name__}")
         return {k: v for k, v in mo.items() if k not in ("dark_strategy", "n_dark")}
 
 

@@ -10,7 +10,7 @@ is derandomised: the same examples in every run of the suite.
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from hdrcap.pipeline.merge import MergeAccumulator, merge_arrays
@@ -185,11 +185,11 @@ def test_an_unsaturated_frame_never_increases_sigma(p, bracket, log_t):
     assert (b.sigma[both] <= a.sigma[both] * (1 + 1e-6)).all()
 
 
-@settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
 @given(
-    st.floats(-1.5, 1.0),  # log10 g
-    st.floats(0.0, 3.0),  # log10 sigma2_R
-    st.integers(12, 16),  # bits
+    st.floats(-3.0, 3.0),  # log10 g
+    st.floats(np.log10(1 / 12), 4.0),  # log10 sigma2_R
+    st.integers(8, 16),  # bits
     st.floats(0.5, 4.0),  # decades of scene range
     st.floats(10.0, 40.0),  # target, dB
     st.integers(0, 2**31 - 1),
@@ -197,11 +197,13 @@ def test_an_unsaturated_frame_never_increases_sigma(p, bracket, log_t):
 def test_plan_reaches_its_predicted_snr_under_its_own_model(log_g, log_s2, bits, decades, target, seed):
     """Sec. 8: the SNR predicted for the planned exposures, dark strategies and merge model,
     re-evaluated independently with ``predict_snr``, is the plan's stated minimum over the
-    eligible pixels; a feasible plan reaches the target."""
+    eligible pixels; a feasible plan reaches the target. Over the documented ranges wherever the
+    camera can see: at least 100 electrons to saturation, read noise under 5 % of the range."""
     from hdrcap.planner import plan_exposures, predict_snr, systematic_errors_from_calibration
 
     white = float(2**bits - 1)
     p = SensorParams(g=10**log_g, mu_R=0.02 * white, sigma2_R=10**log_s2, v_sat=0.95 * white, white_level=white)
+    assume(np.sqrt(p.sigma2_R) < 0.05 * white and (p.v_sat - p.mu_R) / p.g >= 100)  # a camera that can see
     cal = Calibration(p)
     rng = np.random.default_rng(seed)
     full = (p.v_sat - p.mu_R) / p.g
@@ -229,17 +231,23 @@ def test_plan_reaches_its_predicted_snr_under_its_own_model(log_g, log_s2, bits,
         assert plan.predicted_min_snr_db >= target - 1e-6
 
 
-@settings(max_examples=8, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=12, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
 @given(
-    st.floats(-0.7, 0.7),  # log10 g
-    st.floats(0.0, 2.5),  # log10 sigma2_R
-    st.integers(10, 14),  # bits
+    st.floats(-3.0, 3.0),  # log10 g
+    st.floats(0.0, 4.0),  # log10 sigma2_R
+    st.integers(8, 16),  # bits
     st.floats(0.3, 0.7),  # flat level, fraction of the range above bias
     st.integers(0, 2**31 - 1),
 )
 def test_calibration_recovers_its_camera_within_stated_errors(log_g, log_s2, bits, level, seed):
     """Sec. 6: g, mu_R and sigma2_R estimated from simulated bias, saturation and flat frames
-    lie within 4 of their stated standard errors of the simulator's values."""
+    lie within 4 of their stated standard errors of the simulator's values, over the documented
+    ranges wherever a camera can be calibrated at all: at least 100 electrons to saturation, the
+    bias level plus 8 read-noise sigmas below half the range, and a photon variance of the flats
+    at least a tenth of the read-noise variance (else the gain is refused). Read noise below 1 DN^2 is left
+    out: there the rounded bias frames bias mu_R and sigma2_R by up to 170 and 80 of their stated
+    standard errors (sigma2_R = 0.1 DN^2, 8-16 bits), and may be estimated as 0 (calibrate then
+    raises ValueError)."""
     import dataclasses
 
     from hdrcap.mock_camera import PRESETS, SimulatedSensor
@@ -249,6 +257,8 @@ def test_calibration_recovers_its_camera_within_stated_errors(log_g, log_s2, bit
     white = float(2**bits - 1)
     g, s2 = 10**log_g, 10**log_s2
     mu = 0.03 * white + 4 * np.sqrt(s2)
+    assume(mu + 8 * np.sqrt(s2) < 0.5 * white and (white - mu) / g >= 100)
+    assume(g * level * (white - mu) >= s2 / 10)  # photon noise of the flats not buried in read noise
     spec = dataclasses.replace(
         PRESETS["camera-B"], g=g, sigma2_R=s2, mu_R=mu, bits=bits, full_well=1.1 * (white - mu) / g,
         dark_current=0.0, dcnu=0.0,

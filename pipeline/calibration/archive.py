@@ -18,9 +18,14 @@ from __future__ import annotations
 
 import io as _io
 import json
+import math
 import os
+import struct
+import tokenize
 import zipfile
+import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -112,38 +117,141 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
     return path
 
 
-def _memmap_member(path: Path, name: str) -> np.ndarray | None:
+def _member_header(zf: zipfile.ZipFile, name: str, ndim: int = 2) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """Shape, Fortran order and dtype of the ``.npy`` member ``name``, checked against the
+    member's stored size before anything is allocated.
+
+    Raises
+    ------
+    ValueError
+        Not an ``ndim``-D array of real numbers, or the header promises more data than the
+        member holds.
+    """
+    info = zf.getinfo(f"{name}.npy")
+    with zf.open(info) as fh:
+        fmt = np.lib.format
+        version = fmt.read_magic(fh)
+        if version not in ((1, 0), (2, 0)):
+            raise ValueError(f"map {name}: npy format version {version}")
+        read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, fortran, dtype = read_header(fh)
+        header_size = fh.tell()
+    if dtype.kind not in "fiub" or len(shape) != ndim:
+        raise ValueError(f"member {name} is a {len(shape)}-D array of {dtype}, not {ndim}-D numbers")
+    if header_size + dtype.itemsize * int(np.prod(shape, dtype=object)) > info.file_size:
+        raise ValueError(f"member {name}: its header promises more data than the archive holds")
+    return shape, fortran, dtype
+
+
+def _memmap_member(path: Path, zf: zipfile.ZipFile, name: str) -> np.ndarray | None:
     """Copy-on-write memory map of the array ``name`` of an ``.npz`` file when it is stored
-    uncompressed, else None (the caller then reads it)."""
-    with zipfile.ZipFile(path) as zf:
-        info = zf.getinfo(f"{name}.npy")
-        if info.compress_type != zipfile.ZIP_STORED:
-            return None
-        with open(path, "rb") as fh:
-            fh.seek(info.header_offset)
-            local = fh.read(30)
-            if len(local) != 30 or local[:4] != b"PK\x03\x04":
-                return None
-            start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(
-                local[28:30], "little")
-            fh.seek(start)
-            fmt = np.lib.format
-            version = fmt.read_magic(fh)
-            if version not in ((1, 0), (2, 0)):
-                return None
-            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
-            shape, fortran, dtype = read_header(fh)
-            offset = fh.tell()
-    if dtype.hasobject or len(shape) != 2 or offset - start + dtype.itemsize * int(np.prod(shape)) > info.file_size:
+    uncompressed, else None (the caller then reads it). The header is checked first
+    (:func:`_member_header`)."""
+    shape, fortran, dtype = _member_header(zf, name)
+    info = zf.getinfo(f"{name}.npy")
+    if info.compress_type != zipfile.ZIP_STORED:
         return None
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset)
+        local = fh.read(30)
+        if len(local) != 30 or local[:4] != b"PK\x03\x04":
+            return None
+        start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(
+            local[28:30], "little")
+        fh.seek(start)
+        fmt = np.lib.format
+        version = fmt.read_magic(fh)
+        if version not in ((1, 0), (2, 0)):
+            return None
+        read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        if read_header(fh) != (shape, fortran, dtype):
+            return None
+        offset = fh.tell()
+    if offset - start + dtype.itemsize * int(np.prod(shape)) > info.file_size:
+        return None
+    if offset + dtype.itemsize * int(np.prod(shape)) > path.stat().st_size:
+        raise ValueError(f"map {name} runs past the end of the file")
     return np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=shape, order="F" if fortran else "C")
+
+
+#: What zipfile, zlib and numpy raise for a damaged archive (a corrupt member name, CRC,
+#: compressed stream, npy header or JSON).
+_ARCHIVE_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError,
+                   RuntimeError, TypeError, OverflowError, struct.error, SyntaxError, tokenize.TokenError)
+
+
+def _read_archive(path: Path) -> tuple[Any, dict[str, np.ndarray]]:
+    """The metadata (parsed JSON) and the maps of a calibration archive."""
+    try:
+        with np.load(path, allow_pickle=False) as z, zipfile.ZipFile(path) as zf:
+            if "metadata" not in z.files:
+                raise InputError(f"{path}: not an hdrcap calibration file (no metadata entry)")
+            _member_header(zf, "metadata", ndim=1)
+            meta = json.loads(bytes(z["metadata"]).decode("utf-8"))
+            names = [name for name in (*_MAP_FIELDS, *_INT_MAPS) if name in z.files]
+            maps = {name: _memmap_member(path, zf, name) for name in names}
+            maps = {name: z[name] if arr is None else arr for name, arr in maps.items()}
+    except InputError:
+        raise
+    except _ARCHIVE_ERRORS as err:
+        detail = str(err).splitlines()[0][:200] if str(err) else ""
+        raise InputError(f"{path}: not a readable hdrcap calibration file ({type(err).__name__}"
+                         f"{': ' + detail if detail else ''})") from None
+    return meta, maps
+
+
+def _check_metadata(path: Path, meta: Any) -> tuple[int, ...] | None:
+    """Refuse metadata of the wrong format, version or types; return the recorded map shape."""
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"{path}: not an hdrcap calibration file (format {meta.get('format')!r})"
+                         if isinstance(meta, dict) else f"{path}: not an hdrcap calibration file")
+    version = meta.get("version")
+    if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
+        raise InputError(f"{path}: calibration format version {version!r} is not supported "
+                         f"(this hdrcap reads versions 1..{FORMAT_VERSION})")
+    shape = meta.get("shape")
+    if shape is not None and not (isinstance(shape, list) and len(shape) == 2
+                                  and all(type(n) is int and n > 0 for n in shape)):
+        raise InputError(f"{path}: bad map shape {shape!r} in the metadata")
+    for key in ("params", "stderr", "provenance"):
+        if meta.get(key) is not None and not isinstance(meta[key], dict):
+            raise InputError(f"{path}: metadata entry {key!r} is not a table")
+    stderr = meta.get("stderr") or {}
+    if not all(v is None or (type(v) in (int, float) and math.isfinite(v) and v >= 0) for v in stderr.values()):
+        raise InputError(f"{path}: standard errors must be finite numbers >= 0")
+    if meta.get("maps") is not None and not (isinstance(meta["maps"], list)
+                                             and all(isinstance(m, str) for m in meta["maps"])):
+        raise InputError(f"{path}: metadata entry 'maps' is not a list of map names")
+    if meta.get("dark_library") is not None and not isinstance(meta["dark_library"], str):
+        raise InputError(f"{path}: dark_library must be a folder name")
+    return tuple(shape) if shape else None
+
+
+def _check_params(path: Path, raw: Any) -> SensorParams:
+    """The scalar model, refused when a value is not a number or the levels contradict each
+    other (bias level at or above the saturation limit, saturation limit above the white level)."""
+    if not isinstance(raw, dict):
+        raise InputError(f"{path}: no camera parameters")
+    for key, value in raw.items():
+        if key != "name" and (type(value) not in (int, float)):
+            raise InputError(f"{path}: camera parameter {key} is {value!r}, not a number")
+    try:
+        params = SensorParams(**raw)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{path}: bad camera parameters ({err})") from None
+    if not params.mu_R < params.v_sat <= params.white_level:
+        raise InputError(f"{path}: bad camera parameters (need bias level {params.mu_R:g} < saturation limit "
+                         f"{params.v_sat:g} <= white level {params.white_level:g} DN)")
+    return params
 
 
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read a calibration file written by :func:`save_calibration`.
 
-    Checks the format name, the version (files of a newer major version are refused) and that
-    every map has the recorded shape.
+    Checks the format name, the version (files of a newer major version are refused), the
+    types of the metadata, that the levels are ordered (bias < saturation <= white level) and
+    that every map is a finite 2-D array of the recorded shape; a damaged archive is refused
+    before any map is allocated from its header.
 
     Parameters
     ----------
@@ -166,35 +274,17 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         raise InputError(f"{path}: no such calibration file")
     if path.is_dir():
         raise InputError(f"{path}: is a folder, not a calibration file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "metadata" not in z.files:
-                raise InputError(f"{path}: not an hdrcap calibration file (no metadata entry)")
-            meta = json.loads(bytes(z["metadata"]).decode("utf-8"))
-            names = [name for name in (*_MAP_FIELDS, *_INT_MAPS) if name in z.files]
-            maps = {name: _memmap_member(path, name) for name in names}
-            maps = {name: z[name] if arr is None else arr for name, arr in maps.items()}
-    except InputError:
-        raise
-    except (OSError, ValueError, KeyError, json.JSONDecodeError, EOFError) as err:
-        raise InputError(f"{path}: not a readable hdrcap calibration file ({type(err).__name__})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise InputError(f"{path}: not an hdrcap calibration file (format {meta.get('format')!r})"
-                         if isinstance(meta, dict) else f"{path}: not an hdrcap calibration file")
-    version = meta.get("version")
-    if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
-        raise InputError(f"{path}: calibration format version {version!r} is not supported "
-                         f"(this hdrcap reads versions 1..{FORMAT_VERSION})")
-    shape = tuple(meta["shape"]) if meta.get("shape") else None
+    meta, maps = _read_archive(path)
+    shape = _check_metadata(path, meta)
+    missing = sorted(set(meta.get("maps") or ()) - set(maps))
+    if missing:
+        raise InputError(f"{path}: map {missing[0]} is listed in the metadata but missing from the archive")
     for name, arr in maps.items():
         if arr.ndim != 2 or (shape is not None and arr.shape != shape):
             raise InputError(f"{path}: map {name} has shape {arr.shape}, the file says {shape}")
         if not np.all(np.isfinite(arr)):
             raise InputError(f"{path}: map {name} holds NaN or infinite values")
-    try:
-        params = SensorParams(**meta["params"])
-    except (TypeError, ValueError, KeyError) as err:
-        raise InputError(f"{path}: bad camera parameters ({err})") from None
+    params = _check_params(path, meta.get("params"))
     if "prnu" in maps and not np.all(maps["prnu"] > 0):
         raise InputError(f"{path}: PRNU map has non-positive gains")
     for name in ("bias_map_stderr", "dark_current_map_stderr"):

@@ -1,0 +1,700 @@
+"""Fuzzing of every file hdrcap parses: seed corpus, mutations, targets and the outcome rule.
+
+Each target feeds one input file to the command that parses it (in-process, through the same
+``main`` the ``hdrcap`` script runs) and checks the contract for input that hdrcap did not
+write: a result (exit 0) or a one-line ``hdrcap: error: ...`` with exit status 2; never a
+traceback, an internal error, a hang, or a result built from garbage.
+
+Inputs are valid seed files (written by the simulator and the commands themselves) mutated at
+the byte level (flips, overwrites, truncation, insertion, duplication of a chunk; offsets
+biased towards the headers where parsers decide), and, for the text formats, generated
+documents of the right shape with wrong values.
+
+``tests/test_fuzz.py`` runs a small budget of examples in ``make test``. The nightly command
+runs one target (or all) for a time budget and prints one JSON line per target::
+
+    .venv/bin/python tests/fuzzing.py --minutes 30 [--target dng] [--corpus DIR]
+
+Every failure it finds is printed with the smallest input hypothesis reduced it to; store it
+under ``tests/data/fuzz/<target>/`` and it becomes a regression test (``test_fuzz.py`` replays
+every file there).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from hypothesis import strategies as st
+
+DATA = Path(__file__).resolve().parent / "data" / "fuzz"
+
+#: Seconds hypothesis may go on shrinking a failure after a target's time budget.
+SHRINK_S = 300
+
+#: Seconds one call may take before it counts as a hang (the seeds take well under 1 s).
+CALL_TIMEOUT_S = 20
+
+
+# ------------------------------------------------------------------------------- seed corpus
+
+
+def _cli(*args) -> tuple[int, str, str]:
+    """Run ``hdrcap ARGS`` in this process; return (exit status, stdout, stderr)."""
+    from hdrcap.acquire.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main([str(a) for a in args])
+    return rc, out.getvalue(), err.getvalue()
+
+
+def _must(*args) -> str:
+    rc, out, err = _cli(*args)
+    if rc != 0:
+        raise RuntimeError(f"seed corpus: hdrcap {' '.join(map(str, args))} failed ({rc}): {err}")
+    return out
+
+
+def _simulate(out: Path, seed: int, *options) -> None:
+    """``hdrcap simulate`` of 64x48 camera-B files into ``out``."""
+    _must("simulate", "--camera", "camera-B", "--size", "64x48", *options, "--seed", seed, "--out", out, "--force")
+
+
+def _emva_set(folder: Path) -> Path:
+    """A small EMVA 1288 descriptor (Release 3.0 layout) with 12-bit PNG images of a
+    simulated linear camera: 6 exposure times, 2 bright + 2 dark images each."""
+    import numpy as np
+    from PIL import Image
+
+    rng = np.random.default_rng(11)
+    img_dir = folder / "images"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    lines = ["v 3.0", "n 12 32 24"]
+    for k, t_us in enumerate((100, 200, 400, 800, 1600, 3200)):
+        photons = 2.0 * t_us
+        lines.append(f"b {t_us * 1000:.1f} {photons:.1f}")
+        for j in range(2):
+            v = 30 + 0.3 * rng.poisson(0.5 * photons, (24, 32)) + rng.normal(0, 2, (24, 32))
+            name = f"b_{k:03d}_{j}.png"
+            Image.fromarray(np.clip(np.round(v), 0, 4095).astype(np.uint16)).save(img_dir / name)
+            lines.append(f"i images\\{name}")
+        lines.append(f"d {t_us * 1000:.1f}")
+        for j in range(2):
+            v = 30 + rng.normal(0, 2, (24, 32))
+            name = f"d_{k:03d}_{j}.png"
+            Image.fromarray(np.clip(np.round(v), 0, 4095).astype(np.uint16)).save(img_dir / name)
+            lines.append(f"i images\\{name}")
+    path = folder / "EMVA1288_Data.txt"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+JOB_TOML = """\
+[job]
+name = "fuzz"
+
+[camera]
+backend = "mock"
+preset = "camera-B"
+size = "64x48"
+seed = 0
+
+[scene]
+name = "hdr"
+decades = 3.0
+
+[exposure]
+mode = "bracket"
+times = [0.001, 0.01, 0.1]
+repeats = 1
+
+[darks]
+strategy = "model"
+
+[calibration]
+preset = "camera-B"
+
+[output]
+folder = "runs/{job}"
+exr = "hdr.exr"
+"""
+
+
+def _libraw_dng(src: Path, dst: Path) -> Path:
+    """``src`` (a simulator DNG) without DateTimeOriginal, so that :func:`read_raw` leaves it to
+    LibRaw: the tag of that entry in the EXIF IFD becomes DateTimeDigitized (36868)."""
+    import struct
+
+    blob = bytearray(src.read_bytes())
+    ifd0 = struct.unpack_from("<I", blob, 4)[0]
+    entries = [ifd0 + 2 + 12 * i for i in range(struct.unpack_from("<H", blob, ifd0)[0])]
+    exif = next(
+        struct.unpack_from("<I", blob, e + 8)[0] for e in entries if struct.unpack_from("<H", blob, e)[0] == 34665
+    )
+    for i in range(struct.unpack_from("<H", blob, exif)[0]):
+        pos = exif + 2 + 12 * i
+        if struct.unpack_from("<H", blob, pos)[0] == 36867:
+            struct.pack_into("<H", blob, pos, 36868)
+    dst.write_bytes(bytes(blob))
+    return dst
+
+
+def _tiff_frames(frames: tuple[Path, ...], folder: Path) -> tuple[Path, ...]:
+    """The mosaics of ``frames`` as single-channel 16-bit TIFF files (exposure times via --times)."""
+    import tifffile
+
+    from hdrcap.pipeline.io import read_raw
+
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i, frame in enumerate(frames):
+        path = folder / f"frame_{i}.tif"
+        if not path.exists():
+            tifffile.imwrite(path, read_raw(frame, mmap=False).data)
+        out.append(path)
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class Corpus:
+    """Valid seed files, one or more per parser."""
+
+    root: Path
+    frames: tuple[Path, ...]
+    darks: tuple[Path, ...]
+    libraw_dng: Path
+    tiffs: tuple[Path, ...]
+    times: tuple[float, ...]
+    exr: Path
+    merged: Path
+    calibration: Path
+    plan: Path
+    plan_frames: tuple[Path, ...]
+    plan_darks: tuple[Path, ...]
+    job: Path
+    manifest: Path
+    events: Path
+    emva: Path
+
+
+def build_corpus(root: Path) -> Corpus:
+    """Write the seed corpus into ``root`` (a few seconds; 64x48 frames)."""
+    root = Path(root)
+    sim = root / "sim"
+    if not (sim / "truth.exr").exists():
+        _simulate(sim, 2, "--times", "0.001", "0.01", "0.1", "--darks")
+    frames = tuple(sorted(sim.glob("frame_*.dng")))
+    darks = tuple(sorted(sim.glob("dark_*.dng")))
+    cal_dir = root / "calset"
+    cal = root / "camera.cal"
+    if not cal.exists():
+        _simulate(cal_dir, 3, "--calibration-set")
+        bias = sorted(cal_dir.glob("bias_*"))
+        sat = sorted(cal_dir.glob("sat*"))
+        flats = sorted(cal_dir.glob("flat_*"))
+        dark = sorted(cal_dir.glob("dark_*"))
+        args = ["calibrate", "--bias", *bias, "--saturation", *sat, "--flat", *flats]
+        if dark:
+            args += ["--dark", *dark]
+        _must(*args, "-o", cal, "--force")
+    plan = root / "plan.json"
+    if not plan.exists():
+        plan.write_text(
+            _must("plan", "--camera", "camera-B", "--irradiance", sim / "truth.exr", "--target-snr-db", "20", "--json")
+        )
+    plan_sim = root / "plansim"
+    if not (plan_sim / "truth.exr").exists():
+        times = sorted({float(t) for t in json.loads(plan.read_text())["exposures"]})
+        _simulate(plan_sim, 4, "--times", *times, "--darks")
+    plan_frames = tuple(sorted(plan_sim.glob("frame_*.dng")))
+    plan_darks = tuple(sorted(plan_sim.glob("dark_*.dng")))
+    job = root / "job.toml"
+    job.write_text(JOB_TOML)
+    run_dir = root / "runs" / "fuzz"
+    if not (run_dir / "manifest.jsonl").exists():
+        cwd = os.getcwd()
+        os.chdir(root)
+        try:
+            _must("run", job, "--no-progress")
+        finally:
+            os.chdir(cwd)
+    emva_dir = root / "emva"
+    emva = emva_dir / "EMVA1288_Data.txt"
+    if not emva.exists():
+        _emva_set(emva_dir)
+    from hdrcap.pipeline.io import read_raw
+
+    libraw_dng = _libraw_dng(frames[0], root / "libraw.dng")
+    times = tuple(read_raw(f).exposure_time for f in frames)
+    return Corpus(
+        root,
+        frames,
+        darks,
+        libraw_dng,
+        _tiff_frames(frames, root / "tiff"),
+        times,
+        sim / "truth.exr",
+        run_dir / "hdr.exr",
+        cal,
+        plan,
+        plan_frames,
+        plan_darks,
+        job,
+        run_dir / "manifest.jsonl",
+        run_dir / "events.jsonl",
+        emva,
+    )
+
+
+# --------------------------------------------------------------------------------- mutations
+
+
+@st.composite
+def mutated(draw, seed: bytes, header: int = 4096) -> bytes:
+    """``seed`` with 1-8 byte-level mutations; offsets favour the first ``header`` bytes."""
+    data = bytearray(seed)
+    for _ in range(draw(st.integers(1, 8))):
+        if not data:
+            break
+        n = len(data)
+        near = draw(st.booleans())
+        pos = draw(st.integers(0, min(n, header) - 1)) if near else draw(st.integers(0, n - 1))
+        op = draw(st.sampled_from(["flip", "byte", "word", "truncate", "insert", "duplicate", "zero"]))
+        if op == "flip":
+            data[pos] ^= 1 << draw(st.integers(0, 7))
+        elif op == "byte":
+            data[pos] = draw(st.integers(0, 255))
+        elif op == "word":
+            word = draw(st.sampled_from([0, 0xFFFFFFFF, 0x7FFFFFFF, 0x80000000, 1, n, n + 1, 2 * n]))
+            data[pos : pos + 4] = word.to_bytes(4, draw(st.sampled_from(["little", "big"])))
+        elif op == "truncate":
+            del data[pos:]
+        elif op == "insert":
+            data[pos:pos] = draw(st.binary(min_size=1, max_size=16))
+        elif op == "duplicate":
+            size = draw(st.integers(1, 64))
+            data[pos:pos] = data[pos : pos + size]
+        else:
+            size = draw(st.integers(1, 256))
+            data[pos : pos + size] = bytes(len(data[pos : pos + size]))
+    return bytes(data)
+
+
+_JSON_LEAF = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**63), 2**63),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
+)
+JSON_VALUES = st.recursive(
+    _JSON_LEAF,
+    lambda inner: st.one_of(st.lists(inner, max_size=5), st.dictionaries(st.text(max_size=12), inner, max_size=5)),
+    max_leaves=20,
+)
+
+
+@st.composite
+def json_like(draw, seed: bytes) -> bytes:
+    """A JSON document of the seed's shape with some values replaced by arbitrary ones."""
+    try:
+        doc = json.loads(seed)
+    except ValueError:
+        return draw(mutated(seed))
+
+    def walk(node):
+        if isinstance(node, dict):
+            out = {}
+            for k, v in node.items():
+                if draw(st.integers(0, 9)) == 0:
+                    continue  # drop the key
+                out[k] = draw(JSON_VALUES) if draw(st.integers(0, 5)) == 0 else walk(v)
+            return out
+        if isinstance(node, list):
+            return [walk(v) for v in node] if draw(st.booleans()) else draw(JSON_VALUES)
+        return node
+
+    return json.dumps(walk(doc), allow_nan=True).encode()
+
+
+TOML_VALUES = st.one_of(
+    st.integers(-(2**70), 2**70).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(
+        lambda f: {"nan": "nan", "inf": "inf", "-inf": "-inf"}.get(str(f), repr(f))
+    ),
+    st.text(max_size=12).map(json.dumps),
+    st.sampled_from(["true", "false", "[]", "{}", "[1, 2]", '""', "-0", "1e308"]),
+)
+
+
+@st.composite
+def toml_like(draw, seed: bytes) -> bytes:
+    """The seed's TOML with some values replaced, lines dropped or duplicated."""
+    out = []
+    for line in seed.decode().splitlines():
+        roll = draw(st.integers(0, 11))
+        if "=" in line and roll == 0:
+            key = line.split("=", 1)[0]
+            out.append(f"{key}= {draw(TOML_VALUES)}")
+        elif roll == 1:
+            continue
+        elif roll == 2:
+            out += [line, line]
+        else:
+            out.append(line)
+    return "\n".join(out).encode()
+
+
+# ----------------------------------------------------------------------------------- targets
+
+
+class Hang(Exception):
+    pass
+
+
+@contextlib.contextmanager
+def _time_limit(seconds: int):
+    def handler(signum, frame):
+        raise Hang(f"no answer within {seconds} s")
+
+    old = signal.signal(signal.SIGALRM, handler)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one call of a target gave: exit status, its output streams, and whether the EXR it
+    wrote (if any) is finite everywhere."""
+
+    rc: int
+    stdout: str
+    stderr: str
+    output_finite: bool = True
+
+
+#: Peak resident memory (MiB) of the fuzzing process that counts as unbounded: the inputs are
+#: a few kB to a few hundred kB, their results a few MB.
+MEMORY_LIMIT_MIB = 1024
+
+
+def _reset_peak() -> None:
+    """Reset the process's peak resident memory (Linux: ``5`` to /proc/self/clear_refs)."""
+    with contextlib.suppress(OSError):
+        Path("/proc/self/clear_refs").write_text("5")
+
+
+def _peak_mib() -> float:
+    """Peak resident memory since the last :func:`_reset_peak`, MiB (0 where unknown)."""
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return 0.0
+    return next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmHWM:")), 0.0)
+
+
+def _exr_is_finite(path: Path) -> bool:
+    import numpy as np
+
+    from hdrcap.pipeline.io import read_exr
+
+    return all(np.isfinite(ch).all() for ch in read_exr(path).channels.values())
+
+
+def check_outcome(outcome: Outcome, what: str) -> None:
+    """The contract: exit 0 (with nothing but ``hdrcap: warning:`` lines on stderr and a finite
+    output), or exit 2 with one ``hdrcap: error:`` line (warnings allowed)."""
+    lines = [ln for ln in outcome.stderr.splitlines() if ln.strip() and not ln.startswith("hdrcap: warning:")]
+    assert "Traceback" not in outcome.stderr, f"{what}: traceback\n{outcome.stderr}"
+    assert "internal error" not in outcome.stderr, f"{what}: {outcome.stderr.strip()}"
+    if outcome.rc == 0:
+        assert not lines, f"{what}: a success that printed more than warnings on stderr:\n{outcome.stderr}"
+        assert outcome.output_finite, f"{what}: a success whose output holds NaN or infinite values"
+        return
+    assert outcome.rc == 2, f"{what}: exit status {outcome.rc}: {outcome.stderr.strip()}"
+    assert len(lines) == 1 and lines[0].startswith("hdrcap: error: "), (
+        f"{what}: expected one 'hdrcap: error:' line, got:\n{outcome.stderr}"
+    )
+
+
+def run_target(target: str, corpus: Corpus, data: bytes, work: Path) -> Outcome:
+    """Write ``data`` as the input of ``target`` in ``work`` and run the command that parses it."""
+    work.mkdir(parents=True, exist_ok=True)
+    out = work / "out.exr"
+    out.unlink(missing_ok=True)
+    f = TARGETS[target]
+    path = work / f.name
+    path.write_bytes(data)
+    args = f.args(corpus, path, out)
+    _reset_peak()
+    with _time_limit(CALL_TIMEOUT_S):
+        if callable(args):
+            outcome = args()
+        else:
+            outcome = Outcome(*_cli(*args))
+    assert _peak_mib() < MEMORY_LIMIT_MIB, f"{target}: peak memory {_peak_mib():.0f} MiB"
+    if outcome.rc == 0 and out.exists():
+        outcome = Outcome(outcome.rc, outcome.stdout, outcome.stderr, _exr_is_finite(out))
+    return outcome
+
+
+def _library_call(fn: Callable[[], object]) -> Callable[[], Outcome]:
+    """Targets without a command of their own (manifest, event log): the library function must
+    return or raise :class:`HdrcapError`, which the command line prints as one line."""
+    from hdrcap.pipeline.errors import HdrcapError
+
+    def call() -> Outcome:
+        try:
+            fn()
+        except HdrcapError as err:
+            return Outcome(2, "", f"hdrcap: error: {err}\n")
+        return Outcome(0, "", "")
+
+    return call
+
+
+def _manifest_target(corpus: Corpus, path: Path, out: Path):
+    from hdrcap.acquire.manifest import Manifest
+
+    run = path.parent / "run"
+    run.mkdir(exist_ok=True)
+    (run / "manifest.jsonl").write_bytes(path.read_bytes())
+
+    def read():
+        m = Manifest(run)
+        m.records()
+        m.header()
+        m.frames()
+
+    return _library_call(read)
+
+
+def _events_target(corpus: Corpus, path: Path, out: Path):
+    from hdrcap.acquire.manifest import EventLog
+
+    run = path.parent / "run"
+    run.mkdir(exist_ok=True)
+    (run / "events.jsonl").write_bytes(path.read_bytes())
+    return _library_call(lambda: EventLog(run).events())
+
+
+def _emva_target(corpus: Corpus, path: Path, out: Path):
+    # The descriptor names its images relative to its own folder: put it beside them.
+    desc = corpus.emva.parent / f"fuzz_{os.getpid()}.txt"
+    desc.write_bytes(path.read_bytes())
+    return ["calibrate", "--emva", desc, "-o", path.parent / "emva.cal", "--force"]
+
+
+@dataclass(frozen=True)
+class Target:
+    name: str  # file name of the input in the work folder
+    seed: Callable[[Corpus], bytes]
+    strategy: Callable[[bytes], st.SearchStrategy[bytes]]
+    args: Callable[[Corpus, Path, Path], object]
+
+
+TARGETS: dict[str, Target] = {
+    "dng": Target(
+        "input.dng",
+        lambda c: c.frames[0].read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"],
+    ),
+    "dng-libraw": Target(
+        "input.dng",
+        lambda c: c.libraw_dng.read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", p, *c.frames[1:], "--camera", "camera-B", "-o", o, "--force"],
+    ),
+    "tiff": Target(
+        "input.tif",
+        lambda c: c.tiffs[0].read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", p, *c.tiffs[1:], "--times", *c.times, "--camera", "camera-B", "-o", o, "--force"],
+    ),
+    "dark-dng": Target(
+        "dark.dng",
+        lambda c: c.darks[0].read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", *c.frames, "--darks", p, *c.darks[1:], "--camera", "camera-B", "-o", o, "--force"],
+    ),
+    "exr-denoise": Target(
+        "input.exr", lambda c: c.merged.read_bytes(), mutated, lambda c, p, o: ["denoise", p, "-o", o, "--force"]
+    ),
+    "exr-plan": Target(
+        "map.exr",
+        lambda c: c.exr.read_bytes(),
+        mutated,
+        lambda c, p, o: ["plan", "--camera", "camera-B", "--irradiance", p, "--target-snr-db", "20"],
+    ),
+    "calibration": Target(
+        "camera.cal",
+        lambda c: c.calibration.read_bytes(),
+        mutated,
+        lambda c, p, o: ["merge", *c.frames, "--calibration", p, "-o", o, "--force"],
+    ),
+    "plan-json": Target(
+        "plan.json",
+        lambda c: c.plan.read_bytes(),
+        lambda s: st.one_of(json_like(s), mutated(s)),
+        lambda c, p, o: [
+            "merge",
+            *c.plan_frames,
+            "--darks",
+            *c.plan_darks,
+            "--camera",
+            "camera-B",
+            "--plan",
+            p,
+            "-o",
+            o,
+            "--force",
+        ],
+    ),
+    "job-toml": Target(
+        "job.toml",
+        lambda c: c.job.read_bytes(),
+        lambda s: st.one_of(toml_like(s), mutated(s)),
+        lambda c, p, o: ["run", p, "--check"],
+    ),
+    "manifest": Target(
+        "manifest.jsonl",
+        lambda c: c.manifest.read_bytes(),
+        lambda s: st.one_of(mutated(s), json_like(s)),
+        _manifest_target,
+    ),
+    "events": Target("events.jsonl", lambda c: c.events.read_bytes(), mutated, _events_target),
+    "emva": Target("EMVA1288_Data.txt", lambda c: c.emva.read_bytes(), mutated, _emva_target),
+}
+
+
+# --------------------------------------------------------------------------- nightly command
+
+
+def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Path | None = None) -> dict:
+    """Run one target for ``minutes`` of mutated inputs (hypothesis, random seed).
+
+    Returns
+    -------
+    dict
+        ``target``, ``executions``, ``seconds``, ``exit_status`` (count of each), the slowest
+        call (s) and the largest peak memory of a call (MiB), the ``failure`` (None if the
+        contract held) and where the input it was reduced to was ``saved``.
+    """
+    from hypothesis import HealthCheck, Verbosity, given, settings
+
+    seed = TARGETS[name].seed(corpus)
+    stats = {"n": 0, "slowest": 0.0, "peak": 0.0, "rc": {}}
+    failing: dict[str, bytes] = {}
+    deadline = time.monotonic() + minutes * 60
+
+    @settings(
+        max_examples=10**9,
+        deadline=None,
+        database=None,
+        derandomize=False,
+        suppress_health_check=list(HealthCheck),
+        verbosity=Verbosity.quiet,
+    )
+    @given(TARGETS[name].strategy(seed))
+    def one(data: bytes) -> None:
+        now = time.monotonic()
+        if (now > deadline and not failing) or now > deadline + SHRINK_S:  # shrinking gets SHRINK_S more
+            raise _Done
+        stats["n"] += 1
+        t0 = time.monotonic()
+        try:
+            outcome = run_target(name, corpus, data, work / name)
+            check_outcome(outcome, name)
+        except Exception:
+            failing["data"] = data  # the last failing call replays the shrunk example
+            raise
+        finally:
+            stats["slowest"] = max(stats["slowest"], time.monotonic() - t0)
+            stats["peak"] = max(stats["peak"], _peak_mib())
+        stats["rc"][outcome.rc] = stats["rc"].get(outcome.rc, 0) + 1
+
+    t0 = time.monotonic()
+    error = saved = None
+    try:
+        one()
+    except _Done:
+        if failing:  # shrinking ran out of time: the last failing input, not the smallest
+            error = "contract broken; shrinking stopped after SHRINK_S s: replay the saved input"
+    except Exception as err:  # a contract violation, reduced by hypothesis
+        error = _describe(err)
+    if error and "data" in failing and save is not None:
+        import hashlib
+
+        (save / name).mkdir(parents=True, exist_ok=True)
+        saved = save / name / (hashlib.sha256(failing["data"]).hexdigest()[:16] + ".bin")
+        saved.write_bytes(failing["data"])
+    return {
+        "target": name,
+        "executions": stats["n"],
+        "seconds": round(time.monotonic() - t0, 1),
+        "exit_status": stats["rc"],
+        "slowest_call_s": round(stats["slowest"], 2),
+        "peak_mib": round(stats["peak"]),
+        "failure": error,
+        "saved": str(saved) if saved else None,
+    }
+
+
+def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
+    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure."""
+    corpus = build_corpus(corpus_dir)
+    failed = 0
+    for name in targets:
+        result = fuzz_target(name, corpus, work, minutes, save)
+        failed += result["failure"] is not None
+        print(json.dumps(result), flush=True)
+    return 1 if failed else 0
+
+
+def _describe(err: BaseException) -> str:
+    """The violated rule(s) of a failure, without hypothesis's repr of the (large) input."""
+    parts = list(getattr(err, "exceptions", None) or [err])
+    return " | ".join(
+        f"{type(e).__name__}: {str(e).splitlines()[0][:500] if str(e) else ''}"
+        + (f" ({_describe(e)})" if getattr(e, "exceptions", None) else "")
+        for e in parts
+    )
+
+
+class _Done(BaseException):
+    """Raised to end a time-boxed hypothesis run (a BaseException so hypothesis passes it up)."""
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import tempfile
+
+    ap = argparse.ArgumentParser(description="hdrcap nightly fuzzing: every parser for a time budget.")
+    ap.add_argument("--minutes", type=float, default=30.0, help="time budget per target (default 30)")
+    ap.add_argument("--target", action="append", choices=sorted(TARGETS), help="target (repeatable; default all)")
+    ap.add_argument("--corpus", type=Path, default=None, help="folder for the seed corpus (default: temporary)")
+    ap.add_argument(
+        "--save", type=Path, default=DATA, help="where to store shrunk failing inputs (default: tests/data/fuzz)"
+    )
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="hdrcap-fuzz-") as tmp:
+        corpus_dir = args.corpus or Path(tmp) / "corpus"
+        return nightly(args.minutes, args.target or sorted(TARGETS), corpus_dir, Path(tmp) / "work", args.save)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
