@@ -44,9 +44,14 @@ def command(camera, port, serial, iso, enforce, times, target_snr,
             dark_strategy, dark_count, block_light, cover_command, uncover_command,
             calibration, scene, size, seed, out, resume, force, progress, as_json):
     """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
-    hash every frame into manifest.jsonl, and merge it to --out/hdr.exr."""
+    hash every frame into manifest.jsonl, and merge it to --out/hdr.exr.
+
+    SIGTERM or Ctrl-C ends the capture cleanly before the next frame (exit 143 / 130, camera
+    closed); --resume continues it. Exit status: see docs/acquisition.md.
+    """
     from hdrcap.acquire.commands.run import _describe
     from hdrcap.acquire.job import job_from_dict, run_job
+    from hdrcap.acquire.session import stop_on_signals
     from hdrcap.pipeline.errors import InputError
 
     backend, _, name = camera.partition(":")
@@ -79,7 +84,8 @@ def command(camera, port, serial, iso, enforce, times, target_snr,
     if calibration:
         data["calibration"] = {"file": calibration}
     job = job_from_dict(data)
-    res = run_job(job, resume=resume, run_dir=out, progress=progress, force=force)
+    with stop_on_signals() as stop:  # SIGTERM / Ctrl-C: a clean, resumable stop (exit 143 / 130)
+        res = run_job(job, resume=resume, run_dir=out, progress=progress, force=force, stop=stop)
     if as_json:
         echo_json(res)
     else:

@@ -1,0 +1,78 @@
+"""The `capture` and `run` commands: a clean stop on SIGTERM for both, the disk-space check of
+``run --check``, and the options they share."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+
+import pytest
+
+import hdrcap.acquire.job as job_mod
+from hdrcap.acquire.cli import main
+from hdrcap.acquire.manifest import EventLog, Manifest
+
+
+class _SignallingCamera:
+    """A camera that receives SIGTERM (as from `systemctl stop`) after ``after`` captures and
+    records whether it was closed."""
+
+    def __init__(self, cam, after: int):
+        self._cam, self._after, self.n, self.closed = cam, after, 0, False
+
+    def __getattr__(self, name):
+        return getattr(self._cam, name)
+
+    def capture(self, *a, **kw):
+        res = self._cam.capture(*a, **kw)
+        self.n += 1
+        if self.n == self._after:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return res
+
+    def close(self):
+        self.closed = True
+        self._cam.close()
+
+
+@pytest.fixture
+def sigterm_guard():
+    """Without a handler of the command's own, SIGTERM would end the test process: fail instead."""
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals are delivered to the main thread only")
+
+    def unhandled(signum, _frame):
+        raise AssertionError("SIGTERM reached the default handler: the command does not stop cleanly")
+
+    old = signal.signal(signal.SIGTERM, unhandled)
+    yield
+    signal.signal(signal.SIGTERM, old)
+
+
+def test_capture_ends_cleanly_on_sigterm_and_resume_completes(tmp_path, monkeypatch, capsys, sigterm_guard):
+    opened = []
+    real_open = job_mod.open_camera
+
+    def open_signalling(job, n=0):
+        cam = _SignallingCamera(real_open(job, n), after=3) if not opened else real_open(job, n)
+        opened.append(cam)
+        return cam
+
+    monkeypatch.setattr(job_mod, "open_camera", open_signalling)
+    out = tmp_path / "c"
+    args = ["capture", "--camera", "mock:camera-B", "--size", "32x24", "--times", "0.004", "0.064", "0.5",
+            "--out", str(out), "--no-progress"]
+    assert main(args) == 143  # 128 + SIGTERM, as documented
+    err = capsys.readouterr().err
+    assert "--resume" in err.strip().splitlines()[-1] and "Traceback" not in err
+    assert opened[0].closed and opened[0].n == 3  # stopped before the next frame, camera closed
+    stops = [e for e in EventLog(out).events() if e["event"] == "stop"]
+    assert len(stops) == 1 and stops[0]["exit_code"] == 143
+    assert len(Manifest(out).frames()) == 3 and not (out / "hdr.exr").exists()
+    # the handler is gone after the command: SIGTERM reaches the test's guard again
+    assert signal.getsignal(signal.SIGTERM).__name__ == "unhandled"
+    assert main(args + ["--resume", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["resumed"] == 3 and res["captured"] == 3 and (out / "hdr.exr").exists()
