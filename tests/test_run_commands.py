@@ -76,3 +76,52 @@ def test_capture_ends_cleanly_on_sigterm_and_resume_completes(tmp_path, monkeypa
     assert main(args + ["--resume", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["resumed"] == 3 and res["captured"] == 3 and (out / "hdr.exr").exists()
+
+
+JOB = """\
+[job]
+name = "d"
+
+[camera]
+backend = "mock"
+preset = "camera-B"
+size = "32x24"
+
+[exposure]
+mode = "bracket"
+times = [0.004, 0.064, 0.5]
+
+[darks]
+strategy = "{strategy}"
+count = 4
+
+[output]
+folder = "runs/{{job}}-{{date}}"
+"""
+
+
+def _disk(free: int):
+    import collections
+
+    usage = collections.namedtuple("usage", "total used free")
+    return lambda _path: usage(10 * free, 9 * free, free)
+
+
+@pytest.mark.parametrize("strategy, frames", [("matched", 3 + 3), ("master", 3 + 3 * 4), ("model", 3)])
+def test_run_check_reports_the_disk_space_and_refuses_when_short(tmp_path, monkeypatch, capsys, strategy, frames):
+    p = tmp_path / "job.toml"
+    p.write_text(JOB.format(strategy=strategy))
+    # 32x24 photosites: a raw file of 2 B/photosite + 1 MB, the EXR (4 float32) and PNG (3 B) outputs, 16 MB margin
+    need = frames * (2 * 768 + 1_000_000) + 19 * 768 + 16_000_000
+    monkeypatch.setattr("shutil.disk_usage", _disk(need + 1))
+    assert main(["run", str(p), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert f"{frames} frames" in out and f"about {need / 1e6:.0f} MB" in out and str(tmp_path) in out
+    monkeypatch.setattr("shutil.disk_usage", _disk(need - 1))
+    assert main(["run", str(p), "--check"]) == 6  # local I/O, as documented
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "MB free" in err[0] and f"{frames} planned frames" in err[0]
+    # three repetitions need three times the room
+    monkeypatch.setattr("shutil.disk_usage", _disk(2 * need))
+    assert main(["run", str(p), "--check", "--repeat", "3"]) == 6
+    assert not (tmp_path / "runs").exists()  # no frame, no folder
