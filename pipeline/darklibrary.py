@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera_types import same_model
 from .errors import InputError
 from .io import atomic_output
 from .times import EXPOSURE_RTOL, same_exposure, unique_exposures
@@ -58,7 +59,9 @@ class DarkEntry:
 
 
 def same_camera(a: str | None, b: str | None) -> bool:
-    """Whether two camera names denote the same camera.
+    """Whether two camera names denote the same camera: their normalised model names agree
+    (:func:`pipeline.camera_types.same_model`), so libgphoto2's "Nikon DSC D750" and the EXIF
+    "NIKON CORPORATION NIKON D750" match while "Nikon D750" and "Nikon D7500" do not.
 
     Parameters
     ----------
@@ -68,11 +71,9 @@ def same_camera(a: str | None, b: str | None) -> bool:
     Returns
     -------
     bool
-        Equal, or one contains the other ("Nikon D750" and "D750"); an empty or unknown name
-        matches any.
+        The same model; an empty or unknown name matches any.
     """
-    a, b = (a or "").strip(), (b or "").strip()
-    return not a or not b or a == b or a in b or b in a
+    return same_model(a, b)
 
 
 def _slug(text: str) -> str:
