@@ -125,3 +125,38 @@ def test_run_check_reports_the_disk_space_and_refuses_when_short(tmp_path, monke
     monkeypatch.setattr("shutil.disk_usage", _disk(2 * need))
     assert main(["run", str(p), "--check", "--repeat", "3"]) == 6
     assert not (tmp_path / "runs").exists()  # no frame, no folder
+
+
+# --------------------------------------------------------------------------- shared option names
+def _capture(capsys, *args) -> dict:
+    assert main(["capture", "--size", "32x24", "--seed", "3", "--no-progress", "--json", *map(str, args)]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_capture_plan_and_merge_spell_camera_snr_darks_and_folder_alike(tmp_path, capsys):
+    # the spellings of plan / merge / run ...
+    new = _capture(capsys, "--camera", "camera-B", "--target-snr-db", 20, "--dark-strategy", "model",
+                   "--run-dir", tmp_path / "new")
+    # ... and the older ones of capture mean the same run: same plan, same frames
+    old = _capture(capsys, "--camera", "mock:camera-B", "--target-snr", 20, "--darks", "model",
+                   "--out", tmp_path / "old")
+    assert new["run_dir"] == str(tmp_path / "new") and old["run_dir"] == str(tmp_path / "old")
+    plans = [Manifest(tmp_path / d).header()["plan"] for d in ("new", "old")]
+    assert plans[0] == plans[1] and plans[0]["dark_strategy"] == "model"
+    assert new["frames"] == old["frames"] == sum(f["kind"] == "light" for f in plans[0]["frames"])
+    # plan takes capture's camera spelling and SNR alias, with the same result
+    base = ["plan", "--meter", "--size", "32x24", "--json"]
+    assert main(base + ["--camera", "camera-B", "--target-snr-db", "20"]) == 0
+    a = json.loads(capsys.readouterr().out)
+    assert main(base + ["--camera", "mock:camera-B", "--target-snr", "20"]) == 0
+    assert json.loads(capsys.readouterr().out) == a
+    # merge takes it too (its calibration: the preset's nominal parameters)
+    lights = sorted(str(tmp_path / "new" / r["file"]) for r in Manifest(tmp_path / "new").frames().values()
+                    if r["kind"] == "light")
+    for cam, name in (("camera-B", "a.exr"), ("mock:camera-B", "b.exr")):
+        assert main(["merge", *lights, "--camera", cam, "-o", str(tmp_path / name), "--json"]) == 0
+        capsys.readouterr()
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    # a real camera has no nominal parameters: one line, exit 2
+    assert main(["plan", "--meter", "--camera", "gphoto2:D750", "--target-snr-db", "20"]) == 2
+    assert "--calibration" in capsys.readouterr().err
