@@ -181,7 +181,10 @@ def normalise_model(name: str | None) -> tuple[str, ...]:
 
 def same_model(a: str | None, b: str | None) -> bool:
     """Whether two camera names denote the same model: equal normalised words, or one's are
-    the end of the other's (a make written in front); an unknown name matches any.
+    the end of the other's (a make written in front); an unknown name matches any. So
+    libgphoto2's "Nikon DSC D750" and the EXIF "NIKON CORPORATION NIKON D750" match, while
+    "Nikon D750" and "Nikon D7500" do not (whole words, never substrings). The dark library
+    (:func:`pipeline.darklibrary.same_camera`) and the compatibility check both use it.
 
     Parameters
     ----------

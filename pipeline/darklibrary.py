@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera_types import same_model
+from .camera_types import same_model as same_camera
 from .errors import InputError
 from .io import atomic_output
 from .times import EXPOSURE_RTOL, same_exposure, unique_exposures
@@ -56,24 +56,6 @@ class DarkEntry:
     file: str
     level: float = float("nan")
     created: str = ""
-
-
-def same_camera(a: str | None, b: str | None) -> bool:
-    """Whether two camera names denote the same camera: their normalised model names agree
-    (:func:`pipeline.camera_types.same_model`), so libgphoto2's "Nikon DSC D750" and the EXIF
-    "NIKON CORPORATION NIKON D750" match while "Nikon D750" and "Nikon D7500" do not.
-
-    Parameters
-    ----------
-    a, b : str or None
-        Camera names.
-
-    Returns
-    -------
-    bool
-        The same model; an empty or unknown name matches any.
-    """
-    return same_model(a, b)
 
 
 def _slug(text: str) -> str:

@@ -13,24 +13,23 @@ import pytest
 import hdrcap.acquire.job as job_mod
 from hdrcap.acquire.cli import main
 from hdrcap.acquire.manifest import EventLog, Manifest
+from tests.test_unattended import _StoppingCamera
 
 
-class _SignallingCamera:
+class _Kill:
+    """Stands for the stop event of ``_StoppingCamera``: delivers the real SIGTERM instead."""
+
+    def stop(self, signum):
+        os.kill(os.getpid(), signum)
+
+
+class _SignallingCamera(_StoppingCamera):
     """A camera that receives SIGTERM (as from `systemctl stop`) after ``after`` captures and
     records whether it was closed."""
 
     def __init__(self, cam, after: int):
-        self._cam, self._after, self.n, self.closed = cam, after, 0, False
-
-    def __getattr__(self, name):
-        return getattr(self._cam, name)
-
-    def capture(self, *a, **kw):
-        res = self._cam.capture(*a, **kw)
-        self.n += 1
-        if self.n == self._after:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return res
+        super().__init__(cam, _Kill(), after)
+        self.closed = False
 
     def close(self):
         self.closed = True
