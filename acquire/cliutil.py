@@ -78,13 +78,41 @@ def _default(obj):
     raise TypeError(type(obj).__name__)
 
 
+def preset_name(camera: str | None) -> str | None:
+    """The simulator preset a ``--camera`` value names: ``camera-B`` or ``mock:camera-B`` (the
+    spelling of ``capture``); None for None. A real camera (``gphoto2[:MODEL]``) has no preset.
+
+    Parameters
+    ----------
+    camera : str or None
+        The option's value.
+
+    Returns
+    -------
+    str or None
+        The preset name.
+    """
+    if camera is None:
+        return None
+    backend, sep, name = camera.partition(":")
+    if not sep:
+        return camera
+    if backend == "mock":
+        return name or "camera-B"
+    raise InputError(f"--camera {camera}: a real camera has no nominal parameters here; give --calibration FILE "
+                     "(from `hdrcap calibrate`) or a simulator preset (mock:PRESET)")
+
+
 def resolve_calibration(calibration: str | None, camera: str | None, temperature: float | None = None):
     """Return a :class:`pipeline.params.Calibration` from a calibration file or a preset.
 
     ``calibration`` is a file written by ``hdrcap calibrate``; ``camera`` names a simulator
-    preset (``camera-A``, ``camera-B``) whose nominal parameters are used.
+    preset (``camera-A``, ``camera-B``, also spelt ``mock:camera-B`` as in ``capture``) whose
+    nominal parameters are used.
     """
     from hdrcap.pipeline.params import Calibration
+
+    camera = None if calibration else preset_name(camera)
 
     if calibration:
         try:

@@ -6,9 +6,10 @@ the camera that is connected (its identity) and each frame it delivers (EXIF mak
 ISO). :func:`check_compatible` compares two :class:`CameraProfile` and is used at plan time,
 when each frame is verified and on resume:
 
-* **model**: names are normalised (:func:`normalise_model`) so libgphoto2's ``Nikon DSC D750``
-  and the EXIF ``NIKON CORPORATION`` + ``NIKON D750`` are the same camera; a mismatch is an
-  error. Unknown names match anything.
+* **model**: names are normalised (:func:`pipeline.camera_types.normalise_model`, re-exported
+  here, as the dark library matches them) so libgphoto2's ``Nikon DSC D750`` and the EXIF
+  ``NIKON CORPORATION`` + ``NIKON D750`` are the same camera; a mismatch is an error. Unknown
+  names match anything.
 * **serial**: when both are known it decides (a mismatch is an error even for equal models).
 * **ISO**: when both are known they must agree (an error: the gain g depends on it).
 * **temperature**: a difference above the tolerance (or an unknown temperature where one is
@@ -17,10 +18,10 @@ when each frame is verified and on resume:
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from typing import Any
 
+from hdrcap.pipeline.camera_types import normalise_model, same_model
 from hdrcap.pipeline.errors import InputError
 
 __all__ = ["CameraProfile", "CompatibilityError", "check_compatible", "normalise_model", "same_model",
@@ -29,16 +30,6 @@ __all__ = ["CameraProfile", "CompatibilityError", "check_compatible", "normalise
 #: Largest temperature difference, degrees C, before a warning (the dark current of a typical
 #: sensor doubles every ~6 degrees C).
 TEMPERATURE_TOLERANCE_C = 5.0
-
-#: Words of camera names that are not part of the model: company suffixes, libgphoto2's labels
-#: and the brands (EXIF writes the brand twice: Make "NIKON CORPORATION", Model "NIKON D750").
-_NOISE_WORDS = {
-    "CORPORATION", "CORP", "INC", "CO", "LTD", "COMPANY", "GMBH", "AG", "KK", "IMAGING", "OPTICAL", "ELECTRIC",
-    "DIGITAL", "CAMERA", "DSC", "PTP", "MODE", "CONTROL", "PC", "USB",
-    "NIKON", "CANON", "SONY", "FUJIFILM", "FUJI", "OLYMPUS", "OM", "PENTAX", "RICOH", "PANASONIC", "LEICA",
-    "SIGMA", "HASSELBLAD", "KODAK", "EASTMAN", "SAMSUNG", "HDRCAP", "ZWO", "QHY",
-}
-
 
 class CompatibilityError(InputError):
     """Calibration, dark library, camera or frame belong to different cameras or ISOs."""
@@ -90,44 +81,6 @@ class CameraProfile:
     def from_record(cls, record: dict, source: str) -> CameraProfile:
         """A camera identity recorded in a manifest (``{"model": ..., "serial": ...}``)."""
         return cls(source, str(record.get("model") or ""), str(record.get("serial") or ""))
-
-
-def normalise_model(name: str | None) -> tuple[str, ...]:
-    """The words of a camera name that name the model, upper case.
-
-    Parameters
-    ----------
-    name : str or None
-        A camera name as libgphoto2, EXIF (make + model) or a user wrote it.
-
-    Returns
-    -------
-    tuple of str
-        ``("D750",)`` for ``Nikon DSC D750`` and ``NIKON CORPORATION NIKON D750``; ``()`` for
-        an unknown name.
-    """
-    words = re.findall(r"[A-Z0-9]+", (name or "").upper())
-    return tuple(w for w in words if w not in _NOISE_WORDS)
-
-
-def same_model(a: str | None, b: str | None) -> bool:
-    """Whether two camera names denote the same model: equal normalised words, or one's are
-    the end of the other's (a make written in front); an unknown name matches any.
-
-    Parameters
-    ----------
-    a, b : str or None
-        Camera names.
-
-    Returns
-    -------
-    bool
-    """
-    x, y = normalise_model(a), normalise_model(b)
-    if not x or not y:
-        return True
-    short, long_ = sorted((x, y), key=len)
-    return long_[len(long_) - len(short):] == short
 
 
 def check_compatible(expected: CameraProfile, actual: CameraProfile,

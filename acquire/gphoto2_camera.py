@@ -43,6 +43,7 @@ Settings are addressed by a generic name with per-brand aliases (:data:`ALIASES`
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import subprocess
@@ -90,6 +91,8 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "autoiso": ("autoiso", "isoauto"),
     "longexposurenr": ("longexpnr", "longexposurenr", "longexposurenoisereduction", "eos-longexposurenr"),
 }
+
+_LOG = logging.getLogger("hdrcap.camera")
 
 _RAW_WORDS = ("raw", "nef", "cr2", "cr3", "arw", "dng", "orf", "rw2", "raf", "pef")
 _OFF_WORDS = ("off", "0", "false", "disable", "disabled", "no")
@@ -1048,8 +1051,7 @@ class Gphoto2Camera:
         out = self.download(f"{folder}/{name}", dest.with_suffix(Path(name).suffix.lower() or dest.suffix), wait)
         self._stems = {_stem(na) for _fo, na in files}
         if self.delete_after_download:
-            for fo, na in files:
-                self._call("delete", fo, na, during=f"delete {na}")
+            self._delete_from_camera(files)
         bulb = self._bulb_time is not None
         applied = self.bulb_open_s if bulb else parse_exposure_label(
             self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed"))
@@ -1057,6 +1059,19 @@ class Gphoto2Camera:
         return CaptureResult(path=out, requested_exposure_s=t, applied_exposure_s=applied or t, dark=dark,
                              settings=settings, camera_file=f"{folder}/{name}",
                              temperature_c=self.temperature(), bulb=bulb)
+
+    def _delete_from_camera(self, files: Sequence[tuple[str, str]]) -> None:
+        """Delete the frame's files from the camera after a good download. A failure there
+        (busy, a hang, a read-only card) costs the frame nothing: it is a ``delete_failed``
+        warning in :attr:`events` and on the ``hdrcap`` logger, and the file stays on the card
+        (a card that fills up stops a later capture with :class:`StorageFullError`)."""
+        for fo, na in files:
+            try:
+                self._call("delete", fo, na, during=f"delete {na}")
+            except CameraError as err:
+                self.events.append(("delete_failed", f"{fo}/{na}: {err}"))
+                _LOG.warning("camera: could not delete %s/%s after the download (%s); it stays on the card",
+                             fo, na, err)
 
     def download(self, camera_path: str, dest, timeout: float | None = None) -> Path:
         """Download a file already on the camera (``/store_00010001/DCIM/x.NEF``) to ``dest``."""

@@ -451,6 +451,62 @@ def check_job_against_camera(job: Job, camera) -> None:
                                              f"{lo:g} .. {hi:g} s")
 
 
+def check_free_space(job: Job, camera, run_dir: Path, repetitions: int = 1) -> dict:
+    """The disk space the job's run needs against the room on the run folder's file system
+    (still before any frame): the planned frames and outputs (:func:`acquire.session.estimate_run_bytes`).
+
+    A fixed bracket's frames are counted from its plan; a target-SNR plan is known only after
+    metering, so its frames are bounded by ``[exposure] max_exposures`` (light frames per
+    exposure and its dark frames), and without that limit only one frame and the outputs count.
+    Master darks a dark library holds are counted as captured (an upper bound).
+
+    Parameters
+    ----------
+    job : Job
+    camera : Camera
+        The open camera (exposure ladder, mosaic size).
+    run_dir : Path
+        The run folder (need not exist yet; the nearest existing parent is measured).
+    repetitions : int
+        Runs that will share the file system (``--repeat``).
+
+    Returns
+    -------
+    dict
+        ``frames`` (None when metering decides), ``need_bytes``, ``free_bytes``, ``folder``.
+
+    Raises
+    ------
+    acquire.session.LocalIOError
+        When the free space is short (exit status 6).
+    """
+    import shutil
+
+    from hdrcap.acquire.session import CapturePlan, LocalIOError, estimate_run_bytes
+
+    exp, darks = job["exposure"], job["darks"]
+    if exp["mode"] == "bracket":  # master darks of a dark library would only take fewer frames
+        plan = CapturePlan.bracket(exp["times"], exposure_ladder(camera), darks["strategy"], n_dark=darks["count"],
+                                   repeats=exp["repeats"], series=job["calibration"]["series"])
+        frames: int | None = len(plan.frames)
+    elif exp.get("max_exposures"):
+        per_dark = {"matched": 1, "master": darks["count"]}.get(darks.get("strategy"), darks["count"])
+        frames = int(exp["max_exposures"]) * (exp["repeats"] + per_dark)
+    else:
+        frames = None
+    shape = tuple(getattr(camera, "shape", ()) or ()) or None
+    need = repetitions * estimate_run_bytes(frames or 1, shape)
+    folder = Path(run_dir).absolute()
+    while not folder.exists():
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free
+    if free < need:
+        what = f"the {frames} planned frames and the outputs" if frames else "one frame and the outputs"
+        raise LocalIOError(f"{folder}: {free / 1e6:.0f} MB free, {what} need about {need / 1e6:.0f} MB"
+                           + (f" per run x {repetitions}" if repetitions > 1 else "") + "; free space first")
+    return {"frames": frames, "need_bytes": need, "free_bytes": free, "folder": str(folder)}
+
+
 def job_calibration(job: Job):
     from hdrcap.acquire.cliutil import resolve_calibration
 

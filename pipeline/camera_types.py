@@ -2,7 +2,9 @@
 (:mod:`hdrcap.acquire.gphoto2_camera`) and the simulated one (:mod:`hdrcap.mock_camera.camera`).
 
 Types only, no camera code: who a camera is (:class:`CameraIdentity`), what a capture
-delivered (:class:`CaptureResult`) and how it failed (:class:`CameraError` and its kinds).
+delivered (:class:`CaptureResult`) and how it failed (:class:`CameraError` and its kinds), and
+the one normalisation of camera model names (:func:`normalise_model`, :func:`same_model`) that
+the compatibility check, the dark library and the camera locks share.
 Every error carries its *kind* in the class attribute ``camera_fault``, one of
 :data:`FAULT_KINDS`: ``"busy"`` (wait and retry), ``"reconnect"`` (the connection is gone or
 hung: reconnect, then retry), ``"recapture"`` (the file is bad: take it again) or ``"fatal"``
@@ -13,6 +15,7 @@ that carry it. :mod:`hdrcap.acquire.camera` re-exports these names.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +33,8 @@ __all__ = [
     "CorruptFrameError",
     "StorageFullError",
     "CameraGoneError",
+    "normalise_model",
+    "same_model",
 ]
 
 #: Failure kinds a session knows how to handle, see :func:`fault_kind`.
@@ -144,3 +149,54 @@ class CameraGoneError(CameraError):
     """The camera cannot be found any more (unplugged, switched off): the session stops."""
 
     camera_fault = "fatal"
+
+
+#: Words of camera names that are not part of the model: company suffixes, libgphoto2's labels
+#: and the brands (EXIF writes the brand twice: Make "NIKON CORPORATION", Model "NIKON D750").
+_NOISE_WORDS = {
+    "CORPORATION", "CORP", "INC", "CO", "LTD", "COMPANY", "GMBH", "AG", "KK", "IMAGING", "OPTICAL", "ELECTRIC",
+    "DIGITAL", "CAMERA", "DSC", "PTP", "MODE", "CONTROL", "PC", "USB",
+    "NIKON", "CANON", "SONY", "FUJIFILM", "FUJI", "OLYMPUS", "OM", "PENTAX", "RICOH", "PANASONIC", "LEICA",
+    "SIGMA", "HASSELBLAD", "KODAK", "EASTMAN", "SAMSUNG", "HDRCAP", "ZWO", "QHY",
+}
+
+
+def normalise_model(name: str | None) -> tuple[str, ...]:
+    """The words of a camera name that name the model, upper case.
+
+    Parameters
+    ----------
+    name : str or None
+        A camera name as libgphoto2, EXIF (make + model) or a user wrote it.
+
+    Returns
+    -------
+    tuple of str
+        ``("D750",)`` for ``Nikon DSC D750`` and ``NIKON CORPORATION NIKON D750``; ``()`` for
+        an unknown name.
+    """
+    words = re.findall(r"[A-Z0-9]+", (name or "").upper())
+    return tuple(w for w in words if w not in _NOISE_WORDS)
+
+
+def same_model(a: str | None, b: str | None) -> bool:
+    """Whether two camera names denote the same model: equal normalised words, or one's are
+    the end of the other's (a make written in front); an unknown name matches any. So
+    libgphoto2's "Nikon DSC D750" and the EXIF "NIKON CORPORATION NIKON D750" match, while
+    "Nikon D750" and "Nikon D7500" do not (whole words, never substrings). The dark library
+    (:func:`pipeline.darklibrary.same_camera`) and the compatibility check both use it.
+
+    Parameters
+    ----------
+    a, b : str or None
+        Camera names.
+
+    Returns
+    -------
+    bool
+    """
+    x, y = normalise_model(a), normalise_model(b)
+    if not x or not y:
+        return True
+    short, long_ = sorted((x, y), key=len)
+    return long_[len(long_) - len(short):] == short

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera_types import same_model as same_camera
 from .errors import InputError
 from .io import atomic_output
 from .times import EXPOSURE_RTOL, same_exposure, unique_exposures
@@ -55,24 +56,6 @@ class DarkEntry:
     file: str
     level: float = float("nan")
     created: str = ""
-
-
-def same_camera(a: str | None, b: str | None) -> bool:
-    """Whether two camera names denote the same camera.
-
-    Parameters
-    ----------
-    a, b : str or None
-        Camera names.
-
-    Returns
-    -------
-    bool
-        Equal, or one contains the other ("Nikon D750" and "D750"); an empty or unknown name
-        matches any.
-    """
-    a, b = (a or "").strip(), (b or "").strip()
-    return not a or not b or a == b or a in b or b in a
 
 
 def _slug(text: str) -> str:

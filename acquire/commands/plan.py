@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from hdrcap.acquire.cliutil import echo_json, many_values, resolve_calibration
+from hdrcap.acquire.cliutil import echo_json, many_values, preset_name, resolve_calibration
 from hdrcap.pipeline.errors import HdrcapError, InputError
 
 
@@ -35,7 +35,8 @@ def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, 
 @click.command("plan")
 @click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate`.")
 @click.option("--camera",
-              help="Simulator preset (camera-A, camera-B): its nominal parameters, and the camera --meter uses.")
+              help="Simulator preset (camera-A, camera-B, or mock:camera-B as in capture): its nominal parameters, "
+                   "and the camera --meter uses.")
 @click.option("--irradiance", type=click.Path(path_type=Path),
               help="Irradiance map of the scene (EXR, e-/s per photosite), e.g. a previous merge or truth.exr.")
 @click.option("--meter", "do_meter", is_flag=True,
@@ -51,7 +52,8 @@ def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, 
 @click.option("--meter-frames", default=2, show_default=True, type=click.IntRange(1, 5),
               help="Metering frames at most (shortest time first).")
 @click.option("--meter-max-time", default=1.0, show_default=True, type=float, help="Longest metering exposure, s.")
-@click.option("--target-snr-db", type=float, required=True, help="Target SNR of the merged irradiance, dB (20 log10).")
+@click.option("--target-snr-db", "--target-snr", "target_snr_db", type=float, required=True,
+              help="Target SNR of the merged irradiance, dB (20 log10); --target-snr is an alias, as in capture.")
 @click.option("--max-exposures", type=click.IntRange(min=1),
               help="Maximum number of exposures (dark frames not counted).")
 @click.option("--time-budget", type=float, help="Maximum total capture time incl. dark frames and overheads, s.")
@@ -108,6 +110,7 @@ def command(calibration, camera, irradiance, do_meter, scene, size, decades, x_m
         raise InputError(f"--target-snr-db must be a finite number, got {target_snr_db!r}")
     if plot is not None and plot.exists() and not force:
         raise HdrcapError(f"{plot}: exists; use --force to overwrite")
+    camera = preset_name(camera)
     cal = resolve_calibration(str(calibration) if calibration else None, camera)
     try:
         allowed = parse_times(allowed_times)

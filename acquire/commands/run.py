@@ -22,7 +22,9 @@ from hdrcap.acquire.cliutil import echo_json
 @click.option("--run-dir", "--out", "run_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Run folder (overrides [output] folder; with --repeat it must contain {n}); --out as in capture.")
 @click.option("--force", is_flag=True, help="Overwrite the EXR/PNG outputs of an earlier run in the same folder.")
-@click.option("--check", is_flag=True, help="Only validate the job (and the camera's range); take no frame.")
+@click.option("--check", is_flag=True,
+              help="Only validate the job, the camera's range and the free disk space (exit 6 when short); "
+                   "take no frame.")
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
 @click.option("--json", "as_json", is_flag=True,
               help="Print one JSON line per repetition as it ends (an error: a JSON object, see docs/acquisition.md).")
@@ -38,7 +40,14 @@ def command(job_file, resume, repeat, every, keep_going, run_dir, force, check, 
 
 
 def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json) -> None:
-    from hdrcap.acquire.job import check_job_against_camera, load_job, open_camera, run_schedule
+    from hdrcap.acquire.job import (
+        check_free_space,
+        check_job_against_camera,
+        load_job,
+        open_camera,
+        run_folder,
+        run_schedule,
+    )
     from hdrcap.acquire.session import stop_on_signals
 
     job = load_job(job_file)
@@ -46,9 +55,14 @@ def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, pro
         cam = open_camera(job)
         try:
             check_job_against_camera(job, cam)
+            reps = repeat or job["schedule"]["repeat"]
+            space = check_free_space(job, cam, run_dir or run_folder(job), repetitions=reps)
         finally:
             cam.close()
-        click.echo(f"{job_file}: ok")
+        frames = f"{space['frames']} frames" if space["frames"] else "frames decided by metering (1 counted)"
+        click.echo(f"{job_file}: ok; disk: {frames} and outputs need about {space['need_bytes'] / 1e6:.0f} MB"
+                   + (f" for {reps} runs" if reps > 1 else "") + f", {space['free_bytes'] / 1e6:.0f} MB free "
+                   f"in {space['folder']}")
         return
 
     def report(res: dict) -> None:
