@@ -46,7 +46,17 @@ import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ArchiveRun", "Archive", "CHANNELS", "OPTIONAL_FILL", "RUN_COORDS", "complete_channels", "read_run", "open_archive", "stage_channels"]
+__all__ = [
+    "ArchiveRun",
+    "Archive",
+    "CHANNELS",
+    "OPTIONAL_FILL",
+    "RUN_COORDS",
+    "complete_channels",
+    "read_run",
+    "open_archive",
+    "stage_channels",
+]
 
 #: The per-photosite variables, as in the EXR of ``hdrcap merge``.
 CHANNELS = ("irradiance", "sigma", "nexp", "quality", "sigma_calibration")
@@ -64,16 +74,29 @@ _TIME_UNITS = "microseconds since 1970-01-01T00:00:00"
 _FAILED_ATTR = "hdrcap_failed_runs"
 
 _VAR_ATTRS = {
-    "irradiance": {"long_name": "irradiance: photo-electrons per second per photosite (scaled irradiance X, "
-                                "maximum-likelihood estimate)", "units": "count s-1",
-                   "ancillary_variables": "sigma nexp", "comment": "raw CFA mosaic, not demosaiced"},
+    "irradiance": {
+        "long_name": "irradiance: photo-electrons per second per photosite (scaled irradiance X, "
+        "maximum-likelihood estimate)",
+        "units": "count s-1",
+        "ancillary_variables": "sigma nexp",
+        "comment": "raw CFA mosaic, not demosaiced",
+    },
     "sigma": {"long_name": "standard deviation of irradiance", "units": "count s-1"},
-    "nexp": {"long_name": "number of unsaturated exposures used", "units": "1",
-             "comment": "0: saturated in every exposure; irradiance is then a lower bound"},
-    "quality": {"long_name": "quality flags (bit field)", "units": "1",
-                "comment": "0: trusted; 1 dead, 2 weak, 4 hot, 8 stuck photosite, 16 saturated in every exposure"},
-    "sigma_calibration": {"long_name": "calibration part of sigma (systematic; averaging does not reduce it)",
-                          "units": "count s-1", "comment": "NaN: not computed for this run"},
+    "nexp": {
+        "long_name": "number of unsaturated exposures used",
+        "units": "1",
+        "comment": "0: saturated in every exposure; irradiance is then a lower bound",
+    },
+    "quality": {
+        "long_name": "quality flags (bit field)",
+        "units": "1",
+        "comment": "0: trusted; 1 dead, 2 weak, 4 hot, 8 stuck photosite, 16 saturated in every exposure",
+    },
+    "sigma_calibration": {
+        "long_name": "calibration part of sigma (systematic; averaging does not reduce it)",
+        "units": "count s-1",
+        "comment": "NaN: not computed for this run",
+    },
 }
 
 
@@ -92,8 +115,14 @@ def complete_channels(channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         One contiguous float32 array per name of :data:`CHANNELS`.
     """
     shape = np.shape(channels["irradiance"])
-    return {name: np.ascontiguousarray(channels[name], dtype=np.float32) if name in channels
-            else np.full(shape, OPTIONAL_FILL[name], dtype=np.float32) for name in CHANNELS}
+    return {
+        name: np.ascontiguousarray(channels[name], dtype=np.float32)
+        if name in channels
+        else np.full(shape, OPTIONAL_FILL[name], dtype=np.float32)
+        for name in CHANNELS
+    }
+
+
 _COORD_ATTRS = {
     "run": {"long_name": "run number in the archive (commit order)"},
     "start_time": {"long_name": "start of the run (UTC)", "standard_name": "time"},
@@ -155,8 +184,10 @@ class ArchiveRun:
         if not self.staged:
             return self.channels
         codec = _codec()
-        return {name: np.frombuffer(codec.decode(Path(f).read_bytes()), dtype=np.float32).reshape(self.shape)
-                for name, f in self.staged.items()}
+        return {
+            name: np.frombuffer(codec.decode(Path(f).read_bytes()), dtype=np.float32).reshape(self.shape)
+            for name, f in self.staged.items()
+        }
 
 
 def _json(obj: Any) -> str:
@@ -174,15 +205,17 @@ def _utc_datetime64(iso: str) -> np.datetime64:
 
 def _coords(run: ArchiveRun, index: int) -> dict[str, tuple]:
     """The coordinates along ``run`` of ``run`` at position ``index``."""
-    values = {"run": np.array([index], dtype=np.int64),
-              "start_time": np.array([_utc_datetime64(run.start_time)], dtype="datetime64[us]"),
-              "folder": np.array([run.folder], dtype=object),
-              "n_frames": np.array([len(run.exposure_times)], dtype=np.int64),
-              "exposure_times": np.array([_json(list(run.exposure_times))], dtype=object),
-              "plan": np.array([_json(run.plan)], dtype=object),
-              "merge_options": np.array([_json(run.merge_options)], dtype=object),
-              "calibration": np.array([_json(run.calibration)], dtype=object),
-              "header": np.array([_json(run.header)], dtype=object)}
+    values = {
+        "run": np.array([index], dtype=np.int64),
+        "start_time": np.array([_utc_datetime64(run.start_time)], dtype="datetime64[us]"),
+        "folder": np.array([run.folder], dtype=object),
+        "n_frames": np.array([len(run.exposure_times)], dtype=np.int64),
+        "exposure_times": np.array([_json(list(run.exposure_times))], dtype=object),
+        "plan": np.array([_json(run.plan)], dtype=object),
+        "merge_options": np.array([_json(run.merge_options)], dtype=object),
+        "calibration": np.array([_json(run.calibration)], dtype=object),
+        "header": np.array([_json(run.header)], dtype=object),
+    }
     return {name: ("run", v, _COORD_ATTRS[name]) for name, v in values.items()}
 
 
@@ -191,8 +224,10 @@ def _dataset(run: ArchiveRun, index: int):
     import xarray as xr
 
     arrays = run.arrays()
-    data = {name: (("run", "y", "x"), np.asarray(arrays[name], dtype=np.float32)[None], _VAR_ATTRS[name])
-            for name in CHANNELS}
+    data = {
+        name: (("run", "y", "x"), np.asarray(arrays[name], dtype=np.float32)[None], _VAR_ATTRS[name])
+        for name in CHANNELS
+    }
     return xr.Dataset(data, coords=_coords(run, index))
 
 
@@ -221,12 +256,14 @@ def _encoding(shape: tuple[int, int]) -> dict[str, dict]:
 def _global_attrs() -> dict[str, str]:
     from hdrcap import __version__
 
-    return {"Conventions": "CF-1.10",
-            "title": "hdrcap run archive: merged HDR runs, one per index of the run dimension",
-            "source": f"hdrcap {__version__}",
-            "references": "Granados et al., Optimal HDR Reconstruction with Linear Digital Cameras, CVPR 2010",
-            "comment": "open with xarray.open_zarr; runs appear when committed (consolidated metadata)",
-            _FAILED_ATTR: "{}"}
+    return {
+        "Conventions": "CF-1.10",
+        "title": "hdrcap run archive: merged HDR runs, one per index of the run dimension",
+        "source": f"hdrcap {__version__}",
+        "references": "Granados et al., Optimal HDR Reconstruction with Linear Digital Cameras, CVPR 2010",
+        "comment": "open with xarray.open_zarr; runs appear when committed (consolidated metadata)",
+        _FAILED_ATTR: "{}",
+    }
 
 
 def open_archive(path):
@@ -270,8 +307,11 @@ def read_run(path, index: int):
     ds = open_archive(path)
     n = ds.sizes["run"]
     if not 0 <= index < n:
-        raise InputError(f"{path}: run {index} is not in the archive (it holds runs 0..{n - 1})"
-                         if n else f"{path}: the archive holds no run yet")
+        raise InputError(
+            f"{path}: run {index} is not in the archive (it holds runs 0..{n - 1})"
+            if n
+            else f"{path}: the archive holds no run yet"
+        )
     one = ds.isel(run=index)
     channels = {}
     for name in CHANNELS:
@@ -379,14 +419,15 @@ class Archive:
         if group is None or "irradiance" not in group:  # the first run (perhaps after failures only)
             ds = _dataset(run, 0)
             ds.attrs.update(attrs)
-            ds.to_zarr(self.path, mode="w", consolidated=True, zarr_format=_FORMAT,
-                       encoding=_encoding(run.shape))
+            ds.to_zarr(self.path, mode="w", consolidated=True, zarr_format=_FORMAT, encoding=_encoding(run.shape))
             return 0
         n = group["run"].shape[0]
         shape = tuple(group["irradiance"].shape[1:])
         if tuple(run.shape) != shape:
-            raise InputError(f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
-                             f"archive's {shape[1]}x{shape[0]}")
+            raise InputError(
+                f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
+                f"archive's {shape[1]}x{shape[0]}"
+            )
         folders = [str(f) for f in group["folder"][:]]
         if run.folder in folders:
             if not replace:
@@ -394,8 +435,7 @@ class Archive:
             i = folders.index(run.folder)
             ds = _dataset(run, i)
             ds.attrs.update(attrs)
-            ds.to_zarr(self.path, mode="r+", region={"run": slice(i, i + 1)}, consolidated=True,
-                       zarr_format=_FORMAT)
+            ds.to_zarr(self.path, mode="r+", region={"run": slice(i, i + 1)}, consolidated=True, zarr_format=_FORMAT)
             return i
         if run.staged and self._chunks_compatible(group):
             return self._append_staged(run, n, attrs)
@@ -409,8 +449,13 @@ class Archive:
         """Whether staged chunk files can be moved in as they are (same codec, dtype, layout)."""
         for name in CHANNELS:
             meta = group[name].metadata
-            if (meta.compressor != _codec() or meta.filters or meta.order != "C" or meta.dtype.to_native_dtype()
-                    != np.dtype("<f4") or meta.dimension_separator != "."):
+            if (
+                meta.compressor != _codec()
+                or meta.filters
+                or meta.order != "C"
+                or meta.dtype.to_native_dtype() != np.dtype("<f4")
+                or meta.dimension_separator != "."
+            ):
                 return False
         return True
 

@@ -30,8 +30,16 @@ from typing import Any
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["RunSource", "BatchSettings", "RunOutcome", "BatchReport", "find_runs", "merge_run", "run_batch",
-           "calibration_identity"]
+__all__ = [
+    "RunSource",
+    "BatchSettings",
+    "RunOutcome",
+    "BatchReport",
+    "find_runs",
+    "merge_run",
+    "run_batch",
+    "calibration_identity",
+]
 
 
 @dataclass(frozen=True)
@@ -127,9 +135,16 @@ class BatchReport:
     commit_seconds: float = 0.0
 
     def to_dict(self) -> dict:
-        return {"archive": self.archive, "committed": len(self.committed), "skipped": len(self.skipped),
-                "failed": self.failed, "warnings": self.warnings, "seconds": round(self.seconds, 3),
-                "merge_seconds": round(self.merge_seconds, 3), "commit_seconds": round(self.commit_seconds, 3)}
+        return {
+            "archive": self.archive,
+            "committed": len(self.committed),
+            "skipped": len(self.skipped),
+            "failed": self.failed,
+            "warnings": self.warnings,
+            "seconds": round(self.seconds, 3),
+            "merge_seconds": round(self.merge_seconds, 3),
+            "commit_seconds": round(self.commit_seconds, 3),
+        }
 
 
 # --------------------------------------------------------------------------- finding runs
@@ -145,8 +160,9 @@ def _capture_run(folder: Path) -> RunSource:
         raise InputError(f"{folder}: its manifest.jsonl records no light frame")
     plan = (head.get("planning") or {}).get("plan") or None
     strategy = (head.get("plan") or {}).get("dark_strategy")
-    return RunSource(str(folder), lights, darks, head.get("time"), plan,
-                     None if strategy in (None, "mixed") else strategy)
+    return RunSource(
+        str(folder), lights, darks, head.get("time"), plan, None if strategy in (None, "mixed") else strategy
+    )
 
 
 def _bracket_run(folder: Path) -> RunSource:
@@ -156,8 +172,9 @@ def _bracket_run(folder: Path) -> RunSource:
     darks = tuple(str(p) for p in files if "dark" in p.stem.lower())
     lights = tuple(str(p) for p in files if "dark" not in p.stem.lower())
     if not lights:
-        raise InputError(f"{folder}: no manifest.jsonl and no raw file ({', '.join(sorted(RAW_EXTENSIONS))}); "
-                         "not a run folder")
+        raise InputError(
+            f"{folder}: no manifest.jsonl and no raw file ({', '.join(sorted(RAW_EXTENSIONS))}); not a run folder"
+        )
     return RunSource(str(folder), lights, darks)
 
 
@@ -260,7 +277,6 @@ def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, st
 
 
 def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
-    import numpy as np
 
     from hdrcap.acquire.archive import ArchiveRun, complete_channels, stage_channels
     from hdrcap.acquire.filemerge import build_hdr_image, exr_precision, library_root, merge_files
@@ -279,21 +295,35 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
 
         options["dark_strategy"] = DarkStrategy(strategy)
     warnings: list[str] = []
-    done = merge_files([Path(f) for f in source.frames], calib, options, dark_paths=[Path(d) for d in source.darks],
-                       weighting=settings.weighting, plan=plan, dark_strategy=strategy,
-                       plan_file=None if plan is None else plan.path,
-                       master_dark_frames=settings.master_dark_frames,
-                       library=library_root(calib, settings.calibration), given=lambda n: n in settings.given,
-                       warn=warnings.append)
+    done = merge_files(
+        [Path(f) for f in source.frames],
+        calib,
+        options,
+        dark_paths=[Path(d) for d in source.darks],
+        weighting=settings.weighting,
+        plan=plan,
+        dark_strategy=strategy,
+        plan_file=None if plan is None else plan.path,
+        master_dark_frames=settings.master_dark_frames,
+        library=library_root(calib, settings.calibration),
+        given=lambda n: n in settings.given,
+        warn=warnings.append,
+    )
     img = build_hdr_image(done.result, done.frames, calib, done.extra)
     channels = complete_channels(as_stored(img.channels, exr_precision(img.channels, settings.sigma_precision)))
     staged = stage_channels(staging, _task_key(source), channels)
-    run = ArchiveRun(folder=source.folder, start_time=_start_time(source, done.frames),
-                     channels={} if staged else channels, staged=staged, staged_shape=img.shape,
-                     header=img.attrs, exposure_times=[fr.exposure_time for fr in done.frames], plan=source.plan,
-                     merge_options={"weighting": settings.weighting, "merge": img.attrs.get("merge")},
-                     calibration=dict(settings.calibration_id, params=calib.params.to_dict(),
-                                      provenance=calib.provenance))
+    run = ArchiveRun(
+        folder=source.folder,
+        start_time=_start_time(source, done.frames),
+        channels={} if staged else channels,
+        staged=staged,
+        staged_shape=img.shape,
+        header=img.attrs,
+        exposure_times=[fr.exposure_time for fr in done.frames],
+        plan=source.plan,
+        merge_options={"weighting": settings.weighting, "merge": img.attrs.get("merge")},
+        calibration=dict(settings.calibration_id, params=calib.params.to_dict(), provenance=calib.provenance),
+    )
     return RunOutcome(run, tuple(warnings), time.perf_counter() - t0)
 
 
@@ -313,8 +343,10 @@ def _client(workers: int | None, scheduler: str | None, threads: int | None = No
     n = workers or max(1, (os.cpu_count() or 1))
     threads = str(threads or max(1, (os.cpu_count() or 1) // n))
     env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                      env=env) as cluster, Client(cluster, direct_to_workers=True) as client:
+    with (
+        LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=env) as cluster,
+        Client(cluster, direct_to_workers=True) as client,
+    ):
         yield client
 
 
@@ -329,9 +361,18 @@ def _task_key(source: RunSource) -> str:
     return "hdrcap-merge-" + hashlib.sha256(source.folder.encode()).hexdigest()[:16]
 
 
-def run_batch(paths: Sequence[Path], archive, settings: BatchSettings, *, workers: int | None = None,
-              scheduler: str | None = None, threads: int | None = None, force: bool = False,
-              progress: bool | None = None, on_submit: Callable[[Any], None] | None = None) -> BatchReport:
+def run_batch(
+    paths: Sequence[Path],
+    archive,
+    settings: BatchSettings,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    threads: int | None = None,
+    force: bool = False,
+    progress: bool | None = None,
+    on_submit: Callable[[Any], None] | None = None,
+) -> BatchReport:
     """Merge the runs of ``paths`` on dask.distributed and commit each to ``archive``.
 
     Runs already in the archive are skipped unless ``force`` (then rewritten in place). One

@@ -57,8 +57,7 @@ def setup_logging(level: int = 0) -> None:
     import logging
 
     logger = logging.getLogger("hdrcap")
-    logger.setLevel({-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(max(-1, min(level, 2)),
-                                                                                logging.DEBUG))
+    logger.setLevel({-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(max(-1, min(level, 2)), logging.DEBUG))
     if not any(getattr(h, "_hdrcap", False) for h in logger.handlers):
         handler = logging.StreamHandler()
         handler.setFormatter(logging.Formatter("hdrcap: %(levelname)s: %(message)s"))

@@ -99,8 +99,10 @@ def preset_name(camera: str | None) -> str | None:
         return camera
     if backend == "mock":
         return name or "camera-B"
-    raise InputError(f"--camera {camera}: a real camera has no nominal parameters here; give --calibration FILE "
-                     "(from `hdrcap calibrate`) or a simulator preset (mock:PRESET)")
+    raise InputError(
+        f"--camera {camera}: a real camera has no nominal parameters here; give --calibration FILE "
+        "(from `hdrcap calibrate`) or a simulator preset (mock:PRESET)"
+    )
 
 
 def resolve_calibration(calibration: str | None, camera: str | None, temperature: float | None = None):
@@ -133,8 +135,17 @@ def resolve_calibration(calibration: str | None, camera: str | None, temperature
     raise InputError("no camera model: give --calibration FILE (from `hdrcap calibrate`) or --camera PRESET")
 
 
-def resolve_merge_calibration(calibration: str | None, camera: str | None, frame_paths, times=None, *,
-                              darks: bool = False, warn=None, temperature: float | None = None, say=None):
+def resolve_merge_calibration(
+    calibration: str | None,
+    camera: str | None,
+    frame_paths,
+    times=None,
+    *,
+    darks: bool = False,
+    warn=None,
+    temperature: float | None = None,
+    say=None,
+):
     """The camera model of a merge: a calibration file or preset when given, else the
     calibration library's entry for the frames' camera model, ISO and size
     (:mod:`pipeline.calibration_library`), else a self-calibration from the bracket
@@ -166,10 +177,9 @@ def resolve_merge_calibration(calibration: str | None, camera: str | None, frame
     if calibration or camera:
         return resolve_calibration(calibration, camera, temperature), (list(times) if times else None), None
     from hdrcap.acquire.filemerge import read_frames
+    from hdrcap.pipeline.calibration_library import find_calibration, library_dir
     from hdrcap.pipeline.selfcal import self_calibrate
     from hdrcap.pipeline.times import same_exposure
-
-    from hdrcap.pipeline.calibration_library import find_calibration, library_dir
 
     frames = read_frames(frame_paths, times or None)
     first = frames[0]
@@ -180,12 +190,16 @@ def resolve_merge_calibration(calibration: str | None, camera: str | None, frame
         return found[1], (list(times) if times else None), None
     sc = self_calibrate(frames, warn=warn)
     if say is not None:
-        say(f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
-            f"{sc.calibration.provenance['source']}")
+        say(
+            f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
+            f"{sc.calibration.provenance['source']}"
+        )
     use = list(sc.effective_times)
     if darks and not all(same_exposure(a, b) for a, b in zip(sc.effective_times, sc.nominal_times)):
         if warn is not None:
-            warn("effective exposure times differ from the nominal ones, but dark frames are matched by nominal "
-                 "time: the merge uses the nominal times")
+            warn(
+                "effective exposure times differ from the nominal ones, but dark frames are matched by nominal "
+                "time: the merge uses the nominal times"
+            )
         use = list(sc.nominal_times)
     return sc.calibration, use, sc

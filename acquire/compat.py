@@ -24,12 +24,19 @@ from typing import Any
 from hdrcap.pipeline.camera_types import normalise_model, same_model
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["CameraProfile", "CompatibilityError", "check_compatible", "normalise_model", "same_model",
-           "TEMPERATURE_TOLERANCE_C"]
+__all__ = [
+    "CameraProfile",
+    "CompatibilityError",
+    "check_compatible",
+    "normalise_model",
+    "same_model",
+    "TEMPERATURE_TOLERANCE_C",
+]
 
 #: Largest temperature difference, degrees C, before a warning (the dark current of a typical
 #: sensor doubles every ~6 degrees C).
 TEMPERATURE_TOLERANCE_C = 5.0
+
 
 class CompatibilityError(InputError):
     """Calibration, dark library, camera or frame belong to different cameras or ISOs."""
@@ -63,8 +70,13 @@ class CameraProfile:
     def from_calibration(cls, calibration, name: str = "calibration") -> CameraProfile:
         """The camera a :class:`pipeline.params.Calibration` was made on (its provenance)."""
         prov: dict[str, Any] = dict(getattr(calibration, "provenance", {}) or {})
-        return cls(name, str(prov.get("camera") or ""), str(prov.get("serial") or ""), _num(prov.get("iso")),
-                   _num(prov.get("temperature")))
+        return cls(
+            name,
+            str(prov.get("camera") or ""),
+            str(prov.get("serial") or ""),
+            _num(prov.get("iso")),
+            _num(prov.get("temperature")),
+        )
 
     @classmethod
     def from_camera(cls, camera, iso: float | None = None) -> CameraProfile:
@@ -74,8 +86,13 @@ class CameraProfile:
             temp = camera.temperature() if hasattr(camera, "temperature") else None
         except Exception:  # a camera that cannot say: unknown
             temp = None
-        return cls("camera", str(getattr(ident, "model", "") or ""), str(getattr(ident, "serial", "") or ""),
-                   _num(iso), _num(temp))
+        return cls(
+            "camera",
+            str(getattr(ident, "model", "") or ""),
+            str(getattr(ident, "serial", "") or ""),
+            _num(iso),
+            _num(temp),
+        )
 
     @classmethod
     def from_record(cls, record: dict, source: str) -> CameraProfile:
@@ -83,8 +100,9 @@ class CameraProfile:
         return cls(source, str(record.get("model") or ""), str(record.get("serial") or ""))
 
 
-def check_compatible(expected: CameraProfile, actual: CameraProfile,
-                     temperature_tolerance: float = TEMPERATURE_TOLERANCE_C) -> list[str]:
+def check_compatible(
+    expected: CameraProfile, actual: CameraProfile, temperature_tolerance: float = TEMPERATURE_TOLERANCE_C
+) -> list[str]:
     """Refuse ``actual`` unless it is the camera and ISO of ``expected``.
 
     Parameters
@@ -109,21 +127,27 @@ def check_compatible(expected: CameraProfile, actual: CameraProfile,
     a, b = expected, actual
     if a.serial and b.serial:
         if a.serial.strip().upper() != b.serial.strip().upper():
-            raise CompatibilityError(f"{b.source} is camera serial {b.serial} ({b.model or 'model unknown'}), but "
-                                     f"{a.source} belongs to serial {a.serial} ({a.model or 'model unknown'})")
+            raise CompatibilityError(
+                f"{b.source} is camera serial {b.serial} ({b.model or 'model unknown'}), but "
+                f"{a.source} belongs to serial {a.serial} ({a.model or 'model unknown'})"
+            )
     elif not same_model(a.model, b.model):
-        raise CompatibilityError(f"{b.source} is a {b.model!r}, but {a.source} belongs to a {a.model!r} "
-                                 "(another camera)")
+        raise CompatibilityError(
+            f"{b.source} is a {b.model!r}, but {a.source} belongs to a {a.model!r} (another camera)"
+        )
     if a.iso is not None and b.iso is not None and abs(a.iso - b.iso) > 0.5:
-        raise CompatibilityError(f"{b.source} is at ISO {b.iso:g}, but {a.source} is at ISO {a.iso:g} "
-                                 "(the gain depends on the ISO)")
+        raise CompatibilityError(
+            f"{b.source} is at ISO {b.iso:g}, but {a.source} is at ISO {a.iso:g} (the gain depends on the ISO)"
+        )
     warnings = []
     if a.temperature_c is not None:
         if b.temperature_c is None:
             warnings.append(f"{b.source}: temperature unknown; {a.source} was at {a.temperature_c:g} C")
         elif abs(a.temperature_c - b.temperature_c) > temperature_tolerance:
-            warnings.append(f"{b.source} is at {b.temperature_c:g} C, {a.source} at {a.temperature_c:g} C "
-                            f"(more than {temperature_tolerance:g} C apart: dark current differs)")
+            warnings.append(
+                f"{b.source} is at {b.temperature_c:g} C, {a.source} at {a.temperature_c:g} C "
+                f"(more than {temperature_tolerance:g} C apart: dark current differs)"
+            )
     return warnings
 
 

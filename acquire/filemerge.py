@@ -11,9 +11,10 @@ one-line figures.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -23,8 +24,16 @@ from hdrcap.pipeline.io import RawFrame
 from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.planner.planfile import PlanFile, apply_plan_options, planner_attribute
 
-__all__ = ["FileMerge", "merge_files", "streamed_merge", "read_frames", "build_hdr_image", "summary",
-           "merge_options", "library_root"]
+__all__ = [
+    "FileMerge",
+    "merge_files",
+    "streamed_merge",
+    "read_frames",
+    "build_hdr_image",
+    "summary",
+    "merge_options",
+    "library_root",
+]
 
 
 def _warn(message: str) -> None:
@@ -65,7 +74,7 @@ def build_hdr_image(result, frames, calibration, extra=None):
         "unit": "electrons per second per photosite",
         "sigma": "total standard uncertainty of irradiance (noise plus calibration error), same unit",
         "sigma_calibration": "the calibration's part of sigma alone (systematic: more frames do not reduce it), "
-                             "same unit",
+        "same unit",
         "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
@@ -85,8 +94,9 @@ def build_hdr_image(result, frames, calibration, extra=None):
         from hdrcap.pipeline.merge import QUALITY_BITS
 
         channels["quality"] = quality.astype(np.float32)
-        attrs["quality"] = ("bit field, 0 a trusted measurement; any bit: nexp = 0, not a measurement: "
-                            + ", ".join(f"{bit} {name}" for name, bit in QUALITY_BITS.items()))
+        attrs["quality"] = "bit field, 0 a trusted measurement; any bit: nexp = 0, not a measurement: " + ", ".join(
+            f"{bit} {name}" for name, bit in QUALITY_BITS.items()
+        )
     return HdrImage(channels, attrs)
 
 
@@ -139,12 +149,26 @@ def summary(result) -> dict:
     }
 
 
-def merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas,
-                  exposure_times="effective"):
+def merge_options(
+    iterations,
+    tolerance,
+    saturation,
+    prnu,
+    dark_strategy,
+    master_dark_frames,
+    saturation_sigmas,
+    exposure_times="effective",
+):
     """Keyword options of :func:`pipeline.merge.merge_arrays` from the command-line knobs
     (``exposure_times``: ``effective``, estimated from the bracket, or ``nominal``)."""
-    opts = {"iterations": iterations, "tolerance": tolerance, "saturation": saturation, "prnu": prnu,
-            "saturation_sigmas": saturation_sigmas, "exposure_times": exposure_times}
+    opts = {
+        "iterations": iterations,
+        "tolerance": tolerance,
+        "saturation": saturation,
+        "prnu": prnu,
+        "saturation_sigmas": saturation_sigmas,
+        "exposure_times": exposure_times,
+    }
     if dark_strategy:
         opts["dark_strategy"] = DarkStrategy(dark_strategy)
     if master_dark_frames is not None:
@@ -169,12 +193,12 @@ def library_root(calib, calibration_path=None) -> str | None:
 def _missing_dark(fr: RawFrame, strategy: DarkStrategy, resolver: DarkResolver) -> InputError:
     t = fr.exposure_time
     if strategy is DarkStrategy.MATCHED:
-        return InputError(f"{fr.path}: no dark frame with exposure time {t:g} s for its matched dark "
-                          "strategy; give one with --darks")
+        return InputError(
+            f"{fr.path}: no dark frame with exposure time {t:g} s for its matched dark strategy; give one with --darks"
+        )
     root = None if resolver.library is None else resolver.library.root
     where = f"the dark library {root} holds none for this camera" if root else "the calibration has no dark library"
-    return InputError(f"{fr.path}: no master dark for exposure {t:g} s: none in --darks, no --master-dark, "
-                      f"and {where}")
+    return InputError(f"{fr.path}: no master dark for exposure {t:g} s: none in --darks, no --master-dark, and {where}")
 
 
 def _check_plan_covered(plan: PlanFile, frames: list[RawFrame], warn: Callable[[str], None]) -> None:
@@ -190,9 +214,20 @@ def _check_plan_covered(plan: PlanFile, frames: list[RawFrame], warn: Callable[[
             warn(f"the plan has {c} exposures of {t:g} s, the frames {k}")
 
 
-def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=None, progress=False, *,
-                   strategy_for=None, resolver: DarkResolver | None = None, plan: PlanFile | None = None,
-                   warn: Callable[[str], None] = _warn):
+def streamed_merge(
+    frame_paths,
+    dark_paths,
+    times,
+    calib,
+    options,
+    master_dark=None,
+    progress=False,
+    *,
+    strategy_for=None,
+    resolver: DarkResolver | None = None,
+    plan: PlanFile | None = None,
+    warn: Callable[[str], None] = _warn,
+):
     """Read the bracket (in parallel threads) and feed each frame to a
     :class:`pipeline.merge.MergeAccumulator` as soon as it is decoded, with the dark strategy
     ``strategy_for(frame)`` gives it (a strategy, or (strategy, planned frame count of its
@@ -206,8 +241,9 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
     if darks:
         darks = check_frames(darks, "dark frame")
     if resolver is None:
-        resolver = DarkResolver(frames_per_dark=options.get("n_dark"),
-                                master_dark=None if master_dark is None else str(master_dark.path))
+        resolver = DarkResolver(
+            frames_per_dark=options.get("n_dark"), master_dark=None if master_dark is None else str(master_dark.path)
+        )
     for d in darks:
         resolver.add_dark(d.data, d.exposure_time, str(d.path))
     if strategy_for is None:
@@ -215,6 +251,7 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
 
         def strategy_for(_fr):
             return only
+
     opts = dict(options)
     if master_dark is not None:
         opts["dark_strategy"] = DarkStrategy.MASTER
@@ -225,8 +262,9 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
         if acc is None:
             # stream=False: the frames are all read here anyway, so the merge does its single
             # pass at the end (less memory than the first-pass sums of a live capture).
-            acc = MergeAccumulator(calib, fr.shape, master_dark=None if master_dark is None else master_dark.data,
-                                   stream=False, **opts)
+            acc = MergeAccumulator(
+                calib, fr.shape, master_dark=None if master_dark is None else master_dark.data, stream=False, **opts
+            )
         strategy = strategy_for(fr)
         strategy, n_planned = (strategy, None) if isinstance(strategy, str) else strategy
         strategy = DarkStrategy(strategy)
@@ -238,10 +276,17 @@ def streamed_merge(frame_paths, dark_paths, times, calib, options, master_dark=N
         short = src.origin == "frames" and strategy is DarkStrategy.MASTER and n_planned and src.n_frames < n_planned
         if short and src.source not in warned:  # once per master dark
             warned.add(src.source)
-            warn(f"the plan expects a master dark of {n_planned:g} frames at {fr.exposure_time:g} s; --darks gives "
-                 f"one of {src.n_frames:g} (set --master-dark-frames if a file averages more)")
-        acc.add(fr.data, fr.exposure_time, src.data, strategy=strategy,
-                n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None)
+            warn(
+                f"the plan expects a master dark of {n_planned:g} frames at {fr.exposure_time:g} s; --darks gives "
+                f"one of {src.n_frames:g} (set --master-dark-frames if a file averages more)"
+            )
+        acc.add(
+            fr.data,
+            fr.exposure_time,
+            src.data,
+            strategy=strategy,
+            n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None,
+        )
         frames.append(fr)
         used.append(f"{strategy}: {src.source}" if strategy is not DarkStrategy.MODEL else "model")
     check_frames(frames)
@@ -265,12 +310,15 @@ def _read_master_dark(path: Path | None, options: dict) -> RawFrame | None:
 def _plan_strategies(plan: PlanFile, dark_strategy: DarkStrategy | None):
     """Frame -> (dark strategy, planned master-dark frame count) from the plan (or the one
     strategy the user gave for every exposure)."""
+
     def strategy_for(fr):
         i = plan.group(fr.exposure_time)
         if i is None:
-            raise InputError(f"{fr.path}: exposure {fr.exposure_time:g} s is not in the plan {plan.path} "
-                             f"({', '.join(f'{t:g}' for t in plan.times)} s); leave the frame out or "
-                             "merge without --plan")
+            raise InputError(
+                f"{fr.path}: exposure {fr.exposure_time:g} s is not in the plan {plan.path} "
+                f"({', '.join(f'{t:g}' for t in plan.times)} s); leave the frame out or "
+                "merge without --plan"
+            )
         return (dark_strategy, None) if dark_strategy else (plan.strategies[i], plan.n_dark[i])
 
     return strategy_for
@@ -287,12 +335,24 @@ class FileMerge:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def merge_files(frame_paths: Sequence[Path], calib, options: dict, *, dark_paths: Sequence[Path] = (),
-                times: Sequence[float] | None = None, weighting: str = "optimal", plan: PlanFile | None = None,
-                plan_file: str | None = None, dark_strategy: str | None = None, master_dark: Path | None = None,
-                master_dark_frames: float | None = None, library: str | None = None,
-                given: Callable[[str], bool] = lambda _name: False, progress: bool = False,
-                warn: Callable[[str], None] = _warn) -> FileMerge:
+def merge_files(
+    frame_paths: Sequence[Path],
+    calib,
+    options: dict,
+    *,
+    dark_paths: Sequence[Path] = (),
+    times: Sequence[float] | None = None,
+    weighting: str = "optimal",
+    plan: PlanFile | None = None,
+    plan_file: str | None = None,
+    dark_strategy: str | None = None,
+    master_dark: Path | None = None,
+    master_dark_frames: float | None = None,
+    library: str | None = None,
+    given: Callable[[str], bool] = lambda _name: False,
+    progress: bool = False,
+    warn: Callable[[str], None] = _warn,
+) -> FileMerge:
     """Merge raw files: the work of ``hdrcap merge`` between its options and the EXR.
 
     ``options`` are merge options (:func:`merge_options`); ``given(name)`` tells which of them
@@ -307,8 +367,13 @@ def merge_files(frame_paths: Sequence[Path], calib, options: dict, *, dark_paths
 
         fr = read_frames(frame_paths, times, "frame", progress)
         dk = read_frames(dark_paths, None, "dark frame", progress) if dark_paths else []
-        result = merge_weighted([f.data for f in fr], [f.exposure_time for f in fr], calib,
-                                [d.data for d in dk] if dk else None, method=weighting)
+        result = merge_weighted(
+            [f.data for f in fr],
+            [f.exposure_time for f in fr],
+            calib,
+            [d.data for d in dk] if dk else None,
+            method=weighting,
+        )
         return FileMerge(result, fr, dk, extra)
     dark_strategy = None if dark_strategy is None else DarkStrategy(dark_strategy)
     md = _read_master_dark(master_dark, options)
@@ -320,14 +385,30 @@ def merge_files(frame_paths: Sequence[Path], calib, options: dict, *, dark_paths
         if dark_strategy:
             overridden["darks"] = {"plan": plan.data["darks"], "used": dark_strategy.value}
         strategy_for = _plan_strategies(plan, dark_strategy)
-    resolver = DarkResolver(frames_per_dark=master_dark_frames, master_dark=None if md is None else str(md.path),
-                            library=library, temperature=(calib.provenance or {}).get("temperature"))
-    result, fr, dk, used = streamed_merge(frame_paths, dark_paths, times, calib, options, md, progress,
-                                          strategy_for=strategy_for, resolver=resolver, plan=plan, warn=warn)
+    resolver = DarkResolver(
+        frames_per_dark=master_dark_frames,
+        master_dark=None if md is None else str(md.path),
+        library=library,
+        temperature=(calib.provenance or {}).get("temperature"),
+    )
+    result, fr, dk, used = streamed_merge(
+        frame_paths,
+        dark_paths,
+        times,
+        calib,
+        options,
+        md,
+        progress,
+        strategy_for=strategy_for,
+        resolver=resolver,
+        plan=plan,
+        warn=warn,
+    )
     extra["dark_sources"] = used
     if master_dark:
         extra["master_dark_file"] = str(master_dark)
     if plan is not None:
-        extra["planner"] = planner_attribute(plan.data, plan_file, plan.sha256, taken, overridden,
-                                             options_ignored=ignored)
+        extra["planner"] = planner_attribute(
+            plan.data, plan_file, plan.sha256, taken, overridden, options_ignored=ignored
+        )
     return FileMerge(result, fr, dk, extra)

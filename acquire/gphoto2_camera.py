@@ -71,8 +71,17 @@ from .camera import (
     parse_exposure_label,
 )
 
-__all__ = ["Gphoto2Camera", "ALIASES", "PREFLIGHT", "list_cameras", "classify_gphoto2_error", "RAW_SUFFIXES",
-           "choose_camera", "free_images", "GphotoError"]
+__all__ = [
+    "Gphoto2Camera",
+    "ALIASES",
+    "PREFLIGHT",
+    "list_cameras",
+    "classify_gphoto2_error",
+    "RAW_SUFFIXES",
+    "choose_camera",
+    "free_images",
+    "GphotoError",
+]
 
 #: Generic setting name -> names used by the brands (first found wins).
 ALIASES: dict[str, tuple[str, ...]] = {
@@ -86,8 +95,7 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "focusmode": ("focusmode", "autofocus"),
     "temperature": ("sensortemperature", "cameratemperature", "temperature", "batterytemperature"),
     "serialnumber": ("serialnumber", "eos-serialnumber"),
-    "exposureprogram": ("expprogram", "exposureprogram", "autoexposuremode", "autoexposuremodedial",
-                        "exposuremode"),
+    "exposureprogram": ("expprogram", "exposureprogram", "autoexposuremode", "autoexposuremodedial", "exposuremode"),
     "autoiso": ("autoiso", "isoauto"),
     "longexposurenr": ("longexpnr", "longexposurenr", "longexposurenoisereduction", "eos-longexposurenr"),
 }
@@ -260,8 +268,13 @@ class _WorkerState:
             choices = [w.get_choice(i) for i in range(w.count_choices())]
         except self.gp.GPhoto2Error:
             choices = []
-        return {"name": w.get_name(), "type": self.WIDGET_TYPES.get(w.get_type(), "other"), "value": w.get_value(),
-                "choices": choices, "readonly": bool(w.get_readonly())}
+        return {
+            "name": w.get_name(),
+            "type": self.WIDGET_TYPES.get(w.get_type(), "other"),
+            "value": w.get_value(),
+            "choices": choices,
+            "readonly": bool(w.get_readonly()),
+        }
 
     def op_read(self, names: Sequence[str]):
         """The current value of one widget, read from the camera (not the cache)."""
@@ -365,8 +378,11 @@ class _WorkerState:
     def op_storage(self) -> list[dict[str, Any]]:
         """Each storage's fields that the camera marks valid (the ``fields`` bits)."""
         gp = self.gp
-        access = {gp.GP_STORAGEINFO_AC_READWRITE: "rw", gp.GP_STORAGEINFO_AC_READONLY: "ro",
-                  gp.GP_STORAGEINFO_AC_READONLY_WITH_DELETE: "ro+delete"}
+        access = {
+            gp.GP_STORAGEINFO_AC_READWRITE: "rw",
+            gp.GP_STORAGEINFO_AC_READONLY: "ro",
+            gp.GP_STORAGEINFO_AC_READONLY_WITH_DELETE: "ro+delete",
+        }
         out = []
         for s in self.cam.get_storageinfo():
             d: dict[str, Any] = {"base": s.basedir}
@@ -400,8 +416,11 @@ def _worker_main(read_fd: int, write_fd: int) -> None:
                 reply = ("ok", getattr(state, "op_" + op)(*args))
             except Exception as err:
                 code = getattr(err, "code", None)
-                reply = ("gp", code, str(getattr(err, "string", err))) if isinstance(code, int) else (
-                    "err", type(err).__name__, str(err))
+                reply = (
+                    ("gp", code, str(getattr(err, "string", err)))
+                    if isinstance(code, int)
+                    else ("err", type(err).__name__, str(err))
+                )
             outbox.send(reply)
     finally:
         try:
@@ -425,8 +444,9 @@ class _Worker:
         c_read, p_write = os.pipe()
         code = f"from hdrcap.acquire.gphoto2_camera import _worker_main; _worker_main({c_read}, {c_write})"
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
-        self.proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(c_read, c_write), env=env,
-                                     stdin=subprocess.DEVNULL, close_fds=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", code], pass_fds=(c_read, c_write), env=env, stdin=subprocess.DEVNULL, close_fds=True
+        )
         os.close(c_read)
         os.close(c_write)
         self.inbox, self.outbox = Connection(p_read, writable=False), Connection(p_write, readable=False)
@@ -451,8 +471,7 @@ class _Worker:
         """
         with self.lock:
             if self.dead:
-                raise CameraDisconnectedError(f"{self.name}: not connected (the camera process was stopped); "
-                                              "reconnect")
+                raise CameraDisconnectedError(f"{self.name}: not connected (the camera process was stopped); reconnect")
             try:
                 self.outbox.send((op, args))
                 ready = self.inbox.poll(timeout)
@@ -462,8 +481,9 @@ class _Worker:
                 raise CameraDisconnectedError(f"{self.name}: the camera process ended during {op}") from None
             if reply is None:
                 self._kill()
-                raise CameraTimeoutError(f"{self.name}: {op} did not answer within {timeout:.3g} s; "
-                                         "the camera process was killed")
+                raise CameraTimeoutError(
+                    f"{self.name}: {op} did not answer within {timeout:.3g} s; the camera process was killed"
+                )
         if reply[0] == "ok":
             return reply[1]
         if reply[0] == "gp":
@@ -535,9 +555,15 @@ def _serial_text(value) -> str:
     return str(value or "").strip()
 
 
-def choose_camera(found: Sequence[tuple[str, str]], *, model: str | None = None, port: str | None = None,
-                  serial: str | None = None, serial_of: Callable[[str, str], str] | None = None,
-                  prefer_port: str | None = None) -> tuple[str, str, str]:
+def choose_camera(
+    found: Sequence[tuple[str, str]],
+    *,
+    model: str | None = None,
+    port: str | None = None,
+    serial: str | None = None,
+    serial_of: Callable[[str, str], str] | None = None,
+    prefer_port: str | None = None,
+) -> tuple[str, str, str]:
     """Pick one detected camera: by serial number when one is wanted, else by model and port.
 
     Parameters
@@ -568,11 +594,11 @@ def choose_camera(found: Sequence[tuple[str, str]], *, model: str | None = None,
     InputError
         Several cameras match and nothing tells them apart.
     """
-    sel = [(m, p) for m, p in found
-           if (not model or model.lower() in m.lower()) and (not port or p == port)]
+    sel = [(m, p) for m, p in found if (not model or model.lower() in m.lower()) and (not port or p == port)]
     sel.sort(key=lambda mp: mp[1] != prefer_port)
-    want = " ".join(x for x in (model and f"model {model!r}", port and f"port {port}",
-                                serial and f"serial {serial!r}") if x)
+    want = " ".join(
+        x for x in (model and f"model {model!r}", port and f"port {port}", serial and f"serial {serial!r}") if x
+    )
     listing = ", ".join(f"{m} at {p}" for m, p in found) or "none"
     if not sel:
         raise CameraGoneError(f"no camera {want or 'detected'} (found: {listing})")
@@ -587,8 +613,9 @@ def choose_camera(found: Sequence[tuple[str, str]], *, model: str | None = None,
             seen.append(f"{m} at {p} (serial {s or 'unknown'})")
         raise CameraGoneError(f"no camera {want} (found: {', '.join(seen)})")
     if len(sel) > 1 and not port and not (prefer_port and sel[0][1] == prefer_port):
-        raise InputError("several cameras match: " + ", ".join(f"{m} at {p}" for m, p in sel)
-                         + "; choose one with serial or port")
+        raise InputError(
+            "several cameras match: " + ", ".join(f"{m} at {p}" for m, p in sel) + "; choose one with serial or port"
+        )
     return sel[0][0], sel[0][1], ""
 
 
@@ -655,11 +682,22 @@ class Gphoto2Camera:
     #: substitute a simulated body here
     worker_factory: Callable[[str], Any] = _Worker
 
-    def __init__(self, model: str | None = None, port: str | None = None, *, serial: str | None = None,
-                 delete_after_download: bool = True, long_exposure_s: float = 1.0, call_timeout_s: float = 30.0,
-                 busy_retries: int = 5, backoff_s: float = 0.2, pair_wait_s: float = 0.2,
-                 settings: dict[str, Any] | None = None, reconnect_deadline_s: float = 60.0,
-                 reconnect_backoff_s: float = 0.5):
+    def __init__(
+        self,
+        model: str | None = None,
+        port: str | None = None,
+        *,
+        serial: str | None = None,
+        delete_after_download: bool = True,
+        long_exposure_s: float = 1.0,
+        call_timeout_s: float = 30.0,
+        busy_retries: int = 5,
+        backoff_s: float = 0.2,
+        pair_wait_s: float = 0.2,
+        settings: dict[str, Any] | None = None,
+        reconnect_deadline_s: float = 60.0,
+        reconnect_backoff_s: float = 0.5,
+    ):
         self.want_model = model
         self.want_port = port
         self.want_serial = serial or None
@@ -706,8 +744,7 @@ class Gphoto2Camera:
         """Process id of the worker that owns the camera (None when disconnected)."""
         return self._worker.pid if self.connected else None
 
-    def _connect(self, *, port: str | None, model: str | None, serial: str | None,
-                 prefer_port: str | None) -> None:
+    def _connect(self, *, port: str | None, model: str | None, serial: str | None, prefer_port: str | None) -> None:
         """Start a worker, find the camera (by serial when known), open it and read its
         exposure times; on failure the worker is stopped and the camera stays disconnected."""
         self._worker = self.worker_factory(f"camera {model or ''}".strip())
@@ -722,8 +759,9 @@ class Gphoto2Camera:
                 opened[:] = [p]
                 return _serial_text(self._call("read", ALIASES["serialnumber"], during="get serialnumber"))
 
-            m, p, s = choose_camera(found, model=model, port=port, serial=serial, serial_of=serial_of,
-                                    prefer_port=prefer_port)
+            m, p, s = choose_camera(
+                found, model=model, port=port, serial=serial, serial_of=serial_of, prefer_port=prefer_port
+            )
             if opened != [p]:
                 if opened:
                     self._call("exit", during="close")
@@ -768,16 +806,18 @@ class Gphoto2Camera:
                 if not reset and old_port:
                     reset = True
                     self._reset_port(old_port)
-                self._connect(port=None, model=self.identity.model, serial=self.identity.serial or None,
-                              prefer_port=old_port)
+                self._connect(
+                    port=None, model=self.identity.model, serial=self.identity.serial or None, prefer_port=old_port
+                )
                 break
             except (CameraError, InputError) as err:
                 self.events.append(("reconnect_failed", f"{type(err).__name__}: {err}"))
-                if time.monotonic() + delay > deadline:
+                left = deadline - time.monotonic()
+                if left <= 0:  # tried at the deadline too: give up
                     if isinstance(err, InputError):
                         raise CameraGoneError(f"reconnect: {err}") from None
                     raise
-                time.sleep(delay)
+                time.sleep(min(delay, left))  # the last wait ends at the deadline, then one more try
                 delay = min(2 * delay, 10.0)
         self.events.append(("reconnected", self.identity.port))
         for name, value in self.applied.items():
@@ -997,12 +1037,15 @@ class Gphoto2Camera:
                 ok, want = _is_fixed_iso(value) and int(float(value)) == int(iso), f"ISO {iso}"
             f = {"setting": name, "widget": d["name"], "value": value, "want": want, "ok": ok, "changed": None}
             if not ok and enforce:
-                target = str(iso) if name == "iso" and iso is not None else next(
-                    (c for c in d["choices"] if good(c)), None)
+                target = (
+                    str(iso) if name == "iso" and iso is not None else next((c for c in d["choices"] if good(c)), None)
+                )
                 if target is not None and not d["readonly"]:
                     applied = self.set_setting(name, target)
-                    f.update(changed=applied, ok=good(applied) and (name != "iso" or iso is None
-                                                                    or int(float(applied)) == int(iso)))
+                    f.update(
+                        changed=applied,
+                        ok=good(applied) and (name != "iso" or iso is None or int(float(applied)) == int(iso)),
+                    )
             findings.append(f)
             if not f["ok"]:
                 bad.append(f"{d['name']} is {value!r}, needs {want} ({why})")
@@ -1028,7 +1071,7 @@ class Gphoto2Camera:
         file from the camera when ``delete_after_download``."""
         dest = Path(dest)
         t = self._bulb_time or self._t or 0.0
-        wait = (timeout or (t + self.call_timeout_s))
+        wait = timeout or (t + self.call_timeout_s)
         target = (self.applied.get("capturetarget") or self.get_setting("capturetarget") or "").lower()
         if "ram" not in target and self.storage_free_images() == 0:
             raise StorageFullError("camera storage is full (0 free images); free the card and resume")
@@ -1053,12 +1096,22 @@ class Gphoto2Camera:
         if self.delete_after_download:
             self._delete_from_camera(files)
         bulb = self._bulb_time is not None
-        applied = self.bulb_open_s if bulb else parse_exposure_label(
-            self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed"))
+        applied = (
+            self.bulb_open_s
+            if bulb
+            else parse_exposure_label(self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed"))
+        )
         settings = dict(self.applied, **({"bulb_open_s": f"{self.bulb_open_s:.4f}"} if bulb else {}))
-        return CaptureResult(path=out, requested_exposure_s=t, applied_exposure_s=applied or t, dark=dark,
-                             settings=settings, camera_file=f"{folder}/{name}",
-                             temperature_c=self.temperature(), bulb=bulb)
+        return CaptureResult(
+            path=out,
+            requested_exposure_s=t,
+            applied_exposure_s=applied or t,
+            dark=dark,
+            settings=settings,
+            camera_file=f"{folder}/{name}",
+            temperature_c=self.temperature(),
+            bulb=bulb,
+        )
 
     def _delete_from_camera(self, files: Sequence[tuple[str, str]]) -> None:
         """Delete the frame's files from the camera after a good download. A failure there
@@ -1070,8 +1123,9 @@ class Gphoto2Camera:
                 self._call("delete", fo, na, during=f"delete {na}")
             except CameraError as err:
                 self.events.append(("delete_failed", f"{fo}/{na}: {err}"))
-                _LOG.warning("camera: could not delete %s/%s after the download (%s); it stays on the card",
-                             fo, na, err)
+                _LOG.warning(
+                    "camera: could not delete %s/%s after the download (%s); it stays on the card", fo, na, err
+                )
 
     def download(self, camera_path: str, dest, timeout: float | None = None) -> Path:
         """Download a file already on the camera (``/store_00010001/DCIM/x.NEF``) to ``dest``."""
@@ -1189,9 +1243,11 @@ def _bulb_values(d: dict) -> tuple[Any, Any]:
         return 1, 0
     choices = d["choices"]
     press = next((c for c in choices if c.lower() == "press full"), None) or next(
-        (c for c in choices if c.lower().startswith("press")), None)
+        (c for c in choices if c.lower().startswith("press")), None
+    )
     release = next((c for c in choices if c.lower() == "release full"), None) or next(
-        (c for c in choices if c.lower().startswith("release")), None)
+        (c for c in choices if c.lower().startswith("release")), None
+    )
     if press is None or release is None:
         raise InputError(f"bulb widget {d['name']!r} offers no press/release values ({', '.join(choices)})")
     return press, release
@@ -1210,6 +1266,7 @@ def _prefer_raw(files: list[tuple[str, str]]) -> tuple[str, str]:
 
 def _nearest_choice(value: Any, choices: list[str]) -> str | None:
     """The choice numerically nearest ``value`` (exposure labels and f-numbers understood)."""
+
     def num(x):
         s = str(x).strip().lower().removeprefix("f/").removeprefix("iso ")
         try:
@@ -1223,4 +1280,3 @@ def _nearest_choice(value: Any, choices: list[str]) -> str | None:
         return None
     scored = [(abs(math.log(n / want)), c) for c in choices if (n := num(c))]
     return min(scored)[1] if scored else None
-

@@ -13,18 +13,34 @@ import re
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
 
 from .camera import exposure_ladder, nearest_allowed
 
-__all__ = ["Job", "JobError", "SCHEMA", "load_job", "job_from_dict", "open_camera", "run_job", "run_schedule",
-           "check_job_against_camera", "run_folder", "resume_folder", "run_state", "error_summary", "notify",
-           "NothingToResume", "ScheduleError"]
+__all__ = [
+    "Job",
+    "JobError",
+    "SCHEMA",
+    "load_job",
+    "job_from_dict",
+    "open_camera",
+    "run_job",
+    "run_schedule",
+    "check_job_against_camera",
+    "run_folder",
+    "resume_folder",
+    "run_state",
+    "error_summary",
+    "notify",
+    "NothingToResume",
+    "ScheduleError",
+]
 
 
 class JobError(InputError):
@@ -35,31 +51,63 @@ class JobError(InputError):
 SCHEMA: dict[str, dict[str, tuple]] = {
     "job": {"name": (str,), "description": (str,)},
     "camera": {
-        "backend": (str,), "preset": (str,), "size": (str,), "seed": (int,), "temperature": ((int, float),),
-        "model": (str,), "port": (str,), "serial": (str,), "enforce": (bool,), "delete_after_download": (bool,),
+        "backend": (str,),
+        "preset": (str,),
+        "size": (str,),
+        "seed": (int,),
+        "temperature": ((int, float),),
+        "model": (str,),
+        "port": (str,),
+        "serial": (str,),
+        "enforce": (bool,),
+        "delete_after_download": (bool,),
         "iso": (int,),
-        "long_exposure_s": ((int, float),), "settings": (dict,), "faults": (dict,),
-        "allowed_times": (list,), "bulb_max_s": ((int, float),),
+        "long_exposure_s": ((int, float),),
+        "settings": (dict,),
+        "faults": (dict,),
+        "allowed_times": (list,),
+        "bulb_max_s": ((int, float),),
     },
     "scene": {"name": (str,), "decades": ((int, float),), "x_max": ((int, float),)},
     "exposure": {
-        "mode": (str,), "times": (list,), "target_snr_db": ((int, float),), "max_exposures": (int,),
-        "time_budget_s": ((int, float),), "repeats": (int,), "quantile": ((int, float),),
+        "mode": (str,),
+        "times": (list,),
+        "target_snr_db": ((int, float),),
+        "max_exposures": (int,),
+        "time_budget_s": ((int, float),),
+        "repeats": (int,),
+        "quantile": ((int, float),),
     },
-    "darks": {"strategy": (str,), "count": (int,), "block_light": (str,), "cover_command": (str,),
-              "uncover_command": (str,), "check": ((int, float),)},
+    "darks": {
+        "strategy": (str,),
+        "count": (int,),
+        "block_light": (str,),
+        "cover_command": (str,),
+        "uncover_command": (str,),
+        "check": ((int, float),),
+    },
     "calibration": {"file": (str,), "preset": (str,), "series": (list,), "dark_library": (str,)},
     "output": {"folder": (str,), "exr": (str,), "png": (str,), "force": (bool,)},
     "schedule": {"repeat": (int,), "every_s": ((int, float),)},
     "notify": {"on_done": (str,), "on_failure": (str,), "timeout_s": ((int, float),)},
-    "session": {"max_attempts": (int,), "backoff_s": ((int, float),), "max_backoff_s": ((int, float),),
-                "timeout_s": ((int, float),)},
+    "session": {
+        "max_attempts": (int,),
+        "backoff_s": ((int, float),),
+        "max_backoff_s": ((int, float),),
+        "timeout_s": ((int, float),),
+    },
 }
 
 DEFAULTS: dict[str, dict[str, Any]] = {
     "job": {"name": ""},
-    "camera": {"backend": "mock", "preset": "camera-B", "size": "256x192", "seed": 0, "delete_after_download": True,
-               "long_exposure_s": 1.0},
+    "camera": {
+        "backend": "mock",
+        "preset": "camera-B",
+        "size": "256x192",
+        "seed": 0,
+        "delete_after_download": True,
+        "long_exposure_s": 1.0,
+    },
     "scene": {"name": "hdr", "decades": 4.0, "x_max": 2e5},
     "exposure": {"mode": "bracket", "times": [], "repeats": 1},
     "darks": {"strategy": DarkStrategy.MATCHED.value, "count": 1, "block_light": "mock", "check": 0.05},
@@ -163,21 +211,28 @@ def job_from_dict(data: dict, path: Path | None = None, text: str = "") -> Job:
 
 def _tname(types) -> str:
     types = types if isinstance(types, tuple) else (types,)
-    names = {str: "a string", int: "an integer", float: "a number", bool: "true or false", list: "a list",
-             dict: "a table"}
+    names = {
+        str: "a string",
+        int: "an integer",
+        float: "a number",
+        bool: "true or false",
+        list: "a list",
+        dict: "a table",
+    }
     return " or ".join(names.get(t, t.__name__) for t in types)
 
 
 def _check_values(job: Job) -> None:
     cam, exp, darks, cal, out = job["camera"], job["exposure"], job["darks"], job["calibration"], job["output"]
     if cam["backend"] not in ("mock", "gphoto2"):
-        raise job.error("camera", "backend", f"must be \"mock\" or \"gphoto2\", got {cam['backend']!r}")
+        raise job.error("camera", "backend", f'must be "mock" or "gphoto2", got {cam["backend"]!r}')
     if cam["backend"] == "mock":
         from hdrcap.mock_camera import PRESETS
 
         if cam["preset"] not in PRESETS:
-            raise job.error("camera", "preset", f"unknown simulator preset {cam['preset']!r}; choose from "
-                                               f"{', '.join(PRESETS)}")
+            raise job.error(
+                "camera", "preset", f"unknown simulator preset {cam['preset']!r}; choose from {', '.join(PRESETS)}"
+            )
         from hdrcap.mock_camera.scenes import parse_size
 
         try:
@@ -204,14 +259,14 @@ def _check_values(job: Job) -> None:
     elif "faults" in cam:
         raise job.error("camera", "faults", "fault injection is for the mock camera only")
     if exp["mode"] not in ("bracket", "snr"):
-        raise job.error("exposure", "mode", f"must be \"bracket\" or \"snr\", got {exp['mode']!r}")
+        raise job.error("exposure", "mode", f'must be "bracket" or "snr", got {exp["mode"]!r}')
     for t in exp["times"]:
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not (t > 0 and math.isfinite(t)):
             raise job.error("exposure", "times", f"exposure times are positive seconds, got {t!r}")
     if exp["mode"] == "bracket" and not exp["times"]:
         raise job.error("exposure", "times", "a fixed bracket needs times = [...] (seconds)")
     if exp["mode"] == "snr" and "target_snr_db" not in exp:
-        raise job.error("exposure", "target_snr_db", "mode = \"snr\" needs target_snr_db")
+        raise job.error("exposure", "target_snr_db", 'mode = "snr" needs target_snr_db')
     if exp["repeats"] < 1:
         raise job.error("exposure", "repeats", "must be >= 1")
     if darks["strategy"] not in set(DarkStrategy):
@@ -221,28 +276,36 @@ def _check_values(job: Job) -> None:
     if darks["block_light"] not in ("mock", "prompt", "command", "none"):
         raise job.error("darks", "block_light", f"must be mock, prompt, command or none, got {darks['block_light']!r}")
     if darks["block_light"] == "mock" and cam["backend"] != "mock" and darks["strategy"] != DarkStrategy.MODEL:
-        raise job.error("darks", "block_light", "a real camera cannot block its light itself: use prompt, "
-                                                "command (cover_command/uncover_command) or none")
+        raise job.error(
+            "darks",
+            "block_light",
+            "a real camera cannot block its light itself: use prompt, command (cover_command/uncover_command) or none",
+        )
     if darks["block_light"] == "command":
         for k in ("cover_command", "uncover_command"):
             if not darks.get(k):
-                raise job.error("darks", k, "block_light = \"command\" needs cover_command and uncover_command")
+                raise job.error("darks", k, 'block_light = "command" needs cover_command and uncover_command')
     if "file" in cal:
         f = _resolve(job, cal["file"])
         if not f.is_file():
             raise job.error("calibration", "file", f"calibration file {f} does not exist")
     elif "preset" not in cal and cam["backend"] != "mock":
-        raise job.error("calibration", None, "a real camera needs a calibration: file = \"calib...\" "
-                                             "(from `hdrcap calibrate`)")
+        raise job.error(
+            "calibration", None, 'a real camera needs a calibration: file = "calib..." (from `hdrcap calibrate`)'
+        )
     if "dark_library" in cal and not _resolve(job, cal["dark_library"]).is_dir():
-        raise job.error("calibration", "dark_library", f"dark library folder {_resolve(job, cal['dark_library'])} "
-                                                       "does not exist")
+        raise job.error(
+            "calibration", "dark_library", f"dark library folder {_resolve(job, cal['dark_library'])} does not exist"
+        )
     for i, s in enumerate(cal["series"]):
         if not isinstance(s, dict) or set(s) - {"kind", "times", "count"} or "kind" not in s or "times" not in s:
             raise job.error("calibration", "series", f"series {i + 1}: needs kind, times (and count), nothing else")
         if s["kind"] not in ("bias", "flat", "saturation", "darkseries"):
-            raise job.error("calibration", "series", f"series {i + 1}: kind must be bias, flat, saturation or "
-                                                     f"darkseries, got {s['kind']!r}")
+            raise job.error(
+                "calibration",
+                "series",
+                f"series {i + 1}: kind must be bias, flat, saturation or darkseries, got {s['kind']!r}",
+            )
     for k in ("exr", "png"):
         if out[k] and (Path(out[k]).is_absolute() or ".." in Path(out[k]).parts):
             raise job.error("output", k, "must be a file name inside the run folder")
@@ -299,12 +362,14 @@ def run_folder(job: Job, n: int = 0, resume: bool = False) -> Path:
     if resume:
         found = resume_folder(job, n)
         if found is None:
-            raise NothingToResume(f"{job.where('output', 'folder')}: --resume: no earlier run folder matches "
-                                  f"{base.format(job=job.name, n=n, date='*')}")
+            raise NothingToResume(
+                f"{job.where('output', 'folder')}: --resume: no earlier run folder matches "
+                f"{base.format(job=job.name, n=n, date='*')}"
+            )
         return found
     if "{date}" not in pattern:
         return Path(base.format(job=job.name, n=n, date=""))
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    stamp = _dt.datetime.now(_dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     for k in range(1, 10000):
         folder = Path(base.format(job=job.name, n=n, date=stamp if k == 1 else f"{stamp}-{k}"))
         if not folder.exists():
@@ -353,7 +418,7 @@ def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
 
     m = Manifest(run_dir)
     head = m.header() or {}
-    started = str(head.get("time") or _dt.datetime.fromtimestamp(run_dir.stat().st_mtime, _dt.timezone.utc).isoformat())
+    started = str(head.get("time") or _dt.datetime.fromtimestamp(run_dir.stat().st_mtime, _dt.UTC).isoformat())
     if m.completion() is not None:
         return "complete", started
     planned = {f["key"] for f in head.get("plan", {}).get("frames", [])}
@@ -368,15 +433,21 @@ def open_camera(job: Job, n: int = 0):
     """The job's camera (for the mock backend: with the job's scene; seed + n per repetition)."""
     cam = job["camera"]
     if cam["backend"] == "mock":
-        from hdrcap.mock_camera.scenes import load_scene, parse_size
         from hdrcap.mock_camera.camera import MockCamera, MockFaults
+        from hdrcap.mock_camera.scenes import load_scene, parse_size
 
         sc = job["scene"]
         shape = parse_size(cam["size"])
         scene = load_scene(_scene_path(job, sc["name"]), shape, sc["decades"], sc["x_max"])
-        camera = MockCamera(cam["preset"], scene, seed=cam["seed"] + n, allowed_times=cam.get("allowed_times"),
-                            bulb_max_s=cam.get("bulb_max_s"),
-                            faults=MockFaults.from_dict(cam.get("faults", {})), temperature=cam.get("temperature"))
+        camera = MockCamera(
+            cam["preset"],
+            scene,
+            seed=cam["seed"] + n,
+            allowed_times=cam.get("allowed_times"),
+            bulb_max_s=cam.get("bulb_max_s"),
+            faults=MockFaults.from_dict(cam.get("faults", {})),
+            temperature=cam.get("temperature"),
+        )
         try:
             return _apply_iso(job, camera)
         except BaseException:
@@ -384,9 +455,14 @@ def open_camera(job: Job, n: int = 0):
             raise
     from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
 
-    camera = Gphoto2Camera(cam.get("model"), cam.get("port"), serial=cam.get("serial"),
-                           delete_after_download=cam["delete_after_download"],
-                           long_exposure_s=cam["long_exposure_s"], settings=cam.get("settings"))
+    camera = Gphoto2Camera(
+        cam.get("model"),
+        cam.get("port"),
+        serial=cam.get("serial"),
+        delete_after_download=cam["delete_after_download"],
+        long_exposure_s=cam["long_exposure_s"],
+        settings=cam.get("settings"),
+    )
     try:
         _apply_iso(job, camera)
         camera.preflight(enforce=cam.get("enforce", False), iso=cam.get("iso"))  # changes nothing unless enforce
@@ -403,8 +479,9 @@ def _apply_iso(job: Job, camera):
     if "iso" in cam:
         applied = camera.set_iso(cam["iso"])
         if applied is not None and abs(float(applied) - cam["iso"]) > 0.5:  # a silent substitution
-            raise job.error("camera", "iso", f"the camera applied ISO {applied:g}, not {cam['iso']}; choose one of "
-                                             f"its ISO speeds")
+            raise job.error(
+                "camera", "iso", f"the camera applied ISO {applied:g}, not {cam['iso']}; choose one of its ISO speeds"
+            )
     return camera
 
 
@@ -447,8 +524,7 @@ def check_job_against_camera(job: Job, camera) -> None:
     for s in job["calibration"]["series"]:
         bad += [t for t in s["times"] if t < lo / 1.26 or t > hi * 1.26]
     if bad:
-        raise job.error("exposure", "times", f"exposure {bad[0]:g} s is outside the camera's range "
-                                             f"{lo:g} .. {hi:g} s")
+        raise job.error("exposure", "times", f"exposure {bad[0]:g} s is outside the camera's range {lo:g} .. {hi:g} s")
 
 
 def check_free_space(job: Job, camera, run_dir: Path, repetitions: int = 1) -> dict:
@@ -486,8 +562,14 @@ def check_free_space(job: Job, camera, run_dir: Path, repetitions: int = 1) -> d
 
     exp, darks = job["exposure"], job["darks"]
     if exp["mode"] == "bracket":  # master darks of a dark library would only take fewer frames
-        plan = CapturePlan.bracket(exp["times"], exposure_ladder(camera), darks["strategy"], n_dark=darks["count"],
-                                   repeats=exp["repeats"], series=job["calibration"]["series"])
+        plan = CapturePlan.bracket(
+            exp["times"],
+            exposure_ladder(camera),
+            darks["strategy"],
+            n_dark=darks["count"],
+            repeats=exp["repeats"],
+            series=job["calibration"]["series"],
+        )
         frames: int | None = len(plan.frames)
     elif exp.get("max_exposures"):
         per_dark = {"matched": 1, "master": darks["count"]}.get(darks.get("strategy"), darks["count"])
@@ -502,8 +584,11 @@ def check_free_space(job: Job, camera, run_dir: Path, repetitions: int = 1) -> d
     free = shutil.disk_usage(folder).free
     if free < need:
         what = f"the {frames} planned frames and the outputs" if frames else "one frame and the outputs"
-        raise LocalIOError(f"{folder}: {free / 1e6:.0f} MB free, {what} need about {need / 1e6:.0f} MB"
-                           + (f" per run x {repetitions}" if repetitions > 1 else "") + "; free space first")
+        raise LocalIOError(
+            f"{folder}: {free / 1e6:.0f} MB free, {what} need about {need / 1e6:.0f} MB"
+            + (f" per run x {repetitions}" if repetitions > 1 else "")
+            + "; free space first"
+        )
     return {"frames": frames, "need_bytes": need, "free_bytes": free, "folder": str(folder)}
 
 
@@ -539,13 +624,24 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
         root = _library_root(job, calibration)
         iso = run_iso(job, calibration)
         library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False, iso=iso).items()}
-        plan = planner.plan_exposures(calibration, irradiance, exp["target_snr_db"], allowed,
-                                      max_exposures=exp.get("max_exposures"),
-                                      time_budget=exp.get("time_budget_s"), quantile=exp.get("quantile"),
-                                      dark_library=library or None)
+        plan = planner.plan_exposures(
+            calibration,
+            irradiance,
+            exp["target_snr_db"],
+            allowed,
+            max_exposures=exp.get("max_exposures"),
+            time_budget=exp.get("time_budget_s"),
+            quantile=exp.get("quantile"),
+            dark_library=library or None,
+        )
         times = list(plan.exposures)
-        info.update(planner=True, predicted_min_snr_db=plan.predicted_min_snr_db, feasible=plan.feasible,
-                    message=plan.message, plan=_plan_record(plan))
+        info.update(
+            planner=True,
+            predicted_min_snr_db=plan.predicted_min_snr_db,
+            feasible=plan.feasible,
+            message=plan.message,
+            plan=_plan_record(plan),
+        )
         if plan.darks:
             if "strategy" not in job.given.get("darks", ()):
                 strategy = list(plan.darks)
@@ -555,13 +651,31 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     snapped = [nearest_allowed(t, allowed) for t in times]
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
     master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
-    masters = (library_masters(_library_root(job, calibration), camera, master_times, load=False,
-                               iso=run_iso(job, calibration), strict=True, echo=echo) if master_times else {})
+    masters = (
+        library_masters(
+            _library_root(job, calibration),
+            camera,
+            master_times,
+            load=False,
+            iso=run_iso(job, calibration),
+            strict=True,
+            echo=echo,
+        )
+        if master_times
+        else {}
+    )
     if masters:
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
         echo(f"dark library: master darks for {len(masters)} of {len(set(master_times))} master-dark exposure times")
-    plan = CapturePlan.bracket(snapped, allowed, strategy, n_dark=darks["count"], repeats=exp["repeats"],
-                               series=job["calibration"]["series"], library_times=list(masters))
+    plan = CapturePlan.bracket(
+        snapped,
+        allowed,
+        strategy,
+        n_dark=darks["count"],
+        repeats=exp["repeats"],
+        series=job["calibration"]["series"],
+        library_times=list(masters),
+    )
     return plan, info
 
 
@@ -586,8 +700,15 @@ def _library_root(job: Job, calibration) -> str | None:
     return getattr(calibration, "dark_library", None)
 
 
-def library_masters(root, camera, times, load: bool = True, iso: float | None = None,
-                    strict: bool = False, echo: Callable[[str], None] | None = None) -> dict[float, tuple]:
+def library_masters(
+    root,
+    camera,
+    times,
+    load: bool = True,
+    iso: float | None = None,
+    strict: bool = False,
+    echo: Callable[[str], None] | None = None,
+) -> dict[float, tuple]:
     """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N), matched
     by :meth:`pipeline.darklibrary.DarkLibrary.masters` to the camera's model (normalised,
     :func:`acquire.compat.same_model`), ``iso`` and temperature (data None unless ``load``).
@@ -632,23 +753,26 @@ def library_masters(root, camera, times, load: bool = True, iso: float | None = 
     if not mine:
         if strict and entries:
             names = ", ".join(sorted({e.camera for e in entries}))
-            raise CompatibilityError(f"dark library {root} holds master darks of {names}, not of the camera "
-                                     f"{model!r}")
+            raise CompatibilityError(f"dark library {root} holds master darks of {names}, not of the camera {model!r}")
         return {}
     if strict and iso is not None:
         for t in times:
             at_t = [e for e in mine if same_exposure(e.exposure_time, t)]
             if at_t and all(e.iso is not None and abs(e.iso - iso) > 0.5 for e in at_t):
                 isos = ", ".join(sorted({f"{e.iso:g}" for e in at_t}))
-                raise CompatibilityError(f"dark library {root}: the master darks for {t:g} s are at ISO {isos}, "
-                                         f"the run is at ISO {iso:g}; add masters at ISO {iso:g} or use "
-                                         "[darks] strategy = \"matched\"")
+                raise CompatibilityError(
+                    f"dark library {root}: the master darks for {t:g} s are at ISO {isos}, "
+                    f"the run is at ISO {iso:g}; add masters at ISO {iso:g} or use "
+                    '[darks] strategy = "matched"'
+                )
     name = Counter(e.camera for e in mine).most_common(1)[0][0]
     temp = camera.temperature() if hasattr(camera, "temperature") else None
     found = lib.masters(times, camera=name, iso=iso, temperature=temp, load=load)
     if echo is not None and temp is None and any(e.temperature is not None for _d, _n, e in found.values()):
-        echo("hdrcap: warning: the camera reports no temperature; master darks of the dark library are matched at "
-             "any temperature (their dark current may differ)")
+        echo(
+            "hdrcap: warning: the camera reports no temperature; master darks of the dark library are matched at "
+            "any temperature (their dark current may differ)"
+        )
     return {t: (data, n) for t, (data, n, _e) in found.items()}
 
 
@@ -717,8 +841,9 @@ def _meter_fn(camera, run_dir: Path, retry=None, stop=None, sleep=time.sleep):
             if stop is not None and stop.is_set():
                 from hdrcap.acquire.session import RunInterrupted
 
-                raise RunInterrupted(f"{run_dir}: stopped by signal {stop.signum} while metering; run again with "
-                                     "--resume", stop.signum)
+                raise RunInterrupted(
+                    f"{run_dir}: stopped by signal {stop.signum} while metering; run again with --resume", stop.signum
+                )
             dest = _free_name(meter_dir, f"meter_{counter[0]:02d}_{t:.6g}s", ".dng")
             try:
                 applied = float(camera.set_exposure(t))
@@ -741,8 +866,9 @@ def _meter_fn(camera, run_dir: Path, retry=None, stop=None, sleep=time.sleep):
                     sleep(retry.wait(attempt))
                 if kind == "reconnect":
                     _reconnect_quietly(camera)
-        raise SessionError(f"metering at {t:g} s: gave up after {retry.max_attempts} attempts (last: {last}); "
-                           "run again with --resume")
+        raise SessionError(
+            f"metering at {t:g} s: gave up after {retry.max_attempts} attempts (last: {last}); run again with --resume"
+        )
 
     return capture
 
@@ -770,10 +896,21 @@ def _free_name(folder: Path, stem: str, suffix: str) -> Path:
 
 
 # --------------------------------------------------------------------------- running
-def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None = None, progress: bool | None = None,
-            echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr), camera=None,
-            force: bool = False, exr_path: Path | None = None, png_path: Path | None = None,
-            return_result: bool = False, stop=None):
+def run_job(
+    job: Job,
+    *,
+    resume: bool = False,
+    n: int = 0,
+    run_dir: Path | None = None,
+    progress: bool | None = None,
+    echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+    camera=None,
+    force: bool = False,
+    exr_path: Path | None = None,
+    png_path: Path | None = None,
+    return_result: bool = False,
+    stop=None,
+):
     """Run one repetition of ``job``.
 
     With ``resume`` the newest incomplete run of the job is continued; on a complete run
@@ -829,26 +966,29 @@ def run_job(job: Job, *, resume: bool = False, n: int = 0, run_dir: Path | None 
 
     try:
         with hold_run_locks(run_dir, job_camera_key(job) if camera is None else None):
-            summary, result = _run_one(job, resume, n, run_dir, progress, echo, camera, force, exr_path, png_path,
-                                       stop)
+            summary, result = _run_one(job, resume, n, run_dir, progress, echo, camera, force, exr_path, png_path, stop)
     except HdrcapError as err:
         err.run_dir = str(run_dir)
         raise
     except OSError as err:  # our side outside the session: metering files, outputs, disk full
-        stop_err = LocalIOError(f"{err.filename or run_dir}: {err.strerror or err}; free space or fix permissions, "
-                                "then run again with --resume")
+        stop_err = LocalIOError(
+            f"{err.filename or run_dir}: {err.strerror or err}; free space or fix permissions, "
+            "then run again with --resume"
+        )
         stop_err.run_dir = str(run_dir)
         raise stop_err from None
     try:
-        Manifest(run_dir).append({"type": "complete", "time": _dt.datetime.now(_dt.timezone.utc).isoformat(),
-                                  "summary": _json_safe(summary)})
+        Manifest(run_dir).append(
+            {"type": "complete", "time": _dt.datetime.now(_dt.UTC).isoformat(), "summary": _json_safe(summary)}
+        )
     except OSError as err:
         echo(f"hdrcap: warning: {run_dir}: could not record the run as complete ({err.strerror or err})")
     return (summary, result) if return_result else summary
 
 
-def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, camera, force, exr_path, png_path,
-             stop) -> tuple[dict, Any]:
+def _run_one(
+    job: Job, resume: bool, n: int, run_dir: Path, progress, echo, camera, force, exr_path, png_path, stop
+) -> tuple[dict, Any]:
     """Open the camera, plan (or read the plan of the run resumed), capture, merge and write the
     outputs; returns (summary, SessionResult)."""
     from hdrcap.acquire.manifest import Manifest
@@ -869,8 +1009,10 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
         if png_path is None and job["output"]["png"]:
             png_path = run_dir / job["output"]["png"]
         if not resume and Manifest(run_dir).exists():
-            raise RunConflictError(f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it "
-                                   "or choose another run folder")
+            raise RunConflictError(
+                f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it "
+                "or choose another run folder"
+            )
         for p in (exr_path, png_path):
             if p is not None and p.exists() and not force:
                 raise OutputExistsError(f"{p}: exists; use --force to overwrite (or another run folder)")
@@ -885,24 +1027,44 @@ def _run_one(job: Job, resume: bool, n: int, run_dir: Path, progress, echo, came
                 echo(f"hdrcap: {run_dir}: stopped before its plan was recorded; starting the run again")
             plan, info = plan_for(job, camera, calibration, run_dir, echo, retry, stop)
         if plan.library_times:
-            masters = library_masters(_library_root(job, calibration), camera, plan.library_times,
-                                      iso=run_iso(job, calibration), strict=True)
+            masters = library_masters(
+                _library_root(job, calibration), camera, plan.library_times, iso=run_iso(job, calibration), strict=True
+            )
         d = job["darks"]
         light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
-        meta = {"job": str(job.path) if job.path else None, "job_name": job.name, "repetition": n,
-                "planning": info, "calibration": calibration.provenance}
+        meta = {
+            "job": str(job.path) if job.path else None,
+            "job_name": job.name,
+            "repetition": n,
+            "planning": info,
+            "calibration": calibration.provenance,
+        }
         planned = info.get("plan") or {}
         options = _plan_merge_options(planned)
-        session = CaptureSession(camera, run_dir, plan, calibration=calibration, light=light, retry=retry,
-                                 resume=resume, progress=progress, meta=meta, check_dark=d["check"],
-                                 master_darks=masters, merge_options=options, stop=stop, expect=expect)
+        session = CaptureSession(
+            camera,
+            run_dir,
+            plan,
+            calibration=calibration,
+            light=light,
+            retry=retry,
+            resume=resume,
+            progress=progress,
+            meta=meta,
+            check_dark=d["check"],
+            master_darks=masters,
+            merge_options=options,
+            stop=stop,
+            expect=expect,
+        )
         result = session.run()
         header = None
         if planned:
             from hdrcap.planner.planfile import planner_attribute
 
-            header = planner_attribute(planned, None, None, options, info.get("plan_overridden"),
-                                       source="hdrcap run (planned from metering)")
+            header = planner_attribute(
+                planned, None, None, options, info.get("plan_overridden"), source="hdrcap run (planned from metering)"
+            )
         outputs = _write_outputs(job, run_dir, result, calibration, camera, exr_path, png_path, force, header)
     finally:
         if own:
@@ -935,8 +1097,9 @@ def _plan_merge_options(planned: dict) -> dict:
     return {k: v for k, v in decided.items() if k in PLAN_OPTIONS}
 
 
-def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force,
-                   planner_header: dict | None = None) -> dict:
+def _write_outputs(
+    job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force, planner_header: dict | None = None
+) -> dict:
     from hdrcap.acquire.filemerge import build_hdr_image
     from hdrcap.pipeline.io import RawFrame, write_exr
     from hdrcap.pipeline.preview import write_preview_png
@@ -947,10 +1110,13 @@ def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_pat
         return out
     lights = sorted((r for r in result.frames.values() if r["kind"] == "light"), key=lambda r: r["index"])
     cfa = getattr(getattr(camera, "spec", None), "cfa", None)
-    frames = [RawFrame(data=None, exposure_time=r["file_exposure_s"], path=r["file"], cfa_pattern=cfa)
-              for r in lights]
-    extra = {"run_dir": str(run_dir), "job": job.name, "camera": lights[0]["camera"] if lights else {},
-             "manifest": "manifest.jsonl"}
+    frames = [RawFrame(data=None, exposure_time=r["file_exposure_s"], path=r["file"], cfa_pattern=cfa) for r in lights]
+    extra = {
+        "run_dir": str(run_dir),
+        "job": job.name,
+        "camera": lights[0]["camera"] if lights else {},
+        "manifest": "manifest.jsonl",
+    }
     if planner_header:
         extra["planner"] = planner_header
     if exr_path is not None:
@@ -967,10 +1133,21 @@ def _write_outputs(job: Job, run_dir: Path, result, calibration, camera, exr_pat
     return out
 
 
-def run_schedule(job: Job, *, repeat: int | None = None, every_s: float | None = None, resume: bool = False,
-                 progress: bool | None = None, echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
-                 run_dir: Path | None = None, force: bool = False, sleep=time.sleep, keep_going: bool = False,
-                 on_result: Callable[[dict], None] | None = None, stop=None) -> list[dict]:
+def run_schedule(
+    job: Job,
+    *,
+    repeat: int | None = None,
+    every_s: float | None = None,
+    resume: bool = False,
+    progress: bool | None = None,
+    echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+    run_dir: Path | None = None,
+    force: bool = False,
+    sleep=time.sleep,
+    keep_going: bool = False,
+    on_result: Callable[[dict], None] | None = None,
+    stop=None,
+) -> list[dict]:
     """Run the job ``repeat`` times, starting one every ``every_s`` seconds (a slow run delays
     the next start rather than overlapping it).
 
@@ -1040,8 +1217,9 @@ def run_schedule(job: Job, *, repeat: int | None = None, every_s: float | None =
         if on_result is not None:
             on_result(res)
     if failures:
-        raise ScheduleError(f"{len(failures)} of {repeat} repetitions failed (first: {failures[0]})",
-                            failures[0].exit_code)
+        raise ScheduleError(
+            f"{len(failures)} of {repeat} repetitions failed (first: {failures[0]})", failures[0].exit_code
+        )
     return results
 
 
@@ -1070,8 +1248,13 @@ def error_summary(err: BaseException, n: int | None = None) -> dict:
     -------
     dict
     """
-    out = {"status": "failed", "error": str(err), "exit_code": int(getattr(err, "exit_code", 70)),
-           "error_type": type(err).__name__, "run_dir": getattr(err, "run_dir", None)}
+    out = {
+        "status": "failed",
+        "error": str(err),
+        "exit_code": int(getattr(err, "exit_code", 70)),
+        "error_type": type(err).__name__,
+        "run_dir": getattr(err, "run_dir", None),
+    }
     n = n if n is not None else getattr(err, "repetition", None)
     if n is not None:
         out["repetition"] = n
@@ -1101,12 +1284,24 @@ def notify(job: Job, summary: dict, echo: Callable[[str], None] = lambda s: prin
     cmd = hooks.get("on_failure" if failed else "on_done")
     if not cmd:
         return
-    env = dict(os.environ, HDRCAP_STATUS=str(summary.get("status", "")), HDRCAP_JOB=job.name,
-               HDRCAP_EXIT_CODE=str(summary.get("exit_code", 0)), HDRCAP_RUN_DIR=str(summary.get("run_dir") or ""),
-               HDRCAP_MESSAGE=str(summary.get("error") or summary.get("message") or ""))
+    env = dict(
+        os.environ,
+        HDRCAP_STATUS=str(summary.get("status", "")),
+        HDRCAP_JOB=job.name,
+        HDRCAP_EXIT_CODE=str(summary.get("exit_code", 0)),
+        HDRCAP_RUN_DIR=str(summary.get("run_dir") or ""),
+        HDRCAP_MESSAGE=str(summary.get("error") or summary.get("message") or ""),
+    )
     try:
-        proc = subprocess.run(cmd, shell=True, input=json.dumps(_json_safe(summary)), text=True, env=env,
-                              capture_output=True, timeout=hooks["timeout_s"])
+        proc = subprocess.run(
+            cmd,
+            shell=True,
+            input=json.dumps(_json_safe(summary)),
+            text=True,
+            env=env,
+            capture_output=True,
+            timeout=hooks["timeout_s"],
+        )
     except subprocess.TimeoutExpired:
         echo(f"hdrcap: warning: notification hook {cmd!r} took longer than {hooks['timeout_s']:g} s; stopped")
         return
@@ -1114,5 +1309,4 @@ def notify(job: Job, summary: dict, echo: Callable[[str], None] = lambda s: prin
         echo(f"hdrcap: warning: notification hook {cmd!r} could not run: {err}")
         return
     if proc.returncode != 0:
-        echo(f"hdrcap: warning: notification hook {cmd!r} failed (exit {proc.returncode}): "
-             f"{proc.stderr.strip()[:200]}")
+        echo(f"hdrcap: warning: notification hook {cmd!r} failed (exit {proc.returncode}): {proc.stderr.strip()[:200]}")

@@ -19,9 +19,9 @@ import errno
 import json
 import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
-
+from typing import Any
 
 __all__ = ["Manifest", "EventLog", "utc_now", "MANIFEST_NAME", "EVENTS_NAME"]
 
@@ -31,7 +31,7 @@ EVENTS_NAME = "events.jsonl"
 
 def utc_now() -> str:
     """Current UTC time, ISO 8601 with microseconds."""
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="microseconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="microseconds")
 
 
 def _json(obj: Any) -> str:
@@ -105,8 +105,11 @@ class Manifest:
             return []
         out, self.torn_lines = [], 0
         for _lineno, rec in _read_lines(self.path):
-            if rec is None or "type" not in rec or (rec["type"] in ("frame", "void")
-                                                     and not isinstance(rec.get("key"), str)):
+            if (
+                rec is None
+                or "type" not in rec
+                or (rec["type"] in ("frame", "void") and not isinstance(rec.get("key"), str))
+            ):
                 self.torn_lines += 1
             else:
                 out.append(rec)
@@ -148,8 +151,7 @@ class Manifest:
 
 #: Log level of each event on the ``hdrcap.run`` logger (others, also ``stop``, whose error the
 #: command prints anyway: INFO).
-EVENT_LEVELS = {"fault": logging.WARNING, "void": logging.WARNING,
-                "reject": logging.WARNING, "frame": logging.INFO}
+EVENT_LEVELS = {"fault": logging.WARNING, "void": logging.WARNING, "reject": logging.WARNING, "frame": logging.INFO}
 _LOG = logging.getLogger("hdrcap.run")
 
 
@@ -188,4 +190,3 @@ class EventLog:
         if not self.path.exists():
             return []
         return [r for _n, r in _read_lines(self.path) if r is not None]
-

@@ -27,15 +27,16 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
-import signal
 import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -203,9 +204,16 @@ class CapturePlan:
     time_strategies: tuple[tuple[float, str], ...] = ()
 
     @classmethod
-    def bracket(cls, times: Sequence[float], allowed: Sequence[float] | None = None,
-                dark_strategy: str | Sequence[str] = DarkStrategy.MATCHED, n_dark: int = 1, repeats: int = 1,
-                series: Sequence[dict] = (), library_times: Sequence[float] = ()) -> "CapturePlan":
+    def bracket(
+        cls,
+        times: Sequence[float],
+        allowed: Sequence[float] | None = None,
+        dark_strategy: str | Sequence[str] = DarkStrategy.MATCHED,
+        n_dark: int = 1,
+        repeats: int = 1,
+        series: Sequence[dict] = (),
+        library_times: Sequence[float] = (),
+    ) -> CapturePlan:
         """A bracket of ``times`` (each snapped to the nearest ``allowed`` time), ``repeats``
         frames per time, dark frames per dark strategy and calibration ``series`` (dicts with
         ``kind``, ``times``, ``count``). ``dark_strategy`` is one strategy for all exposures or
@@ -233,8 +241,13 @@ class CapturePlan:
         uniform = used.pop().value if len(used) == 1 else "mixed"
         pairs = () if uniform != "mixed" else tuple((t, by_time[t].value) for t in uniq)
         master = DarkStrategy.MASTER in by_time.values() or uniform == DarkStrategy.MASTER
-        return cls(frames=_frame_specs(dark_frames + light_frames), dark_strategy=uniform,
-                   n_dark=max(1, int(n_dark)) if master else 1, library_times=tuple(lib), time_strategies=pairs)
+        return cls(
+            frames=_frame_specs(dark_frames + light_frames),
+            dark_strategy=uniform,
+            n_dark=max(1, int(n_dark)) if master else 1,
+            library_times=tuple(lib),
+            time_strategies=pairs,
+        )
 
     def strategy_for(self, t: float) -> DarkStrategy:
         """The dark strategy of exposure time ``t`` (s)."""
@@ -250,22 +263,34 @@ class CapturePlan:
         return {f.exposure_s: self.strategy_for(f.exposure_s) for f in self.frames if f.kind == "light"}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "CapturePlan":
+    def from_dict(cls, d: dict) -> CapturePlan:
         """The plan recorded in a manifest (:meth:`to_dict`; also manifests written before
         per-exposure strategies)."""
-        return cls(tuple(FrameSpec(**f) for f in d["frames"]), d["dark_strategy"], d["n_dark"],
-                   tuple(d.get("library_times", ())),
-                   tuple((float(t), str(s)) for t, s in d.get("time_strategies", ())))
+        return cls(
+            tuple(FrameSpec(**f) for f in d["frames"]),
+            d["dark_strategy"],
+            d["n_dark"],
+            tuple(d.get("library_times", ())),
+            tuple((float(t), str(s)) for t, s in d.get("time_strategies", ())),
+        )
 
     def fingerprint(self) -> str:
-        blob = json.dumps([[f.key, f.kind, f.exposure_s] for f in self.frames] + [self.dark_strategy, self.n_dark]
-                          + ([list(self.library_times)] if self.library_times else [])
-                          + ([[list(p) for p in self.time_strategies]] if self.time_strategies else []))
+        blob = json.dumps(
+            [[f.key, f.kind, f.exposure_s] for f in self.frames]
+            + [self.dark_strategy, self.n_dark]
+            + ([list(self.library_times)] if self.library_times else [])
+            + ([[list(p) for p in self.time_strategies]] if self.time_strategies else [])
+        )
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
     def to_dict(self) -> dict:
-        out = {"dark_strategy": self.dark_strategy, "n_dark": self.n_dark, "library_times": list(self.library_times),
-               "frames": [asdict(f) for f in self.frames], "fingerprint": self.fingerprint()}
+        out = {
+            "dark_strategy": self.dark_strategy,
+            "n_dark": self.n_dark,
+            "library_times": list(self.library_times),
+            "frames": [asdict(f) for f in self.frames],
+            "fingerprint": self.fingerprint(),
+        }
         if self.time_strategies:
             out["time_strategies"] = [list(p) for p in self.time_strategies]
         return out
@@ -306,8 +331,14 @@ class LightBlocker:
     The camera's own :meth:`cover`/:meth:`uncover` are always called too.
     """
 
-    def __init__(self, method: str = "mock", cover_command: str | None = None, uncover_command: str | None = None,
-                 prompt: Callable[[str], Any] | None = None, settle_s: float = 0.0):
+    def __init__(
+        self,
+        method: str = "mock",
+        cover_command: str | None = None,
+        uncover_command: str | None = None,
+        prompt: Callable[[str], Any] | None = None,
+        settle_s: float = 0.0,
+    ):
         if method not in ("mock", "prompt", "command", "none"):
             raise InputError(f"light blocking must be mock, prompt, command or none, got {method!r}")
         if method == "command" and not (cover_command and uncover_command):
@@ -323,14 +354,19 @@ class LightBlocker:
         if self.covered is covered:
             return
         if self.method == "prompt":
-            self.prompt("Block the light for dark frames (cap the lens), then press Enter" if covered
-                        else "Unblock the light (remove the cap), then press Enter")
+            self.prompt(
+                "Block the light for dark frames (cap the lens), then press Enter"
+                if covered
+                else "Unblock the light (remove the cap), then press Enter"
+            )
         elif self.method == "command":
             cmd = self.cover_command if covered else self.uncover_command
             proc = subprocess.run(cmd, shell=True, capture_output=True, text=True)
             if proc.returncode != 0:
-                raise SessionError(f"light {'cover' if covered else 'uncover'} command {cmd!r} failed "
-                                   f"(exit {proc.returncode}): {proc.stderr.strip()[:200]}")
+                raise SessionError(
+                    f"light {'cover' if covered else 'uncover'} command {cmd!r} failed "
+                    f"(exit {proc.returncode}): {proc.stderr.strip()[:200]}"
+                )
         (camera.cover if covered else camera.uncover)()
         if self.settle_s:
             time.sleep(self.settle_s)
@@ -341,8 +377,9 @@ class LightBlocker:
 
 def _default_prompt(message: str) -> None:
     if not sys.stdin or not sys.stdin.isatty():
-        raise InputError(f"light blocking needs a person at a terminal ({message}); "
-                           "use block_light = \"command\" for unattended runs")
+        raise InputError(
+            f'light blocking needs a person at a terminal ({message}); use block_light = "command" for unattended runs'
+        )
     input(message + " ")
 
 
@@ -485,8 +522,13 @@ class StreamingMerge:
         iterations.
     """
 
-    def __init__(self, calibration, shape, strategy_for: Callable[[float], str] | str = DarkStrategy.MATCHED,
-                 options: dict | None = None):
+    def __init__(
+        self,
+        calibration,
+        shape,
+        strategy_for: Callable[[float], str] | str = DarkStrategy.MATCHED,
+        options: dict | None = None,
+    ):
         from hdrcap.pipeline.merge import MergeAccumulator
 
         self.calibration = calibration
@@ -516,8 +558,9 @@ class StreamingMerge:
         src = self._darks.resolve(t, strategy)
         if src is None:
             raise SessionError(f"no dark frame for exposure {t:g} s ({strategy} dark strategy) before its light frame")
-        self._acc.add(values, t, src.data, strategy=strategy,
-                      n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None)
+        self._acc.add(
+            values, t, src.data, strategy=strategy, n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None
+        )
 
     def result(self):
         """The :class:`pipeline.merge.MergeResult` of everything added."""
@@ -580,11 +623,24 @@ class CaptureSession:
         On resume the camera must be the one recorded in the manifest.
     """
 
-    def __init__(self, camera, run_dir, plan: CapturePlan, calibration=None, light: LightBlocker | None = None,
-                 retry: RetryPolicy | None = None, resume: bool = False, progress: bool | None = None,
-                 meta: dict | None = None, sleep: Callable[[float], None] = time.sleep, check_dark: float = 0.05,
-                 master_darks: dict | None = None, merge_options: dict | None = None, stop=None,
-                 expect: CameraProfile | None = None):
+    def __init__(
+        self,
+        camera,
+        run_dir,
+        plan: CapturePlan,
+        calibration=None,
+        light: LightBlocker | None = None,
+        retry: RetryPolicy | None = None,
+        resume: bool = False,
+        progress: bool | None = None,
+        meta: dict | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+        check_dark: float = 0.05,
+        master_darks: dict | None = None,
+        merge_options: dict | None = None,
+        stop=None,
+        expect: CameraProfile | None = None,
+    ):
         self.camera = camera
         self.stop = stop
         self.expect = expect
@@ -629,8 +685,9 @@ class CaptureSession:
             try:
                 cam_lock.acquire(timeout=0)
             except Timeout:
-                raise RunConflictError(f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use "
-                                   "by another hdrcap session") from None
+                raise RunConflictError(
+                    f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use by another hdrcap session"
+                ) from None
             try:
                 return self._run_locked(ident, t0)
             finally:
@@ -659,8 +716,14 @@ class CaptureSession:
             log.emit("merged", streamed=merger.streamed, info=_jsonable(result.merge.info))
         shutil.rmtree(partial_dir, ignore_errors=True)
         result.elapsed_s = time.monotonic() - t0
-        log.emit("done", captured=captured, resumed=resumed, adopted=adopted, retries=self.retries,
-                 elapsed_s=round(result.elapsed_s, 3))
+        log.emit(
+            "done",
+            captured=captured,
+            resumed=resumed,
+            adopted=adopted,
+            retries=self.retries,
+            elapsed_s=round(result.elapsed_s, 3),
+        )
         return result
 
     def _open_manifest(self, manifest: Manifest, log: EventLog, ident: dict) -> tuple[dict[str, dict], int]:
@@ -670,32 +733,47 @@ class CaptureSession:
         head = manifest.header() if manifest.exists() else None
         if head is None and manifest.exists() and (not self.resume or manifest.frames()):
             # a torn or unreadable header: the plan cannot be checked, so frames are not trusted
-            raise VerificationError(f"{manifest.path}: the run record (first line) is unreadable, so the plan of the "
-                                    "frames there cannot be checked; move the run folder aside and start again")
+            raise VerificationError(
+                f"{manifest.path}: the run record (first line) is unreadable, so the plan of the "
+                "frames there cannot be checked; move the run folder aside and start again"
+            )
         if head is None:  # a new run, or a crash while its first line was written
-            manifest.append({"type": "run", "time": utc_now(), "plan_fingerprint": fp, "camera": ident,
-                             "plan": self.plan.to_dict(), **self.meta})
+            manifest.append(
+                {
+                    "type": "run",
+                    "time": utc_now(),
+                    "plan_fingerprint": fp,
+                    "camera": ident,
+                    "plan": self.plan.to_dict(),
+                    **self.meta,
+                }
+            )
             log.emit("start", frames=len(self.plan.frames), camera=ident, run_dir=str(self.run_dir))
             return {}, 0
         if not self.resume:
-            raise RunConflictError(f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
-                                   "to continue it or choose another run folder")
+            raise RunConflictError(
+                f"{self.run_dir}: holds an earlier run (manifest.jsonl); use --resume "
+                "to continue it or choose another run folder"
+            )
         if head.get("camera"):
             try:
-                check_compatible(CameraProfile.from_record(head["camera"], f"the run in {self.run_dir}"),
-                                 CameraProfile.from_record(ident, "the connected camera"))
+                check_compatible(
+                    CameraProfile.from_record(head["camera"], f"the run in {self.run_dir}"),
+                    CameraProfile.from_record(ident, "the connected camera"),
+                )
             except CompatibilityError as err:
                 raise RunConflictError(f"{err}; resume it with its own camera") from None
         if head.get("plan_fingerprint") != fp:
-            raise RunConflictError(f"{self.run_dir}: the run there was made from a different plan; "
-                                   "resume with the same job or choose another run folder")
+            raise RunConflictError(
+                f"{self.run_dir}: the run there was made from a different plan; "
+                "resume with the same job or choose another run folder"
+            )
         done = manifest.frames()
         bad = manifest.verify_hashes()
         for key in bad:
             rec = done.pop(key)
             self._quarantine(self.run_dir / rec["file"], "hash mismatch or missing")
-            manifest.append({"type": "void", "key": key, "reason": "file missing or hash mismatch",
-                             "time": utc_now()})
+            manifest.append({"type": "void", "key": key, "reason": "file missing or hash mismatch", "time": utc_now()})
             log.emit("void", key=key, file=rec["file"])
         log.emit("resume", frames_done=len(done), torn_manifest_lines=manifest.torn_lines, voided=len(bad))
         isos = {r.get("iso") for r in done.values() if r.get("iso") is not None}
@@ -733,8 +811,16 @@ class CaptureSession:
                     merger = self._feed(merger, rec, read_frame(self.run_dir / rec["file"]).data)
         return merger
 
-    def _capture_missing(self, done: dict, merger: StreamingMerge | None, ident: dict, manifest: Manifest,
-                         log: EventLog, partial_dir: Path, frames_dir: Path) -> tuple[int, StreamingMerge | None]:
+    def _capture_missing(
+        self,
+        done: dict,
+        merger: StreamingMerge | None,
+        ident: dict,
+        manifest: Manifest,
+        log: EventLog,
+        partial_dir: Path,
+        frames_dir: Path,
+    ) -> tuple[int, StreamingMerge | None]:
         """Capture every planned frame not yet done (light blocked as each needs), feeding the
         merge; a ``frame`` event follows each frame, a stop is logged with its reason and exit
         code. Returns (frames captured, the merge)."""
@@ -742,8 +828,14 @@ class CaptureSession:
 
         todo = [(i, s) for i, s in enumerate(self.plan.frames) if s.key not in done]
         show = self.progress if self.progress is not None else sys.stderr.isatty()
-        bar = tqdm(total=len(self.plan.frames), initial=len(self.plan.frames) - len(todo), desc="capture",
-                   unit="frame", disable=not show, dynamic_ncols=True)
+        bar = tqdm(
+            total=len(self.plan.frames),
+            initial=len(self.plan.frames) - len(todo),
+            desc="capture",
+            unit="frame",
+            disable=not show,
+            dynamic_ncols=True,
+        )
         captured = 0
         eta = _Eta([s.exposure_s for _i, s in todo])
         try:
@@ -756,14 +848,23 @@ class CaptureSession:
                 if self.calibration is not None:
                     merger = self._feed(merger, rec, values)
                 eta.frame_done(spec.exposure_s)
-                log.emit("frame", key=spec.key, index=i, done=len(done), total=len(self.plan.frames),
-                         eta_s=eta.remaining_s(), temperature_c=rec.get("temperature_c"))
+                log.emit(
+                    "frame",
+                    key=spec.key,
+                    index=i,
+                    done=len(done),
+                    total=len(self.plan.frames),
+                    eta_s=eta.remaining_s(),
+                    temperature_c=rec.get("temperature_c"),
+                )
                 bar.update(1)
             if self.light.covered:
                 self.light.set(self.camera, False, log)
         except OSError as err:  # our side: disk full, permissions
-            stop = LocalIOError(f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
-                                "permissions, then run again with --resume")
+            stop = LocalIOError(
+                f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
+                "permissions, then run again with --resume"
+            )
             _emit_stop(log, stop, kind="local_io")
             raise stop from None
         except CameraError as err:
@@ -783,8 +884,9 @@ class CaptureSession:
         """Raise :class:`RunInterrupted` when the stop event is set (SIGTERM/SIGINT)."""
         if self.stop is not None and self.stop.is_set():
             signum = getattr(self.stop, "signum", 15)
-            raise RunInterrupted(f"{self.run_dir}: stopped by signal {signum} between two frames; "
-                                 "run again with --resume", signum)
+            raise RunInterrupted(
+                f"{self.run_dir}: stopped by signal {signum} between two frames; run again with --resume", signum
+            )
 
     def _feed(self, merger: StreamingMerge | None, rec: dict, values: np.ndarray) -> StreamingMerge | None:
         """Hand a verified frame to the merge (created with the first frame: its size)."""
@@ -801,8 +903,16 @@ class CaptureSession:
             merger.add_light(values, rec["file_exposure_s"])
         return merger
 
-    def _capture_one(self, i: int, spec: FrameSpec, ident: dict, manifest: Manifest, log: EventLog,
-                     partial_dir: Path, frames_dir: Path):
+    def _capture_one(
+        self,
+        i: int,
+        spec: FrameSpec,
+        ident: dict,
+        manifest: Manifest,
+        log: EventLog,
+        partial_dir: Path,
+        frames_dir: Path,
+    ):
         last = None
         for attempt in range(1, self.retry.max_attempts + 1):
             self._check_stop()
@@ -836,8 +946,10 @@ class CaptureSession:
                 for f in partial_dir.glob(f"{frame_stem(i, spec)}.try{attempt}*"):
                     f.unlink(missing_ok=True)
                 if kind == "fatal":
-                    raise SessionError(f"camera stopped the session at frame {spec.key}: {err} "
-                                       f"({len(manifest.frames())} frames are safe; fix it and run again with --resume)") from None
+                    raise SessionError(
+                        f"camera stopped the session at frame {spec.key}: {err} "
+                        f"({len(manifest.frames())} frames are safe; fix it and run again with --resume)"
+                    ) from None
                 if attempt == self.retry.max_attempts:
                     break
                 wait = self.retry.wait(attempt)
@@ -845,8 +957,10 @@ class CaptureSession:
                     self.sleep(wait)
                 if kind == "reconnect":
                     self._reconnect(log)
-        raise SessionError(f"frame {spec.key}: gave up after {self.retry.max_attempts} attempts "
-                           f"(last: {last}); run again with --resume")
+        raise SessionError(
+            f"frame {spec.key}: gave up after {self.retry.max_attempts} attempts "
+            f"(last: {last}); run again with --resume"
+        )
 
     def _reconnect(self, log: EventLog) -> None:
         try:
@@ -864,8 +978,10 @@ class CaptureSession:
         from hdrcap.pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
         if path.suffix.lower() not in RAW_EXTENSIONS | IMAGE_EXTENSIONS:
-            raise InputError(f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
-                               "image format to RAW (job: [camera] settings = {{ imageformat = \"RAW\" }})")
+            raise InputError(
+                f"{spec.key}: the camera delivers {path.suffix or 'unnamed'} files, not raw; set its "
+                'image format to RAW (job: [camera] settings = {{ imageformat = "RAW" }})'
+            )
         try:
             frame = read_frame(path)
         except (InputError, OSError, ValueError) as err:
@@ -879,8 +995,9 @@ class CaptureSession:
         self._check_frame_camera(path, frame)
         bulb = bool(getattr(res, "bulb", False))
         if not (same_bulb_exposure if bulb else same_exposure)(frame.exposure_time, applied):
-            raise CorruptFrameError(f"{path.name}: exposure {frame.exposure_time:g} s in the file, "
-                                    f"camera reported {applied:g} s")
+            raise CorruptFrameError(
+                f"{path.name}: exposure {frame.exposure_time:g} s in the file, camera reported {applied:g} s"
+            )
         rec = {
             "type": "frame",
             "key": spec.key,
@@ -911,11 +1028,15 @@ class CaptureSession:
             expected = p.mu_R + p.g * p.dark_current * frame.exposure_time
             limit = dark_excess_limit(p, frame.exposure_time, frame.data.size)
             if median - expected > limit:
-                why = (f"dark frame median {median - expected:.1f} DN above the calibrated dark level "
-                       f"{expected:.1f} DN, more than {limit:.1f} DN")
+                why = (
+                    f"dark frame median {median - expected:.1f} DN above the calibrated dark level "
+                    f"{expected:.1f} DN, more than {limit:.1f} DN"
+                )
         if why:
-            raise VerificationError(f"{spec.key}: the light is not blocked ({why}); check the light blocking "
-                                    f"({self.light.method}) and run again with --resume")
+            raise VerificationError(
+                f"{spec.key}: the light is not blocked ({why}); check the light blocking "
+                f"({self.light.method}) and run again with --resume"
+            )
 
     def _check_frame_camera(self, path: Path, frame) -> None:
         """The frame's EXIF camera and ISO against :attr:`expect` (the first frame fixes the
@@ -926,8 +1047,9 @@ class CaptureSession:
         try:
             check_compatible(replace(self.expect, temperature_c=None), got)
         except CompatibilityError as err:
-            raise VerificationError(f"{err}; check the camera's settings (fixed ISO), then run again with "
-                                    "--resume") from None
+            raise VerificationError(
+                f"{err}; check the camera's settings (fixed ISO), then run again with --resume"
+            ) from None
         if self.expect.iso is None and frame.iso is not None:
             self.expect = replace(self.expect, iso=float(frame.iso))
 
@@ -941,8 +1063,10 @@ class CaptureSession:
         need = estimate_run_bytes(todo, self.shape, self._frame_bytes or None, merge=self.calibration is not None)
         free = shutil.disk_usage(self.run_dir).free
         if free < need:
-            stop = LocalIOError(f"{self.run_dir}: {free / 1e6:.0f} MB free, the {todo} frames still to take and the "
-                                f"outputs need about {need / 1e6:.0f} MB; free space, then run again with --resume")
+            stop = LocalIOError(
+                f"{self.run_dir}: {free / 1e6:.0f} MB free, the {todo} frames still to take and the "
+                f"outputs need about {need / 1e6:.0f} MB; free space, then run again with --resume"
+            )
             _emit_stop(log, stop, kind="local_io")
             raise stop
 
@@ -950,11 +1074,17 @@ class CaptureSession:
         from hdrcap.pipeline.io import sha256_file
 
         self._frame_bytes = max(self._frame_bytes, final.stat().st_size)
-        return {"file": str(final.relative_to(self.run_dir)), "sha256": sha256_file(final),
-                "bytes": final.stat().st_size, "index": i, "camera": ident}
+        return {
+            "file": str(final.relative_to(self.run_dir)),
+            "sha256": sha256_file(final),
+            "bytes": final.stat().st_size,
+            "index": i,
+            "camera": ident,
+        }
 
-    def _verify_and_record(self, path: Path, i: int, spec: FrameSpec, res, ident, manifest: Manifest,
-                           adopted: bool = False) -> dict:
+    def _verify_and_record(
+        self, path: Path, i: int, spec: FrameSpec, res, ident, manifest: Manifest, adopted: bool = False
+    ) -> dict:
         rec, _values = self._verify(path, spec, spec.exposure_s, res)
         now = utc_now()
         rec.update(started=None, finished=now, attempts=None, adopted=adopted)
@@ -1002,8 +1132,9 @@ FREE_SPACE_MARGIN = 16_000_000
 LOCAL_IO_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.ENODEV})
 
 
-def estimate_run_bytes(n_frames: int, shape: tuple[int, int] | None = None, frame_bytes: int | None = None,
-                       merge: bool = True) -> int:
+def estimate_run_bytes(
+    n_frames: int, shape: tuple[int, int] | None = None, frame_bytes: int | None = None, merge: bool = True
+) -> int:
     """Disk space a run still needs, bytes: its raw files and (``merge``) the EXR and PNG outputs.
 
     Parameters
@@ -1061,8 +1192,10 @@ def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> No
     while e is not None and id(e) not in seen:
         seen.add(id(e))
         if isinstance(e, OSError) and e.errno in LOCAL_IO_ERRNOS:
-            raise LocalIOError(f"{e.filename or folder}: {e.strerror or e}; free space or fix permissions, then "
-                               "run again with --resume") from None
+            raise LocalIOError(
+                f"{e.filename or folder}: {e.strerror or e}; free space or fix permissions, then "
+                "run again with --resume"
+            ) from None
         e = e.__cause__ or e.__context__
     if fault_kind(err) is not None and frame_bytes:
         try:
@@ -1070,16 +1203,20 @@ def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> No
         except OSError:
             return
         if free < frame_bytes:
-            raise LocalIOError(f"{folder}: {free / 1e6:.1f} MB free, less than one frame ({frame_bytes / 1e6:.1f} MB):"
-                               f" the download failed on this computer's disk ({err}); free space, then run again "
-                               "with --resume") from None
+            raise LocalIOError(
+                f"{folder}: {free / 1e6:.1f} MB free, less than one frame ({frame_bytes / 1e6:.1f} MB):"
+                f" the download failed on this computer's disk ({err}); free space, then run again "
+                "with --resume"
+            ) from None
 
 
 def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
     """The ``stop`` event: reason and exit code. A failing event log (disk full) does not hide
     the error that stopped the run."""
-    fields = {"reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
-              "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130)}
+    fields = {
+        "reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
+        "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130),
+    }
     kind = kind or ("local_io" if isinstance(err, LocalIOError) else None)
     if kind:
         fields["kind"] = kind

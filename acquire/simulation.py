@@ -20,14 +20,26 @@ def frame_name(index: int, t: float, dark: bool) -> str:
     return f"{kind}_{index:03d}_{t:.6g}s.dng"
 
 
-def simulate_bracket(camera_name: str, scene: str, times, out: Path, darks: bool, shape, decades, x_max,
-                     seed: int, temperature, force: bool, progress: bool = True) -> dict:
+def simulate_bracket(
+    camera_name: str,
+    scene: str,
+    times,
+    out: Path,
+    darks: bool,
+    shape,
+    decades,
+    x_max,
+    seed: int,
+    temperature,
+    force: bool,
+    progress: bool = True,
+) -> dict:
     """Simulate a bracket into ``out``; return a description of what was written."""
     from tqdm import tqdm
 
+    from hdrcap import __version__
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
-    from hdrcap import __version__
     from hdrcap.pipeline.io import HdrImage, atomic_output, write_exr
 
     if camera_name not in PRESETS:
@@ -51,7 +63,9 @@ def simulate_bracket(camera_name: str, scene: str, times, out: Path, darks: bool
     if clash and not force:
         raise HdrcapError(f"{clash[0]}: exists; use --force to overwrite (or choose another --out)")
     written = {"frames": [], "darks": []}
-    for (i, t, d), path in tqdm(list(zip(plan, targets)), desc="simulate", unit="frame", disable=None if progress else True):
+    for (_i, t, d), path in tqdm(
+        list(zip(plan, targets)), desc="simulate", unit="frame", disable=None if progress else True
+    ):
         cam.capture_to(path, t, dark=d, overwrite=force)
         written["darks" if d else "frames"].append(str(path))
     params = spec.nominal_params(temperature)
@@ -98,8 +112,16 @@ CALIBRATION_SET = {
 }
 
 
-def simulate_calibration_set(camera_name: str, out: Path, shape, seed: int, temperature, force: bool,
-                             progress: bool = True, plan: dict | None = None) -> dict:
+def simulate_calibration_set(
+    camera_name: str,
+    out: Path,
+    shape,
+    seed: int,
+    temperature,
+    force: bool,
+    progress: bool = True,
+    plan: dict | None = None,
+) -> dict:
     """Write a full calibration series of the simulated camera into ``out`` (DNG files) and
     ``calibration_set.json`` (file lists per kind and the true parameters)."""
     from tqdm import tqdm
@@ -131,14 +153,22 @@ def simulate_calibration_set(camera_name: str, out: Path, shape, seed: int, temp
     out.mkdir(parents=True, exist_ok=True)
     cam = SimulatedCamera(spec, np.full(shape, X), seed=seed, temperature=temperature)
     files: dict[str, list[str]] = {"bias": [], "saturation": [], "flat": [], "dark": []}
-    for (kind, t, dark), path in tqdm(list(zip(shots, names)), desc="calibration set", unit="frame",
-                                      disable=None if progress else True):
+    for (kind, t, dark), path in tqdm(
+        list(zip(shots, names)), desc="calibration set", unit="frame", disable=None if progress else True
+    ):
         cam.capture_to(path, t, dark=dark, overwrite=force)
         files["flat" if kind == "ptc" else kind].append(str(path))
-    desc = {"camera": camera_name, "seed": seed, "shape": list(shape), "temperature": temperature,
-            "irradiance": X, "true_params": nominal.to_dict(), "plan": {k: list(v) if isinstance(v, tuple) else v
-                                                                          for k, v in cfg.items()},
-            "files": files, "n_frames": len(shots)}
+    desc = {
+        "camera": camera_name,
+        "seed": seed,
+        "shape": list(shape),
+        "temperature": temperature,
+        "irradiance": X,
+        "true_params": nominal.to_dict(),
+        "plan": {k: list(v) if isinstance(v, tuple) else v for k, v in cfg.items()},
+        "files": files,
+        "n_frames": len(shots),
+    }
     with atomic_output(out / "calibration_set.json", force=force) as tmp:
         tmp.write_text(json.dumps(desc, indent=2))
     return desc

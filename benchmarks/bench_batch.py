@@ -57,8 +57,12 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=16)
     ap.add_argument("--mpix", type=float, default=4.0)
-    ap.add_argument("--configs", nargs="+", default=["1x2", "1x1", "2x1"],
-                    help="WORKERSxTHREADS: local workers and merge-kernel threads per worker")
+    ap.add_argument(
+        "--configs",
+        nargs="+",
+        default=["1x2", "1x1", "2x1"],
+        help="WORKERSxTHREADS: local workers and merge-kernel threads per worker",
+    )
     args = ap.parse_args(argv)
 
     import xarray as xr
@@ -66,8 +70,14 @@ def main(argv=None) -> dict:
     from hdrcap.acquire.batch import BatchSettings, calibration_identity, find_runs, merge_run, run_batch
 
     settings = BatchSettings(calibration=None, camera="camera-B", calibration_id=calibration_identity(None, "camera-B"))
-    out: dict = {"runs": args.runs, "mpix": args.mpix, "shape": list(_shape(args.mpix)), "cpus": os.cpu_count(),
-                 "load_before": [round(x, 2) for x in os.getloadavg()], "configs": {}}
+    out: dict = {
+        "runs": args.runs,
+        "mpix": args.mpix,
+        "shape": list(_shape(args.mpix)),
+        "cpus": os.cpu_count(),
+        "load_before": [round(x, 2) for x in os.getloadavg()],
+        "configs": {},
+    }
     with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
         root = Path(tmp)
         t0 = time.perf_counter()
@@ -83,11 +93,20 @@ def main(argv=None) -> dict:
             ds = xr.open_zarr(archive)
             identical = ds.sizes["run"] == args.runs and all(
                 np.array_equal(ds[k].isel(run=i).values, ref[k], equal_nan=True)
-                for i in range(ds.sizes["run"]) for k in ref)
-            out["configs"][cfg] = {"workers": w, "threads_per_worker": th, "seconds": round(wall, 2),
-                                   "runs_per_s": round(args.runs / wall, 3), "committed": len(report.committed),
-                                   "failed": len(report.failed), "merge_s_summed": round(report.merge_seconds, 2),
-                                   "commit_s": round(report.commit_seconds, 2), "bit_identical": bool(identical)}
+                for i in range(ds.sizes["run"])
+                for k in ref
+            )
+            out["configs"][cfg] = {
+                "workers": w,
+                "threads_per_worker": th,
+                "seconds": round(wall, 2),
+                "runs_per_s": round(args.runs / wall, 3),
+                "committed": len(report.committed),
+                "failed": len(report.failed),
+                "merge_s_summed": round(report.merge_seconds, 2),
+                "commit_s": round(report.commit_seconds, 2),
+                "bit_identical": bool(identical),
+            }
     sec = {k: v["seconds"] for k, v in out["configs"].items()}
     if {"1x1", "2x1"} <= set(sec):  # scaling: one run per core at a time, 1 worker vs 2
         out["speedup_2x1_over_1x1"] = round(sec["1x1"] / sec["2x1"], 3)

@@ -67,12 +67,26 @@ def run_measured(cmd, env=None, cwd=None) -> dict:
         report = Path(tmp) / "report.json"
         out, err = Path(tmp) / "out", Path(tmp) / "err"
         with open(out, "w") as fo, open(err, "w") as fe:
-            subprocess.run([sys.executable, "-c", _LAUNCHER, json.dumps([str(c) for c in cmd]),
-                            json.dumps(dict(os.environ if env is None else env)), str(report)],
-                           stdout=fo, stderr=fe, cwd=cwd, check=False)
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-c",
+                    _LAUNCHER,
+                    json.dumps([str(c) for c in cmd]),
+                    json.dumps(dict(os.environ if env is None else env)),
+                    str(report),
+                ],
+                stdout=fo,
+                stderr=fe,
+                cwd=cwd,
+                check=False,
+            )
         stdout, stderr = out.read_text().strip(), err.read_text().strip()
-        res = json.loads(report.read_text()) if report.exists() else {"returncode": -1, "wall_seconds": None,
-                                                                      "peak_rss_mb": None}
+        res = (
+            json.loads(report.read_text())
+            if report.exists()
+            else {"returncode": -1, "wall_seconds": None, "peak_rss_mb": None}
+        )
     return res | {"stdout": stdout.splitlines()[-1] if stdout else "", "stderr": stderr[-400:]}
 
 
@@ -98,16 +112,30 @@ def simulate(work: Path, shape) -> dict:
     cam = SimulatedCamera(spec, make_scene("hdr", shape, 4.0, 2e5), seed=1)
     frames = [cam.capture_to(work / f"frame_{i}.dng", t) for i, t in enumerate(TIMES)]
     darks = [cam.capture_to(work / f"dark_{i}.dng", t, dark=True) for i, t in enumerate(TIMES)]
-    cal = Calibration(spec.nominal_params(), prnu=cam.sensor.prnu.astype(np.float32),
-                      dark_current_map=cam.sensor.dark_current_map().astype(np.float32))
+    cal = Calibration(
+        spec.nominal_params(),
+        prnu=cam.sensor.prnu.astype(np.float32),
+        dark_current_map=cam.sensor.dark_current_map().astype(np.float32),
+    )
     cal_path = save_calibration(work / "calibration.npz", cal, force=True)
     return {"frames": frames, "darks": darks, "calibration": cal_path}
 
 
 def hdrcap_cmd(sim: dict, out: Path) -> list:
     exe = Path(sys.executable).with_name("hdrcap")
-    return [exe if exe.exists() else "hdrcap", "merge", *sim["frames"], "--darks", *sim["darks"], "--calibration",
-            sim["calibration"], "-o", out, "--force", "--json"]
+    return [
+        exe if exe.exists() else "hdrcap",
+        "merge",
+        *sim["frames"],
+        "--darks",
+        *sim["darks"],
+        "--calibration",
+        sim["calibration"],
+        "-o",
+        out,
+        "--force",
+        "--json",
+    ]
 
 
 def compare_commands(sim: dict, work: Path, repeats: int, with_hdrmerge: bool) -> dict:
@@ -132,10 +160,13 @@ def compare_commands(sim: dict, work: Path, repeats: int, with_hdrmerge: bool) -
     for tool in tools:
         ok = [r for r in runs[tool] if r["returncode"] == 0]
         best = min(ok, key=lambda r: r["wall_seconds"]) if ok else runs[tool][-1]
-        out[tool] = {"best_seconds": best["wall_seconds"] if ok else None,
-                     "all_seconds": [round(r["wall_seconds"], 3) for r in runs[tool]],
-                     "peak_rss_mb": max(r["peak_rss_mb"] for r in runs[tool]),
-                     "returncode": best["returncode"], "stderr": best["stderr"] if not ok else ""}
+        out[tool] = {
+            "best_seconds": best["wall_seconds"] if ok else None,
+            "all_seconds": [round(r["wall_seconds"], 3) for r in runs[tool]],
+            "peak_rss_mb": max(r["peak_rss_mb"] for r in runs[tool]),
+            "returncode": best["returncode"],
+            "stderr": best["stderr"] if not ok else "",
+        }
     if out.get("hdrmerge", {}).get("best_seconds") and out["hdrcap"]["best_seconds"]:
         out["ratio_hdrcap_to_hdrmerge"] = out["hdrcap"]["best_seconds"] / out["hdrmerge"]["best_seconds"]
     return out
@@ -162,8 +193,9 @@ def time_parts(sim: dict, repeats: int) -> dict:
     parts["read_seconds"], frames = _best(lambda: [pio.read_frame(p) for p in paths], repeats)
     parts["read_and_touch_seconds"], _ = _best(lambda: [int(pio.read_frame(p).data.max()) for p in paths], repeats)
     parts["read_libraw_seconds"], _ = _best(lambda: [pio._libraw_decode(Path(p)) for p in paths], repeats)
-    parts["check_frames_seconds"], _ = _best(lambda: (pio.check_frames(frames[:6]),
-                                                      pio.check_frames(frames[6:], "dark frame")), repeats)
+    parts["check_frames_seconds"], _ = _best(
+        lambda: (pio.check_frames(frames[:6]), pio.check_frames(frames[6:], "dark frame")), repeats
+    )
     cal = load_calibration(sim["calibration"])
     values, darks = [f.data for f in frames[:6]], [f.data for f in frames[6:]]
     times = [f.exposure_time for f in frames[:6]]
@@ -176,8 +208,11 @@ def time_parts(sim: dict, repeats: int) -> dict:
     return parts, image
 
 
-EXR_VARIANTS = {"float32 x3": {}, "sigma half": {"sigma": "half"}, "sigma half, nexp uint": {"sigma": "half",
-                                                                                            "nexp": "uint"}}
+EXR_VARIANTS = {
+    "float32 x3": {},
+    "sigma half": {"sigma": "half"},
+    "sigma half, nexp uint": {"sigma": "half", "nexp": "uint"},
+}
 
 
 def exr_table(image, repeats: int) -> dict:
@@ -191,14 +226,18 @@ def exr_table(image, repeats: int) -> dict:
         for comp in pio.EXR_COMPRESSIONS:
             for label, prec in EXR_VARIANTS.items():
                 try:
-                    sec, _ = _best(partial(pio.write_exr, path, image, force=True, compression=comp, precision=prec),
-                                   repeats)
+                    sec, _ = _best(
+                        partial(pio.write_exr, path, image, force=True, compression=comp, precision=prec), repeats
+                    )
                 except ValueError as err:
                     table[f"{comp}, {label}"] = {"error": str(err)}
                     continue
                 read_sec, _ = _best(partial(pio.read_exr, path), 1)
-                table[f"{comp}, {label}"] = {"write_seconds": round(sec, 3), "read_seconds": round(read_sec, 3),
-                                             "megabytes": round(path.stat().st_size / 1e6, 1)}
+                table[f"{comp}, {label}"] = {
+                    "write_seconds": round(sec, 3),
+                    "read_seconds": round(read_sec, 3),
+                    "megabytes": round(path.stat().st_size / 1e6, 1),
+                }
         for threads in (1, 2):
             sec, _ = _best(partial(pio.write_exr, path, image, force=True, threads=threads), repeats)
             table[f"zip, float32 x3, {threads} thread(s)"] = {"write_seconds": round(sec, 3)}
@@ -222,8 +261,15 @@ def main(argv=None) -> int:
         return 0 if ensure_hdrmerge() else 1
     with_hdrmerge = not args.no_hdrmerge and shutil.which("hdrmerge") is not None
     shape = shape_for(args.mpix)
-    report = {"mpix": args.mpix, "shape": list(shape), "cpu_count": os.cpu_count(), "frames": len(TIMES),
-              "darks": len(TIMES), "calibration": "PRNU and dark-current maps", "exr": "default (zip, float32)"}
+    report = {
+        "mpix": args.mpix,
+        "shape": list(shape),
+        "cpu_count": os.cpu_count(),
+        "frames": len(TIMES),
+        "darks": len(TIMES),
+        "calibration": "PRNU and dark-current maps",
+        "exr": "default (zip, float32)",
+    }
     if not args.no_hdrmerge and not with_hdrmerge:
         report["hdrmerge"] = "not on PATH: run with --setup"
     with tempfile.TemporaryDirectory(prefix="bench_command_") as tmp:

@@ -64,24 +64,29 @@ def main(argv=None) -> int:
         cpu.append(time.process_time() - c0)
     med = statistics.median(times)
     mpx = args.width * args.height / 1e6
-    print(json.dumps({
-        "benchmark": "denoise",
-        "width": args.width,
-        "height": args.height,
-        "mpixel": mpx,
-        "settings": settings.to_dict(),
-        "numba_threads": numba.get_num_threads(),
-        "cpu_count": os.cpu_count(),
-        "warmup_s": round(warm, 3),
-        "runs_s": [round(t, 3) for t in times],
-        "median_s": round(med, 3),
-        "mpixel_per_s": round(mpx / med, 2),
-        "cpu_s_median": round(statistics.median(cpu), 3),
-        "load_average_1min": round(os.getloadavg()[0], 2),
-        "note": "wall time of the full pipeline.denoise.denoise call (validation, allocation, kernel); "
+    print(
+        json.dumps(
+            {
+                "benchmark": "denoise",
+                "width": args.width,
+                "height": args.height,
+                "mpixel": mpx,
+                "settings": settings.to_dict(),
+                "numba_threads": numba.get_num_threads(),
+                "cpu_count": os.cpu_count(),
+                "warmup_s": round(warm, 3),
+                "runs_s": [round(t, 3) for t in times],
+                "median_s": round(med, 3),
+                "mpixel_per_s": round(mpx / med, 2),
+                "cpu_s_median": round(statistics.median(cpu), 3),
+                "load_average_1min": round(os.getloadavg()[0], 2),
+                "note": "wall time of the full pipeline.denoise.denoise call (validation, allocation, kernel); "
                 "cpu_s is the process CPU time over all threads: cpu_s / threads is the wall time to expect "
                 "on an otherwise idle machine",
-    }, sort_keys=True))
+            },
+            sort_keys=True,
+        )
+    )
     return 0
 
 

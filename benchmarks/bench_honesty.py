@@ -47,12 +47,19 @@ SATURATIONS = ("threshold", "probabilistic")
 def _frames(sensor, X, t, n, rng, kind, dark=False):
     """n simulated RawFrames (lazily, as a camera delivers them)."""
     for i in range(n):
-        yield RawFrame(sensor.expose(X, t, dark=dark, rng=rng), t, path=f"{kind}_{i:03d}",
-                       white_level=sensor.spec.white_level)
+        yield RawFrame(
+            sensor.expose(X, t, dark=dark, rng=rng), t, path=f"{kind}_{i:03d}", white_level=sensor.spec.white_level
+        )
 
 
-def estimated_calibration(sensor: SimulatedSensor, rng: np.random.Generator, n_bias: int = 2, n_flats: int = 16,
-                          dark_times=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0), n_per_dark: int = 2):
+def estimated_calibration(
+    sensor: SimulatedSensor,
+    rng: np.random.Generator,
+    n_bias: int = 2,
+    n_flats: int = 16,
+    dark_times=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0),
+    n_per_dark: int = 2,
+):
     """A calibration estimated from simulated frames of ``sensor`` (Sec. 6), never its truth.
 
     Parameters
@@ -80,9 +87,13 @@ def estimated_calibration(sensor: SimulatedSensor, rng: np.random.Generator, n_b
         for t in dark_times:
             yield from _frames(sensor, 0.0, t, n_per_dark, rng, f"dark{t:g}", dark=True)
 
-    return calibrate(_frames(sensor, 0.0, 1e-4, n_bias, rng, "bias", dark=True),
-                     _frames(sensor, X, 10 * t_flat, 1, rng, "sat"), _frames(sensor, X, t_flat, n_flats, rng, "flat"),
-                     darks(), white_level=spec.white_level)
+    return calibrate(
+        _frames(sensor, 0.0, 1e-4, n_bias, rng, "bias", dark=True),
+        _frames(sensor, X, 10 * t_flat, 1, rng, "sat"),
+        _frames(sensor, X, t_flat, n_flats, rng, "flat"),
+        darks(),
+        white_level=spec.white_level,
+    )
 
 
 def clip_scene(spec, shape, times, rng) -> np.ndarray:
@@ -119,8 +130,12 @@ def k_of_nearest_clip(sensor, X, times, v_sat) -> np.ndarray:
 def _stats(z: np.ndarray, zg: np.ndarray) -> dict[str, Any]:
     if z.size < 20:
         return {"n": int(z.size), "mean": None, "std": None, "mean_gain_referred": None}
-    return {"n": int(z.size), "mean": round(float(z.mean()), 3), "std": round(float(z.std()), 3),
-            "mean_gain_referred": round(float(zg.mean()), 3)}
+    return {
+        "n": int(z.size),
+        "mean": round(float(z.mean()), 3),
+        "std": round(float(z.std()), 3),
+        "mean_gain_referred": round(float(zg.mean()), 3),
+    }
 
 
 def z_table(z, zg, X, k, ok) -> dict[str, Any]:
@@ -143,12 +158,17 @@ def _bracket(sensor, X, rng):
     """Light frames and dark frames per strategy, simulated once per camera."""
     lights = [sensor.expose(X, t, rng=rng) for t in TIMES]
     matched = [sensor.expose(X, t, dark=True, rng=rng) for t in TIMES]
-    masters = [np.mean([sensor.expose(X, t, dark=True, rng=rng) for _ in range(N_MASTER)], axis=0).astype(np.float32)
-               for t in TIMES]
+    masters = [
+        np.mean([sensor.expose(X, t, dark=True, rng=rng) for _ in range(N_MASTER)], axis=0).astype(np.float32)
+        for t in TIMES
+    ]
     tref = np.mean([sensor.expose(X, T_REF, dark=True, rng=rng) for _ in range(N_MASTER)], axis=0).astype(np.float32)
-    return lights, {"matched": (matched, {}), "master": (masters, {"dark_strategy": "master", "n_dark": N_MASTER}),
-                    "master@t_ref": (tref, {"n_dark": N_MASTER, "master_dark_time": T_REF}),
-                    "model": (None, {"dark_strategy": "model"})}
+    return lights, {
+        "matched": (matched, {}),
+        "master": (masters, {"dark_strategy": "master", "n_dark": N_MASTER}),
+        "master@t_ref": (tref, {"n_dark": N_MASTER, "master_dark_time": T_REF}),
+        "model": (None, {"dark_strategy": "model"}),
+    }
 
 
 def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, Any]:
@@ -179,17 +199,26 @@ def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, 
 
 def honesty(size: int = 192, seeds=(1,), oracle_times: bool = False, cameras=CAMERAS) -> dict[str, Any]:
     """The honesty table (see the module docstring); seeds pooled."""
-    result: dict[str, Any] = {"settings": {"size": size, "seeds": list(seeds), "times_s": list(TIMES),
-                                           "n_master": N_MASTER, "t_ref_s": T_REF, "oracle_times": oracle_times,
-                                           "calibration": "estimated: 2 bias, 1 saturation, 16 flats, "
-                                                          "darks at 1-32 s x 2"}}
+    result: dict[str, Any] = {
+        "settings": {
+            "size": size,
+            "seeds": list(seeds),
+            "times_s": list(TIMES),
+            "n_master": N_MASTER,
+            "t_ref_s": T_REF,
+            "oracle_times": oracle_times,
+            "calibration": "estimated: 2 bias, 1 saturation, 16 flats, darks at 1-32 s x 2",
+        }
+    }
     for cam in cameras:
         pooled: dict[tuple, list] = {}
         for seed in seeds:
             for key, arrays in run_camera(cam, size, seed, oracle_times).items():
                 pooled.setdefault(key, []).append(arrays)
-        result[cam] = {f"{s} {sat}": z_table(*(np.concatenate([r[i].ravel() for r in rows]) for i in range(5)))
-                       for (s, sat), rows in pooled.items()}
+        result[cam] = {
+            f"{s} {sat}": z_table(*(np.concatenate([r[i].ravel() for r in rows]) for i in range(5)))
+            for (s, sat), rows in pooled.items()
+        }
     return result
 
 
@@ -205,9 +234,12 @@ def markdown(result: dict[str, Any]) -> str:
     for part, title in (("decades", "irradiance decade, e-/s (|k| > 3)"), ("k_bands", "band of k")):
         first = next(iter(result[c] for c in result if c != "settings"))
         cols = list(next(iter(first.values()))[part])
-        lines += [f"z mean / z spread (z mean with the estimated gain's common error removed) per {title}:", "",
-                  "| camera | darks | saturation | " + " | ".join(cols) + " |",
-                  "|---|---|---|" + "---|" * len(cols)]
+        lines += [
+            f"z mean / z spread (z mean with the estimated gain's common error removed) per {title}:",
+            "",
+            "| camera | darks | saturation | " + " | ".join(cols) + " |",
+            "|---|---|---|" + "---|" * len(cols),
+        ]
         for cam, rows in result.items():
             if cam == "settings":
                 continue

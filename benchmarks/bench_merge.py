@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import TIMES, shape_for
+from bench_command import TIMES, shape_for  # noqa: E402  (after the path set-up above)
 
 
 def _frames(shape, seed=0):
@@ -80,17 +80,26 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mpix", type=float, default=24.0, help="megapixels per frame (default 24)")
     ap.add_argument("--iterations", type=int, default=3, help="iterations per photosite (>= 3)")
-    ap.add_argument("--no-hdrmerge", action="store_true",
-                    help="ignored (HDRMerge is compared in bench_command.py); accepted for run_all.py")
+    ap.add_argument(
+        "--no-hdrmerge",
+        action="store_true",
+        help="ignored (HDRMerge is compared in bench_command.py); accepted for run_all.py",
+    )
     args = ap.parse_args(argv)
     shape = shape_for(args.mpix)
-    import hdrcap.pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
     import numba
     from numba.core import config
 
-    report = {"mpix": args.mpix, "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
-              "vector_width": "512-bit (prefer-256-bit lifted)" if (config.CPU_FEATURES or "").endswith(
-                  "-prefer-256-bit") else "numba default"}
+    import hdrcap.pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
+
+    report = {
+        "mpix": args.mpix,
+        "cpu_count": os.cpu_count(),
+        "numba_threads": numba.get_num_threads(),
+        "vector_width": "512-bit (prefer-256-bit lifted)"
+        if (config.CPU_FEATURES or "").endswith("-prefer-256-bit")
+        else "numba default",
+    }
     report["kernel"] = bench_kernel(shape, max(3, args.iterations))
     print(json.dumps(report, indent=1))
 

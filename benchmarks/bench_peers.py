@@ -52,7 +52,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import run_measured
+from bench_command import run_measured  # noqa: E402  (after the path set-up above)
 
 WORK = REPO / "benchmarks" / "_work"
 DEFAULT_VENV = WORK / "venv"
@@ -115,8 +115,9 @@ def setup_venv(venv: Path) -> None:
     """Create the peers' venv and install them (pip); install HDRMerge with apt-get when root."""
     if not (venv / "bin" / "python").exists():
         subprocess.check_call([sys.executable, "-m", "venv", str(venv)])
-    subprocess.check_call([str(venv / "bin" / "python"), "-m", "pip", "install", "-q", "opencv-python-headless",
-                           "colour-hdri"])
+    subprocess.check_call(
+        [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", "opencv-python-headless", "colour-hdri"]
+    )
     if shutil.which("hdrmerge") is None:
         if os.geteuid() == 0:
             subprocess.call(["apt-get", "install", "-y", "hdrmerge"])
@@ -127,6 +128,7 @@ def setup_venv(venv: Path) -> None:
 def simulate(work: Path, camera: str, shape, seed: int):
     """Write the DNG bracket + darks and 16-bit linear TIFFs; return paths, truth and sensor."""
     import tifffile
+
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
     from hdrcap.mock_camera.scenes import make_scene
@@ -156,12 +158,21 @@ def simulate(work: Path, camera: str, shape, seed: int):
     from hdrcap.pipeline.calibration import save_calibration
     from hdrcap.pipeline.params import Calibration
 
-    maps = Calibration(p, prnu=cam.sensor.prnu.astype(np.float32),
-                       dark_current_map=cam.sensor.dark_current_map().astype(np.float32))
+    maps = Calibration(
+        p, prnu=cam.sensor.prnu.astype(np.float32), dark_current_map=cam.sensor.dark_current_map().astype(np.float32)
+    )
     save_calibration(work / "calibration_maps.npz", maps, force=True)
     save_calibration(work / "calibration_nominal.npz", Calibration(p), force=True)
-    return {"files": files, "darks": darks, "tiffs": tiffs, "times": times, "truth": scene, "spec": spec,
-            "params": p, "sensor": cam.sensor}
+    return {
+        "files": files,
+        "darks": darks,
+        "tiffs": tiffs,
+        "times": times,
+        "truth": scene,
+        "spec": spec,
+        "params": p,
+        "sensor": cam.sensor,
+    }
 
 
 def scale_fit(y: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> float:
@@ -175,10 +186,18 @@ def scale_fit(y: np.ndarray, truth: np.ndarray, valid: np.ndarray) -> float:
 #: given, and the same options for the in-memory merge call.
 HDRCAP_ROWS = {
     "hdrcap ML merge (PRNU + dark maps)": ("calibration_maps.npz", [], True, {}),
-    "hdrcap ML merge (maps, probabilistic saturation)": ("calibration_maps.npz", ["--saturation", "probabilistic"],
-                                                         True, {"saturation": "probabilistic"}),
-    "hdrcap ML merge (maps, no dark frames: model darks)": ("calibration_maps.npz", [], False,
-                                                            {"dark_strategy": "model"}),
+    "hdrcap ML merge (maps, probabilistic saturation)": (
+        "calibration_maps.npz",
+        ["--saturation", "probabilistic"],
+        True,
+        {"saturation": "probabilistic"},
+    ),
+    "hdrcap ML merge (maps, no dark frames: model darks)": (
+        "calibration_maps.npz",
+        [],
+        False,
+        {"dark_strategy": "model"},
+    ),
     "hdrcap ML merge (nominal scalars)": ("calibration_nominal.npz", [], True, {}),
 }
 
@@ -192,18 +211,41 @@ def run_hdrcap(name: str, sim: dict, work: Path) -> dict:
     exe = Path(sys.executable).with_name("hdrcap")
     exr = work / f"hdrcap_{len(flags)}_{with_darks}_{calib}.exr"
     darks = ["--darks", *sim["darks"]] if with_darks else []
-    r = run_measured([exe if exe.exists() else "hdrcap", "merge", *sim["files"], *darks, "--calibration",
-                      work / calib, *flags, "-o", exr, "--force", "--json"])
+    r = run_measured(
+        [
+            exe if exe.exists() else "hdrcap",
+            "merge",
+            *sim["files"],
+            *darks,
+            "--calibration",
+            work / calib,
+            *flags,
+            "-o",
+            exr,
+            "--force",
+            "--json",
+        ]
+    )
     r["whole_command_seconds"] = r["wall_seconds"]
     if r["returncode"] == 0:
         np.save(work / f"{exr.stem}.npy", read_exr(exr).channels["irradiance"].astype(np.float64))
         r["output"] = f"{exr.stem}.npy"
-    mem = run_measured([sys.executable, "-c", RUN_HDRCAP, json.dumps([sim["files"], sim["darks"], str(work / calib),
-                                                                      options]), str(REPO)])
+    mem = run_measured(
+        [
+            sys.executable,
+            "-c",
+            RUN_HDRCAP,
+            json.dumps([sim["files"], sim["darks"], str(work / calib), options]),
+            str(REPO),
+        ]
+    )
     if mem["returncode"] == 0 and mem["stdout"]:
         got = json.loads(mem["stdout"])
-        r.update(in_memory_merge_seconds=got["merge_seconds"], first_call_seconds=got["first_call_seconds"],
-                 method=got.get("method"))
+        r.update(
+            in_memory_merge_seconds=got["merge_seconds"],
+            first_call_seconds=got["first_call_seconds"],
+            method=got.get("method"),
+        )
     return r
 
 
@@ -248,10 +290,24 @@ PEER_SCRIPTS = {
 }
 
 #: Columns of the printed table; every timing column is the same work for every tool.
-TABLE_COLUMNS = ("mean_snr_db", "min_snr_db", "lowest_decade_mean_snr_db", "mean_efficiency", "min_efficiency",
-                 "whole_command_seconds", "whole_command_seconds_per_megapixel", "peak_rss_mb",
-                 "in_memory_merge_seconds", "in_memory_merge_seconds_per_megapixel", "first_call_seconds",
-                 "scale_fit", "version", "method", "error", "nonfinite_pixels")
+TABLE_COLUMNS = (
+    "mean_snr_db",
+    "min_snr_db",
+    "lowest_decade_mean_snr_db",
+    "mean_efficiency",
+    "min_efficiency",
+    "whole_command_seconds",
+    "whole_command_seconds_per_megapixel",
+    "peak_rss_mb",
+    "in_memory_merge_seconds",
+    "in_memory_merge_seconds_per_megapixel",
+    "first_call_seconds",
+    "scale_fit",
+    "version",
+    "method",
+    "error",
+    "nonfinite_pixels",
+)
 
 
 def accuracy(results: dict, sim: dict, work: Path, bins: int) -> dict:
@@ -260,8 +316,9 @@ def accuracy(results: dict, sim: dict, work: Path, bins: int) -> dict:
 
     truth, sensor = sim["truth"], sim["sensor"]
     edges = log_bins(truth, bins)
-    bound = bound_variance(truth, sim["times"], sim["params"], a=sensor.prnu, D=sensor.dark_current_map(),
-                           dark="matched")
+    bound = bound_variance(
+        truth, sim["times"], sim["params"], a=sensor.prnu, D=sensor.dark_current_map(), dark="matched"
+    )
     valid = np.isfinite(bound)
     curves = {}
     for name, r in results.items():
@@ -275,9 +332,17 @@ def accuracy(results: dict, sim: dict, work: Path, bins: int) -> dict:
         snr = np.array([v for v in res["snr_db"] if v is not None])
         eff = np.array([v for v in res["efficiency"] if v is not None])
         lowest = [v for v in res["snr_db"][: max(1, bins // 4)] if v is not None]
-        r.update({"scale_fit": s, "mean_snr_db": float(snr.mean()), "min_snr_db": float(snr.min()),
-                  "lowest_decade_mean_snr_db": float(np.mean(lowest)), "mean_efficiency": float(eff.mean()),
-                  "min_efficiency": float(eff.min()), "nonfinite_pixels": int((~np.isfinite(y)).sum())})
+        r.update(
+            {
+                "scale_fit": s,
+                "mean_snr_db": float(snr.mean()),
+                "min_snr_db": float(snr.min()),
+                "lowest_decade_mean_snr_db": float(np.mean(lowest)),
+                "mean_efficiency": float(eff.mean()),
+                "min_efficiency": float(eff.min()),
+                "nonfinite_pixels": int((~np.isfinite(y)).sum()),
+            }
+        )
     return curves
 
 
@@ -321,11 +386,25 @@ def main(argv=None) -> int:
     mp = truth.size / 1e6
     table = table_rows(results, mp)
     bound_snr = [v for v in next(iter(curves.values()))["bound_snr_db"] if v is not None] if curves else []
-    out = {"camera": args.camera, "size": args.size, "megapixels": mp, "exposure_times": sim["times"],
-           "irradiance_range": [float(truth.min()), float(truth.max())], "seed": args.seed,
-           "bound_mean_snr_db": float(np.mean(bound_snr)) if bound_snr else None, "table": table,
-           "curves": {k: {"center": v["center"], "snr_db": v["snr_db"], "efficiency": v["efficiency"],
-                          "bound_snr_db": v["bound_snr_db"]} for k, v in curves.items()}}
+    out = {
+        "camera": args.camera,
+        "size": args.size,
+        "megapixels": mp,
+        "exposure_times": sim["times"],
+        "irradiance_range": [float(truth.min()), float(truth.max())],
+        "seed": args.seed,
+        "bound_mean_snr_db": float(np.mean(bound_snr)) if bound_snr else None,
+        "table": table,
+        "curves": {
+            k: {
+                "center": v["center"],
+                "snr_db": v["snr_db"],
+                "efficiency": v["efficiency"],
+                "bound_snr_db": v["bound_snr_db"],
+            }
+            for k, v in curves.items()
+        },
+    }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "peers.json").write_text(json.dumps(out, indent=1))
     if curves:
@@ -340,8 +419,14 @@ def plot(curves: dict, path: Path, title: str) -> None:
     fig, ax = new_figure(figsize=(7.0, 4.2))
     first = next(iter(curves.values()))
     c = np.asarray(first["center"])
-    ax.plot(c, np.array([np.nan if v is None else v for v in first["bound_snr_db"]], float), color="k", lw=2.4,
-            alpha=0.3, label="bound 1/Σw")
+    ax.plot(
+        c,
+        np.array([np.nan if v is None else v for v in first["bound_snr_db"]], float),
+        color="k",
+        lw=2.4,
+        alpha=0.3,
+        label="bound 1/Σw",
+    )
     for name, r in curves.items():
         ax.plot(c, np.array([np.nan if v is None else v for v in r["snr_db"]], float), lw=1.2, label=name)
     ax.set_xscale("log")

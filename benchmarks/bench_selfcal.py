@@ -49,8 +49,16 @@ def sensor_spec():
     """The simulated 14-bit sensor (ADC clips before the full well)."""
     from hdrcap.mock_camera.sensor import SensorSpec
 
-    return SensorSpec(name="sim-14bit", g=GAIN, mu_R=512.0, sigma2_R=9.0, bits=14,
-                      full_well=1.1 * (16383 - 512) / GAIN, iso=200, model="Simulated 14-bit")
+    return SensorSpec(
+        name="sim-14bit",
+        g=GAIN,
+        mu_R=512.0,
+        sigma2_R=9.0,
+        bits=14,
+        full_well=1.1 * (16383 - 512) / GAIN,
+        iso=200,
+        model="Simulated 14-bit",
+    )
 
 
 def simulate(work: Path, shape, seed: int) -> dict:
@@ -137,21 +145,33 @@ def main(argv=None) -> int:
     results = {"hdrcap (no calibration)": {"seconds": r["wall_seconds"], "snr_db_per_decade": {}}}
     s = scale_fit(y, truth, valid & (y > 0))
     results["hdrcap (no calibration)"].update(
-        scale_fit=s, snr_db_per_decade=per_decade(s * y, truth, valid),
+        scale_fit=s,
+        snr_db_per_decade=per_decade(s * y, truth, valid),
         snr_db_per_decade_no_fit=per_decade(y, truth, valid),
         z_spread_per_decade=z_spread(img, sim["sensor"].prnu * truth, truth),
-        gain={"estimated": sc["gain"]["value"], "stderr": sc["gain"]["stderr"], "true": sim["spec"].g,
-              "relative_error": sc["gain"]["value"] / sim["spec"].g - 1},
-        read_noise_variance={"estimated": sc["read_noise_variance"]["value"],
-                             "stderr": sc["read_noise_variance"]["stderr"], "true": sim["spec"].sigma2_R})
+        gain={
+            "estimated": sc["gain"]["value"],
+            "stderr": sc["gain"]["stderr"],
+            "true": sim["spec"].g,
+            "relative_error": sc["gain"]["value"] / sim["spec"].g - 1,
+        },
+        read_noise_variance={
+            "estimated": sc["read_noise_variance"]["value"],
+            "stderr": sc["read_noise_variance"]["stderr"],
+            "true": sim["spec"].sigma2_R,
+        },
+    )
     if ensure_hdrmerge():
         h = run_hdrmerge({"files": sim["files"]}, work, truth.shape)
         if h.get("output"):
             yh = read_hdrmerge(work / "hdrmerge.dng")
             ok = np.isfinite(yh) & (yh > 0)
             sh = scale_fit(yh, truth, ok)
-            results["HDRMerge"] = {"seconds": h["wall_seconds"], "scale_fit": sh,
-                                   "snr_db_per_decade": per_decade(sh * yh, truth, np.isfinite(yh))}
+            results["HDRMerge"] = {
+                "seconds": h["wall_seconds"],
+                "scale_fit": sh,
+                "snr_db_per_decade": per_decade(sh * yh, truth, np.isfinite(yh)),
+            }
         else:
             results["HDRMerge"] = {"error": h.get("error") or h.get("stderr")}
     mine = results["hdrcap (no calibration)"]["snr_db_per_decade"]

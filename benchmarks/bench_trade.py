@@ -75,8 +75,9 @@ def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bin
     for r in range(reps):
         rng = np.random.default_rng([seed, 2000 + r])
         frames, darks = simulate_bracket_arrays(setup, rng)
-        masters = [np.mean([setup.sensor.expose(truth, t, dark=True, rng=rng) for _ in range(N_MASTER)], axis=0)
-                   for t in times]
+        masters = [
+            np.mean([setup.sensor.expose(truth, t, dark=True, rng=rng) for _ in range(N_MASTER)], axis=0) for t in times
+        ]
         brackets.append((frames, darks, masters))
     p = calib.params
     edges = log_bins(truth, n_bins)
@@ -91,8 +92,14 @@ def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bin
         d = {"matched": darks, "master": masters, "model": None}[dark_kind]
         return merge_arrays(vals, times, calib, darks=d, **opts)
 
-    out = {"camera": camera, "shape": list(shape), "reps": reps, "v_sat": p.v_sat, "exposure_times": times,
-           "configs": {}}
+    out = {
+        "camera": camera,
+        "shape": list(shape),
+        "reps": reps,
+        "v_sat": p.v_sat,
+        "exposure_times": times,
+        "configs": {},
+    }
     mp = truth.size / 1e6
     ref = None
     for name, cfg in CONFIGS.items():
@@ -114,9 +121,12 @@ def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bin
         capture = sum(times) + {"matched": sum(times), "master": 0.0, "model": 0.0}[cfg[1]]
         row = {
             "seconds_per_megapixel": float(np.median(secs)) / mp,
-            "mean_efficiency": float(eff.mean()), "min_efficiency": float(eff.min()),
-            "mean_snr_db": float(snr.mean()), "max_abs_bias": float(np.abs(bias).max()),
-            "mean_abs_bias": float(np.abs(bias).mean()), "z_std": float(z.std()),
+            "mean_efficiency": float(eff.mean()),
+            "min_efficiency": float(eff.min()),
+            "mean_snr_db": float(snr.mean()),
+            "max_abs_bias": float(np.abs(bias).max()),
+            "mean_abs_bias": float(np.abs(bias).mean()),
+            "z_std": float(z.std()),
             "capture_seconds_per_bracket": capture,
             "note": "master darks: 16 frames per exposure time, captured once and reused" if cfg[1] == "master" else "",
         }
@@ -130,15 +140,23 @@ def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bin
 
 def markdown(all_results: list[dict]) -> str:
     cams = [r["camera"] for r in all_results]
-    head = "| setting | " + " | ".join(f"{c}: s/MP | {c}: eff. mean (min) | {c}: max bias | {c}: z std" for c in cams) + " |"
+    head = (
+        "| setting | "
+        + " | ".join(f"{c}: s/MP | {c}: eff. mean (min) | {c}: max bias | {c}: z std" for c in cams)
+        + " |"
+    )
     sep = "|---|" + "---|---|---|---|" * len(cams)
     lines = [head, sep]
     for name in all_results[0]["configs"]:
         cells = []
         for r in all_results:
             row = r["configs"][name]
-            cells += [f"{row['seconds_per_megapixel']:.2f}", f"{row['mean_efficiency']:.3f} ({row['min_efficiency']:.2f})",
-                      f"{100 * row['max_abs_bias']:.2f} %", f"{row['z_std']:.2f}"]
+            cells += [
+                f"{row['seconds_per_megapixel']:.2f}",
+                f"{row['mean_efficiency']:.3f} ({row['min_efficiency']:.2f})",
+                f"{100 * row['max_abs_bias']:.2f} %",
+                f"{row['z_std']:.2f}",
+            ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

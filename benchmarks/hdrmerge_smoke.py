@@ -45,23 +45,58 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         sim = Path(tmp) / "sim"
-        subprocess.run([sys.executable, "-m", "hdrcap", "simulate", "--camera", args.camera, "--size", args.size,
-                        "--out", str(sim), "--json"], check=True, cwd=REPO, capture_output=True,
-                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "hdrcap",
+                "simulate",
+                "--camera",
+                args.camera,
+                "--size",
+                args.size,
+                "--out",
+                str(sim),
+                "--json",
+            ],
+            check=True,
+            cwd=REPO,
+            capture_output=True,
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
+        )
         frames = sorted(glob.glob(str(sim / "frame_*.dng")))
         out = Path(tmp) / "hdrmerge.dng"
         t0 = time.perf_counter()
-        proc = subprocess.run([exe, "-o", str(out), *frames], capture_output=True, text=True,
-                              env=dict(os.environ, QT_QPA_PLATFORM="offscreen"))
+        proc = subprocess.run(
+            [exe, "-o", str(out), *frames],
+            capture_output=True,
+            text=True,
+            env=dict(os.environ, QT_QPA_PLATFORM="offscreen"),
+        )
         seconds = time.perf_counter() - t0
-        result = {"peer": "hdrmerge", "camera": args.camera, "size": args.size, "n_frames": len(frames),
-                  "exit_status": proc.returncode, "seconds": round(seconds, 3), "output_exists": out.is_file(),
-                  "stderr_tail": proc.stderr.strip().splitlines()[-3:]}
+        result = {
+            "peer": "hdrmerge",
+            "camera": args.camera,
+            "size": args.size,
+            "n_frames": len(frames),
+            "exit_status": proc.returncode,
+            "seconds": round(seconds, 3),
+            "output_exists": out.is_file(),
+            "stderr_tail": proc.stderr.strip().splitlines()[-3:],
+        }
         if out.is_file():
             with rawpy.imread(str(out)) as raw:
                 data = np.asarray(raw.raw_image_visible, dtype=np.float64)
-                result.update({"opens_in_rawpy": True, "shape": list(data.shape), "finite": bool(np.isfinite(data).all()),
-                               "min": float(data.min()), "max": float(data.max()), "white_level": int(raw.white_level)})
+                result.update(
+                    {
+                        "opens_in_rawpy": True,
+                        "shape": list(data.shape),
+                        "finite": bool(np.isfinite(data).all()),
+                        "min": float(data.min()),
+                        "max": float(data.max()),
+                        "white_level": int(raw.white_level),
+                    }
+                )
     print(json.dumps(result))
     return 0 if result.get("opens_in_rawpy") else 1
 

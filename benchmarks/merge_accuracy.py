@@ -22,10 +22,14 @@ def _figures(mc):
     X, err, sig, nexp, bound = mc["X"], mc["err"], mc["sigma"], mc["nexp"], mc["bound"]
     sel = np.isfinite(bound) & (X / np.sqrt(bound) > 10 ** (3 / 20)) & (nexp > 0)
     zb, z = err[sel] / np.sqrt(bound[sel]), err[sel] / sig[sel]
-    return {"n": int(sel.sum()), "bias_in_sd": round(float(zb.mean()), 4),
-            "mse_over_bound": round(float(np.mean(zb**2)), 4), "z_std": round(float(z.std()), 4),
-            "beyond_6_sigma": int(np.sum(np.abs(z) > 6)),
-            "flagged_with_usable_exposure": int(np.sum(np.isfinite(bound) & (nexp == 0)))}
+    return {
+        "n": int(sel.sum()),
+        "bias_in_sd": round(float(zb.mean()), 4),
+        "mse_over_bound": round(float(np.mean(zb**2)), 4),
+        "z_std": round(float(z.std()), 4),
+        "beyond_6_sigma": int(np.sum(np.abs(z) > 6)),
+        "flagged_with_usable_exposure": int(np.sum(np.isfinite(bound) & (nexp == 0))),
+    }
 
 
 def main(argv=None):
@@ -41,7 +45,8 @@ def main(argv=None):
     for dark in ("master", "model"):
         out[f"camera-A {dark}"] = _figures(T._monte_carlo("camera-A", dark, seeds=seeds))
     out["camera-A matched probabilistic"] = _figures(
-        T._monte_carlo("camera-A", "matched", seeds=seeds, saturation="probabilistic"))
+        T._monte_carlo("camera-A", "matched", seeds=seeds, saturation="probabilistic")
+    )
     from conftest import emva_dataset_dir
 
     emva = emva_dataset_dir()
@@ -56,13 +61,17 @@ def main(argv=None):
         res = []
         for k in (0, 1):
             pairs = [load(s, k) for s in chosen]
-            res.append(merge_arrays([b for b, _ in pairs], [s.exposure_time for s in chosen], cal,
-                                    [d for _, d in pairs]))
+            res.append(
+                merge_arrays([b for b, _ in pairs], [s.exposure_time for s in chosen], cal, [d for _, d in pairs])
+            )
         a, b = res
         ok = (a.nexp > 0) & (b.nexp > 0)
         z = (a.irradiance[ok] - b.irradiance[ok]) / np.hypot(a.sigma[ok], b.sigma[ok])
-        out["emva1288 snap_001 vs snap_002"] = {"gain_DN_per_e": round(g, 4), "z_mean": round(float(z.mean()), 4),
-                                                "z_std": round(float(z.std()), 4)}
+        out["emva1288 snap_001 vs snap_002"] = {
+            "gain_DN_per_e": round(g, 4),
+            "z_mean": round(float(z.mean()), 4),
+            "z_std": round(float(z.std()), 4),
+        }
     print(json.dumps(out, indent=1))
 
 

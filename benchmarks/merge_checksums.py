@@ -26,8 +26,16 @@ def _digest(res) -> str:
     h = hashlib.sha256()
     for a in (res.irradiance, res.sigma, res.nexp):
         h.update(np.ascontiguousarray(a).tobytes())
-    h.update(repr((res.info["iterations_used_mean"], res.info["iterations_used_max"],
-                   res.info["saturated_everywhere"], res.info["weights_precision"])).encode())
+    h.update(
+        repr(
+            (
+                res.info["iterations_used_mean"],
+                res.info["iterations_used_max"],
+                res.info["saturated_everywhere"],
+                res.info["weights_precision"],
+            )
+        ).encode()
+    )
     return h.hexdigest()[:16]
 
 
@@ -49,12 +57,25 @@ def checksums() -> dict[str, str]:
     run("matched_4_scalar", frames[:4], TIMES[:4], scalar, darks[:4], prnu="scalar")
     run("model_maps", frames, TIMES, cal)
     run("model_scalar", frames, TIMES, scalar)
-    run("master_one", frames, TIMES, cal, np.mean(darks[:3], axis=0).astype(np.float32), n_dark=3,
-        master_dark_time=0.004)
+    run(
+        "master_one",
+        frames,
+        TIMES,
+        cal,
+        np.mean(darks[:3], axis=0).astype(np.float32),
+        n_dark=3,
+        master_dark_time=0.004,
+    )
     run("master_per_exposure", frames, TIMES, cal, darks, dark_strategy="master", n_dark=4)
-    run("mixed", frames, TIMES, cal, [d if i % 3 else None for i, d in enumerate(darks)],
-        dark_strategies=["model" if i % 3 == 0 else ("master" if i % 3 == 1 else "matched")
-                         for i in range(len(TIMES))], n_darks=[None, 5, None] * 2 + [None])
+    run(
+        "mixed",
+        frames,
+        TIMES,
+        cal,
+        [d if i % 3 else None for i, d in enumerate(darks)],
+        dark_strategies=["model" if i % 3 == 0 else ("master" if i % 3 == 1 else "matched") for i in range(len(TIMES))],
+        n_darks=[None, 5, None] * 2 + [None],
+    )
     run("probabilistic", frames, TIMES, cal, darks, saturation="probabilistic")
     run("no_rule", frames, TIMES, cal, darks, saturation_sigmas=0.0, iterations=5, tolerance=0.0)
     run("float_frames", [f.astype(np.float32) for f in frames], TIMES, cal, darks)

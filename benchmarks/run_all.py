@@ -62,8 +62,9 @@ def run(name: str, args: list[str], timeout: float) -> dict:
     """Run one benchmark script; return its JSON result with exit status and wall time."""
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, str(HERE / f"{name}.py"), *args], capture_output=True, text=True,
-                              timeout=timeout)
+        proc = subprocess.run(
+            [sys.executable, str(HERE / f"{name}.py"), *args], capture_output=True, text=True, timeout=timeout
+        )
     except subprocess.TimeoutExpired:
         return {"status": "timeout", "seconds": round(time.perf_counter() - t0, 1), "args": args}
     out = {"status": proc.returncode, "seconds": round(time.perf_counter() - t0, 1), "args": args}

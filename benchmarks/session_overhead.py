@@ -34,12 +34,19 @@ def main() -> None:
                 cam.capture(d / f"raw{shape[0]}_{i}.dng")
             camera_only = (time.perf_counter() - t0) / len(plan.frames)
             t0 = time.perf_counter()
-            CaptureSession(MockCamera("camera-B", make_scene("hdr", shape), seed=0), d / f"run{shape[0]}", plan,
-                           progress=False).run()
+            CaptureSession(
+                MockCamera("camera-B", make_scene("hdr", shape), seed=0), d / f"run{shape[0]}", plan, progress=False
+            ).run()
             session = (time.perf_counter() - t0) / len(plan.frames)
-            out.append({"shape": list(shape), "frames": len(plan.frames), "camera_only_ms": round(camera_only * 1e3, 1),
-                        "session_ms": round(session * 1e3, 1),
-                        "overhead_ms": round((session - camera_only) * 1e3, 1)})
+            out.append(
+                {
+                    "shape": list(shape),
+                    "frames": len(plan.frames),
+                    "camera_only_ms": round(camera_only * 1e3, 1),
+                    "session_ms": round(session * 1e3, 1),
+                    "overhead_ms": round((session - camera_only) * 1e3, 1),
+                }
+            )
     print(json.dumps({"benchmark": "session_overhead", "results": out}))
 
 

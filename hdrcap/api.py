@@ -264,8 +264,7 @@ def _as_calibration(calibration: CalibrationLike | None) -> Calibration:
         return camera_calibration(calibration)
     if isinstance(calibration, (str, os.PathLike)):
         if not Path(calibration).exists():
-            raise InputError(f"{calibration}: no such calibration file, and not a camera preset "
-                             f"({', '.join(PRESETS)})")
+            raise InputError(f"{calibration}: no such calibration file, and not a camera preset ({', '.join(PRESETS)})")
         return load_calibration(calibration)
     raise InputError(f"calibration: expected a Calibration, a file or a preset name, got {type(calibration).__name__}")
 
@@ -401,9 +400,12 @@ def calibrate(
         raise InputError(f"gain_method must be auto, pairs or ptc, got {gain_method!r}")
     meta: dict[str, Any] = {}
     groups: dict[str, Iterator[RawFrame] | None] = {}
-    for what, items, times, need in (("bias frame", bias, bias_times, False),
-                                     ("saturation frame", saturation, saturation_times, False),
-                                     ("flat", flats, flat_times, True), ("dark frame", darks, dark_times, True)):
+    for what, items, times, need in (
+        ("bias frame", bias, bias_times, False),
+        ("saturation frame", saturation, saturation_times, False),
+        ("flat", flats, flat_times, True),
+        ("dark frame", darks, dark_times, True),
+    ):
         lst = _items(items, what + "s")
         groups[what] = _stream(lst, _times(times, len(lst), what), what, meta, need) if lst else None
     if groups["bias frame"] is None:
@@ -411,8 +413,16 @@ def calibrate(
     if groups["flat"] is None:
         raise InputError("no flat fields given: the gain g and the PRNU map need flat fields")
     prov = {"hdrcap_version": __version__, **dict(provenance or {})}
-    calib = _calibrate(groups["bias frame"], groups["saturation frame"], groups["flat"], groups["dark frame"],
-                       clip=clip, gain_method=gain_method, white_level=white_level, provenance=prov)
+    calib = _calibrate(
+        groups["bias frame"],
+        groups["saturation frame"],
+        groups["flat"],
+        groups["dark frame"],
+        clip=clip,
+        gain_method=gain_method,
+        white_level=white_level,
+        provenance=prov,
+    )
     # What the files said (camera, ISO, white level), as `hdrcap calibrate` records it.
     return with_file_metadata(calib, meta, white_level)
 
@@ -420,8 +430,9 @@ def calibrate(
 # --------------------------------------------------------------------------- merge
 
 
-def _merge_metadata(result: Any, frames: Sequence[RawFrame], calibration: Calibration,
-                    cfa_pattern: str | None) -> dict[str, Any]:
+def _merge_metadata(
+    result: Any, frames: Sequence[RawFrame], calibration: Calibration, cfa_pattern: str | None
+) -> dict[str, Any]:
     """The EXR header of a merge (the attributes ``hdrcap merge`` writes)."""
     from hdrcap import __version__
 
@@ -518,8 +529,9 @@ def merge(
     if darks is not None:
         ditems = _items(darks, "darks")
         if dark_times is None and len(ditems) == len(fr):
-            dts: list[float | None] = [None if isinstance(d, (str, os.PathLike, RawFrame)) else f.exposure_time
-                                       for d, f in zip(ditems, fr)]
+            dts: list[float | None] = [
+                None if isinstance(d, (str, os.PathLike, RawFrame)) else f.exposure_time for d, f in zip(ditems, fr)
+            ]
         else:
             dts = _times(dark_times, len(ditems), "dark frame")
         dk = [_frame(x, t, "dark frame", i) for i, (x, t) in enumerate(zip(ditems, dts))] or None
@@ -597,8 +609,12 @@ def plan(
         raise InputError(f"target_snr_db must be a number of dB, got {target_snr_db!r}") from None
     if not np.isfinite(target):
         raise InputError(f"target_snr_db must be a finite number of dB, got {target_snr_db!r}")
-    known = set(inspect.signature(plan_exposures).parameters) - {"calibration", "irradiance", "target_snr_db",
-                                                                 "allowed_times"}
+    known = set(inspect.signature(plan_exposures).parameters) - {
+        "calibration",
+        "irradiance",
+        "target_snr_db",
+        "allowed_times",
+    }
     unknown = sorted(set(options) - known)
     if unknown:
         raise InputError(f"unknown plan option {unknown[0]!r}; choose from {', '.join(sorted(known))}")
@@ -659,8 +675,14 @@ def denoise(
         raise InputError(f"denoise: expected an HdrResult (from merge or read_exr), got {type(hdr).__name__}")
     if layout not in ("auto", "cfa", "mono"):
         raise InputError(f"layout must be auto, cfa or mono, got {layout!r}")
-    settings = _dn.settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma,
-                                         _dn.layout_from_metadata(hdr.metadata) if layout == "auto" else layout)
+    settings = _dn.settings_from_options(
+        method,
+        range_scale,
+        bandwidth,
+        radius,
+        spatial_sigma,
+        _dn.layout_from_metadata(hdr.metadata) if layout == "auto" else layout,
+    )
     res = _dn.denoise(hdr.irradiance, hdr.sigma, hdr.nexp, settings, name="denoise input")
     meta = dict(hdr.metadata)
     meta["sigma"] = _dn.SIGMA_MEANING
@@ -758,11 +780,22 @@ def simulate(
         prnu=sensor.prnu.astype(np.float32),
         dark_current_map=sensor.dark_current_map(temperature).astype(np.float32),
         bias_map=bias,
-        provenance={"source": f"simulated {camera}, seed {seed}: the sensor's true model", "camera": camera,
-                    "temperature": temperature},
+        provenance={
+            "source": f"simulated {camera}, seed {seed}: the sensor's true model",
+            "camera": camera,
+            "temperature": temperature,
+        },
     )
-    return Simulation(frames=frames, times=tuple(cam.actual_time(t) for t in ts), truth=X, calibration=calib,
-                      darks=dark, camera=camera, cfa_pattern=spec.cfa, seed=int(seed))
+    return Simulation(
+        frames=frames,
+        times=tuple(cam.actual_time(t) for t in ts),
+        truth=X,
+        calibration=calib,
+        darks=dark,
+        camera=camera,
+        cfa_pattern=spec.cfa,
+        seed=int(seed),
+    )
 
 
 # --------------------------------------------------------------------------- files
@@ -790,8 +823,9 @@ def read_exr(path: str | os.PathLike[str]) -> HdrResult:
     return HdrResult.from_image(_read(path), str(path))
 
 
-def write_exr(path: str | os.PathLike[str], hdr: HdrResult | HdrImage, *, force: bool = False,
-              compression: str = "zip") -> Path:
+def write_exr(
+    path: str | os.PathLike[str], hdr: HdrResult | HdrImage, *, force: bool = False, compression: str = "zip"
+) -> Path:
     """Write a result as a float32 EXR, atomically (an existing file is kept unless ``force``).
 
     Parameters

@@ -35,14 +35,20 @@ class SimulatedCamera:
         Serial number written into the files.
     """
 
-    def __init__(self, spec: SensorSpec, scene: np.ndarray, seed: int = 0, temperature: float | None = None,
-                 serial: str | None = None):
+    def __init__(
+        self,
+        spec: SensorSpec,
+        scene: np.ndarray,
+        seed: int = 0,
+        temperature: float | None = None,
+        serial: str | None = None,
+    ):
         self.spec = spec
         self.scene = np.asarray(scene, dtype=np.float64)
         self.sensor = SimulatedSensor(spec, self.scene.shape, seed=seed)
         self.temperature = temperature
         self.serial = serial or f"SIM{seed:06d}"
-        self._clock = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
+        self._clock = _dt.datetime.now(_dt.UTC).replace(microsecond=0)
 
     @staticmethod
     def actual_time(t: float) -> float:

@@ -101,7 +101,7 @@ class MockFaults:
     renumber_rate: float = 0.0
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "MockFaults":
+    def from_dict(cls, d: dict[str, Any]) -> MockFaults:
         """Faults from a mapping of field names (a job file's ``[camera.faults]`` table).
 
         Raises
@@ -140,9 +140,16 @@ class MockCamera:
 
     backend = "mock"
 
-    def __init__(self, spec: SensorSpec | str, scene: np.ndarray, seed: int = 0, allowed_times=None,
-                 faults: MockFaults | None = None, temperature: float | None = None,
-                 bulb_max_s: float | None = None):
+    def __init__(
+        self,
+        spec: SensorSpec | str,
+        scene: np.ndarray,
+        seed: int = 0,
+        allowed_times=None,
+        faults: MockFaults | None = None,
+        temperature: float | None = None,
+        bulb_max_s: float | None = None,
+    ):
         if isinstance(spec, str):
             if spec not in PRESETS:
                 raise ValueError(f"unknown camera preset {spec!r}; choose from {', '.join(PRESETS)}")

@@ -156,8 +156,15 @@ def _camera_tags(ifd: _IFD, cap: _Capture, make: str, model: str, software: str,
     ifd.add(34855, _SHORT, cap.iso)
 
 
-def _dng_tags(ifd: _IFD, unique_model: str, serial: str, black_level: float, white_level: int,
-              color_matrix=None, as_shot_neutral=None) -> None:
+def _dng_tags(
+    ifd: _IFD,
+    unique_model: str,
+    serial: str,
+    black_level: float,
+    white_level: int,
+    color_matrix=None,
+    as_shot_neutral=None,
+) -> None:
     """DNG 1.4 tags: version, camera model, CFA layout, black and white levels, the colour
     matrix (XYZ to camera, default identity), the white balance (AsShotNeutral, default neutral),
     serial number and the D65 illuminant."""
@@ -264,9 +271,12 @@ def write_dng(
     """
     mosaic = _check_mosaic(mosaic)
     h, w = mosaic.shape
-    cap = _Capture(exposure=exposure_rational(exposure_time), f_number=_rational(f_number, 100),
-                   iso=min(int(iso), 65535),
-                   timestamp=(timestamp or _dt.datetime.now(_dt.timezone.utc)).strftime("%Y:%m:%d %H:%M:%S"))
+    cap = _Capture(
+        exposure=exposure_rational(exposure_time),
+        f_number=_rational(f_number, 100),
+        iso=min(int(iso), 65535),
+        timestamp=(timestamp or _dt.datetime.now(_dt.UTC)).strftime("%Y:%m:%d %H:%M:%S"),
+    )
     ifd0 = _IFD()
     _image_tags(ifd0, h, w, cfa)
     _camera_tags(ifd0, cap, make, model, software, description)

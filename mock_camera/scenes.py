@@ -164,6 +164,7 @@ def parse_size(text: str | None, default=(768, 1024)) -> tuple[int, int]:
     except ValueError:
         raise InputError(f"--size must look like 1024x768, got {text!r}") from None
     if w < 22 or h < 22 or w % 2 or h % 2:
-        raise InputError(f"--size needs even width and height >= 22 (whole Bayer tiles; LibRaw reads nothing "
-                         f"smaller), got {text!r}")
+        raise InputError(
+            f"--size needs even width and height >= 22 (whole Bayer tiles; LibRaw reads nothing smaller), got {text!r}"
+        )
     return h, w

@@ -21,8 +21,16 @@ from pathlib import Path
 from .errors import InputError
 from .params import Calibration
 
-__all__ = ["LibraryEntry", "library_dir", "normalise_model", "entry_name", "store_calibration", "library_entries",
-           "find_calibration", "remove_calibration"]
+__all__ = [
+    "LibraryEntry",
+    "library_dir",
+    "normalise_model",
+    "entry_name",
+    "store_calibration",
+    "library_entries",
+    "find_calibration",
+    "remove_calibration",
+]
 
 _SUFFIX = ".cal"
 
@@ -124,8 +132,14 @@ def library_entries() -> list[LibraryEntry]:
     return [e for e in (_parse(p) for p in sorted(root.glob("*" + _SUFFIX))) if e is not None]
 
 
-def store_calibration(calibration: Calibration, *, camera: str | None = None, serial: str | None = None,
-                      iso: float | None = None, force: bool = False) -> Path:
+def store_calibration(
+    calibration: Calibration,
+    *,
+    camera: str | None = None,
+    serial: str | None = None,
+    iso: float | None = None,
+    force: bool = False,
+) -> Path:
     """Save ``calibration`` into the library under its camera model, serial and ISO.
 
     Parameters
@@ -159,15 +173,21 @@ def store_calibration(calibration: Calibration, *, camera: str | None = None, se
 
 
 def _map_shape(calibration: Calibration) -> tuple[int, int] | None:
-    for m in (calibration.prnu, calibration.bias_map, calibration.dark_current_map, calibration.saturation_map,
-              calibration.defect_map):
+    for m in (
+        calibration.prnu,
+        calibration.bias_map,
+        calibration.dark_current_map,
+        calibration.saturation_map,
+        calibration.defect_map,
+    ):
         if m is not None:
             return tuple(m.shape)
     return None
 
 
-def find_calibration(camera: str | None, iso: float | None, shape: tuple[int, int],
-                     serial: str | None = None) -> tuple[LibraryEntry, Calibration] | None:
+def find_calibration(
+    camera: str | None, iso: float | None, shape: tuple[int, int], serial: str | None = None
+) -> tuple[LibraryEntry, Calibration] | None:
     """The library's calibration for frames of ``camera`` at ``iso`` and size ``shape``.
 
     Same normalised model and ISO (within 1 %); a calibration with maps must have the frames'

@@ -31,8 +31,7 @@ def _ptc_plot(calib: Calibration, ptc: dict[str, Any], path: Path, force: bool) 
     ax.plot(x[~used], y[~used], "o", mfc="none", color="0.5", label="not fitted")
     ax.plot(x[used], y[used], "o", color="C0", label="fitted (0-70 % of saturation)")
     xx = np.linspace(0, max(x.max(), 1), 100)
-    ax.plot(xx, p.g * xx, "-", color="C3",
-            label=f"g = {p.g:.4g} ± {calib.stderr.get('g', float('nan')):.2g} DN/e⁻")
+    ax.plot(xx, p.g * xx, "-", color="C3", label=f"g = {p.g:.4g} ± {calib.stderr.get('g', float('nan')):.2g} DN/e⁻")
     ax.set_xlabel("mean above dark μ_y − μ_y.dark (DN)")
     ax.set_ylabel("temporal variance above dark (DN²)")
     ax.set_title("Photon transfer")
@@ -72,8 +71,7 @@ def _dark_plot(calib: Calibration, series: dict[str, Any], fit: dict[str, Any], 
         if b0 is None:
             b0 = float(np.mean(lv - fit["slope_DN_per_s"] * t))
         tt = np.linspace(0, t.max(), 50)
-        ax.plot(tt, b0 + fit["slope_DN_per_s"] * tt, "-", color="C3",
-                label=f"D = {calib.params.dark_current:.3g} e⁻/s")
+        ax.plot(tt, b0 + fit["slope_DN_per_s"] * tt, "-", color="C3", label=f"D = {calib.params.dark_current:.3g} e⁻/s")
     ax.set_xlabel("exposure time (s)")
     ax.set_ylabel("mean dark value (DN)")
     ax.set_title("Dark current")

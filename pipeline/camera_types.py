@@ -154,10 +154,45 @@ class CameraGoneError(CameraError):
 #: Words of camera names that are not part of the model: company suffixes, libgphoto2's labels
 #: and the brands (EXIF writes the brand twice: Make "NIKON CORPORATION", Model "NIKON D750").
 _NOISE_WORDS = {
-    "CORPORATION", "CORP", "INC", "CO", "LTD", "COMPANY", "GMBH", "AG", "KK", "IMAGING", "OPTICAL", "ELECTRIC",
-    "DIGITAL", "CAMERA", "DSC", "PTP", "MODE", "CONTROL", "PC", "USB",
-    "NIKON", "CANON", "SONY", "FUJIFILM", "FUJI", "OLYMPUS", "OM", "PENTAX", "RICOH", "PANASONIC", "LEICA",
-    "SIGMA", "HASSELBLAD", "KODAK", "EASTMAN", "SAMSUNG", "HDRCAP", "ZWO", "QHY",
+    "CORPORATION",
+    "CORP",
+    "INC",
+    "CO",
+    "LTD",
+    "COMPANY",
+    "GMBH",
+    "AG",
+    "KK",
+    "IMAGING",
+    "OPTICAL",
+    "ELECTRIC",
+    "DIGITAL",
+    "CAMERA",
+    "DSC",
+    "PTP",
+    "MODE",
+    "CONTROL",
+    "PC",
+    "USB",
+    "NIKON",
+    "CANON",
+    "SONY",
+    "FUJIFILM",
+    "FUJI",
+    "OLYMPUS",
+    "OM",
+    "PENTAX",
+    "RICOH",
+    "PANASONIC",
+    "LEICA",
+    "SIGMA",
+    "HASSELBLAD",
+    "KODAK",
+    "EASTMAN",
+    "SAMSUNG",
+    "HDRCAP",
+    "ZWO",
+    "QHY",
 }
 
 
@@ -199,4 +234,4 @@ def same_model(a: str | None, b: str | None) -> bool:
     if not x or not y:
         return True
     short, long_ = sorted((x, y), key=len)
-    return long_[len(long_) - len(short):] == short
+    return long_[len(long_) - len(short) :] == short

@@ -90,8 +90,18 @@ class DarkLibrary:
             raise InputError(f"{self.index_path}: not a dark library of version <= {LIBRARY_VERSION}")
         return [DarkEntry(**e) for e in meta.get("entries", [])]
 
-    def add(self, data: np.ndarray, n_frames: int, *, camera: str, iso: float | None, exposure_time: float,
-            temperature: float | None = None, force: bool = False, created: str = "") -> DarkEntry:
+    def add(
+        self,
+        data: np.ndarray,
+        n_frames: int,
+        *,
+        camera: str,
+        iso: float | None,
+        exposure_time: float,
+        temperature: float | None = None,
+        force: bool = False,
+        created: str = "",
+    ) -> DarkEntry:
         """Store a master dark; an entry with the same key is replaced only with ``force``.
 
         Parameters
@@ -125,17 +135,23 @@ class DarkLibrary:
         temp = "none" if temperature is None else f"{temperature:+.1f}C"
         iso_s = "none" if iso is None else f"{iso:g}"
         fname = f"dark_{_slug(camera)}_iso{iso_s}_{exposure_time:.6g}s_{temp}.npz"
-        entry = DarkEntry(camera=camera, iso=None if iso is None else float(iso), exposure_time=float(exposure_time),
-                          temperature=None if temperature is None else float(temperature), n_frames=int(n_frames),
-                          file=fname, level=float(np.mean(data)), created=created)
+        entry = DarkEntry(
+            camera=camera,
+            iso=None if iso is None else float(iso),
+            exposure_time=float(exposure_time),
+            temperature=None if temperature is None else float(temperature),
+            n_frames=int(n_frames),
+            file=fname,
+            level=float(np.mean(data)),
+            created=created,
+        )
         with FileLock(str(self.root / ".index.lock")):
             entries = [e for e in self.entries() if e.file != fname]
             if len(entries) != len(self.entries()) and not force:
                 raise InputError(f"{self.root / fname}: a master dark with this key exists; use --force to replace it")
             meta = json.dumps({"format": LIBRARY_FORMAT, "version": LIBRARY_VERSION, **entry.__dict__})
             buf = _io.BytesIO()
-            np.savez_compressed(buf, data=np.asarray(data, np.float32),
-                                metadata=np.frombuffer(meta.encode(), np.uint8))
+            np.savez_compressed(buf, data=np.asarray(data, np.float32), metadata=np.frombuffer(meta.encode(), np.uint8))
             with atomic_output(self.root / fname, force=True, suffix=".tmp") as tmp:
                 tmp.write_bytes(buf.getvalue())
             entries.append(entry)
@@ -145,8 +161,16 @@ class DarkLibrary:
                 tmp.write_text(json.dumps(index, indent=1))
         return entry
 
-    def find(self, *, camera: str | None, iso: float | None, exposure_time: float, temperature: float | None = None,
-             temperature_tolerance: float = 1.0, rtol: float = EXPOSURE_RTOL) -> DarkEntry | None:
+    def find(
+        self,
+        *,
+        camera: str | None,
+        iso: float | None,
+        exposure_time: float,
+        temperature: float | None = None,
+        temperature_tolerance: float = 1.0,
+        rtol: float = EXPOSURE_RTOL,
+    ) -> DarkEntry | None:
         """The entry for a camera, ISO, exposure time and temperature.
 
         Parameters
@@ -189,9 +213,17 @@ class DarkLibrary:
                 best = (key, e)
         return None if best is None else best[1]
 
-    def masters(self, times, *, camera: str | None = None, iso: float | None = None,
-                temperature: float | None = None, temperature_tolerance: float = 1.0,
-                rtol: float = EXPOSURE_RTOL, load: bool = True) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
+    def masters(
+        self,
+        times,
+        *,
+        camera: str | None = None,
+        iso: float | None = None,
+        temperature: float | None = None,
+        temperature_tolerance: float = 1.0,
+        rtol: float = EXPOSURE_RTOL,
+        load: bool = True,
+    ) -> dict[float, tuple[np.ndarray | None, int, DarkEntry]]:
         """Master darks for the exposure ``times`` that the library holds, matched as in
         :meth:`find`.
 

@@ -123,8 +123,14 @@ class DarkResolver:
         Sensor temperature, degrees C, for the library search.
     """
 
-    def __init__(self, *, frames_per_dark: float | None = None, master_dark: str | None = None,
-                 library: DarkLibrary | str | None = None, temperature: float | None = None):
+    def __init__(
+        self,
+        *,
+        frames_per_dark: float | None = None,
+        master_dark: str | None = None,
+        library: DarkLibrary | str | None = None,
+        temperature: float | None = None,
+    ):
         self.frames_per_dark = frames_per_dark
         self.master_dark = master_dark
         self.library = DarkLibrary(library) if library is not None and not isinstance(library, DarkLibrary) else library
@@ -154,16 +160,18 @@ class DarkResolver:
     def add_master(self, data: np.ndarray, t: float, n_frames: float, name: str = "") -> None:
         """Add a master dark of exposure time ``t`` (s), DN, averaged from ``n_frames`` frames
         (e.g. from the dark library, loaded before a capture)."""
-        self._masters[t] = DarkSource(DarkStrategy.MASTER, np.asarray(data, np.float32), float(n_frames),
-                                      name or "dark library", "library")
+        self._masters[t] = DarkSource(
+            DarkStrategy.MASTER, np.asarray(data, np.float32), float(n_frames), name or "dark library", "library"
+        )
 
     def dark_frames(self, t: float) -> int:
         """Number of dark frames of exposure time ``t`` (s) added so far."""
         hit = self._darks.get(t)
         return 0 if hit is None else hit.count
 
-    def resolve(self, t: float, strategy: DarkStrategy | str, *, camera: str | None = None,
-                iso: float | None = None) -> DarkSource | None:
+    def resolve(
+        self, t: float, strategy: DarkStrategy | str, *, camera: str | None = None, iso: float | None = None
+    ) -> DarkSource | None:
         """The dark level that serves exposure time ``t``.
 
         Parameters

@@ -71,8 +71,9 @@ accumulating in float64.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -237,8 +238,22 @@ def _exp_neg(e):  # pragma: no cover - compiled
     """exp(-e) for 0 <= e <= 40 as (Taylor_9(exp(-e/64)))^64: max relative error 3e-7,
     exactly 1 at e = 0, and vectorisable (no libm call)."""
     u = e * (1.0 / 64.0)
-    p = 1.0 - u * (1.0 - u * (0.5 - u * (1.0 / 6 - u * (1.0 / 24 - u * (1.0 / 120 - u * (
-        1.0 / 720 - u * (1.0 / 5040 - u * (1.0 / 40320 - u * (1.0 / 362880)))))))))
+    p = 1.0 - u * (
+        1.0
+        - u
+        * (
+            0.5
+            - u
+            * (
+                1.0 / 6
+                - u
+                * (
+                    1.0 / 24
+                    - u * (1.0 / 120 - u * (1.0 / 720 - u * (1.0 / 5040 - u * (1.0 / 40320 - u * (1.0 / 362880)))))
+                )
+            )
+        )
+    )
     p *= p
     p *= p
     p *= p
@@ -309,9 +324,13 @@ def _bilateral_kernel(irr, sig, valid, spatial, stride, adaptive, scale, bandwid
 # --------------------------------------------------------------------------- API
 
 
-def check_denoise_inputs(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = None,
-                         name: str = "input", quality: ArrayLike | None = None
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def check_denoise_inputs(
+    irradiance: ArrayLike,
+    sigma: ArrayLike,
+    nexp: ArrayLike | None = None,
+    name: str = "input",
+    quality: ArrayLike | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate and convert the merge's channels for the filter.
 
     Parameters
@@ -375,9 +394,16 @@ def check_denoise_inputs(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLik
     return irr, sig, valid
 
 
-def denoise(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = None,
-            settings: DenoiseSettings | None = None, name: str = "input", *, quality: ArrayLike | None = None,
-            **options: Any) -> DenoiseResult:
+def denoise(
+    irradiance: ArrayLike,
+    sigma: ArrayLike,
+    nexp: ArrayLike | None = None,
+    settings: DenoiseSettings | None = None,
+    name: str = "input",
+    *,
+    quality: ArrayLike | None = None,
+    **options: Any,
+) -> DenoiseResult:
     """Bilateral filtering of a merged HDR image with adaptive or constant range bandwidth (Sec. 9).
 
     Parameters
@@ -420,12 +446,16 @@ def denoise(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = No
     # inside the kernel only, to keep the arithmetic finite, and restored below
     sig_k = np.where(valid, sig, np.float32(1.0)) if n_invalid else sig
     _bilateral_kernel(
-        irr, sig_k, valid.astype(np.float32), spatial,
+        irr,
+        sig_k,
+        valid.astype(np.float32),
+        spatial,
         2 if settings.layout == "cfa" else 1,
         adaptive,
         float(settings.range_scale),
         float(settings.bandwidth) if not adaptive else 1.0,
-        out, out_sig,
+        out,
+        out_sig,
     )
     if n_invalid:
         out_sig[invalid] = sig[invalid]
@@ -439,9 +469,16 @@ def denoise(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = No
     return DenoiseResult(irradiance=out, sigma=out_sig, nexp=n_out, info=info)
 
 
-def bilateral_adaptive(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = None, *,
-                       range_scale: float = DEFAULT_RANGE_SCALE, radius: int = DEFAULT_RADIUS,
-                       spatial_sigma: float = DEFAULT_SPATIAL_SIGMA, layout: str = "cfa") -> DenoiseResult:
+def bilateral_adaptive(
+    irradiance: ArrayLike,
+    sigma: ArrayLike,
+    nexp: ArrayLike | None = None,
+    *,
+    range_scale: float = DEFAULT_RANGE_SCALE,
+    radius: int = DEFAULT_RADIUS,
+    spatial_sigma: float = DEFAULT_SPATIAL_SIGMA,
+    layout: str = "cfa",
+) -> DenoiseResult:
     """Bilateral filter with range bandwidth ``range_scale * sigma_p`` at each photosite (Sec. 9).
 
     Parameters
@@ -468,9 +505,16 @@ def bilateral_adaptive(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike 
     return denoise(irradiance, sigma, nexp, settings)
 
 
-def bilateral_constant(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike | None = None, *, bandwidth: float,
-                       radius: int = DEFAULT_RADIUS, spatial_sigma: float = DEFAULT_SPATIAL_SIGMA,
-                       layout: str = "cfa") -> DenoiseResult:
+def bilateral_constant(
+    irradiance: ArrayLike,
+    sigma: ArrayLike,
+    nexp: ArrayLike | None = None,
+    *,
+    bandwidth: float,
+    radius: int = DEFAULT_RADIUS,
+    spatial_sigma: float = DEFAULT_SPATIAL_SIGMA,
+    layout: str = "cfa",
+) -> DenoiseResult:
     """Bilateral filter with one range bandwidth ``bandwidth`` (e-/s) everywhere (Fig. 8b).
 
     Parameters
@@ -494,8 +538,12 @@ def bilateral_constant(irradiance: ArrayLike, sigma: ArrayLike, nexp: ArrayLike 
     DenoiseResult
         Filtered irradiance and its propagated sigma, e-/s.
     """
-    return denoise(irradiance, sigma, nexp, DenoiseSettings("constant", DEFAULT_RANGE_SCALE, bandwidth, radius,
-                                                            spatial_sigma, layout))
+    return denoise(
+        irradiance,
+        sigma,
+        nexp,
+        DenoiseSettings("constant", DEFAULT_RANGE_SCALE, bandwidth, radius, spatial_sigma, layout),
+    )
 
 
 def normalised_mse(estimate: ArrayLike, truth: ArrayLike, mask: ArrayLike | None = None) -> float:
@@ -554,8 +602,14 @@ def layout_from_metadata(metadata: Mapping[str, Any]) -> str:
     return "mono"
 
 
-def settings_from_options(method: str, range_scale: float | None, bandwidth: float | None, radius: int | None,
-                          spatial_sigma: float | None, layout: str) -> DenoiseSettings:
+def settings_from_options(
+    method: str,
+    range_scale: float | None,
+    bandwidth: float | None,
+    radius: int | None,
+    spatial_sigma: float | None,
+    layout: str,
+) -> DenoiseSettings:
     """Filter settings from optional values (None: the default).
 
     Parameters
@@ -592,8 +646,14 @@ def settings_from_options(method: str, range_scale: float | None, bandwidth: flo
     )
 
 
-def denoise_header(settings: DenoiseSettings, result: DenoiseResult, layout_source: str, input_sigma: str,
-                   version: str, source_file: str | None = None) -> dict[str, Any]:
+def denoise_header(
+    settings: DenoiseSettings,
+    result: DenoiseResult,
+    layout_source: str,
+    input_sigma: str,
+    version: str,
+    source_file: str | None = None,
+) -> dict[str, Any]:
     """The ``denoise`` entry of a filtered image's header: what was done, with which settings.
 
     Parameters

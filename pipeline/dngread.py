@@ -210,9 +210,11 @@ def _check_layout(path: Path, page) -> None:
     need = _chunk_bytes(page)
     kind = "tiles" if page.is_tiled else "strips"
     if len(need) != len(offsets) or any(n < k for n, k in zip(counts, need)):
-        raise InputError(f"{path}: raw image data does not match its dimensions ({page.imagewidth}x"
-                         f"{page.imagelength}: {len(offsets)} {kind} of {min(counts, default=0)}.."
-                         f"{max(counts, default=0)} bytes, expected {len(need)} of {max(need, default=0)})")
+        raise InputError(
+            f"{path}: raw image data does not match its dimensions ({page.imagewidth}x"
+            f"{page.imagelength}: {len(offsets)} {kind} of {min(counts, default=0)}.."
+            f"{max(counts, default=0)} bytes, expected {len(need)} of {max(need, default=0)})"
+        )
 
 
 def _pixels(path: Path, page, mmap: bool) -> np.ndarray:
@@ -220,7 +222,8 @@ def _pixels(path: Path, page, mmap: bool) -> np.ndarray:
     h, w = page.imagelength, page.imagewidth
     offsets = page.dataoffsets
     contiguous = not page.is_tiled and all(
-        offsets[i + 1] == offsets[i] + n for i, n in enumerate(_chunk_bytes(page)[:-1]))
+        offsets[i + 1] == offsets[i] + n for i, n in enumerate(_chunk_bytes(page)[:-1])
+    )
     native = page.bitspersample == 16 and (page.parent.byteorder == "<") == (sys.byteorder == "little")
     if contiguous and native:
         if mmap:

@@ -33,11 +33,21 @@ _CFA_CODES = {"R": 0, "G": 1, "B": 2}
 #: colour matrices, camera calibrations, analog balance, white balance, forward matrices,
 #: calibration illuminants, orientation, make, model and unique camera model.
 COPIED_TAGS = {
-    271: "Make", 272: "Model", 274: "Orientation", 50708: "UniqueCameraModel",
-    50721: "ColorMatrix1", 50722: "ColorMatrix2", 50723: "CameraCalibration1", 50724: "CameraCalibration2",
-    50727: "AnalogBalance", 50728: "AsShotNeutral", 50729: "AsShotWhiteXY",
-    50778: "CalibrationIlluminant1", 50779: "CalibrationIlluminant2",
-    50964: "ForwardMatrix1", 50965: "ForwardMatrix2",
+    271: "Make",
+    272: "Model",
+    274: "Orientation",
+    50708: "UniqueCameraModel",
+    50721: "ColorMatrix1",
+    50722: "ColorMatrix2",
+    50723: "CameraCalibration1",
+    50724: "CameraCalibration2",
+    50727: "AnalogBalance",
+    50728: "AsShotNeutral",
+    50729: "AsShotWhiteXY",
+    50778: "CalibrationIlluminant1",
+    50779: "CalibrationIlluminant2",
+    50964: "ForwardMatrix1",
+    50965: "ForwardMatrix2",
 }
 
 #: Written when the source frame has no colour matrix: identity, D65, neutral white balance.
@@ -72,7 +82,7 @@ class DngFloatLayout:
     @property
     def scale(self) -> float:
         """Irradiance per stored unit (2**k)."""
-        return 2.0 ** self.exponent
+        return 2.0**self.exponent
 
 
 def dng_layout(irradiance: np.ndarray, bits: int = 32) -> DngFloatLayout:
@@ -102,8 +112,8 @@ def dng_layout(irradiance: np.ndarray, bits: int = 32) -> DngFloatLayout:
     exponent = 0
     if bits == 16 and top > _HALF_MAX / 2:
         exponent = math.ceil(math.log2(top / (_HALF_MAX / 2)))
-    white = max(1, math.ceil(top / 2.0 ** exponent))
-    if white >= 2 ** 32:
+    white = max(1, math.ceil(top / 2.0**exponent))
+    if white >= 2**32:
         raise InputError(f"float DNG: largest irradiance {top:.4g} exceeds the 32-bit WhiteLevel; use --dng-bits 16")
     return DngFloatLayout(bits, exponent, white)
 
@@ -175,8 +185,9 @@ def _dng_tags(cfa: str, layout: DngFloatLayout, colour: list[tuple]) -> list[tup
     return tags + colour
 
 
-def write_float_dng(path, image: HdrImage, *, bits: int = 32, force: bool = False,
-                    source: str | Path | None = None) -> DngFloatLayout:
+def write_float_dng(
+    path, image: HdrImage, *, bits: int = 32, force: bool = False, source: str | Path | None = None
+) -> DngFloatLayout:
     """Write the ``irradiance`` channel of ``image`` as a linear float CFA DNG.
 
     Parameters
@@ -217,14 +228,21 @@ def write_float_dng(path, image: HdrImage, *, bits: int = 32, force: bool = Fals
     colour = source_colour_tags(source) if source is not None else []
     unit = image.attrs.get("unit", "electrons per second per photosite")
     # A power of two scales a float32 exactly: the only rounding is float16's, when bits is 16.
-    stored = irr if layout.exponent == 0 else irr * np.float32(2.0 ** -layout.exponent)
+    stored = irr if layout.exponent == 0 else irr * np.float32(2.0**-layout.exponent)
     stored = stored.astype(np.float32 if bits == 32 else np.float16, copy=False)
     from hdrcap import __version__
 
     description = f"hdrcap merged irradiance: value * 2^{layout.exponent} = irradiance in {unit}"
     with atomic_output(path, force=force, suffix=".dng") as tmp:
         with tifffile.TiffWriter(tmp, bigtiff=False) as tw:
-            tw.write(stored, photometric=32803, subfiletype=0, compression=None, metadata=None,
-                     description=description, software=f"hdrcap {__version__}",
-                     extratags=_dng_tags(cfa, layout, colour))
+            tw.write(
+                stored,
+                photometric=32803,
+                subfiletype=0,
+                compression=None,
+                metadata=None,
+                description=description,
+                software=f"hdrcap {__version__}",
+                extratags=_dng_tags(cfa, layout, colour),
+            )
     return layout

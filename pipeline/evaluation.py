@@ -10,7 +10,7 @@ this module knows nothing of cameras.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -102,8 +102,15 @@ def log_bins(truth: np.ndarray, n_bins: int) -> np.ndarray:
     return edges
 
 
-def bound_variance(truth: ArrayLike, times: Sequence[float], params: SensorParams, a: ArrayLike = 1.0,
-                   D: ArrayLike | None = None, dark: str = "matched", n_dark: int = 1) -> np.ndarray:
+def bound_variance(
+    truth: ArrayLike,
+    times: Sequence[float],
+    params: SensorParams,
+    a: ArrayLike = 1.0,
+    D: ArrayLike | None = None,
+    dark: str = "matched",
+    n_dark: int = 1,
+) -> np.ndarray:
     """The practical Cramér-Rao bound 1 / sum_i w_i(X) (Eq. 12, 13) at the true irradiance.
 
     An exposure counts when its expected raw value mu_R + g t (a X + D) lies below v_sat;
@@ -135,12 +142,26 @@ def bound_variance(truth: ArrayLike, times: Sequence[float], params: SensorParam
     D = params.dark_current if D is None else D
     t = np.asarray(times, dtype=np.float64).reshape((-1,) + (1,) * X.ndim)
     expected = params.mu_R + params.g * t * (np.asarray(a) * X + np.asarray(D))
-    return merged_variance(X, np.asarray(times, dtype=np.float64), params.g, params.sigma2_R, D, a, dark,
-                           n_dark, usable=expected < params.v_sat)
+    return merged_variance(
+        X,
+        np.asarray(times, dtype=np.float64),
+        params.g,
+        params.sigma2_R,
+        D,
+        a,
+        dark,
+        n_dark,
+        usable=expected < params.v_sat,
+    )
 
 
-def snr_per_bin(estimates: np.ndarray, truth: np.ndarray, edges: np.ndarray, bound: np.ndarray | None = None,
-                valid: np.ndarray | None = None) -> dict:
+def snr_per_bin(
+    estimates: np.ndarray,
+    truth: np.ndarray,
+    edges: np.ndarray,
+    bound: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+) -> dict:
     """SNR, bias and efficiency of repeated estimates in irradiance bins (Sec. 7, Fig. 4).
 
     Errors are taken relative to the truth, e = (estimate - X) / X, so that photosites of a
@@ -203,8 +224,9 @@ def snr_per_bin(estimates: np.ndarray, truth: np.ndarray, edges: np.ndarray, bou
     return out
 
 
-def paired_difference(est_a: np.ndarray, est_b: np.ndarray, truth: np.ndarray, edges: np.ndarray,
-                      valid: np.ndarray | None = None) -> dict:
+def paired_difference(
+    est_a: np.ndarray, est_b: np.ndarray, truth: np.ndarray, edges: np.ndarray, valid: np.ndarray | None = None
+) -> dict:
     """Paired comparison of two merges of the same frames, per irradiance bin.
 
     d = e_a^2 - e_b^2 with e = (estimate - X)/X; per bin the mean of d and its standard error
@@ -273,8 +295,15 @@ def qq_data(samples: ArrayLike) -> dict:
     sd = x.std(ddof=1)
     z = (osr - x.mean()) / sd if sd > 0 else np.zeros_like(osr)
     p = float(stats.shapiro(x).pvalue) if sd > 0 else 0.0
-    return {"theoretical": osm.tolist(), "ordered": z.tolist(), "r": float(r) if sd > 0 else 0.0,
-            "shapiro_p": p, "mean": float(x.mean()), "std": float(sd), "n": int(x.size)}
+    return {
+        "theoretical": osm.tolist(),
+        "ordered": z.tolist(),
+        "r": float(r) if sd > 0 else 0.0,
+        "shapiro_p": p,
+        "mean": float(x.mean()),
+        "std": float(sd),
+        "n": int(x.size),
+    }
 
 
 def gaussianity(samples: np.ndarray, alpha: float = 0.05) -> dict:
@@ -306,13 +335,19 @@ def gaussianity(samples: np.ndarray, alpha: float = 0.05) -> dict:
     if ok.any():
         p[ok] = stats.shapiro(s[ok], axis=1).pvalue
     rate = float(np.mean(p < alpha))
-    return {"rejection_rate": rate, "rate_se_if_gaussian": float(np.sqrt(alpha * (1 - alpha) / s.shape[0])),
-            "n_pixels": int(s.shape[0]), "n_samples": int(s.shape[1]), "alpha": alpha,
-            "constant_pixels": int((~ok).sum())}
+    return {
+        "rejection_rate": rate,
+        "rate_se_if_gaussian": float(np.sqrt(alpha * (1 - alpha) / s.shape[0])),
+        "n_pixels": int(s.shape[0]),
+        "n_samples": int(s.shape[1]),
+        "alpha": alpha,
+        "constant_pixels": int((~ok).sum()),
+    }
 
 
-def weights_vs_output(params: SensorParams, X: float, methods: Sequence[str] | None = None, n: int = 64,
-                      D: float | None = None) -> dict:
+def weights_vs_output(
+    params: SensorParams, X: float, methods: Sequence[str] | None = None, n: int = 64, D: float | None = None
+) -> dict:
     """Weights of each Table 1 method against the output value at constant irradiance (Fig. 2).
 
     Exposure times are chosen so that the expected output above black, v = g t (X + D), runs

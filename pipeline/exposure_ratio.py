@@ -30,8 +30,8 @@ Frames that share no well-exposed photosites with any other keep their nominal t
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -97,8 +97,14 @@ class ExposureRatios:
 
     def to_dict(self) -> dict:
         """JSON-ready fields."""
-        return {"nominal": list(self.nominal), "effective": list(self.effective), "factors": list(self.factors),
-                "stderr": list(self.stderr), "estimated": list(self.estimated), "pairs": self.pairs}
+        return {
+            "nominal": list(self.nominal),
+            "effective": list(self.effective),
+            "factors": list(self.factors),
+            "stderr": list(self.stderr),
+            "estimated": list(self.estimated),
+            "pairs": self.pairs,
+        }
 
 
 def _pair_rate(si, vi, ti, sj, vj, tj):

@@ -171,8 +171,10 @@ def _exif_values(page, path: Path) -> dict[str, Any]:
         if 33434 in tags and "ExposureTime" in exif:
             t0 = _rational_seconds(tags[33434].value)
             if t0 is None or not math.isclose(t0, out["ExposureTime"], rel_tol=1e-6):
-                raise InputError(f"{path}: the metadata contradicts itself: ExposureTime {t0!r} s in IFD0, "
-                                 f"{out['ExposureTime']!r} s in the EXIF IFD (corrupt file)")
+                raise InputError(
+                    f"{path}: the metadata contradicts itself: ExposureTime {t0!r} s in IFD0, "
+                    f"{out['ExposureTime']!r} s in the EXIF IFD (corrupt file)"
+                )
     iso = out["ISOSpeedRatings"]
     if isinstance(iso, (tuple, list)):
         out["ISOSpeedRatings"] = iso[0] if iso else None
@@ -214,8 +216,9 @@ def _tag_complaint(message: str) -> str:
 
     m = _BAD_TAG.search(message)
     if m is None:
-        return re.sub(r"<(tifffile\.)?[\w.]+(?: \d+)?(?: @(\d+))?>", lambda k: f"at byte {k[2]}:" if k[2] else "",
-                      message).strip()
+        return re.sub(
+            r"<(tifffile\.)?[\w.]+(?: \d+)?(?: @(\d+))?>", lambda k: f"at byte {k[2]}:" if k[2] else "", message
+        ).strip()
     code, offset, reason = int(m.group(1)), int(m.group(2)), m.group(3).strip()
     name = tifffile.TIFF.TAGS.get(code, "unknown tag")
     return f"IFD entry at byte {offset} (tag {code}, {name}): {reason}"
@@ -249,8 +252,10 @@ def _refuse_impossible_size(path: Path, tif) -> None:
     except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
         return
     if need > MAX_RAW_COMPRESSION * max(stored, 1):
-        raise InputError(f"{path}: impossible raw image dimensions {page.imagewidth}x{page.imagelength} "
-                         f"({bits}-bit) for {stored} bytes of image data (corrupt file)")
+        raise InputError(
+            f"{path}: impossible raw image dimensions {page.imagewidth}x{page.imagelength} "
+            f"({bits}-bit) for {stored} bytes of image data (corrupt file)"
+        )
 
 
 def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
@@ -342,7 +347,10 @@ def _libraw_decode(path: Path) -> _Decoded:
             else:
                 cfa = None
             return _Decoded(
-                data=data, cfa=cfa, black=float(np.mean(raw.black_level_per_channel)), white=float(raw.white_level),
+                data=data,
+                cfa=cfa,
+                black=float(np.mean(raw.black_level_per_channel)),
+                white=float(raw.white_level),
                 shutter=float(other.shutter_speed) if other.shutter_speed else None,
                 iso=float(other.iso_speed) if other.iso_speed else None,
                 timestamp=other.timestamp.isoformat() if other.timestamp else None,
@@ -396,16 +404,19 @@ def _check_decoded(path: Path, dec: _Decoded) -> None:
     if not (math.isfinite(white) and 0 < white <= 65535):
         raise InputError(f"{path}: impossible white level {white!r} DN (corrupt metadata)")
     if not (math.isfinite(black) and 0 <= black < white):
-        raise InputError(f"{path}: black level {black!r} DN is not between 0 and the white level {white:g} DN "
-                         "(corrupt metadata)")
+        raise InputError(
+            f"{path}: black level {black!r} DN is not between 0 and the white level {white:g} DN (corrupt metadata)"
+        )
     if dec.cfa is not None and not any(set(dec.cfa) == colours for colours in _CFA_COLOURS):
         raise InputError(f"{path}: CFA pattern {dec.cfa!r} is not a colour filter mosaic (corrupt metadata)")
     top = adc_maximum(white)
     high = int(data.max())
     if high > top:
         n = int(np.count_nonzero(data > top))
-        raise InputError(f"{path}: {n} photosites above the white level ({high} DN > {top} DN, "
-                         f"the {top.bit_length()}-bit range of white level {white:g} DN): corrupt raw data")
+        raise InputError(
+            f"{path}: {n} photosites above the white level ({high} DN > {top} DN, "
+            f"the {top.bit_length()}-bit range of white level {white:g} DN): corrupt raw data"
+        )
 
 
 def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bool:
@@ -583,8 +594,9 @@ def _check_same_sensor(frame: RawFrame, first: RawFrame, what: str) -> None:
     if frame.white_level != first.white_level:
         raise InputError(f"{name}: white level {frame.white_level:g} DN differs from {ref} ({first.white_level:g} DN)")
     if abs((frame.black_level or 0.0) - (first.black_level or 0.0)) > BLACK_LEVEL_SPREAD * first.white_level:
-        raise InputError(f"{name}: black level {frame.black_level or 0:g} DN differs from {ref} "
-                         f"({first.black_level or 0:g} DN)")
+        raise InputError(
+            f"{name}: black level {frame.black_level or 0:g} DN differs from {ref} ({first.black_level or 0:g} DN)"
+        )
 
 
 def check_frames(frames: Iterable[RawFrame], what: str = "frame") -> list[RawFrame]:
@@ -742,8 +754,11 @@ os.umask(_UMASK)
 
 
 #: errno values of file systems without hard links (exFAT/FAT, some network and FUSE mounts).
-NO_HARD_LINKS = frozenset(e for e in (getattr(errno, n, None) for n in ("EPERM", "ENOTSUP", "EOPNOTSUPP", "ENOSYS",
-                                                                        "EMLINK", "EXDEV")) if e is not None)
+NO_HARD_LINKS = frozenset(
+    e
+    for e in (getattr(errno, n, None) for n in ("EPERM", "ENOTSUP", "EOPNOTSUPP", "ENOSYS", "EMLINK", "EXDEV"))
+    if e is not None
+)
 
 
 def place_new(src, dst) -> None:
@@ -862,8 +877,14 @@ _META_KEY = "hdrcap"
 
 
 #: EXR compression names accepted by :func:`write_exr`, and OpenEXR's constant for each.
-_EXR_CODES = {"zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION", "piz": "PIZ_COMPRESSION",
-              "zstd": "ZSTD_COMPRESSION", "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
+_EXR_CODES = {
+    "zip": "ZIP_COMPRESSION",
+    "zips": "ZIPS_COMPRESSION",
+    "piz": "PIZ_COMPRESSION",
+    "zstd": "ZSTD_COMPRESSION",
+    "rle": "RLE_COMPRESSION",
+    "none": "NO_COMPRESSION",
+}
 EXR_COMPRESSIONS = tuple(_EXR_CODES)
 
 #: Channel precisions accepted by :func:`write_exr` and their numpy dtype (EXR FLOAT, HALF,
@@ -874,7 +895,7 @@ EXR_PRECISIONS = {"float": np.float32, "half": np.float16, "uint": np.uint32, "a
 HALF_RANGE = (float(np.finfo(np.float16).tiny), float(np.finfo(np.float16).max))
 
 #: Largest relative rounding error of a value stored as half in :data:`HALF_RANGE` (2**-11).
-HALF_RELATIVE_ERROR = 2.0 ** -11
+HALF_RELATIVE_ERROR = 2.0**-11
 
 
 def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
@@ -891,8 +912,10 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
         if precision == "auto":
             precision = "half" if fits else "float"
         elif not fits:
-            raise ValueError(f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
-                             f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float")
+            raise ValueError(
+                f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
+                f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float"
+            )
     elif precision == "uint":
         whole = np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all()
         if not (whole and (arr == np.round(arr)).all()):
@@ -917,8 +940,10 @@ def as_stored(channels, precision: dict[str, str] | None = None) -> dict[str, np
         float32 arrays equal to what reading the written file gives.
     """
     precision = precision or {}
-    return {name: np.ascontiguousarray(_exr_channel(name, arr, precision.get(name, "float")), dtype=np.float32)
-            for name, arr in channels.items()}
+    return {
+        name: np.ascontiguousarray(_exr_channel(name, arr, precision.get(name, "float")), dtype=np.float32)
+        for name, arr in channels.items()
+    }
 
 
 def _set_exr_threads(openexr, threads: int | None) -> None:
@@ -929,8 +954,15 @@ def _set_exr_threads(openexr, threads: int | None) -> None:
         openexr.set_global_thread_count(threads)
 
 
-def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zip", *,
-              precision: dict[str, str] | None = None, threads: int | None = None) -> Path:
+def write_exr(
+    path,
+    image: HdrImage,
+    force: bool = False,
+    compression: str = "zip",
+    *,
+    precision: dict[str, str] | None = None,
+    threads: int | None = None,
+) -> Path:
     """Write ``image`` to ``path`` as a single-part scanline EXR, atomically.
 
     The metadata goes into one string attribute ``hdrcap`` (JSON, full precision), and the
@@ -982,8 +1014,7 @@ def write_exr(path, image: HdrImage, force: bool = False, compression: str = "zi
         if np.shape(arr) != shape:
             raise ValueError(f"channel {name!r} has shape {np.shape(arr)}, expected {shape}")
         chans[name] = _exr_channel(name, arr, precision.get(name, "float"))
-    header: dict[str, Any] = {"compression": getattr(OpenEXR, _EXR_CODES[compression]),
-                              "type": OpenEXR.scanlineimage}
+    header: dict[str, Any] = {"compression": getattr(OpenEXR, _EXR_CODES[compression]), "type": OpenEXR.scanlineimage}
     header[_META_KEY] = json.dumps(image.attrs, sort_keys=True, default=_json_default)
     for key, val in image.attrs.items():
         if isinstance(val, str):

@@ -47,14 +47,23 @@ from numba import prange
 from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 from .noise import variance_of_rate
 
-__all__ = ["merge_kernel", "first_pass_kernel", "FLOAT32_MAX", "MapArg", "FrameTable", "CameraConstants", "MapSet",
-           "StartSums", "IterationOptions", "MergeOutputs"]
+__all__ = [
+    "merge_kernel",
+    "first_pass_kernel",
+    "FLOAT32_MAX",
+    "MapArg",
+    "FrameTable",
+    "CameraConstants",
+    "MapSet",
+    "StartSums",
+    "IterationOptions",
+    "MergeOutputs",
+]
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 _FM = {"contract", "arcp", "nsz"}
 _var = numba.njit(inline="always", cache=True)(variance_of_rate)  # Var(v_i - b_i), DN^2 (Eq. 3, 5)
-
 
 
 class MapArg(NamedTuple):
@@ -297,8 +306,25 @@ def _iterate(X, FR, n, U, VSB, A2, DD, SW, SWX, s2, sat2, rule, shared, c0, c1):
     at a time with ``shared`` (one division for three samples)."""
     i = 0
     while shared and i + 3 <= n:
-        _accumulate3(X[i], _frame(FR, i), X[i + 1], _frame(FR, i + 1), X[i + 2], _frame(FR, i + 2),
-                     U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1)
+        _accumulate3(
+            X[i],
+            _frame(FR, i),
+            X[i + 1],
+            _frame(FR, i + 1),
+            X[i + 2],
+            _frame(FR, i + 2),
+            U,
+            VSB,
+            A2,
+            DD,
+            SW,
+            SWX,
+            s2,
+            sat2,
+            rule,
+            c0,
+            c1,
+        )
         i += 3
     while i < n:
         _accumulate(X[i], _frame(FR, i), U, VSB, A2, DD, SW, SWX, s2, sat2, rule, c0, c1)
@@ -692,10 +718,26 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                     inv_tg = 1.0 / (times[i] * g)
                     kind = kinds[i]
                     if kind == 0 and i + 3 <= n and kinds[i + 1] == 0 and kinds[i + 2] == 0:
-                        _load_dark3(values[i][r], darks[i][r], X[i], inv_tg,
-                                    values[i + 1][r], darks[i + 1][r], X[i + 1], 1.0 / (times[i + 1] * g),
-                                    values[i + 2][r], darks[i + 2][r], X[i + 2], 1.0 / (times[i + 2] * g),
-                                    S, CNT, IA, v_sat, c0, c1)
+                        _load_dark3(
+                            values[i][r],
+                            darks[i][r],
+                            X[i],
+                            inv_tg,
+                            values[i + 1][r],
+                            darks[i + 1][r],
+                            X[i + 1],
+                            1.0 / (times[i + 1] * g),
+                            values[i + 2][r],
+                            darks[i + 2][r],
+                            X[i + 2],
+                            1.0 / (times[i + 2] * g),
+                            S,
+                            CNT,
+                            IA,
+                            v_sat,
+                            c0,
+                            c1,
+                        )
                         i += 3
                         continue
                     if kind == 0:
@@ -709,8 +751,9 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
                         S[c] = init_sum[r, c]
                         CNT[c] = init_cnt[r, c]
-                bad = _row_start(S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, A, U, SW, SWX, v_sat, inv_gtmin, u_lo, u_hi,
-                                 c0, cp)
+                bad = _row_start(
+                    S, CNT, MU, DONE, FLAG, LB, BL, DD, IA, A, U, SW, SWX, v_sat, inv_gtmin, u_lo, u_hi, c0, cp
+                )
                 # Iterate Eq. 13 <-> Eq. 12 for the whole block at once, frames three at a time
                 # (the near-saturation rule from the second step on); one division for three
                 # samples when no variance of the block can leave the safe range.
@@ -720,7 +763,9 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                         _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, True, shared, c0, cp)
                     else:
                         _iterate(X, FR, n, U, VSB, A2, DW, SW, SWX, s2w, sat2w, False, shared, c0, cp)
-                    active, bad = _row_update(MU, SIG, SW, SWX, DONE, FLAG, ITER, A, DD, U, it, tol2, u_lo, u_hi, c0, cp)
+                    active, bad = _row_update(
+                        MU, SIG, SW, SWX, DONE, FLAG, ITER, A, DD, U, it, tol2, u_lo, u_hi, c0, cp
+                    )
                     if active == 0:
                         break
                 _row_usable(X, n, NU, c0, cp)
@@ -729,8 +774,21 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                         if FLAG[c] != 0.0:
                             continue
                         mu, sg, nu, steps, flagged = _probabilistic(
-                            values, darks, frames, camera, r, c, MU[c], math.sqrt(SIG[c]), A[c], DD[c], BL[c],
-                            MB[c], max_iter, tol)
+                            values,
+                            darks,
+                            frames,
+                            camera,
+                            r,
+                            c,
+                            MU[c],
+                            math.sqrt(SIG[c]),
+                            A[c],
+                            DD[c],
+                            BL[c],
+                            MB[c],
+                            max_iter,
+                            tol,
+                        )
                         MU[c] = mu
                         SIG[c] = sg * sg
                         ITER[c] += steps
@@ -738,8 +796,9 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                             FLAG[c] = 1.0
                         else:
                             NU[c] = nu
-                b0, bsum, bmax = _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter,
-                                             c0, c1)
+                b0, bsum, bmax = _row_output(
+                    r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter, c0, c1
+                )
                 n0 += b0
                 isum += bsum
                 imax = max(imax, bmax)

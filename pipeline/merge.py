@@ -31,21 +31,30 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .io import RawFrame, check_exposure_time, check_frames
 from .darks import DarkResolver, default_strategy
+from .errors import InputError
 from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios
+from .io import RawFrame, check_exposure_time, check_frames
 from .noise import DarkStrategy, calibration_variance, dark_factor, variance_core
 from .params import DEFECT_BITS, Calibration
 from .times import same_exposure
 
-__all__ = ["MergeResult", "MergeOptions", "MergeAccumulator", "merge_arrays", "merge_frames", "as_strategy",
-           "QUALITY_BITS", "quality_channel"]
+__all__ = [
+    "MergeResult",
+    "MergeOptions",
+    "MergeAccumulator",
+    "merge_arrays",
+    "merge_frames",
+    "as_strategy",
+    "QUALITY_BITS",
+    "quality_channel",
+]
 
 #: Bits of the per-photosite ``quality`` channel (uint8; 0 a trusted measurement): the
 #: calibration's defect bits (:data:`pipeline.params.DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
@@ -159,7 +168,9 @@ class MergeOptions:
         object.__setattr__(self, "dark_strategy", as_strategy(self.dark_strategy))
         if not (np.isfinite(self.n_dark) and self.n_dark >= 1):
             raise InputError(f"n_dark (frames in the master dark) must be >= 1, got {self.n_dark!r}")
-        if self.master_dark_time is not None and not (np.isfinite(self.master_dark_time) and self.master_dark_time >= 0):
+        if self.master_dark_time is not None and not (
+            np.isfinite(self.master_dark_time) and self.master_dark_time >= 0
+        ):
             raise InputError(f"master dark exposure time must be finite and >= 0, got {self.master_dark_time!r}")
         if self.exposure_times not in EXPOSURE_TIME_MODES:
             raise InputError(f"exposure_times must be effective or nominal, got {self.exposure_times!r}")
@@ -234,6 +245,7 @@ def _map_arg(arr, shape, scalar, what):
 # The weights of the iterations in float32 where that is provably safe (see
 # MergeAccumulator._single_precision_safe); False forces float64 (tests compare the two).
 SINGLE_PRECISION_WEIGHTS = True
+
 
 def _extrema(map_arg) -> tuple[float, float]:
     """(min, max) of a kernel map argument (array, is_map, scalar); non-finite values give
@@ -370,8 +382,20 @@ class MergeAccumulator:
             from .kernels import MapArg, first_pass_kernel
 
             base = (self.master_dark.astype(np.float32, copy=False), True, 0.0) if kind == 2 else self._bias
-            first_pass_kernel(v, d if d is not None else np.zeros((1, 1), np.float32), kind, MapArg(*base), coef, t,
-                              float(p.g), float(p.v_sat), MapArg(*self._D), MapArg(*self._a), self._sum, self._cnt)
+            first_pass_kernel(
+                v,
+                d if d is not None else np.zeros((1, 1), np.float32),
+                kind,
+                MapArg(*base),
+                coef,
+                t,
+                float(p.g),
+                float(p.v_sat),
+                MapArg(*self._D),
+                MapArg(*self._a),
+                self._sum,
+                self._cnt,
+            )
         self._values.append(v)
         self._darks.append(d)
         self._times.append(t)
@@ -399,7 +423,7 @@ class MergeAccumulator:
             Group size n per frame (>= 1).
         """
         sizes = []
-        for i, (src, t) in enumerate(zip(self._shares, self._times)):
+        for src, t in zip(self._shares, self._times):
             if src is None:
                 sizes.append(1)
                 continue
@@ -483,7 +507,15 @@ class MergeAccumulator:
         w_hi = (tg_hi * a_hi) ** 2 / s2
         w_lo = (tg_lo * a_lo) ** 2 / var_hi
         n = len(values)
-        bounds = [x_max, u_max, var_hi, w_hi * n, w_hi * n * x_max, (tg_hi * a_hi) ** 2, abs(v_sat) + abs(b_lo) + abs(b_hi)]
+        bounds = [
+            x_max,
+            u_max,
+            var_hi,
+            w_hi * n,
+            w_hi * n * x_max,
+            (tg_hi * a_hi) ** 2,
+            abs(v_sat) + abs(b_lo) + abs(b_hi),
+        ]
         small = [s2, w_lo, (tg_lo * a_lo) ** 2]
         return bool(np.all(np.isfinite(bounds + small)) and max(bounds) <= 1e30 and min(small) >= 1e-30)
 
@@ -525,9 +557,15 @@ class MergeAccumulator:
         win = self._subsample()
         dm = self.calibration.defect_map
         ratios = estimate_exposure_ratios(
-            [v[win] for v in self._values], [self._dark_level(i, win) for i in range(len(self._values))],
-            self._times, float(p.g), float(p.sigma2_R), float(p.v_sat), dark_factors=self._ks,
-            exclude=None if dm is None else np.asarray(dm)[win] != 0)
+            [v[win] for v in self._values],
+            [self._dark_level(i, win) for i in range(len(self._values))],
+            self._times,
+            float(p.g),
+            float(p.sigma2_R),
+            float(p.v_sat),
+            dark_factors=self._ks,
+            exclude=None if dm is None else np.asarray(dm)[win] != 0,
+        )
         t_ref = self.options.master_dark_time
         for i, t in enumerate(ratios.effective):
             if self._kinds[i] == 1:
@@ -548,10 +586,18 @@ class MergeAccumulator:
 
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
-        from .kernels import (CameraConstants, FrameTable, IterationOptions, MapArg, MapSet, MergeOutputs,
-                              StartSums, merge_kernel)  # first: it configures numba's compile target
-
         import numba
+
+        from .kernels import (
+            CameraConstants,
+            FrameTable,
+            IterationOptions,
+            MapArg,
+            MapSet,
+            MergeOutputs,
+            StartSums,  # first: it configures numba's compile target
+            merge_kernel,
+        )
 
         if not self._values:
             raise InputError("no frames to merge")
@@ -578,18 +624,32 @@ class MergeAccumulator:
         stats = np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), 3))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
-            merge_kernel(values, darks,
-                         FrameTable(np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64),
-                                    self._dark_factors(), times),
-                         CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
-                         MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
-                         StartSums(self._sum, self._cnt, self.stream),
-                         IterationOptions(int(opts.iterations), float(opts.tolerance), float(opts.saturation_sigmas),
-                                          opts.saturation == "probabilistic"),
-                         MergeOutputs(irr, sig, nexp, iters, stats), np.zeros(1, np.float32 if single else np.float64))
+            merge_kernel(
+                values,
+                darks,
+                FrameTable(
+                    np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64), self._dark_factors(), times
+                ),
+                CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
+                MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
+                StartSums(self._sum, self._cnt, self.stream),
+                IterationOptions(
+                    int(opts.iterations),
+                    float(opts.tolerance),
+                    float(opts.saturation_sigmas),
+                    opts.saturation == "probabilistic",
+                ),
+                MergeOutputs(irr, sig, nexp, iters, stats),
+                np.zeros(1, np.float32 if single else np.float64),
+            )
         sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp)
-        np.sqrt(np.square(sig, dtype=np.float64) + np.square(sig_cal, dtype=np.float64)
-                + np.square(sig_master, dtype=np.float64), out=sig, casting="unsafe")
+        np.sqrt(
+            np.square(sig, dtype=np.float64)
+            + np.square(sig_cal, dtype=np.float64)
+            + np.square(sig_master, dtype=np.float64),
+            out=sig,
+            casting="unsafe",
+        )
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         info = {
@@ -653,9 +713,13 @@ class MergeAccumulator:
         else:
             s_a = pick("PRNU spread (prnu scalar)", None, prov.get("prnu_std"))
         g_rel = float(se.get("g", 0.0)) / float(cal.params.g)
-        desc = {"included": used, "missing": missing, "gain_relative_stderr": g_rel,
-                "note": "sigma includes the calibration's per-photosite error (sigma_calibration); the gain's "
-                        "relative error is common to every photosite and not included"}
+        desc = {
+            "included": used,
+            "missing": missing,
+            "gain_relative_stderr": g_rel,
+            "note": "sigma includes the calibration's per-photosite error (sigma_calibration); the gain's "
+            "relative error is common to every photosite and not included",
+        }
         return s_b, s_d, s_a, desc
 
     def _shared_terms(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -726,8 +790,9 @@ class MergeAccumulator:
                 w[i] = np.where(ok, 1.0 / variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i]), 0.0)
             used = nexp[sl] > 0
             if desc["included"]:
-                var = calibration_variance(mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl),
-                                           err_block(s_a, sl), a)
+                var = calibration_variance(
+                    mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl), err_block(s_a, sl), a
+                )
                 out[sl] = np.where(used, np.sqrt(var), 0.0)
             if master_used.any():
                 sd_m = np.sqrt((g * g * t_ref * D + s2) / n_master)
@@ -736,8 +801,9 @@ class MergeAccumulator:
         return out, out_m, desc
 
 
-def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None,
-                 **options) -> MergeResult:
+def merge_arrays(
+    values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None, **options
+) -> MergeResult:
     """Merge raw mosaics into irradiance and uncertainty (Eq. 6, 8-13, Fig. 3).
 
     Parameters
@@ -793,8 +859,17 @@ def merge_arrays(values, times, calibration: Calibration, darks=None, *, dark_st
         raise InputError(f"the {default} dark strategy needs dark frames")
     # Frames merged with the model strategy ignore any dark frame given for them.
     per_frame = [None if (s or default) is DarkStrategy.MODEL else d for d, s in zip(per_frame, strategies)]
-    return _accumulate(calibration, shape, master, values, times, per_frame, strategies,
-                       _per_frame(n_darks, len(values), "master-dark frame counts"), options)
+    return _accumulate(
+        calibration,
+        shape,
+        master,
+        values,
+        times,
+        per_frame,
+        strategies,
+        _per_frame(n_darks, len(values), "master-dark frame counts"),
+        options,
+    )
 
 
 def _accumulate(calibration, shape, master, values, times, darks, strategies, n_darks, options) -> MergeResult:
@@ -862,10 +937,15 @@ def merge_frames(
     strategies = [as_strategy(s) for s in _per_frame(dark_strategies, n, "dark strategies")]
     n_darks = _per_frame(n_darks, n, "master-dark frame counts")
     asked = as_strategy(options.get("dark_strategy"))
-    uses_darks = bool(darks) and (asked is not DarkStrategy.MODEL
-                                  or any(s not in (None, DarkStrategy.MODEL) for s in strategies))
-    if not darks and master_dark is None and asked in (DarkStrategy.MATCHED, DarkStrategy.MASTER) \
-            and not all(strategies):
+    uses_darks = bool(darks) and (
+        asked is not DarkStrategy.MODEL or any(s not in (None, DarkStrategy.MODEL) for s in strategies)
+    )
+    if (
+        not darks
+        and master_dark is None
+        and asked in (DarkStrategy.MATCHED, DarkStrategy.MASTER)
+        and not all(strategies)
+    ):
         raise InputError(f"the {asked} dark strategy needs dark frames")
     if uses_darks and master_dark is not None and all(s is None for s in strategies):
         raise InputError("give either dark frames or a master dark, not both")
@@ -874,8 +954,9 @@ def merge_frames(
             raise InputError(f"{master_dark.path}: master dark size differs from the bracket's")
         options.setdefault("master_dark_time", master_dark.exposure_time)
         options.setdefault("dark_strategy", DarkStrategy.MASTER)
-    resolver = DarkResolver(frames_per_dark=options.get("n_dark"),
-                            master_dark=None if master_dark is None else str(master_dark.path))
+    resolver = DarkResolver(
+        frames_per_dark=options.get("n_dark"), master_dark=None if master_dark is None else str(master_dark.path)
+    )
     if uses_darks:
         darks = check_frames(darks, "dark frame")
         if darks[0].shape != shape:
@@ -891,6 +972,14 @@ def merge_frames(
         per_frame.append(src.data)
         if n_darks[i] is None and src.origin == "frames" and src.strategy is DarkStrategy.MASTER:
             n_darks[i] = src.n_frames
-    return _accumulate(calibration, shape, None if master_dark is None else np.asarray(master_dark.data),
-                       [f.data for f in frames], [f.exposure_time for f in frames], per_frame, strategies, n_darks,
-                       options)
+    return _accumulate(
+        calibration,
+        shape,
+        None if master_dark is None else np.asarray(master_dark.data),
+        [f.data for f in frames],
+        [f.exposure_time for f in frames],
+        per_frame,
+        strategies,
+        n_darks,
+        options,
+    )

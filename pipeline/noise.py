@@ -79,7 +79,6 @@ def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
     return 0.0
 
 
-
 def variance_of_rate(u, g2t, D, sigma2_R, k):
     """Var(v_i - b_i) = g^2 t (u + k D) + sigma_R^2 + k sigma_R^2: the raw value's variance
     (Eq. 3) plus k times the dark level's (Eq. 5), from the light frame's electron rate

@@ -17,8 +17,42 @@ import numpy as np
 
 __all__ = ["SensorParams", "Calibration", "THIRD_STOP_TIMES", "DEFECT_BITS"]
 
-_FAST = (8000, 6400, 5000, 4000, 3200, 2500, 2000, 1600, 1250, 1000, 800, 640, 500, 400, 320, 250, 200,
-         160, 125, 100, 80, 60, 50, 40, 30, 25, 20, 15, 13, 10, 8, 6, 5, 4)
+_FAST = (
+    8000,
+    6400,
+    5000,
+    4000,
+    3200,
+    2500,
+    2000,
+    1600,
+    1250,
+    1000,
+    800,
+    640,
+    500,
+    400,
+    320,
+    250,
+    200,
+    160,
+    125,
+    100,
+    80,
+    60,
+    50,
+    40,
+    30,
+    25,
+    20,
+    15,
+    13,
+    10,
+    8,
+    6,
+    5,
+    4,
+)
 _SLOW = (0.3, 0.4, 0.5, 0.6, 0.8, 1, 1.3, 1.6, 2, 2.5, 3.2, 4, 5, 6, 8, 10, 13, 15, 20, 25, 30)
 
 #: The usual nominal 1/3-EV shutter speeds of a camera, 1/8000 s to 30 s, ascending, seconds
@@ -69,11 +103,9 @@ class SensorParams:
         if not np.isfinite(self.mu_R) or self.mu_R < 0:
             raise ValueError(f"SensorParams.mu_R must be finite and >= 0, got {self.mu_R!r}")
         if not np.isfinite(self.dark_current) or self.dark_current < 0:
-            raise ValueError(
-                f"SensorParams.dark_current must be finite and >= 0, got {self.dark_current!r}"
-            )
+            raise ValueError(f"SensorParams.dark_current must be finite and >= 0, got {self.dark_current!r}")
 
-    def replace(self, **changes: Any) -> "SensorParams":
+    def replace(self, **changes: Any) -> SensorParams:
         """A copy with some fields changed.
 
         Parameters
@@ -149,7 +181,7 @@ class Calibration:
     dark_current_map_stderr: np.ndarray | None = None
     defect_map: np.ndarray | None = None
 
-    def replace(self, **changes: Any) -> "Calibration":
+    def replace(self, **changes: Any) -> Calibration:
         """A copy with some fields changed.
 
         Parameters

@@ -15,8 +15,14 @@ from typing import Any
 __all__ = ["new_figure", "save_figure"]
 
 
-def new_figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float] = (6.4, 4.8),
-               squeeze: bool = True, **subplot_kw: Any):
+def new_figure(
+    nrows: int = 1,
+    ncols: int = 1,
+    *,
+    figsize: tuple[float, float] = (6.4, 4.8),
+    squeeze: bool = True,
+    **subplot_kw: Any,
+):
     """A new figure with a grid of axes, drawn on its own Agg canvas.
 
     Parameters

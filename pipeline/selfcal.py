@@ -40,9 +40,19 @@ from .errors import InputError
 from .io import RawFrame, check_frames
 from .params import Calibration, SensorParams
 
-__all__ = ["SELF_CALIBRATED", "PairEstimate", "SelfCalibration", "check_bracket", "cfa_black_tile",
-           "saturation_level", "pair_estimate", "photon_transfer_fit", "self_calibrate", "calibration_sigma",
-           "apply_self_calibration"]
+__all__ = [
+    "SELF_CALIBRATED",
+    "PairEstimate",
+    "SelfCalibration",
+    "check_bracket",
+    "cfa_black_tile",
+    "saturation_level",
+    "pair_estimate",
+    "photon_transfer_fit",
+    "self_calibrate",
+    "calibration_sigma",
+    "apply_self_calibration",
+]
 
 #: The provenance source of a self-calibration (written in the EXR header).
 SELF_CALIBRATED = "self-calibrated from the bracket"
@@ -164,11 +174,16 @@ class SelfCalibration:
         p = self.calibration.params
         return {
             "source": SELF_CALIBRATED,
-            "gain": {"value": p.g, "stderr": self.fit.get("g_stderr"), "unit": "DN per electron",
-                     "estimated": self.gain_known},
+            "gain": {
+                "value": p.g,
+                "stderr": self.fit.get("g_stderr"),
+                "unit": "DN per electron",
+                "estimated": self.gain_known,
+            },
             "read_noise_variance": {"value": p.sigma2_R, "stderr": self.fit.get("sigma2_R_stderr"), "unit": "DN^2"},
-            "photon_transfer_fit": {k: self.fit[k] for k in ("reduced_chi2", "n_bins", "n_photosites")
-                                    if k in self.fit},
+            "photon_transfer_fit": {
+                k: self.fit[k] for k in ("reduced_chi2", "n_bins", "n_photosites") if k in self.fit
+            },
             "black_level_per_cfa_position": np.asarray(self.black_tile).tolist(),
             "black_level_source": "file metadata",
             "white_level": p.white_level,
@@ -177,12 +192,22 @@ class SelfCalibration:
             "effective_exposure_times": list(self.effective_times),
             "effective_time_relative_stderr": list(self.time_relative_stderr),
             "time_scale": "geometric mean of the effective times = that of the nominal times",
-            "exposure_ratios": [{"short": q.short, "long": q.long, "ratio": q.ratio, "stderr": q.ratio_stderr,
-                                 "photosites": q.n_photosites} for q in self.pairs],
+            "exposure_ratios": [
+                {
+                    "short": q.short,
+                    "long": q.long,
+                    "ratio": q.ratio,
+                    "stderr": q.ratio_stderr,
+                    "photosites": q.n_photosites,
+                }
+                for q in self.pairs
+            ],
             "assumed": {"prnu": 1.0, "dark_current": 0.0},
-            "sigma": ("includes the statistical uncertainty of the gain and of the effective exposure times"
-                      if self.gain_known else
-                      "relative only: computed with an assumed gain of 1 DN/e-, not a measured uncertainty"),
+            "sigma": (
+                "includes the statistical uncertainty of the gain and of the effective exposure times"
+                if self.gain_known
+                else "relative only: computed with an assumed gain of 1 DN/e-, not a measured uncertainty"
+            ),
             "notes": list(self.notes),
         }
 
@@ -208,14 +233,22 @@ def check_bracket(frames: Sequence[RawFrame]) -> None:
         raise InputError("a merge without a calibration needs at least two frames (the bracket calibrates itself)")
     first = frames[0]
     for fr in frames[1:]:
-        for what, a, b in (("camera", first.camera, fr.camera), ("CFA pattern", first.cfa_pattern, fr.cfa_pattern),
-                           ("ISO", first.iso, fr.iso), ("white level", first.white_level, fr.white_level)):
+        for what, a, b in (
+            ("camera", first.camera, fr.camera),
+            ("CFA pattern", first.cfa_pattern, fr.cfa_pattern),
+            ("ISO", first.iso, fr.iso),
+            ("white level", first.white_level, fr.white_level),
+        ):
             if a != b:
-                raise InputError(f"{fr.path}: {what} {b} differs from {first.path}'s ({a}); merge frames of one "
-                                 "camera and setting, or give --calibration")
+                raise InputError(
+                    f"{fr.path}: {what} {b} differs from {first.path}'s ({a}); merge frames of one "
+                    "camera and setting, or give --calibration"
+                )
         if fr.shape != first.shape:
-            raise InputError(f"{fr.path}: size {fr.shape[1]}x{fr.shape[0]} differs from {first.path}'s "
-                             f"({first.shape[1]}x{first.shape[0]})")
+            raise InputError(
+                f"{fr.path}: size {fr.shape[1]}x{fr.shape[0]} differs from {first.path}'s "
+                f"({first.shape[1]}x{first.shape[0]})"
+            )
 
 
 def cfa_black_tile(frame: RawFrame) -> np.ndarray:
@@ -346,8 +379,16 @@ def _signal_level(a, b, r, noise):
     return alpha * (b + q * a)
 
 
-def pair_estimate(short: np.ndarray, long: np.ndarray, black: np.ndarray, v_sat: float, nominal_ratio: float,
-                  i: int = 0, j: int = 1, noise: tuple[float, float] | None = None) -> PairEstimate:
+def pair_estimate(
+    short: np.ndarray,
+    long: np.ndarray,
+    black: np.ndarray,
+    v_sat: float,
+    nominal_ratio: float,
+    i: int = 0,
+    j: int = 1,
+    noise: tuple[float, float] | None = None,
+) -> PairEstimate:
     """Exposure ratio and difference variances of one pair of frames (see module docstring).
 
     Parameters
@@ -417,7 +458,7 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate]) -> dict[str, Any] | None:
         if not q.overlap or not q.count.size:
             continue
         x1.append(q.signal * (1.0 + q.ratio))
-        x2.append(np.full(q.signal.size, 1.0 + q.ratio ** 2))
+        x2.append(np.full(q.signal.size, 1.0 + q.ratio**2))
         y.append(q.variance)
         n.append(q.count)
     if not y:
@@ -433,13 +474,19 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate]) -> dict[str, Any] | None:
         cov = np.linalg.inv(A.T @ (A * w[:, None]))
         coef = cov @ (A.T @ (w * y))
         pred = np.maximum(A @ coef, 1e-12)
-    resid = (y - pred) ** 2 * (n / (2.0 * pred ** 2))
+    resid = (y - pred) ** 2 * (n / (2.0 * pred**2))
     dof = max(y.size - 2, 1)
     chi2 = float(resid.sum() / dof)
     cov = cov * max(chi2, 1.0)
-    return {"g": float(coef[0]), "sigma2_R": float(coef[1]), "g_stderr": float(np.sqrt(cov[0, 0])),
-            "sigma2_R_stderr": float(np.sqrt(cov[1, 1])), "reduced_chi2": chi2, "n_bins": int(y.size),
-            "n_photosites": int(n.sum())}
+    return {
+        "g": float(coef[0]),
+        "sigma2_R": float(coef[1]),
+        "g_stderr": float(np.sqrt(cov[0, 0])),
+        "sigma2_R_stderr": float(np.sqrt(cov[1, 1])),
+        "reduced_chi2": chi2,
+        "n_bins": int(y.size),
+        "n_photosites": int(n.sum()),
+    }
 
 
 # ---------------------------------------------------------------------------------- the model
@@ -453,11 +500,11 @@ def _chain_times(nominal: np.ndarray, order: np.ndarray, pairs: Sequence[PairEst
     A = np.zeros((k, max(k - 1, 1)))
     for m, q in enumerate(pairs):
         log_rel[m + 1] = log_rel[m] + math.log(q.ratio)
-        A[m + 1:, m] = 1.0
+        A[m + 1 :, m] = 1.0
     shift = float(np.mean(np.log(nominal[order]) - log_rel))
     se_log = np.array([q.ratio_stderr / q.ratio for q in pairs] or [0.0])
     Ac = A - A.mean(axis=0)
-    var = (Ac ** 2) @ (se_log ** 2)
+    var = (Ac**2) @ (se_log**2)
     eff = np.empty(k)
     rel = np.empty(k)
     eff[order] = np.exp(log_rel + shift)
@@ -467,12 +514,15 @@ def _chain_times(nominal: np.ndarray, order: np.ndarray, pairs: Sequence[PairEst
 
 def _pairs(data, order, nominal, black, v_sat, noise) -> list[PairEstimate]:
     """The :class:`PairEstimate` of every pair of consecutive exposures in ``order``."""
-    return [pair_estimate(data[a], data[b], black, v_sat, nominal[b] / nominal[a], int(a), int(b), noise)
-            for a, b in zip(order[:-1], order[1:])]
+    return [
+        pair_estimate(data[a], data[b], black, v_sat, nominal[b] / nominal[a], int(a), int(b), noise)
+        for a, b in zip(order[:-1], order[1:])
+    ]
 
 
-def self_calibrate(frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SAMPLES,
-                   warn: Callable[[str], None] | None = None) -> SelfCalibration:
+def self_calibrate(
+    frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SAMPLES, warn: Callable[[str], None] | None = None
+) -> SelfCalibration:
     """Estimate the camera model of a bracket from the bracket itself (see module docstring).
 
     Parameters
@@ -513,8 +563,10 @@ def self_calibrate(frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SA
     tile = cfa_black_tile(first)
     levels = {fr.black_level for fr in frames}
     if len(levels) > 1:
-        note(f"black levels differ between frames ({', '.join(f'{b:g}' for b in sorted(levels, key=float))} DN); "
-             f"{first.path}'s used")
+        note(
+            f"black levels differ between frames ({', '.join(f'{b:g}' for b in sorted(levels, key=float))} DN); "
+            f"{first.path}'s used"
+        )
     nominal = np.array([fr.exposure_time for fr in frames], float)
     order = np.argsort(nominal, kind="stable")
     rows = _row_sample(first.shape, max_samples)
@@ -532,18 +584,29 @@ def self_calibrate(frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SA
     for q in pairs:
         a, b = q.short, q.long
         if not q.overlap:
-            note(f"no photosite is exposed and unsaturated in both {frames[a].path} and {frames[b].path}: "
-                 f"their nominal exposure ratio {nominal[b] / nominal[a]:.4g} is assumed")
+            note(
+                f"no photosite is exposed and unsaturated in both {frames[a].path} and {frames[b].path}: "
+                f"their nominal exposure ratio {nominal[b] / nominal[a]:.4g} is assumed"
+            )
     if not any(q.overlap for q in pairs):
-        raise InputError("no overlap between the exposures: no photosite is exposed and unsaturated in two frames, "
-                         "so the bracket cannot calibrate itself; give --calibration or a denser bracket")
+        raise InputError(
+            "no overlap between the exposures: no photosite is exposed and unsaturated in two frames, "
+            "so the bracket cannot calibrate itself; give --calibration or a denser bracket"
+        )
     eff, rel_t = _chain_times(nominal, order, pairs)
     gain_known = bool(fit and fit["g"] > 0 and fit["g_stderr"] < MAX_GAIN_RELATIVE_ERROR * fit["g"])
     if not gain_known:
-        note("too few photosites or signal levels to estimate the gain: irradiance in DN/s (g = 1 DN/e- assumed), "
-             "sigma relative only")
-        fit = {"g": 1.0, "g_stderr": None, "sigma2_R": (fit or {}).get("sigma2_R", 1.0), "sigma2_R_stderr": None,
-               **{k: v for k, v in (fit or {}).items() if k in ("reduced_chi2", "n_bins", "n_photosites")}}
+        note(
+            "too few photosites or signal levels to estimate the gain: irradiance in DN/s (g = 1 DN/e- assumed), "
+            "sigma relative only"
+        )
+        fit = {
+            "g": 1.0,
+            "g_stderr": None,
+            "sigma2_R": (fit or {}).get("sigma2_R", 1.0),
+            "sigma2_R_stderr": None,
+            **{k: v for k, v in (fit or {}).items() if k in ("reduced_chi2", "n_bins", "n_photosites")},
+        }
     s2 = float(fit["sigma2_R"])
     if not s2 >= 1.0 / 12.0:
         note(f"the fitted read-noise variance {s2:.3g} DN^2 is below quantisation; 1/12 DN^2 used")
@@ -553,16 +616,39 @@ def self_calibrate(frames: Sequence[RawFrame], *, max_samples: int = MAX_PAIR_SA
     if np.ptp(tile) > 0:
         h, w = first.shape
         bias_map = _black_rows(tile, np.arange(h), w).astype(np.float32)
-    params = SensorParams(g=float(fit["g"]), mu_R=mu, sigma2_R=s2, v_sat=float(v_sat), white_level=white,
-                          dark_current=0.0, name=first.camera or "")
+    params = SensorParams(
+        g=float(fit["g"]),
+        mu_R=mu,
+        sigma2_R=s2,
+        v_sat=float(v_sat),
+        white_level=white,
+        dark_current=0.0,
+        name=first.camera or "",
+    )
     stderr = {k: fit[f"{k}_stderr"] for k in ("g", "sigma2_R") if fit.get(f"{k}_stderr") is not None}
-    calib = Calibration(params=params, bias_map=bias_map, stderr=stderr,
-                        provenance={"source": SELF_CALIBRATED, "camera": first.camera, "iso": first.iso,
-                                    "cfa_pattern": first.cfa_pattern, "gain_estimated": gain_known})
-    return SelfCalibration(calibration=calib, effective_times=tuple(float(t) for t in eff),
-                           nominal_times=tuple(float(t) for t in nominal),
-                           time_relative_stderr=tuple(float(x) for x in rel_t), gain_known=gain_known,
-                           pairs=tuple(pairs), fit=fit, black_tile=tile, notes=tuple(notes))
+    calib = Calibration(
+        params=params,
+        bias_map=bias_map,
+        stderr=stderr,
+        provenance={
+            "source": SELF_CALIBRATED,
+            "camera": first.camera,
+            "iso": first.iso,
+            "cfa_pattern": first.cfa_pattern,
+            "gain_estimated": gain_known,
+        },
+    )
+    return SelfCalibration(
+        calibration=calib,
+        effective_times=tuple(float(t) for t in eff),
+        nominal_times=tuple(float(t) for t in nominal),
+        time_relative_stderr=tuple(float(x) for x in rel_t),
+        gain_known=gain_known,
+        pairs=tuple(pairs),
+        fit=fit,
+        black_tile=tile,
+        notes=tuple(notes),
+    )
 
 
 def calibration_sigma(irradiance: np.ndarray, nexp: np.ndarray, selfcal: SelfCalibration) -> np.ndarray:
@@ -589,10 +675,9 @@ def calibration_sigma(irradiance: np.ndarray, nexp: np.ndarray, selfcal: SelfCal
     """
     rel_t = np.asarray(selfcal.time_relative_stderr, float)[np.argsort(selfcal.nominal_times, kind="stable")]
     idx = np.clip(np.asarray(nexp).astype(np.int64) - 1, 0, rel_t.size - 1)
-    rel = np.sqrt(selfcal.gain_relative_stderr ** 2 + rel_t[idx] ** 2)
+    rel = np.sqrt(selfcal.gain_relative_stderr**2 + rel_t[idx] ** 2)
     out = np.abs(irradiance) * rel
     return np.where(np.asarray(nexp) > 0, out, 0.0).astype(np.float32)
-
 
 
 def apply_self_calibration(image, selfcal: SelfCalibration, *, times_applied: bool = True):
@@ -618,10 +703,14 @@ def apply_self_calibration(image, selfcal: SelfCalibration, *, times_applied: bo
     ch = image.channels
     cal = calibration_sigma(ch["irradiance"], ch["nexp"], selfcal)
     ch["sigma"] = np.sqrt(np.square(ch["sigma"], dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(
-        np.float32)
+        np.float32
+    )
     prior = ch.get("sigma_calibration")  # the merge's own calibration part (maps), if any
-    ch["sigma_calibration"] = cal if prior is None else np.sqrt(
-        np.square(prior, dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(np.float32)
+    ch["sigma_calibration"] = (
+        cal
+        if prior is None
+        else np.sqrt(np.square(prior, dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(np.float32)
+    )
     head = selfcal.header()
     head["merged_with"] = "effective exposure times" if times_applied else "nominal exposure times"
     image.attrs["self_calibration"] = head

@@ -18,8 +18,16 @@ import math
 from collections.abc import Iterable, Iterator, MutableMapping
 from typing import Generic, TypeVar
 
-__all__ = ["EXPOSURE_RTOL", "BULB_ATOL_S", "BULB_RTOL", "same_exposure", "same_bulb_exposure", "find_exposure",
-           "unique_exposures", "ExposureMap"]
+__all__ = [
+    "EXPOSURE_RTOL",
+    "BULB_ATOL_S",
+    "BULB_RTOL",
+    "same_exposure",
+    "same_bulb_exposure",
+    "find_exposure",
+    "unique_exposures",
+    "ExposureMap",
+]
 
 #: Relative tolerance within which two exposure times (seconds) are the same exposure.
 EXPOSURE_RTOL: float = 1e-3

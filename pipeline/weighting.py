@@ -25,12 +25,12 @@ merge of :mod:`pipeline.merge`, which evaluates Eq. 13 at the current estimate.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .errors import InputError
 from .darks import DarkResolver
+from .errors import InputError
 from .merge import MergeResult
 from .noise import DarkStrategy, exposure_variance
 from .params import Calibration, SensorParams
@@ -282,8 +282,9 @@ def weighting_function_KirkAndersen(v, t, params: SensorParams, **model) -> np.n
     return 1.0 / _observed_variance(v, t, params)
 
 
-def weighting_function_Optimal(v, t, params: SensorParams, *, a=1.0, D=None, dark=DarkStrategy.MATCHED, n_dark=1,
-                               **model) -> np.ndarray:
+def weighting_function_Optimal(
+    v, t, params: SensorParams, *, a=1.0, D=None, dark=DarkStrategy.MATCHED, n_dark=1, **model
+) -> np.ndarray:
     """Granados et al. (2010), Eq. 13, evaluated at the OBSERVED value (single pass):
 
     w = t^2 g^2 a^2 / (g^2 t (a x + 2D) + 2 sigma2_R) with x = max(v/(t g a) - D/a, 0) for one
@@ -354,9 +355,7 @@ def weights(method: str, v, t, params: SensorParams, **model) -> np.ndarray:
     try:
         fn = WEIGHTING_METHODS[method]
     except KeyError:
-        raise InputError(
-            f"unknown weighting {method!r}; choose from {', '.join(WEIGHTING_METHODS)}"
-        ) from None
+        raise InputError(f"unknown weighting {method!r}; choose from {', '.join(WEIGHTING_METHODS)}") from None
     return fn(v, t, params, **model)
 
 
@@ -504,8 +503,9 @@ def merge_weighted(
     blacks, strategy = _dark_levels(values, times, calibration, darks, n_dark)
     model = {"a": a, "D": D, "dark": strategy, "n_dark": n_dark}
     fn = WEIGHTING_METHODS[method]
-    irr, ws, oks, has_w, n_ok = _weighted_mean(values, times, blacks, lambda v, t: fn(v, t, p, **model), p, a, bias,
-                                                shape)
+    irr, ws, oks, has_w, n_ok = _weighted_mean(
+        values, times, blacks, lambda v, t: fn(v, t, p, **model), p, a, bias, shape
+    )
     mu_var = irr if variance_at is None else np.broadcast_to(np.asarray(variance_at, dtype=np.float64), shape)
     sigma = _propagated_sigma(ws, oks, has_w, times, mu_var, p, D, a, strategy, n_dark)
     sat = n_ok == 0

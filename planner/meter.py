@@ -12,9 +12,9 @@ error above 1/``meter_snr``).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
@@ -84,9 +84,14 @@ class MeterReport:
             Every field but the per-photosite ``status`` map.
         """
         return {
-            "times": self.times, "n_pixels": self.n_pixels, "n_saturated": self.n_saturated,
-            "bright_limit": self.bright_limit, "n_dark": self.n_dark, "dark_limit": self.dark_limit,
-            "n_coarse": self.n_coarse, "n_gap": self.n_gap,
+            "times": self.times,
+            "n_pixels": self.n_pixels,
+            "n_saturated": self.n_saturated,
+            "bright_limit": self.bright_limit,
+            "n_dark": self.n_dark,
+            "dark_limit": self.dark_limit,
+            "n_coarse": self.n_coarse,
+            "n_gap": self.n_gap,
             "metered_range": list(self.metered_range) if self.metered_range else None,
             "message": self.message,
         }
@@ -156,9 +161,17 @@ def _combine(frames, calibration, bias, D, a):
     return X, t_used, dark, gap, float(3.0 * np.sqrt(p.sigma2_R) / (t_long * p.g * np.mean(a)))
 
 
-def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
-          allowed_times: Sequence[float] | None = None, *, max_time: float = 1.0, meter_snr: float = 10.0,
-          k_sigma: float = K_SIGMA, max_frames: int = 2, return_report: bool = False):
+def meter(
+    capture_fn: Callable[[float], np.ndarray],
+    calibration: Calibration,
+    allowed_times: Sequence[float] | None = None,
+    *,
+    max_time: float = 1.0,
+    meter_snr: float = 10.0,
+    k_sigma: float = K_SIGMA,
+    max_frames: int = 2,
+    return_report: bool = False,
+):
     """Estimate the irradiance map (e-/s per photosite) from one or two quick frames.
 
     Parameters
@@ -187,8 +200,9 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
         The irradiance map (float64, e-/s; lower bounds where saturated at the shortest time,
         the detection limit where below it).
     """
-    times = sorted(unique_exposures(float(t) for t in (allowed_times if allowed_times is not None
-                                                       else THIRD_STOP_LADDER)))
+    times = sorted(
+        unique_exposures(float(t) for t in (allowed_times if allowed_times is not None else THIRD_STOP_LADDER))
+    )
     if not times or times[0] <= 0:
         raise InputError("metering needs positive allowed exposure times")
     if int(max_frames) < 1:
@@ -231,21 +245,35 @@ def meter(capture_fn: Callable[[float], np.ndarray], calibration: Calibration,
     if rng:
         parts.append(f"range {rng[0]:.4g}..{rng[1]:.4g} e-/s metered to within {100 / meter_snr:g} %")
     if sat1.any():
-        parts.append(f"{100 * sat1.mean():.3g} % of pixels brighter than {bright_limit:.4g} e-/s "
-                     f"(saturated at the shortest time {t1:.4g} s): not meterable, lower bound kept")
+        parts.append(
+            f"{100 * sat1.mean():.3g} % of pixels brighter than {bright_limit:.4g} e-/s "
+            f"(saturated at the shortest time {t1:.4g} s): not meterable, lower bound kept"
+        )
     if dark.any():
-        parts.append(f"{100 * dark.mean():.3g} % of pixels below the detection limit {dark_limit:.4g} e-/s: "
-                     "not metered, the limit kept")
+        parts.append(
+            f"{100 * dark.mean():.3g} % of pixels below the detection limit {dark_limit:.4g} e-/s: "
+            "not metered, the limit kept"
+        )
     if gap.any():
-        parts.append(f"{100 * gap.mean():.3g} % of pixels only bounded "
-                     f"({np.min(X[gap]):.4g}..{np.max(X[gap]):.4g} e-/s: "
-                     "saturated in a longer frame, undetected in a shorter one), spread over the bounds")
+        parts.append(
+            f"{100 * gap.mean():.3g} % of pixels only bounded "
+            f"({np.min(X[gap]):.4g}..{np.max(X[gap]):.4g} e-/s: "
+            "saturated in a longer frame, undetected in a shorter one), spread over the bounds"
+        )
     if coarse.any():
         parts.append(f"{100 * coarse.mean():.3g} % of pixels metered coarsely (error > {100 / meter_snr:g} %)")
     report = MeterReport(
-        times=list(frames), n_pixels=n, n_saturated=int(sat1.sum()),
-        bright_limit=float(bright_limit), n_dark=int(dark.sum()), dark_limit=float(dark_limit),
-        n_coarse=int(coarse.sum()), n_gap=int(gap.sum()), status=status, metered_range=rng, message="; ".join(parts),
+        times=list(frames),
+        n_pixels=n,
+        n_saturated=int(sat1.sum()),
+        bright_limit=float(bright_limit),
+        n_dark=int(dark.sum()),
+        dark_limit=float(dark_limit),
+        n_coarse=int(coarse.sum()),
+        n_gap=int(gap.sum()),
+        status=status,
+        metered_range=rng,
+        message="; ".join(parts),
     )
     return (X, report) if return_report else X
 

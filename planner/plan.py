@@ -29,8 +29,9 @@ from __future__ import annotations
 import itertools
 import math
 from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.special import logsumexp
@@ -280,8 +281,9 @@ def _finite(v: float):
 class _Context:
     """Everything the search needs, precomputed per candidate time on the histogram."""
 
-    def __init__(self, calibration, hist, target_db, candidates, darks, n_dark, overhead, errors, prnu,
-                 quantile, k_sigma):
+    def __init__(
+        self, calibration, hist, target_db, candidates, darks, n_dark, overhead, errors, prnu, quantile, k_sigma
+    ):
         self.cal = calibration
         self.hist = hist
         self.target_db = float(target_db)
@@ -296,20 +298,28 @@ class _Context:
         self.X = X
         self.elig = eligible_mask(X, self.cand.min(), calibration, k_sigma)
         self.w_elig = np.where(self.elig, hist.weight, 0.0)
-        terms = [exposure_terms(X, t, calibration, d, n or 1, "threshold", k_sigma)
-                 for t, d, n in zip(self.cand, self.darks, self.n_dark)]
+        terms = [
+            exposure_terms(X, t, calibration, d, n or 1, "threshold", k_sigma)
+            for t, d, n in zip(self.cand, self.darks, self.n_dark)
+        ]
         self.W = np.array([tm.weight for tm in terms])
         self.CD = np.array([tm.c_dark for tm in terms])
         self.CB = np.array([tm.c_bias for tm in terms])
         self.k_sigma = k_sigma
         self.frame_time = self.cand + self.overhead
-        self.cost_time = np.array([(t + self.overhead) * (2.0 if d == "matched" else 1.0)
-                                   for t, d in zip(self.cand, self.darks)])
+        self.cost_time = np.array(
+            [(t + self.overhead) * (2.0 if d == "matched" else 1.0) for t, d in zip(self.cand, self.darks)]
+        )
         self._groups: dict[tuple[int, int], Any] = {}
         # candidates of one exposure time with another dark strategy: a plan gives each time
         # one strategy (the merge matches frames to the plan by exposure time)
-        self.rival = np.array([[same_exposure(a, b) and da != db for b, db in zip(self.cand, self.darks)]
-                               for a, da in zip(self.cand, self.darks)], dtype=bool).reshape(len(self.cand), -1)
+        self.rival = np.array(
+            [
+                [same_exposure(a, b) and da != db for b, db in zip(self.cand, self.darks)]
+                for a, da in zip(self.cand, self.darks)
+            ],
+            dtype=bool,
+        ).reshape(len(self.cand), -1)
 
     def excluded(self, idx) -> np.ndarray:
         """Candidates that would give an exposure time of ``idx`` a second dark strategy."""
@@ -325,8 +335,9 @@ class _Context:
             return m * self.W[i]
         key = (i, m)
         if key not in self._groups:
-            term = exposure_terms(self.X, self.cand[i], self.cal, self.darks[i], self.n_dark[i] or 1, "threshold",
-                                  self.k_sigma, copies=m)
+            term = exposure_terms(
+                self.X, self.cand[i], self.cal, self.darks[i], self.n_dark[i] or 1, "threshold", self.k_sigma, copies=m
+            )
             self._groups[key] = m * term.weight
         return self._groups[key]
 
@@ -379,8 +390,7 @@ class _Context:
         """Capture time of the exposures ``idx`` (repeats allowed), s: each frame's time plus the
         overhead, and one matched dark frame per candidate time, counted once."""
         counts = Counter(idx)
-        return float(sum(m * self.frame_time[i] + (self.cost_time[i] - self.frame_time[i])
-                         for i, m in counts.items()))
+        return float(sum(m * self.frame_time[i] + (self.cost_time[i] - self.frame_time[i]) for i, m in counts.items()))
 
 
 def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
@@ -406,8 +416,13 @@ def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_
     return (X > 0) & (usable_fraction(X, t_min, calibration, "threshold", k_sigma) > 0)
 
 
-def bulk_irradiance(irradiance, t_min: float, calibration: Calibration,
-                    highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION, k_sigma: float = K_SIGMA) -> float | None:
+def bulk_irradiance(
+    irradiance,
+    t_min: float,
+    calibration: Calibration,
+    highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION,
+    k_sigma: float = K_SIGMA,
+) -> float | None:
     """Brightest irradiance of the scene's bulk, e-/s (Sec. 8).
 
     The eligible pixels are those with signal that are not saturated at the shortest allowed
@@ -443,8 +458,7 @@ def bulk_irradiance(irradiance, t_min: float, calibration: Calibration,
     return float(np.partition(x, k)[k])
 
 
-def first_exposure(x_bulk: float, times: Sequence[float], calibration: Calibration,
-                   k_sigma: float = K_SIGMA) -> float:
+def first_exposure(x_bulk: float, times: Sequence[float], calibration: Calibration, k_sigma: float = K_SIGMA) -> float:
     """The first exposure of a plan: the longest of ``times`` that does not saturate ``x_bulk``
     (e-/s) under the merge's near-saturation rule (Eq. 11 extended: the predicted value plus
     ``k_sigma`` of its own standard deviation stays below v_sat); the shortest time when none does.
@@ -504,13 +518,26 @@ def _library_n(dark_library: Mapping[float, int] | None, t: float) -> int:
 # --------------------------------------------------------------------------- planning
 
 
-def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
-                   allowed_times: Sequence[float] | None = None, *, max_exposures: int | None = None,
-                   time_budget: float | None = None, overhead: float = DEFAULT_OVERHEAD_S,
-                   quantile: float | None = None, errors: SystematicErrors | None = None,
-                   dark_library: Mapping[float, int] | None = None, tolerance_db: float = 0.2,
-                   k_sigma: float = K_SIGMA, bins: int = 256, polish: bool = True, uniform_darks: bool = False,
-                   highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION, bulk_first: bool = True) -> Plan:
+def plan_exposures(
+    calibration: Calibration,
+    irradiance,
+    target_snr_db: float,
+    allowed_times: Sequence[float] | None = None,
+    *,
+    max_exposures: int | None = None,
+    time_budget: float | None = None,
+    overhead: float = DEFAULT_OVERHEAD_S,
+    quantile: float | None = None,
+    errors: SystematicErrors | None = None,
+    dark_library: Mapping[float, int] | None = None,
+    tolerance_db: float = 0.2,
+    k_sigma: float = K_SIGMA,
+    bins: int = 256,
+    polish: bool = True,
+    uniform_darks: bool = False,
+    highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION,
+    bulk_first: bool = True,
+) -> Plan:
     """Plan the exposures that reach ``target_snr_db`` on a scene (Eq. 18, Sec. 8).
 
     Parameters
@@ -560,34 +587,69 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     -------
     Plan
     """
-    times = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
-                           max_exposures, time_budget, overhead, quantile)
+    times = _check_request(
+        target_snr_db,
+        allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
+        max_exposures,
+        time_budget,
+        overhead,
+        quantile,
+    )
     if not (np.isfinite(highlight_fraction) and 0 <= highlight_fraction < 1):
         raise InputError(f"highlight fraction must be in [0, 1), got {highlight_fraction!r}")
     q = 1.0 if quantile is None else float(quantile)
     errors = errors if errors is not None else systematic_errors_from_calibration(calibration)
     hist = irradiance_histogram(irradiance, bins)
     elig = eligible_mask(hist.X, times[0], calibration, k_sigma) if hist.X.size else np.zeros(0, bool)
-    decisions: dict[str, dict[str, Any]] = {"eligibility": select.eligibility_decision(hist, elig, times[0],
-                                                                                       calibration)}
+    decisions: dict[str, dict[str, Any]] = {
+        "eligibility": select.eligibility_decision(hist, elig, times[0], calibration)
+    }
     if not elig.any():
         msg = decisions["eligibility"]["reason"] + "; nothing to plan"
-        return Plan([], [], float("nan"), 0.0, decisions, False, msg, float(target_snr_db), q, [], {},
-                    float(k_sigma), float(overhead))
+        return Plan(
+            [],
+            [],
+            float("nan"),
+            0.0,
+            decisions,
+            False,
+            msg,
+            float(target_snr_db),
+            q,
+            [],
+            {},
+            float(k_sigma),
+            float(overhead),
+        )
 
     # 1. model selection before planning: PRNU model and each allowed time's dark strategy
     Xe = hist.X[elig]
     target_lin = 10.0 ** (target_snr_db / 20.0)
     decisions["prnu"] = select.prnu_decision(errors, target_lin, calibration, tolerance_db)
     t_best = select.longest_usable_time(Xe, times, calibration, k_sigma)
-    dark_choice = [select.dark_decision_for_time(Xe, t, calibration, errors, target_lin, _library_n(dark_library, t),
-                                                 overhead, tolerance_db, k_sigma, t_best) for t in times]
+    dark_choice = [
+        select.dark_decision_for_time(
+            Xe, t, calibration, errors, target_lin, _library_n(dark_library, t), overhead, tolerance_db, k_sigma, t_best
+        )
+        for t in times
+    ]
     if uniform_darks:
         _force_one_dark_strategy(dark_choice, times, dark_library)
     cand_t, cand_dec = _candidates(times, dark_choice, uniform_darks)
     darks = [d["choice"] for d in cand_dec]
-    ctx = _Context(calibration, hist, target_snr_db, cand_t, darks, _dark_counts(cand_t, darks, dark_library),
-                   overhead, errors, decisions["prnu"]["choice"], q, k_sigma)
+    ctx = _Context(
+        calibration,
+        hist,
+        target_snr_db,
+        cand_t,
+        darks,
+        _dark_counts(cand_t, darks, dark_library),
+        overhead,
+        errors,
+        decisions["prnu"]["choice"],
+        q,
+        k_sigma,
+    )
     # 2. the first exposure: the longest that does not saturate the scene's bulk (Sec. 8)
     x_bulk = bulk_irradiance(irradiance, times[0], calibration, highlight_fraction, k_sigma)
     t_first = first_exposure(x_bulk, times, calibration, k_sigma)
@@ -596,8 +658,9 @@ def plan_exposures(calibration: Calibration, irradiance, target_snr_db: float,
     chosen, limit, ok = _search(ctx, seeds, _exposure_cap(max_exposures, time_budget), time_budget, polish)
     if bulk_first:
         decisions["first_exposure"] = _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx, k_sigma)
-    decisions["dark_strategy"] = select.summarise_dark_decisions([cand_dec[i] for i in chosen],
-                                                                 [float(ctx.cand[i]) for i in chosen])
+    decisions["dark_strategy"] = select.summarise_dark_decisions(
+        [cand_dec[i] for i in chosen], [float(ctx.cand[i]) for i in chosen]
+    )
     if chosen:
         decisions.update(_merge_model_decisions(ctx, chosen, tolerance_db, k_sigma))
     return _make_plan(ctx, chosen, ok, limit, decisions, max_exposures, time_budget, k_sigma)
@@ -610,8 +673,9 @@ def _exposure_cap(max_exposures: int | None, time_budget: float | None) -> int:
     return DEFAULT_MAX_EXPOSURES if time_budget is None else 10**6
 
 
-def _force_one_dark_strategy(dark_choice: list[dict], times: Sequence[float],
-                             dark_library: Mapping[float, int] | None) -> None:
+def _force_one_dark_strategy(
+    dark_choice: list[dict], times: Sequence[float], dark_library: Mapping[float, int] | None
+) -> None:
     """When the per-exposure decisions mix strategies, give every time dark frames (master darks
     when the library has one for every time, else matched); the decisions are changed in place."""
     if len({d["choice"] for d in dark_choice}) <= 1:
@@ -635,9 +699,16 @@ def _candidates(times: Sequence[float], dark_choice: list[dict], uniform_darks: 
     for t, dec in zip(times, dark_choice):
         if dec["choice"] != "model" and not uniform_darks:
             cand_t.append(t)
-            cand_dec.append({**dec, "choice": "model", "reason": (
-                f"no dark frame: the dark model costs {dec['figure']:.3f} dB at the target, yet the plan reaches the "
-                f"target for less capture time without it (the alternative: {dec['choice']})")})
+            cand_dec.append(
+                {
+                    **dec,
+                    "choice": "model",
+                    "reason": (
+                        f"no dark frame: the dark model costs {dec['figure']:.3f} dB at the target, yet the plan reaches the "
+                        f"target for less capture time without it (the alternative: {dec['choice']})"
+                    ),
+                }
+            )
         cand_t.append(t)
         cand_dec.append(dec)
     return cand_t, cand_dec
@@ -645,12 +716,14 @@ def _candidates(times: Sequence[float], dark_choice: list[dict], uniform_darks: 
 
 def _dark_counts(cand_t: Sequence[float], darks: Sequence[str], dark_library: Mapping[float, int] | None) -> list[int]:
     """Dark frames behind each candidate's dark subtraction (master: the library's count)."""
-    return [_library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0)
-            for t, d in zip(cand_t, darks)]
+    return [
+        _library_n(dark_library, t) if d == "master" else (1 if d == "matched" else 0) for t, d in zip(cand_t, darks)
+    ]
 
 
-def _seeds(ctx: _Context, t_first: float, time_budget: float | None,
-           bulk_first: bool) -> tuple[float | None, list[list[int]]]:
+def _seeds(
+    ctx: _Context, t_first: float, time_budget: float | None, bulk_first: bool
+) -> tuple[float | None, list[list[int]]]:
     """The seed of the search: the bulk exposure (with and without a dark frame when both are
     candidates); a time budget too small for it moves it down the ladder. Returns the seed time
     (None when nothing fits) and the seeds (candidate indices; one empty seed without bulk_first)."""
@@ -662,14 +735,15 @@ def _seeds(ctx: _Context, t_first: float, time_budget: float | None,
     return t_seed, [[i] for i in fits if same_exposure(cand_t[i], t_seed)]
 
 
-def _search(ctx: _Context, seeds: list[list[int]], cap: int, time_budget: float | None,
-            polish: bool) -> tuple[list[int], str, bool]:
+def _search(
+    ctx: _Context, seeds: list[list[int]], cap: int, time_budget: float | None, polish: bool
+) -> tuple[list[int], str, bool]:
     """Eq. 18's greedy from each seed, and the same per second of capture time; the fastest
     feasible plan wins, else the one with the least penalty. Returns the chosen candidates, why
     the search stopped short ("" when the target holds) and whether it holds."""
     runs = []
     for seed in seeds:
-        for per_second in ((False, True) if polish else (False,)):
+        for per_second in (False, True) if polish else (False,):
             chosen, limit = _greedy(ctx, cap, time_budget, per_second, seed)
             ok = bool(chosen) and ctx.reached(ctx.snr(*ctx.sums(chosen)))
             if ok and polish:
@@ -687,31 +761,65 @@ def _merge_model_decisions(ctx: _Context, chosen: list[int], tolerance_db: float
     darks = [ctx.darks[i] for i in chosen]
     n_dark = [ctx.n_dark[i] for i in chosen]
     Xe = ctx.X[ctx.elig]
-    saturation = select.saturation_decision(Xe, exposures, darks, n_dark, ctx.cal, ctx.errors, ctx.prnu,
-                                            tolerance_db, k_sigma)
-    iterations = select.iterations_decision(Xe, exposures, darks, n_dark, ctx.cal, ctx.errors, ctx.prnu,
-                                            tolerance_db, k_sigma, saturation["choice"])
+    saturation = select.saturation_decision(
+        Xe, exposures, darks, n_dark, ctx.cal, ctx.errors, ctx.prnu, tolerance_db, k_sigma
+    )
+    iterations = select.iterations_decision(
+        Xe, exposures, darks, n_dark, ctx.cal, ctx.errors, ctx.prnu, tolerance_db, k_sigma, saturation["choice"]
+    )
     return {"saturation": saturation, "iterations": iterations}
 
 
-def _make_plan(ctx: _Context, chosen: list[int], ok: bool, limit: str, decisions: dict,
-               max_exposures: int | None, time_budget: float | None, k_sigma: float) -> Plan:
+def _make_plan(
+    ctx: _Context,
+    chosen: list[int],
+    ok: bool,
+    limit: str,
+    decisions: dict,
+    max_exposures: int | None,
+    time_budget: float | None,
+    k_sigma: float,
+) -> Plan:
     """The :class:`Plan` of the chosen candidates: predicted figures, message and SNR curve."""
     snr_lin = ctx.snr(*ctx.sums(chosen))
     plan_darks = [ctx.darks[i] for i in chosen]
     min_db = ctx.quantile_db(snr_lin) if chosen else float("-inf")
     total = ctx.time(chosen)
-    msg = _message(ok, ctx.target_db, ctx.quantile, min_db, chosen, plan_darks, total, limit, decisions,
-                   max_exposures, time_budget, ctx)
+    msg = _message(
+        ok,
+        ctx.target_db,
+        ctx.quantile,
+        min_db,
+        chosen,
+        plan_darks,
+        total,
+        limit,
+        decisions,
+        max_exposures,
+        time_budget,
+        ctx,
+    )
     curve = {
         "irradiance": ctx.hist.X.tolist(),
         "snr_db": [_finite(v) for v in to_db(snr_lin)],
         "weight": ctx.hist.weight.tolist(),
         "eligible": ctx.elig.tolist(),
     }
-    return Plan([float(ctx.cand[i]) for i in chosen], plan_darks, float(min_db), float(total), decisions, ok, msg,
-                ctx.target_db, ctx.quantile, [ctx.n_dark[i] for i in chosen], curve, float(k_sigma),
-                float(ctx.overhead))
+    return Plan(
+        [float(ctx.cand[i]) for i in chosen],
+        plan_darks,
+        float(min_db),
+        float(total),
+        decisions,
+        ok,
+        msg,
+        ctx.target_db,
+        ctx.quantile,
+        [ctx.n_dark[i] for i in chosen],
+        curve,
+        float(k_sigma),
+        float(ctx.overhead),
+    )
 
 
 def log_penalty(weights, snr_lin, axis=-1):
@@ -747,7 +855,7 @@ def _greedy(ctx: _Context, cap: int, budget: float | None, per_second: bool = Fa
     Returns the chosen candidate indices (in order) and the reason the search stopped when the
     target was not reached ("" when reached).
     """
-    chosen: list[int] = [int(i) for i in seed][:max(cap, 0)]
+    chosen: list[int] = [int(i) for i in seed][: max(cap, 0)]
     sw, scd, scb = ctx.sums(chosen)
     current = ctx.penalty(ctx.snr(sw, scd, scb))
     used = ctx.time(chosen)
@@ -816,7 +924,7 @@ def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
         for pos in sorted(range(n_fixed, len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
             if pos >= len(chosen):
                 continue
-            base = chosen[:pos] + chosen[pos + 1:]
+            base = chosen[:pos] + chosen[pos + 1 :]
             cost = ctx.time(chosen) - ctx.time(base)
             # replace it by the cheapest valid alternative: one shorter exposure, or 2..4 copies
             # of a shorter one when that saves at least 10 % of its time
@@ -850,8 +958,10 @@ def _first_decision(x_bulk, highlight_fraction, t_first, t_seed, ctx: _Context, 
         return {"choice": None, "reason": "no allowed time fits the time budget", "figure": x_bulk, "unit": unit}
     sat = ctx.elig & (usable_fraction(ctx.X, t_seed, ctx.cal, "threshold", k_sigma) == 0)
     frac = float(ctx.w_elig[sat].sum() / max(ctx.w_elig.sum(), 1e-300))
-    why = (f"{_fmt_t(t_first)}: the longest allowed time that does not saturate the bulk (all eligible pixels but "
-           f"the brightest {100 * highlight_fraction:g} %, up to {x_bulk:.4g} e-/s; {k_sigma:g} sigma margin)")
+    why = (
+        f"{_fmt_t(t_first)}: the longest allowed time that does not saturate the bulk (all eligible pixels but "
+        f"the brightest {100 * highlight_fraction:g} %, up to {x_bulk:.4g} e-/s; {k_sigma:g} sigma margin)"
+    )
     if t_seed != t_first:
         why = f"{_fmt_t(t_seed)}, the longest that fits the time budget; wanted " + why
     why += f"; it saturates about {100 * frac:.3g} % of the eligible pixels"
@@ -869,20 +979,24 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
     seq = ", ".join(_fmt_t(t) for t in exposures)
     parts = []
     if ok:
-        parts.append(f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB "
-                     f"on {where}: "
-                     f"predicted {min_db:.2f} dB, total capture time {total:.4g} s.")
+        parts.append(
+            f"{len(exposures)} exposures ({seq}) plus {n_m} matched dark frames reach {target:g} dB "
+            f"on {where}: "
+            f"predicted {min_db:.2f} dB, total capture time {total:.4g} s."
+        )
     else:
         why = {
             "max_exposures": f"the limit of {DEFAULT_MAX_EXPOSURES if max_exposures is None else max_exposures} "
-                             "exposures",
+            "exposures",
             "time_budget": f"the time budget of {budget:g} s" if budget is not None else "the time budget",
             "no_gain": "the allowed exposure times (no further exposure improves the darkest pixels)",
         }.get(limit, "the constraints")
         best = f"{min_db:.2f} dB" if np.isfinite(min_db) else "nothing"
-        parts.append(f"INFEASIBLE: target {target:g} dB on {where} cannot be reached within {why}; "
-                     f"best achievable {best} with {len(exposures)} exposures ({seq or 'none'}), "
-                     f"total capture time {total:.4g} s.")
+        parts.append(
+            f"INFEASIBLE: target {target:g} dB on {where} cannot be reached within {why}; "
+            f"best achievable {best} with {len(exposures)} exposures ({seq or 'none'}), "
+            f"total capture time {total:.4g} s."
+        )
         failing = ctx.elig & (to_db(ctx.snr(*ctx.sums([]))) < target)
         if exposures:
             snr_now = to_db(ctx.snr(*ctx.sums(chosen)))
@@ -890,8 +1004,9 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
         if failing.any():
             xs = ctx.X[failing]
             frac = ctx.w_elig[failing].sum() / max(ctx.w_elig.sum(), 1e-300)
-            parts.append(f"Below target: {100 * frac:.3g} % of eligible pixels, "
-                         f"irradiance {xs.min():.4g}..{xs.max():.4g} e-/s.")
+            parts.append(
+                f"Below target: {100 * frac:.3g} % of eligible pixels, irradiance {xs.min():.4g}..{xs.max():.4g} e-/s."
+            )
     elig = decisions.get("eligibility", {})
     if elig.get("figure", 0) and elig["figure"] > 0:
         parts.append(elig["reason"] + ".")
@@ -901,10 +1016,21 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
 # --------------------------------------------------------------------------- references
 
 
-def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, candidate_times: Sequence[float],
-                    max_exposures: int, *, overhead: float = DEFAULT_OVERHEAD_S, quantile: float | None = None,
-                    errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
-                    bins: int = 256, first: float | None = None) -> tuple[list[float], float] | None:
+def plan_exhaustive(
+    calibration: Calibration,
+    irradiance,
+    target_snr_db: float,
+    candidate_times: Sequence[float],
+    max_exposures: int,
+    *,
+    overhead: float = DEFAULT_OVERHEAD_S,
+    quantile: float | None = None,
+    errors: SystematicErrors | None = None,
+    darks: str = "model",
+    k_sigma: float = K_SIGMA,
+    bins: int = 256,
+    first: float | None = None,
+) -> tuple[list[float], float] | None:
     """Exhaustive search over all multisets of ``candidate_times`` of size <= ``max_exposures``:
     the sequence with the least total capture time that reaches the target (reference for the
     greedy planner). ``first``: only sequences that hold this time (one of the candidates), as
@@ -946,8 +1072,19 @@ def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, 
     times = _check_request(target_snr_db, candidate_times, max_exposures, None, overhead, quantile)
     errors = errors if errors is not None else SystematicErrors()
     hist = irradiance_histogram(irradiance, bins)
-    ctx = _Context(calibration, hist, target_snr_db, times, [darks] * len(times), [1] * len(times), overhead, errors,
-                   "map", 1.0 if quantile is None else quantile, k_sigma)
+    ctx = _Context(
+        calibration,
+        hist,
+        target_snr_db,
+        times,
+        [darks] * len(times),
+        [1] * len(times),
+        overhead,
+        errors,
+        "map",
+        1.0 if quantile is None else quantile,
+        k_sigma,
+    )
     fixed: tuple[int, ...] = ()
     if first is not None:
         fixed = (int(np.argmin(np.abs(np.asarray(times) - float(first)))),)
@@ -963,10 +1100,20 @@ def plan_exhaustive(calibration: Calibration, irradiance, target_snr_db: float, 
     return best
 
 
-def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, step_ev: float,
-                 allowed_times: Sequence[float] | None = None, *, overhead: float = DEFAULT_OVERHEAD_S,
-                 errors: SystematicErrors | None = None, darks: str = "model", k_sigma: float = K_SIGMA,
-                 max_frames: int = 400, bins: int = 256) -> tuple[list[float], float] | None:
+def plan_bracket(
+    calibration: Calibration,
+    irradiance,
+    target_snr_db: float,
+    step_ev: float,
+    allowed_times: Sequence[float] | None = None,
+    *,
+    overhead: float = DEFAULT_OVERHEAD_S,
+    errors: SystematicErrors | None = None,
+    darks: str = "model",
+    k_sigma: float = K_SIGMA,
+    max_frames: int = 400,
+    bins: int = 256,
+) -> tuple[list[float], float] | None:
     """The naive alternative: a fixed bracket of ``step_ev`` EV steps, long enough to reach the
     target.
 
@@ -1006,8 +1153,9 @@ def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, ste
     (list of float, float) or None
         The times, s, and the total capture time, s; None when nothing reaches the target.
     """
-    allowed = _check_request(target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER,
-                             None, None, overhead, None)
+    allowed = _check_request(
+        target_snr_db, allowed_times if allowed_times is not None else THIRD_STOP_LADDER, None, None, overhead, None
+    )
     errors = errors if errors is not None else SystematicErrors()
     hist = irradiance_histogram(irradiance, bins)
     t_lo_min, t_hi = allowed[0], allowed[-1]
@@ -1019,8 +1167,19 @@ def plan_bracket(calibration: Calibration, irradiance, target_snr_db: float, ste
     t0 = max(t for t in allowed if usable_fraction(x_max, t, calibration, "threshold", k_sigma) > 0)
     n_max = int(np.floor(np.log2(t_hi / t0) / step_ev)) + 1
     bracket_all = [t0 * 2.0 ** (step_ev * k) for k in range(max(n_max, 1))]
-    ctx = _Context(calibration, hist, target_snr_db, bracket_all, [darks] * len(bracket_all), [1] * len(bracket_all),
-                   overhead, errors, "map", 1.0, k_sigma)
+    ctx = _Context(
+        calibration,
+        hist,
+        target_snr_db,
+        bracket_all,
+        [darks] * len(bracket_all),
+        [1] * len(bracket_all),
+        overhead,
+        errors,
+        "map",
+        1.0,
+        k_sigma,
+    )
     ctx.elig = elig  # eligibility is judged at the ladder's shortest time, as for the plan
     ctx.w_elig = np.where(elig, hist.weight, 0.0)
     best = None

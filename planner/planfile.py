@@ -12,23 +12,36 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.times import find_exposure
 
-__all__ = ["PLAN_OPTIONS", "PlanFile", "read_plan", "check_plan", "plan_from_dict", "planner_attribute",
-           "apply_plan_options"]
+__all__ = [
+    "PLAN_OPTIONS",
+    "PlanFile",
+    "read_plan",
+    "check_plan",
+    "plan_from_dict",
+    "planner_attribute",
+    "apply_plan_options",
+]
 
 #: Merge options a plan may decide (a user's own value of any of them wins).
 PLAN_OPTIONS = ("iterations", "tolerance", "saturation", "saturation_sigmas", "prnu")
 
 #: JSON types of the merge options a plan may decide (their ranges are the merge's to check).
-_OPTION_TYPES = {"iterations": (int,), "tolerance": (int, float), "saturation": (str,),
-                 "saturation_sigmas": (int, float), "prnu": (str,)}
+_OPTION_TYPES = {
+    "iterations": (int,),
+    "tolerance": (int, float),
+    "saturation": (str,),
+    "saturation_sigmas": (int, float),
+    "prnu": (str,),
+}
 
 
 @dataclass
@@ -75,8 +88,9 @@ class PlanFile:
             try:
                 mo = plan_from_dict(self.data).merge_options()
             except (KeyError, TypeError, ValueError, AttributeError) as err:
-                raise InputError(f"{self.path}: the plan's decisions are malformed "
-                                 f"({type(err).__name__}: {err})") from None
+                raise InputError(
+                    f"{self.path}: the plan's decisions are malformed ({type(err).__name__}: {err})"
+                ) from None
         if not isinstance(mo, dict):
             raise InputError(f"{self.path}: merge_options must be a JSON object")
         for name, kinds in _OPTION_TYPES.items():
@@ -100,10 +114,15 @@ def plan_from_dict(d: dict):
     """
     from .plan import Plan
 
-    return Plan(exposures=list(d.get("exposures", [])), darks=list(d.get("darks", [])),
-                predicted_min_snr_db=d.get("predicted_min_snr_db"), total_time_s=d.get("total_time_s"),
-                decisions=dict(d.get("decisions") or {}), feasible=bool(d.get("feasible", True)),
-                message=str(d.get("message", "")))
+    return Plan(
+        exposures=list(d.get("exposures", [])),
+        darks=list(d.get("darks", [])),
+        predicted_min_snr_db=d.get("predicted_min_snr_db"),
+        total_time_s=d.get("total_time_s"),
+        decisions=dict(d.get("decisions") or {}),
+        feasible=bool(d.get("feasible", True)),
+        message=str(d.get("message", "")),
+    )
 
 
 def read_plan(path) -> PlanFile:
@@ -152,8 +171,11 @@ def _check_exposures(d: dict, where: str) -> tuple[list, list, list]:
     nd = d.get("n_dark")
     if nd is None:
         nd = [1] * len(exp)
-    if not isinstance(nd, list) or len(nd) != len(exp) or not all(
-            isinstance(n, (int, float)) and not isinstance(n, bool) and n >= 0 for n in nd):
+    if (
+        not isinstance(nd, list)
+        or len(nd) != len(exp)
+        or not all(isinstance(n, (int, float)) and not isinstance(n, bool) and n >= 0 for n in nd)
+    ):
         raise InputError(f"{where}: 'n_dark' must list one frame count >= 0 per exposure ({len(exp)})")
     return exp, [DarkStrategy(s) for s in darks], nd
 
@@ -196,16 +218,23 @@ def check_plan(d, where: str | None = None, sha256: str | None = None) -> PlanFi
             plan.n_dark.append(float(n))
             plan.counts.append(1)
         elif plan.strategies[i] is not s:
-            raise InputError(f"{where}: exposure {t:g} s is planned with two dark strategies "
-                             f"({plan.strategies[i]} and {s})")
+            raise InputError(
+                f"{where}: exposure {t:g} s is planned with two dark strategies ({plan.strategies[i]} and {s})"
+            )
         else:
             plan.counts[i] += 1
             plan.n_dark[i] = max(plan.n_dark[i], float(n))
     return plan
 
 
-def planner_attribute(plan: dict, plan_file: str | None = None, sha256: str | None = None,
-                      from_plan: dict | None = None, overridden: dict | None = None, **more) -> dict:
+def planner_attribute(
+    plan: dict,
+    plan_file: str | None = None,
+    sha256: str | None = None,
+    from_plan: dict | None = None,
+    overridden: dict | None = None,
+    **more,
+) -> dict:
     """The ``planner`` attribute of the EXR header.
 
     Parameters

@@ -3,8 +3,8 @@ the predicted SNR curve (drawn with :mod:`hdrcap.pipeline.plotting`; an I/O func
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -17,8 +17,9 @@ from .predict import K_SIGMA, predict_snr, usable_fraction
 __all__ = ["exposure_ranges", "plot_plan"]
 
 
-def exposure_ranges(times: Sequence[float], calibration: Calibration, x_lo: float, x_hi: float,
-                    k_sigma: float = K_SIGMA) -> list[tuple[float, float]]:
+def exposure_ranges(
+    times: Sequence[float], calibration: Calibration, x_lo: float, x_hi: float, k_sigma: float = K_SIGMA
+) -> list[tuple[float, float]]:
     """Irradiance range each exposure measures: from SNR 1 (0 dB) to saturation.
 
     Parameters
@@ -40,14 +41,15 @@ def exposure_ranges(times: Sequence[float], calibration: Calibration, x_lo: floa
     grid = np.logspace(np.log10(x_lo) - 1, np.log10(x_hi) + 1, 2000)
     out = []
     for t in times:
-        ok = (usable_fraction(grid, t, calibration, "threshold", k_sigma) > 0)
+        ok = usable_fraction(grid, t, calibration, "threshold", k_sigma) > 0
         ok &= predict_snr(grid, [t], calibration, "model").snr >= 1.0
         out.append((float(grid[ok].min()), float(grid[ok].max())) if ok.any() else (np.nan, np.nan))
     return out
 
 
-def plot_plan(plan: Plan, calibration: Calibration, path: str | Path, force: bool = False,
-              title: str | None = None) -> Path:
+def plot_plan(
+    plan: Plan, calibration: Calibration, path: str | Path, force: bool = False, title: str | None = None
+) -> Path:
     """Write the plan's figure (Fig. 7) as PNG.
 
     (a) The irradiance histogram with the planned exposures' ranges in capture order, (b) the
@@ -90,14 +92,24 @@ def plot_plan(plan: Plan, calibration: Calibration, path: str | Path, force: boo
             ax1.plot([lo, hi], [y, y], color=col, lw=3, solid_capstyle="butt")
             label = f"1/{1 / t:.0f}" if t < 0.25 else f"{t:g}"
             ax1.text(hi, y, f" {i + 1}: {label} s", va="center", fontsize=7)
-        ax1.set_ylim(0.5, ymax ** 1.05 * 2)
-        ax1.set_title(title or f"Planned sequence: {len(plan.exposures)} exposures, {plan.total_time_s:.4g} s "
-                      f"(blue: no dark frame, red: matched dark, purple: master dark)", fontsize=9)
+        ax1.set_ylim(0.5, ymax**1.05 * 2)
+        ax1.set_title(
+            title
+            or f"Planned sequence: {len(plan.exposures)} exposures, {plan.total_time_s:.4g} s "
+            f"(blue: no dark frame, red: matched dark, purple: master dark)",
+            fontsize=9,
+        )
         order = np.argsort(X)
         ax2.plot(X[order], snr[order], color="tab:green", lw=1.2, label="predicted SNR")
         if (~elig).any():
-            ax2.plot(X[~elig], np.zeros((~elig).sum()), "x", color="tab:red", ms=3,
-                     label="not eligible (saturated at the shortest time)")
+            ax2.plot(
+                X[~elig],
+                np.zeros((~elig).sum()),
+                "x",
+                color="tab:red",
+                ms=3,
+                label="not eligible (saturated at the shortest time)",
+            )
         ax2.axhline(plan.target_snr_db, color="k", ls="--", lw=0.8, label=f"target {plan.target_snr_db:g} dB")
         ax2.set_xscale("log")
         ax2.set_ylabel("predicted SNR, dB")

@@ -18,15 +18,15 @@ Units: X in e-/s per photosite, t in s, values in DN.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.special import ndtr
 
 from hdrcap.pipeline.noise import dark_factor, exposure_variance, exposure_weight, variance_core
-from hdrcap.pipeline.times import same_exposure
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.times import same_exposure
 
 __all__ = [
     "K_SIGMA",
@@ -124,8 +124,9 @@ def _rms(arr) -> float:
     return float(np.sqrt(np.mean(np.square(a)))) if a.size else 0.0
 
 
-def systematic_errors_from_calibration(calibration: Calibration,
-                                       dark_rel_error: float | None = None) -> SystematicErrors:
+def systematic_errors_from_calibration(
+    calibration: Calibration, dark_rel_error: float | None = None
+) -> SystematicErrors:
     """Default :class:`SystematicErrors` of a calibration: the per-photosite errors that the
     merge puts into ``sigma_calibration`` (RMS over the photosites; the standard error of a
     spatial mean would be 40-100 times too small).
@@ -252,9 +253,17 @@ class ExposureTerms:
     variance: np.ndarray
 
 
-def exposure_terms(X, t, calibration: Calibration, dark: str = "model", n_dark: float = 1,
-                   saturation: str = "threshold", k_sigma: float = K_SIGMA, weight_at=None,
-                   copies: int = 1) -> ExposureTerms:
+def exposure_terms(
+    X,
+    t,
+    calibration: Calibration,
+    dark: str = "model",
+    n_dark: float = 1,
+    saturation: str = "threshold",
+    k_sigma: float = K_SIGMA,
+    weight_at=None,
+    copies: int = 1,
+) -> ExposureTerms:
     """Per-irradiance contribution of one exposure of ``t`` seconds with dark strategy ``dark``.
 
     The weight is the optimal weight of Eq. 13 (from :func:`pipeline.noise.exposure_weight`)
@@ -405,13 +414,25 @@ def shared_dark_copies(times: Sequence[float], darks: Sequence[str], n_dark: Seq
         Group size per exposure (>= 1).
     """
     keys = [(float(t), str(getattr(d, "value", d)), n) for t, d, n in zip(times, darks, n_dark)]
-    return [1 if d == "model" else sum(1 for u, e, m in keys if e == d and m == n and same_exposure(u, t))
-            for t, d, n in keys]
+    return [
+        1 if d == "model" else sum(1 for u, e, m in keys if e == d and m == n and same_exposure(u, t))
+        for t, d, n in keys
+    ]
 
 
-def predict_snr(X, times: Sequence[float], calibration: Calibration, darks="model", n_dark=1, *,
-                errors: SystematicErrors | None = None, prnu: str = "map", saturation: str = "threshold",
-                k_sigma: float = K_SIGMA, weight_at=None) -> SnrPrediction:
+def predict_snr(
+    X,
+    times: Sequence[float],
+    calibration: Calibration,
+    darks="model",
+    n_dark=1,
+    *,
+    errors: SystematicErrors | None = None,
+    prnu: str = "map",
+    saturation: str = "threshold",
+    k_sigma: float = K_SIGMA,
+    weight_at=None,
+) -> SnrPrediction:
     """Predicted SNR of the merge of exposures ``times`` at irradiance ``X`` (Eq. 12, 13; Sec. 8).
 
     Parameters

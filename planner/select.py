@@ -23,7 +23,6 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from hdrcap.pipeline.params import Calibration
@@ -107,9 +106,18 @@ def longest_usable_time(Xe, times, calibration: Calibration, k_sigma: float = K_
     return best
 
 
-def dark_decision_for_time(Xe, t: float, calibration: Calibration, errors: SystematicErrors, target_lin: float,
-                           n_library: int, overhead: float, tolerance_db: float, k_sigma: float = K_SIGMA,
-                           t_best=None) -> dict:
+def dark_decision_for_time(
+    Xe,
+    t: float,
+    calibration: Calibration,
+    errors: SystematicErrors,
+    target_lin: float,
+    n_library: int,
+    overhead: float,
+    tolerance_db: float,
+    k_sigma: float = K_SIGMA,
+    t_best=None,
+) -> dict:
     """Dark strategy for an exposure of ``t`` s on the eligible irradiances ``Xe`` (e-/s).
 
     The cost of skipping the dark frame is evaluated where the exposure matters: where it is
@@ -156,8 +164,13 @@ def dark_decision_for_time(Xe, t: float, calibration: Calibration, errors: Syste
     elif n_library >= 1:
         choice, why = "master", f"master dark of {n_library} frames: the dark model would cost {loss:.3f} dB"
     else:
-        choice, why = "matched", (f"matched dark frame (+{t + overhead:.4g} s): the dark model would cost "
-                                  f"{loss:.3f} dB and the library has no master dark for this time")
+        choice, why = (
+            "matched",
+            (
+                f"matched dark frame (+{t + overhead:.4g} s): the dark model would cost "
+                f"{loss:.3f} dB and the library has no master dark for this time"
+            ),
+        )
     return {"choice": choice, "reason": why, "figure": loss, "time": float(t)}
 
 
@@ -208,14 +221,20 @@ def prnu_decision(errors: SystematicErrors, target_lin: float, calibration: Cali
     # SNR lost at the target by a scalar gain, relative to the map (which has its own error)
     loss = float(10.0 * np.log10((1.0 + (target_lin * errors.prnu) ** 2) / (1.0 + (target_lin * errors.prnu_map) ** 2)))
     if calibration.prnu is None:
-        return {"choice": "scalar", "reason": "the calibration has no PRNU map", "figure": loss,
-                "unit": "dB lost at the target with a scalar gain"}
+        return {
+            "choice": "scalar",
+            "reason": "the calibration has no PRNU map",
+            "figure": loss,
+            "unit": "dB lost at the target with a scalar gain",
+        }
     if loss <= tolerance_db:
         why = f"scalar gain: the PRNU spread {100 * errors.prnu:.3g} % costs {loss:.3f} dB at the target"
         choice = "scalar"
     else:
-        why = (f"per-photosite PRNU map: a scalar gain would cost {loss:.3f} dB more (spread {100 * errors.prnu:.3g} %, "
-               f"map error {100 * errors.prnu_map:.3g} %)")
+        why = (
+            f"per-photosite PRNU map: a scalar gain would cost {loss:.3f} dB more (spread {100 * errors.prnu:.3g} %, "
+            f"map error {100 * errors.prnu_map:.3g} %)"
+        )
         choice = "map"
     return {"choice": choice, "reason": why, "figure": loss, "unit": "dB lost at the target with a scalar gain"}
 
@@ -276,21 +295,28 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     """
     kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
     thr = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="threshold", **kw).snr_db
-    prob = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic",
-                       **kw).snr_db
+    prob = predict_snr(
+        Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic", **kw
+    ).snr_db
     gain = np.where(np.isfinite(thr), prob - thr, np.where(np.isfinite(prob), np.inf, 0.0))
     g = float(gain.max()) if gain.size else 0.0
     frac = float(np.mean(gain > tolerance_db)) if gain.size else 0.0
     if g > tolerance_db:
         choice = "threshold"
-        why = (f"threshold rule (Eq. 11): the probabilistic model (Eq. 8-10) would add up to {g:.3f} dB "
-               f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB) but is biased near "
-               "each exposure's clip level; not chosen automatically")
+        why = (
+            f"threshold rule (Eq. 11): the probabilistic model (Eq. 8-10) would add up to {g:.3f} dB "
+            f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB) but is biased near "
+            "each exposure's clip level; not chosen automatically"
+        )
     else:
         choice = "threshold"
         why = f"threshold rule (Eq. 11): the probabilistic model would add at most {g:.3f} dB"
-    return {"choice": choice, "reason": why, "figure": g if np.isfinite(g) else 1e9,
-            "unit": "dB gained by the probabilistic model (max over bins)"}
+    return {
+        "choice": choice,
+        "reason": why,
+        "figure": g if np.isfinite(g) else 1e9,
+        "unit": "dB gained by the probabilistic model (max over bins)",
+    }
 
 
 def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k_sigma):
@@ -327,8 +353,18 @@ def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k
     return losses
 
 
-def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA,
-                        saturation: str = "threshold") -> dict:
+def iterations_decision(
+    Xe,
+    exposures,
+    darks,
+    n_dark,
+    calibration,
+    errors,
+    prnu,
+    tolerance_db,
+    k_sigma=K_SIGMA,
+    saturation: str = "threshold",
+) -> dict:
     """Number of merge re-weighting steps (Fig. 3) needed to be within the tolerance.
 
     Floors on top of the predicted loss, for samples that saturate: when a planned exposure
@@ -370,23 +406,30 @@ def iterations_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     """
     losses = _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k_sigma)
     k = next((i + 1 for i, loss in enumerate(losses) if loss <= tolerance_db), MAX_ITERATIONS)
-    why = (f"{k} re-weighting step(s): predicted loss against the converged merge "
-           + ", ".join(f"{loss:.3f} dB after {i + 1}" for i, loss in enumerate(losses[:max(k, 2)])))
+    why = f"{k} re-weighting step(s): predicted loss against the converged merge " + ", ".join(
+        f"{loss:.3f} dB after {i + 1}" for i, loss in enumerate(losses[: max(k, 2)])
+    )
     figure = losses[k - 1]
     saturates = any(np.any(usable_fraction(Xe, t, calibration, "threshold", k_sigma) == 0) for t in set(exposures))
     if saturation == "probabilistic":
         k = CONVERGED_ITERATIONS
-        why = (f"{k} re-weighting steps (stop at the merge's tolerance): the probabilistic saturation model's "
-               f"Newton steps must converge; without it " + why)
+        why = (
+            f"{k} re-weighting steps (stop at the merge's tolerance): the probabilistic saturation model's "
+            f"Newton steps must converge; without it " + why
+        )
     elif saturates and full_well_clips_first(calibration):
         k = CONVERGED_ITERATIONS
-        why = (f"{k} re-weighting steps (stop at the merge's tolerance): planned exposures saturate some pixels and "
-               f"the full well clips before the ADC, so saturated samples slip under v_sat until the estimate has "
-               f"converged; without it " + why)
+        why = (
+            f"{k} re-weighting steps (stop at the merge's tolerance): planned exposures saturate some pixels and "
+            f"the full well clips before the ADC, so saturated samples slip under v_sat until the estimate has "
+            f"converged; without it " + why
+        )
     elif saturates and k < 2:
         k = 2
-        why = ("2 re-weighting steps: planned exposures saturate some pixels and the near-saturation rule acts "
-               "from the second step on; without it " + why)
+        why = (
+            "2 re-weighting steps: planned exposures saturate some pixels and the near-saturation rule acts "
+            "from the second step on; without it " + why
+        )
     return {"choice": k, "reason": why, "figure": figure, "unit": "dB lost against the converged merge"}
 
 
@@ -415,10 +458,16 @@ def eligibility_decision(hist, elig, t_min: float, calibration: Calibration) -> 
     parts = [f"{hist.n_pixels - n_sat - hist.n_nosignal:.0f} of {hist.n_pixels} pixels eligible"]
     if n_sat > 0:
         x_lim = float(hist.X[inelig].min())
-        parts.append(f"{100 * n_sat / n:.3g} % of pixels ({n_sat:.0f}) are brighter than the shortest allowed "
-                     f"exposure ({t_min:.4g} s) can measure (X >= {x_lim:.4g} e-/s): excluded, the merge reports "
-                     "lower bounds there")
+        parts.append(
+            f"{100 * n_sat / n:.3g} % of pixels ({n_sat:.0f}) are brighter than the shortest allowed "
+            f"exposure ({t_min:.4g} s) can measure (X >= {x_lim:.4g} e-/s): excluded, the merge reports "
+            "lower bounds there"
+        )
     if hist.n_nosignal:
         parts.append(f"{hist.n_nosignal} pixels without signal (X <= 0) excluded")
-    return {"choice": "not saturated at the shortest time", "reason": "; ".join(parts), "figure": n_sat / n,
-            "unit": "fraction of pixels saturated even at the shortest time"}
+    return {
+        "choice": "not saturated at the shortest time",
+        "reason": "; ".join(parts),
+        "figure": n_sat / n,
+        "unit": "fraction of pixels saturated even at the shortest time",
+    }

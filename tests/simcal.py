@@ -49,8 +49,11 @@ def bracket(sensor, X, times, seed):
     RawFrames (seeded)."""
     rng = np.random.default_rng([seed, 59])
     white = sensor.spec.white_level
-    frames = [RawFrame(sensor.expose(X, t, rng=rng), t, path=f"f{i}.dng", white_level=white)
-              for i, t in enumerate(times)]
-    darks = [RawFrame(sensor.expose(X, t, dark=True, rng=rng), t, path=f"d{i}.dng", white_level=white)
-             for i, t in enumerate(times)]
+    frames = [
+        RawFrame(sensor.expose(X, t, rng=rng), t, path=f"f{i}.dng", white_level=white) for i, t in enumerate(times)
+    ]
+    darks = [
+        RawFrame(sensor.expose(X, t, dark=True, rng=rng), t, path=f"d{i}.dng", white_level=white)
+        for i, t in enumerate(times)
+    ]
     return frames, darks

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -177,8 +176,12 @@ def test_mock_reconnect_fails_n_times_then_comes_back_on_a_new_port(tmp_path):
 def test_mock_reconnect_faults_are_drawn_per_disconnect():
     """Half of the disconnects (rate 0.5) are followed by failing reconnects: the draws are
     seeded and their frequency is the rate's (binomial, 400 disconnects: 3 sigma = 30)."""
-    cam = MockCamera("camera-B", _scene((8, 8)), seed=1, faults=MockFaults(seed=3, reconnect_fail_rate=0.5,
-                                                                          reconnect_failures=2, renumber_rate=0.25))
+    cam = MockCamera(
+        "camera-B",
+        _scene((8, 8)),
+        seed=1,
+        faults=MockFaults(seed=3, reconnect_fail_rate=0.5, reconnect_failures=2, renumber_rate=0.25),
+    )
     failing = 0
     for _ in range(400):
         cam._lose_connection()
@@ -199,8 +202,9 @@ def test_mock_reconnect_faults_are_drawn_per_disconnect():
 def test_mock_hang_that_ignores_the_timeout(tmp_path):
     import time
 
-    cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(hang_rate=1.0, hang_s=0.3,
-                                                                     hang_ignores_timeout=True))
+    cam = MockCamera(
+        "camera-B", _scene(), seed=1, faults=MockFaults(hang_rate=1.0, hang_s=0.3, hang_ignores_timeout=True)
+    )
     t0 = time.monotonic()
     with pytest.raises(Exception) as e:
         cam.capture(tmp_path / "a.dng", timeout=0.01)
@@ -216,8 +220,7 @@ def test_session_survives_failing_reconnects_and_a_new_port(tmp_path):
     from hdrcap.acquire.manifest import Manifest
     from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy
 
-    faults = MockFaults(seed=5, disconnect_rate=0.25, reconnect_fail_rate=1.0, reconnect_failures=2,
-                        renumber_rate=1.0)
+    faults = MockFaults(seed=5, disconnect_rate=0.25, reconnect_fail_rate=1.0, reconnect_failures=2, renumber_rate=1.0)
     cam = MockCamera("camera-B", _scene((24, 24)), seed=2, faults=faults)
     plan = CapturePlan.bracket([1 / 250, 1 / 60, 1 / 15], None, "matched")
     fast = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)

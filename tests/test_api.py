@@ -57,8 +57,10 @@ def test_readme_python_example_runs(tmp_path, monkeypatch, capsys):
 
 def test_import_hdrcap_is_cheap():
     """``import hdrcap`` imports neither numpy nor numba nor the API; the first use does."""
-    code = ("import sys, hdrcap; before = {m for m in ('numpy', 'numba', 'hdrcap.api') if m in sys.modules}; "
-            "hdrcap.merge; print(sorted(before), 'hdrcap.api' in sys.modules)")
+    code = (
+        "import sys, hdrcap; before = {m for m in ('numpy', 'numba', 'hdrcap.api') if m in sys.modules}; "
+        "hdrcap.merge; print(sorted(before), 'hdrcap.api' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/", check=False)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["[]", "True"]
@@ -121,10 +123,12 @@ def test_simulate_scene_array_and_errors():
     assert s.truth.shape == (8, 10) and len(s.frames) == 2
     # mean electrons g t a X: a photosite average close to the model
     assert np.mean(s.frames[0]) == pytest.approx(128.0 + 0.23 * 0.01 * (1000 + 0.2), abs=1.0)
-    for kwargs, text in (({"camera": "camera-Z"}, "unknown camera preset"),
-                         ({"scene": "moon"}, "unknown scene"),
-                         ({"times": [0.1, -1]}, "positive"),
-                         ({"scene": np.full((4, 4), -1.0)}, ">= 0")):
+    for kwargs, text in (
+        ({"camera": "camera-Z"}, "unknown camera preset"),
+        ({"scene": "moon"}, "unknown scene"),
+        ({"times": [0.1, -1]}, "positive"),
+        ({"scene": np.full((4, 4), -1.0)}, ">= 0"),
+    ):
         with pytest.raises(InputError) as err:
             hdrcap.simulate(**kwargs)
         assert text in _one_line(err)
@@ -165,8 +169,11 @@ def test_merge_arrays_and_paths_agree(sim, tmp_path):
     hdrcap.save_calibration(cal, sim.calibration)
     a = hdrcap.merge(sim.frames, sim.times, calibration=sim.calibration, darks=sim.darks)
     b = hdrcap.merge(paths, sim.times, calibration=cal, darks=dpaths, dark_times=sim.times)
-    c = hdrcap.merge([read_frame(p, t) for p, t in zip(paths, sim.times)], calibration=sim.calibration,
-                     darks=[read_frame(p, t) for p, t in zip(dpaths, sim.times)])
+    c = hdrcap.merge(
+        [read_frame(p, t) for p, t in zip(paths, sim.times)],
+        calibration=sim.calibration,
+        darks=[read_frame(p, t) for p, t in zip(dpaths, sim.times)],
+    )
     d = hdrcap.merge(np.stack(sim.frames), sim.times, calibration=sim.calibration, darks=np.stack(sim.darks))
     for other in (b, c, d):
         for name in ("irradiance", "sigma", "nexp"):
@@ -180,11 +187,22 @@ def test_merge_options_and_dark_strategies(sim):
     model = hdrcap.merge(sim.frames, sim.times, calibration=sim.calibration, iterations=3, prnu="scalar")
     assert model.metadata["merge"]["dark_strategy"] == "model"
     assert model.metadata["merge"]["iterations"] == 3 and model.metadata["merge"]["prnu"] == "scalar"
-    m = hdrcap.merge(sim.frames, sim.times, calibration=sim.calibration, master_dark=sim.darks[0],
-                     master_dark_time=sim.times[0], n_dark=1)
+    m = hdrcap.merge(
+        sim.frames,
+        sim.times,
+        calibration=sim.calibration,
+        master_dark=sim.darks[0],
+        master_dark_time=sim.times[0],
+        n_dark=1,
+    )
     assert m.metadata["merge"]["dark_strategy"] == "master" and np.all(np.isfinite(m.irradiance))
-    mixed = hdrcap.merge(sim.frames, sim.times, calibration=sim.calibration, darks=sim.darks,
-                         dark_strategies=["model", "model", "matched", "matched"])
+    mixed = hdrcap.merge(
+        sim.frames,
+        sim.times,
+        calibration=sim.calibration,
+        darks=sim.darks,
+        dark_strategies=["model", "model", "matched", "matched"],
+    )
     assert mixed.metadata["merge"]["dark_strategies"] == ["model", "model", "matched", "matched"]
     preset = hdrcap.merge(sim.frames, sim.times, calibration="camera-B")
     assert preset.metadata["calibration"]["params"]["name"] == "camera-B"
@@ -268,8 +286,12 @@ def test_denoise_returns_a_new_result(sim):
     assert abs(np.median(z)) < 0.2
     mono = hdrcap.denoise(hdr, layout="mono", method="constant", bandwidth=float("inf"), radius=1)
     assert mono.metadata["denoise"]["settings"]["layout"] == "mono"
-    for kwargs, text in (({"method": "median"}, "method"), ({"radius": -1}, "radius"),
-                         ({"layout": "rgb"}, "layout"), ({"method": "constant"}, "bandwidth")):
+    for kwargs, text in (
+        ({"method": "median"}, "method"),
+        ({"radius": -1}, "radius"),
+        ({"layout": "rgb"}, "layout"),
+        ({"method": "constant"}, "bandwidth"),
+    ):
         with pytest.raises(InputError) as err:
             hdrcap.denoise(hdr, **kwargs)
         assert text in _one_line(err)
@@ -286,12 +308,18 @@ def test_plan_meets_its_target_on_a_flat_scene():
     the merge on a flat scene is the predicted one, independently of the planner's formulas."""
     X = np.full((64, 64), 400.0)
     truth = hdrcap.simulate("camera-B", X, [0.01], seed=5)  # the sensor's calibration
-    p = hdrcap.plan(truth.calibration, X, target_snr_db=30, allowed_times=[0.01, 0.1, 0.5, 1.0, 2.0],
-                    overhead=0.0)
+    p = hdrcap.plan(truth.calibration, X, target_snr_db=30, allowed_times=[0.01, 0.1, 0.5, 1.0, 2.0], overhead=0.0)
     assert p.feasible and p.predicted_min_snr_db >= 30 - 0.2
     s = hdrcap.simulate("camera-B", X, p.exposures, seed=5, darks=True)
-    hdr = hdrcap.merge(s.frames, s.times, calibration=s.calibration, darks=s.darks, dark_strategies=p.darks,
-                       n_darks=p.n_dark, **p.merge_options())
+    hdr = hdrcap.merge(
+        s.frames,
+        s.times,
+        calibration=s.calibration,
+        darks=s.darks,
+        dark_strategies=p.darks,
+        n_darks=p.n_dark,
+        **p.merge_options(),
+    )
     err = hdr.irradiance - X
     measured_db = 20 * np.log10(400.0 / err.std())
     assert measured_db == pytest.approx(p.predicted_min_snr_db, abs=1.0)
@@ -338,8 +366,17 @@ def _calibration_frames(seed: int = 2, shape=(48, 64)):
 
 def test_calibrate_from_arrays_recovers_the_sensor(tmp_path):
     sensor, bias, sat, flats, flat_times, darks, dark_times = _calibration_frames()
-    cal = hdrcap.calibrate(bias, sat, flats, darks, flat_times=flat_times, dark_times=dark_times,
-                           bias_times=[1e-4] * 4, white_level=1023, provenance={"camera": "sim"})
+    cal = hdrcap.calibrate(
+        bias,
+        sat,
+        flats,
+        darks,
+        flat_times=flat_times,
+        dark_times=dark_times,
+        bias_times=[1e-4] * 4,
+        white_level=1023,
+        provenance={"camera": "sim"},
+    )
     assert isinstance(cal, Calibration)
     p, se = cal.params, cal.stderr
     assert abs(p.g - 0.92) < max(4 * se["g"], 0.02 * 0.92)
@@ -367,11 +404,20 @@ def test_calibrate_paths_equal_arrays(tmp_path):
             tifffile.imwrite(out[-1], f)
         return out
 
-    a = hdrcap.calibrate(bias, sat, flats, darks, flat_times=flat_times, dark_times=dark_times,
-                         bias_times=[1e-4] * 4, white_level=1023)
-    b = hdrcap.calibrate(write(bias, "b"), write(sat, "s"), write(flats, "f"), write(darks, "d"),
-                         flat_times=flat_times, dark_times=dark_times, bias_times=[1e-4] * 4,
-                         saturation_times=[0.2], white_level=1023)
+    a = hdrcap.calibrate(
+        bias, sat, flats, darks, flat_times=flat_times, dark_times=dark_times, bias_times=[1e-4] * 4, white_level=1023
+    )
+    b = hdrcap.calibrate(
+        write(bias, "b"),
+        write(sat, "s"),
+        write(flats, "f"),
+        write(darks, "d"),
+        flat_times=flat_times,
+        dark_times=dark_times,
+        bias_times=[1e-4] * 4,
+        saturation_times=[0.2],
+        white_level=1023,
+    )
     assert a.params == b.params
     assert np.array_equal(a.prnu, b.prnu) and np.array_equal(a.dark_current_map, b.dark_current_map)
 

@@ -20,11 +20,21 @@ SHAPE = (6, 8)
 def _run(i: int, seed: int | None = None, shape=SHAPE) -> ArchiveRun:
     rng = np.random.default_rng(i if seed is None else seed)
     irr = rng.lognormal(5, 2, shape).astype(np.float32)
-    channels = {"irradiance": irr, "sigma": (0.05 * irr + 1).astype(np.float32),
-                "nexp": rng.integers(0, 4, shape).astype(np.float32)}
-    return ArchiveRun(folder=f"/runs/{i:03d}", start_time=f"2026-01-0{1 + i % 9}T10:00:00+00:00", channels=channels,
-                      header={"unit": "electrons per second per photosite", "i": i}, exposure_times=[0.001, 0.01],
-                      plan=None, merge_options={"iterations": 20}, calibration={"sha256": "ab" * 32})
+    channels = {
+        "irradiance": irr,
+        "sigma": (0.05 * irr + 1).astype(np.float32),
+        "nexp": rng.integers(0, 4, shape).astype(np.float32),
+    }
+    return ArchiveRun(
+        folder=f"/runs/{i:03d}",
+        start_time=f"2026-01-0{1 + i % 9}T10:00:00+00:00",
+        channels=channels,
+        header={"unit": "electrons per second per photosite", "i": i},
+        exposure_times=[0.001, 0.01],
+        plan=None,
+        merge_options={"iterations": 20},
+        calibration={"sha256": "ab" * 32},
+    )
 
 
 def test_documented_dataset(tmp_path):
@@ -50,8 +60,11 @@ def test_documented_dataset(tmp_path):
         assert json.loads(str(ds["calibration"].values[i])) == r.calibration
     assert ds["start_time"].values[1] == np.datetime64("2026-01-02T10:00:00")
     # Appending writes new chunk files only: one per run per variable.
-    assert sorted(p.name for p in (path / "irradiance").iterdir() if not p.name.startswith(".")) == \
-        ["0.0.0", "1.0.0", "2.0.0"]
+    assert sorted(p.name for p in (path / "irradiance").iterdir() if not p.name.startswith(".")) == [
+        "0.0.0",
+        "1.0.0",
+        "2.0.0",
+    ]
 
 
 def test_read_run_and_errors(tmp_path):
@@ -93,8 +106,18 @@ def _staged(store: Archive, staging, run: ArchiveRun) -> ArchiveRun:
     """``run`` as a worker that sees the staging folder sends it: chunk files, no arrays."""
     files = stage_channels(staging, run.folder.replace("/", "_"), run.channels)
     assert set(files) == set(CHANNELS)
-    return ArchiveRun(run.folder, run.start_time, {}, run.header, run.exposure_times, run.plan, run.merge_options,
-                      run.calibration, staged=files, staged_shape=run.shape)
+    return ArchiveRun(
+        run.folder,
+        run.start_time,
+        {},
+        run.header,
+        run.exposure_times,
+        run.plan,
+        run.merge_options,
+        run.calibration,
+        staged=files,
+        staged_shape=run.shape,
+    )
 
 
 def test_staged_runs_commit_by_renaming_chunk_files(tmp_path):

@@ -35,11 +35,45 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("runs")
     good = [_bracket(root / f"b{i}", seed=10 + i) for i in range(3)]
     cap = root / "cap"  # a capture run folder with its manifest
-    assert cli_main(["capture", "--camera", f"mock:{CAMERA}", "--times", *map(str, TIMES), "--out", str(cap),
-                     "--size", "64x48", "--seed", "7", "--no-progress"]) == 0
+    assert (
+        cli_main(
+            [
+                "capture",
+                "--camera",
+                f"mock:{CAMERA}",
+                "--times",
+                *map(str, TIMES),
+                "--out",
+                str(cap),
+                "--size",
+                "64x48",
+                "--seed",
+                "7",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     planned = root / "planned"  # a capture run the planner planned (per-exposure dark strategies, options)
-    assert cli_main(["capture", "--camera", "mock:camera-B", "--target-snr", "20", "--out", str(planned),
-                     "--size", "64x48", "--seed", "8", "--no-progress"]) == 0
+    assert (
+        cli_main(
+            [
+                "capture",
+                "--camera",
+                "mock:camera-B",
+                "--target-snr",
+                "20",
+                "--out",
+                str(planned),
+                "--size",
+                "64x48",
+                "--seed",
+                "8",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     bad = _bracket(root / "bad", seed=99)
     frame = sorted(bad.glob("frame_*.dng"))[1]
     frame.write_bytes(frame.read_bytes()[: frame.stat().st_size // 3])  # truncated raw file
@@ -48,8 +82,10 @@ def runs(tmp_path_factory):
 
 def _merge_exr(tmp: Path, name: str, frames, darks, *extra) -> Path:
     out = tmp / f"{name}.exr"
-    assert cli_main(["merge", *map(str, frames), "--darks", *map(str, darks), "--camera", CAMERA, "-o", str(out),
-                     *extra]) == 0
+    assert (
+        cli_main(["merge", *map(str, frames), "--darks", *map(str, darks), "--camera", CAMERA, "-o", str(out), *extra])
+        == 0
+    )
     return out
 
 
@@ -72,8 +108,9 @@ def test_batch_cli_identical_to_merge_records_failure_and_resumes(runs, tmp_path
             frames, darks = sorted(folder.glob("frames/*_light_*.dng")), sorted(folder.glob("frames/*_dark_*.dng"))
             ref = read_exr(_merge_exr(tmp_path, f"m{k}", frames, darks, "--dark-strategy", "matched"))
         else:
-            ref = read_exr(_merge_exr(tmp_path, f"m{k}", sorted(folder.glob("frame_*.dng")),
-                                      sorted(folder.glob("dark_*.dng"))))
+            ref = read_exr(
+                _merge_exr(tmp_path, f"m{k}", sorted(folder.glob("frame_*.dng")), sorted(folder.glob("dark_*.dng")))
+            )
         i = by_folder[str(folder)]
         for name, arr in ref.channels.items():
             got = ds[name].isel(run=i).values
@@ -93,17 +130,34 @@ def test_planned_run_follows_its_recorded_plan_as_merge_plan_does(runs, tmp_path
 
     folder = runs["planned"].resolve()
     archive = tmp_path / "p.zarr"
-    assert cli_main(["batch", str(folder), "--camera", "camera-B", "-o", str(archive), "--workers", "1",
-                     "--no-progress"]) == 0
+    assert (
+        cli_main(["batch", str(folder), "--camera", "camera-B", "-o", str(archive), "--workers", "1", "--no-progress"])
+        == 0
+    )
     plan = Manifest(folder).header()["planning"]["plan"]
     plan_file = tmp_path / "plan.json"
     plan_file.write_text(json.dumps(plan))
     ref = tmp_path / "ref.exr"
-    assert cli_main(["merge", *map(str, sorted(folder.glob("frames/*_light_*.dng"))), "--camera", "camera-B",
-                     "--plan", str(plan_file), "-o", str(ref)]) == 0
+    assert (
+        cli_main(
+            [
+                "merge",
+                *map(str, sorted(folder.glob("frames/*_light_*.dng"))),
+                "--camera",
+                "camera-B",
+                "--plan",
+                str(plan_file),
+                "-o",
+                str(ref),
+            ]
+        )
+        == 0
+    )
     ref, got = read_exr(ref), read_exr(_export(archive, 0, tmp_path / "got.exr"))
-    assert got.attrs["merge"] == ref.attrs["merge"] and got.attrs["merge"]["saturation"] == plan["merge_options"][
-        "saturation"]
+    assert (
+        got.attrs["merge"] == ref.attrs["merge"]
+        and got.attrs["merge"]["saturation"] == plan["merge_options"]["saturation"]
+    )
     assert all(np.array_equal(got.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
     assert got.attrs["planner"]["plan_file"] == str(folder / "manifest.jsonl")
 

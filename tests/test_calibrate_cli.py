@@ -29,8 +29,24 @@ EMVA_REF001 = {
 @pytest.fixture(scope="module")
 def calibration_set(tmp_path_factory):
     out = tmp_path_factory.mktemp("calset")
-    assert main(["simulate", "--calibration-set", "--camera", "camera-B", "--size", "96x96", "--seed", "5",
-                 "--out", str(out), "--json"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--calibration-set",
+                "--camera",
+                "camera-B",
+                "--size",
+                "96x96",
+                "--seed",
+                "5",
+                "--out",
+                str(out),
+                "--json",
+            ]
+        )
+        == 0
+    )
     return out, json.loads((out / "calibration_set.json").read_text())
 
 
@@ -40,9 +56,26 @@ def test_simulate_then_calibrate(calibration_set, tmp_path, capsys):
     assert [len(files[k]) for k in ("bias", "saturation", "flat", "dark")] == [2, 1, 36 + 24, 12]
     capsys.readouterr()
     cal_path = tmp_path / "cam-B.cal"
-    args = ["calibrate", "--bias", *files["bias"], "--saturation", *files["saturation"], "--flat", *files["flat"],
-            "--dark", *files["dark"], "-o", str(cal_path), "--json", "--report", str(tmp_path / "rep"),
-            "--dark-library", str(tmp_path / "lib"), "--temperature", "20"]
+    args = [
+        "calibrate",
+        "--bias",
+        *files["bias"],
+        "--saturation",
+        *files["saturation"],
+        "--flat",
+        *files["flat"],
+        "--dark",
+        *files["dark"],
+        "-o",
+        str(cal_path),
+        "--json",
+        "--report",
+        str(tmp_path / "rep"),
+        "--dark-library",
+        str(tmp_path / "lib"),
+        "--temperature",
+        "20",
+    ]
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("g", "g_stderr", "mu_R", "sigma2_R", "v_sat", "prnu_std", "dark_current", "n_frames"):
@@ -55,8 +88,13 @@ def test_simulate_then_calibrate(calibration_set, tmp_path, capsys):
     assert summary["sigma2_R"] == pytest.approx(truth["sigma2_R"], rel=0.1)
     assert summary["v_sat"] == pytest.approx(truth["v_sat"], rel=0.01)
     assert "photon-transfer" in summary["gain_method"]
-    assert {p.split("/")[-1] for p in summary["report"]} == {"ptc.png", "prnu_hist.png", "prnu_map.png",
-                                                               "dark_current.png", "defects.png"}
+    assert {p.split("/")[-1] for p in summary["report"]} == {
+        "ptc.png",
+        "prnu_hist.png",
+        "prnu_map.png",
+        "dark_current.png",
+        "defects.png",
+    }
     index = json.loads((tmp_path / "lib" / "index.json").read_text())
     assert sorted(e["exposure_time"] for e in index["entries"]) == [0.5, 1, 2, 4, 8, 16]
     assert all(e["n_frames"] == 2 and e["temperature"] == 20 for e in index["entries"])
@@ -73,12 +111,31 @@ def test_simulate_then_calibrate(calibration_set, tmp_path, capsys):
 def test_cli_errors_are_one_line(calibration_set, tmp_path, cli):
     out, desc = calibration_set
     f = desc["files"]
-    proc = cli("calibrate", "--bias", f["bias"][0], "--flat", *f["flat"][:4], "--saturation", out / "missing.dng",
-               "-o", tmp_path / "x.npz")
+    proc = cli(
+        "calibrate",
+        "--bias",
+        f["bias"][0],
+        "--flat",
+        *f["flat"][:4],
+        "--saturation",
+        out / "missing.dng",
+        "-o",
+        tmp_path / "x.npz",
+    )
     assert proc.returncode != 0 and "Traceback" not in proc.stderr
     assert proc.stderr.startswith("hdrcap: error:") and "missing.dng" in proc.stderr
-    proc = cli("calibrate", "--bias", *f["bias"], "--flat", f["saturation"][0], f["flat"][0],
-               "--saturation", f["saturation"][0], "-o", tmp_path / "y.npz")
+    proc = cli(
+        "calibrate",
+        "--bias",
+        *f["bias"],
+        "--flat",
+        f["saturation"][0],
+        f["flat"][0],
+        "--saturation",
+        f["saturation"][0],
+        "-o",
+        tmp_path / "y.npz",
+    )
     assert proc.returncode != 0 and "saturation_002" in proc.stderr and "saturated" in proc.stderr
     assert not (tmp_path / "y.npz").exists()
 

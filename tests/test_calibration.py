@@ -111,8 +111,12 @@ def test_photon_transfer_series_is_default_and_accurate():
         for f in np.linspace(0.05, 0.95, 12):
             yield from shots(sensor, X, 0.01 * f, 2, rng, f"ptc{f:.2f}")
 
-    cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"),
-                    flats(), white_level=spec.white_level)
+    cal = calibrate(
+        shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True),
+        shots(sensor, X, 0.1, 1, rng, "sat"),
+        flats(),
+        white_level=spec.white_level,
+    )
     assert "photon-transfer" in cal.provenance["calibration"]["gain_method"]
     assert cal.params.g == pytest.approx(spec.g, rel=0.01)
     assert abs(cal.params.g - spec.g) < 4 * cal.stderr["g"]
@@ -145,9 +149,14 @@ def test_dark_current_mean_and_map_from_six_times():
             yield from shots(sensor, 0, t, 4, rng, f"dark{t}", dark=True)
 
     masters = []
-    cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"),
-                    shots(sensor, X, 0.01, 4, rng, "flat"), darks(), white_level=spec.white_level,
-                    dark_sink=masters.append)
+    cal = calibrate(
+        shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True),
+        shots(sensor, X, 0.1, 1, rng, "sat"),
+        shots(sensor, X, 0.01, 4, rng, "flat"),
+        darks(),
+        white_level=spec.white_level,
+        dark_sink=masters.append,
+    )
     true_map = sensor.dark_current_map()
     D_true = float(np.mean(true_map))
     assert abs(cal.params.dark_current - D_true) < 4 * cal.stderr["dark_current"]
@@ -172,8 +181,17 @@ def cosmic_rays(n=100, lo=300.0, hi=5000.0):
     return hit
 
 
-CR_SPEC = SensorSpec(name="cr", g=0.2, mu_R=200.0, sigma2_R=(10 * 0.2) ** 2, bits=16, full_well=2e5,
-                     dark_current=0.0, dcnu=0.0, prnu=0.01)
+CR_SPEC = SensorSpec(
+    name="cr",
+    g=0.2,
+    mu_R=200.0,
+    sigma2_R=(10 * 0.2) ** 2,
+    bits=16,
+    full_well=2e5,
+    dark_current=0.0,
+    dcnu=0.0,
+    prnu=0.01,
+)
 
 
 def _cosmic_run(clip):
@@ -182,8 +200,13 @@ def _cosmic_run(clip):
     t = 1.0
     X = 1000.0 / CR_SPEC.g  # flats at ~1000 DN above bias
     hits = cosmic_rays()
-    return calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True, hits=hits),
-                     None, shots(sensor, X, t, 4, rng, "flat", hits=hits), clip=clip, white_level=65535)
+    return calibrate(
+        shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True, hits=hits),
+        None,
+        shots(sensor, X, t, 4, rng, "flat", hits=hits),
+        clip=clip,
+        white_level=65535,
+    )
 
 
 def test_cosmic_rays_are_clipped():
@@ -263,8 +286,12 @@ def test_bad_inputs_name_the_frame():
     with pytest.raises(InputError, match="at least two flat fields at the same exposure time"):
         calibrate(_frames(bias, "bias", 1e-4), flats=_frames(flats[:1], "flat"), **ok)
     with pytest.raises(InputError, match=">= 6 exposure times"):
-        calibrate(_frames(bias, "bias", 1e-4), flats=_frames(flats, "flat"),
-                  darks=[RawFrame(sensor.expose(0, t, dark=True), t, path=f"d{t}") for t in (1, 2, 4)], **ok)
+        calibrate(
+            _frames(bias, "bias", 1e-4),
+            flats=_frames(flats, "flat"),
+            darks=[RawFrame(sensor.expose(0, t, dark=True), t, path=f"d{t}") for t in (1, 2, 4)],
+            **ok,
+        )
     with pytest.raises(InputError, match="no bias frames"):
         calibrate([], flats=_frames(flats, "flat"), **ok)
     with pytest.raises(InputError, match="photon-transfer regression needs"):
@@ -276,8 +303,13 @@ def test_bad_inputs_name_the_frame():
 
 def test_calibration_file_round_trip_and_checks(tmp_path):
     sensor, bias, sat, flats, X = _good(1)
-    cal = calibrate(_frames(bias, "bias", 1e-4), _frames(sat, "sat", 1.0), _frames(flats, "flat"),
-                    white_level=1023, provenance={"camera": "cam", "serial": "S1", "iso": 400, "temperature": 21.5})
+    cal = calibrate(
+        _frames(bias, "bias", 1e-4),
+        _frames(sat, "sat", 1.0),
+        _frames(flats, "flat"),
+        white_level=1023,
+        provenance={"camera": "cam", "serial": "S1", "iso": 400, "temperature": 21.5},
+    )
     path = tmp_path / "my.calibration"
     save_calibration(path, cal)
     back = load_calibration(path)
@@ -297,8 +329,11 @@ def test_calibration_file_round_trip_and_checks(tmp_path):
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(bytes(arrays["metadata"]).decode())
-    for change, pattern in (({"version": 99}, "version 99 is not supported"), ({"shape": [3, 3]}, "has shape"),
-                            ({"format": "other"}, "not an hdrcap calibration file")):
+    for change, pattern in (
+        ({"version": 99}, "version 99 is not supported"),
+        ({"shape": [3, 3]}, "has shape"),
+        ({"format": "other"}, "not an hdrcap calibration file"),
+    ):
         m = dict(meta, **change)
         bad = tmp_path / "bad.npz"
         np.savez(bad, **{**arrays, "metadata": np.frombuffer(json.dumps(m).encode(), np.uint8)})
@@ -388,8 +423,13 @@ def test_hot_pixels_do_not_bias_dark_current_but_stay_in_the_map():
         for t in (0.05, 0.1, 0.2, 0.4, 0.7, 1.0):  # hot pixels (500 e-/s) stay below the ADC limit
             yield from shots(sensor, 0, t, 4, rng, f"dark{t}", dark=True)
 
-    cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"),
-                    shots(sensor, X, 0.01, 4, rng, "flat"), darks(), white_level=spec.white_level)
+    cal = calibrate(
+        shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True),
+        shots(sensor, X, 0.1, 1, rng, "sat"),
+        shots(sensor, X, 0.01, 4, rng, "flat"),
+        darks(),
+        white_level=spec.white_level,
+    )
     true_map = sensor.dark_current_map()
     hot = true_map > 50
     assert 20 < hot.sum() < 100
@@ -408,16 +448,21 @@ def test_ptc_gain_and_dark_current_stderr_match_seed_spread():
     for seed in range(8):
         rng = np.random.default_rng([seed, 11])
 
-        def flats():
+        def flats(rng=rng):
             for f in np.linspace(0.05, 0.85, 12):
                 yield from shots(sensor, X, 0.01 * f, 2, rng, f"ptc{f:.2f}")
 
-        def darks():
+        def darks(rng=rng):
             for t in (0.5, 1, 2, 4, 8, 16):
                 yield from shots(sensor, 0, t, 2, rng, f"dark{t}", dark=True)
 
-        cal = calibrate(shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True), shots(sensor, X, 0.1, 1, rng, "sat"),
-                        flats(), darks(), white_level=spec.white_level)
+        cal = calibrate(
+            shots(sensor, 0, 1e-4, 2, rng, "bias", dark=True),
+            shots(sensor, X, 0.1, 1, rng, "sat"),
+            flats(),
+            darks(),
+            white_level=spec.white_level,
+        )
         assert "photon-transfer" in cal.provenance["calibration"]["gain_method"]
         for k in est:
             est[k].append(getattr(cal.params, k))

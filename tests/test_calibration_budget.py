@@ -90,8 +90,14 @@ def test_sigma_calibration_equals_finite_difference_propagation(monkeypatch):
     opts = dict(tolerance=1e-12, iterations=50, saturation_sigmas=0.0)
 
     def run(c):
-        return merge_arrays(values, times, c, [None, level(2.0, light=False), None],
-                            dark_strategies=["model", "matched", "model"], **opts)
+        return merge_arrays(
+            values,
+            times,
+            c,
+            [None, level(2.0, light=False), None],
+            dark_strategies=["model", "matched", "model"],
+            **opts,
+        )
 
     def run_master(c):
         return merge_arrays(values, times, c, master, n_dark=8, master_dark_time=4.0, **opts)
@@ -99,8 +105,11 @@ def test_sigma_calibration_equals_finite_difference_propagation(monkeypatch):
     for runner in (run, run_master):
         ref = runner(cal)
         var = np.zeros(X.shape)
-        for name, err, delta in (("bias_map", cal.bias_map_stderr, 0.05), ("dark_current_map",
-                                 cal.dark_current_map_stderr, 0.05), ("prnu", cal.prnu_stderr, 1e-3)):
+        for name, err, delta in (
+            ("bias_map", cal.bias_map_stderr, 0.05),
+            ("dark_current_map", cal.dark_current_map_stderr, 0.05),
+            ("prnu", cal.prnu_stderr, 1e-3),
+        ):
             moved = runner(_perturbed(cal, name, delta))
             deriv = (moved.irradiance.astype(np.float64) - ref.irradiance) / delta
             if name == "prnu":

@@ -28,11 +28,39 @@ def test_keys_and_folder(monkeypatch, tmp_path):
 def test_calibrate_once_then_merge_finds_it(tmp_path, cli):
     env = {"HDRCAP_DATA_DIR": str(tmp_path / "data")}
     cal = tmp_path / "calset"
-    cli("simulate", "--calibration-set", "--camera", "camera-B", "--size", "64x48", "--seed", "5", "--out", cal,
-        "--json", check=True, env=env)
+    cli(
+        "simulate",
+        "--calibration-set",
+        "--camera",
+        "camera-B",
+        "--size",
+        "64x48",
+        "--seed",
+        "5",
+        "--out",
+        cal,
+        "--json",
+        check=True,
+        env=env,
+    )
     files = json.loads((cal / "calibration_set.json").read_text())["files"]
-    cli("calibrate", "--bias", *files["bias"], "--saturation", *files["saturation"], "--flat", *files["flat"],
-        "--dark", *files["dark"], "-o", tmp_path / "b.cal", "--save-to-library", "--json", check=True, env=env)
+    cli(
+        "calibrate",
+        "--bias",
+        *files["bias"],
+        "--saturation",
+        *files["saturation"],
+        "--flat",
+        *files["flat"],
+        "--dark",
+        *files["dark"],
+        "-o",
+        tmp_path / "b.cal",
+        "--save-to-library",
+        "--json",
+        check=True,
+        env=env,
+    )
     listed = json.loads(cli("calibrations", "list", "--json", check=True, env=env).stdout)
     assert len(listed["entries"]) == 1
     name = listed["entries"][0]["name"]

@@ -14,8 +14,26 @@ def bracket(tmp_path_factory):
     from tests.conftest import run_cli
 
     out = tmp_path_factory.mktemp("sim")
-    proc = run_cli("simulate", "--camera", "camera-B", "--scene", "patches", "--size", "64x48",
-                   "--times", "0.002", "0.02", "0.2", "--darks", "--out", out, "--seed", "3", "--json", check=True)
+    proc = run_cli(
+        "simulate",
+        "--camera",
+        "camera-B",
+        "--scene",
+        "patches",
+        "--size",
+        "64x48",
+        "--times",
+        "0.002",
+        "0.02",
+        "0.2",
+        "--darks",
+        "--out",
+        out,
+        "--seed",
+        "3",
+        "--json",
+        check=True,
+    )
     return out, json.loads(proc.stdout)
 
 
@@ -83,7 +101,16 @@ def test_bad_inputs_one_line_errors(bracket, cli, tmp_path):
         "at least two frames": ["merge", frames[0], "-o", o],
         "unknown camera preset": ["merge", frames[0], "--camera", "camera-Z", "-o", o],
         "--times gives": ["merge", frames[0], "--times", "0.1", "0.2", "--camera", "camera-B", "-o", o],
-        "no dark frame": ["merge", *frames, "--darks", str(out / "dark_000_0.002s.dng"), "--camera", "camera-B", "-o", o],
+        "no dark frame": [
+            "merge",
+            *frames,
+            "--darks",
+            str(out / "dark_000_0.002s.dng"),
+            "--camera",
+            "camera-B",
+            "-o",
+            o,
+        ],
         "--size": ["simulate", "--size", "10x10", "--out", tmp_path / "s"],
     }
     for needle, args in cases.items():

@@ -61,15 +61,18 @@ def _scene(shape=(24, 32)):
 
 
 # --------------------------------------------------------------------------- the check itself
-@pytest.mark.parametrize("a, b, same", [
-    ("Nikon DSC D750", "NIKON CORPORATION NIKON D750", True),     # libgphoto2 vs EXIF make + model
-    ("Canon EOS 5D Mark III", "Canon Canon EOS 5D Mark III", True),
-    ("Canon EOS 5D Mark III", "Canon EOS 5D Mark II", False),
-    ("Nikon DSC D750", "NIKON CORPORATION NIKON D7500", False),
-    ("Simulated camera-A (Canon EOS 5D, Table 2)", "hdrcap Simulated camera-A (Canon EOS 5D, Table 2)", True),
-    ("Simulated camera-A (Canon EOS 5D, Table 2)", "Simulated camera-B (Canon PowerShot S5, Table 2)", False),
-    ("", "Nikon D750", True),                                       # unknown matches anything
-])
+@pytest.mark.parametrize(
+    "a, b, same",
+    [
+        ("Nikon DSC D750", "NIKON CORPORATION NIKON D750", True),  # libgphoto2 vs EXIF make + model
+        ("Canon EOS 5D Mark III", "Canon Canon EOS 5D Mark III", True),
+        ("Canon EOS 5D Mark III", "Canon EOS 5D Mark II", False),
+        ("Nikon DSC D750", "NIKON CORPORATION NIKON D7500", False),
+        ("Simulated camera-A (Canon EOS 5D, Table 2)", "hdrcap Simulated camera-A (Canon EOS 5D, Table 2)", True),
+        ("Simulated camera-A (Canon EOS 5D, Table 2)", "Simulated camera-B (Canon PowerShot S5, Table 2)", False),
+        ("", "Nikon D750", True),  # unknown matches anything
+    ],
+)
 def test_model_names_are_normalised(a, b, same):
     assert same_model(a, b) is same and same_model(b, a) is same
 
@@ -122,8 +125,9 @@ def _library(tmp_path, iso, model=None) -> Path:
 
 def test_dark_library_master_of_another_iso_is_refused(tmp_path, cli):
     _library(tmp_path, iso=6400)
-    p = _job(tmp_path, darks='strategy = "master"\ncount = 2',
-             calibration='preset = "camera-B"\ndark_library = "darks"')
+    p = _job(
+        tmp_path, darks='strategy = "master"\ncount = 2', calibration='preset = "camera-B"\ndark_library = "darks"'
+    )
     proc = cli("run", p, "--no-progress")
     assert proc.returncode == 2, proc.stderr
     assert "ISO 6400" in proc.stderr and "ISO 400" in proc.stderr and "Traceback" not in proc.stderr
@@ -133,8 +137,9 @@ def test_dark_library_master_of_another_iso_is_refused(tmp_path, cli):
 def test_dark_library_with_the_exif_spelling_is_used(tmp_path):
     # the library was built from frames (EXIF: make + model), the camera reports its model only
     _library(tmp_path, iso=400, model="hdrcap Simulated camera-B (Canon PowerShot S5, Table 2)")
-    p = _job(tmp_path, darks='strategy = "master"\ncount = 2',
-             calibration='preset = "camera-B"\ndark_library = "darks"')
+    p = _job(
+        tmp_path, darks='strategy = "master"\ncount = 2', calibration='preset = "camera-B"\ndark_library = "darks"'
+    )
     res = run_job(load_job(p), progress=False, echo=lambda s: None)
     head = json.loads((Path(res["run_dir"]) / "manifest.jsonl").read_text().splitlines()[0])
     assert head["plan"]["library_times"] == [0.001, 0.004]
@@ -142,8 +147,9 @@ def test_dark_library_with_the_exif_spelling_is_used(tmp_path):
 
 def test_dark_library_of_another_camera_is_refused(tmp_path):
     _library(tmp_path, iso=400, model="NIKON CORPORATION NIKON D750")
-    p = _job(tmp_path, darks='strategy = "master"\ncount = 2',
-             calibration='preset = "camera-B"\ndark_library = "darks"')
+    p = _job(
+        tmp_path, darks='strategy = "master"\ncount = 2', calibration='preset = "camera-B"\ndark_library = "darks"'
+    )
     with pytest.raises(CompatibilityError, match="D750"):
         run_job(load_job(p), progress=False, echo=lambda s: None)
 
@@ -152,12 +158,24 @@ def test_dark_library_of_another_camera_is_refused(tmp_path):
 def test_frames_of_another_iso_or_camera_stop_the_run(tmp_path):
     plan = CapturePlan.bracket([0.004, 0.064], None, "matched")
     with pytest.raises(VerificationError, match="ISO 400") as info:
-        CaptureSession(MockCamera("camera-B", _scene()), tmp_path / "a", plan, retry=FAST, progress=False,
-                       expect=CameraProfile("the run", iso=100.0)).run()
+        CaptureSession(
+            MockCamera("camera-B", _scene()),
+            tmp_path / "a",
+            plan,
+            retry=FAST,
+            progress=False,
+            expect=CameraProfile("the run", iso=100.0),
+        ).run()
     assert info.value.exit_code == 7
     with pytest.raises(VerificationError, match="D750"):
-        CaptureSession(MockCamera("camera-B", _scene()), tmp_path / "b", plan, retry=FAST, progress=False,
-                       expect=CameraProfile("the run", "Nikon DSC D750")).run()
+        CaptureSession(
+            MockCamera("camera-B", _scene()),
+            tmp_path / "b",
+            plan,
+            retry=FAST,
+            progress=False,
+            expect=CameraProfile("the run", "Nikon DSC D750"),
+        ).run()
 
 
 def test_the_first_frame_fixes_the_run_iso(tmp_path):
@@ -172,18 +190,30 @@ def test_the_first_frame_fixes_the_run_iso(tmp_path):
 
     plan = CapturePlan.bracket([0.004, 0.064], None, "matched")
     with pytest.raises(VerificationError, match="ISO 800.*ISO 400"):
-        CaptureSession(AutoIso("camera-B", _scene()), tmp_path / "a", plan, retry=FAST, progress=False,
-                       expect=CameraProfile("the run")).run()
+        CaptureSession(
+            AutoIso("camera-B", _scene()),
+            tmp_path / "a",
+            plan,
+            retry=FAST,
+            progress=False,
+            expect=CameraProfile("the run"),
+        ).run()
 
 
 def test_resume_on_another_camera_is_refused_before_any_frame(tmp_path):
     plan = CapturePlan.bracket([0.004, 0.064], None, "matched")
-    CaptureSession(MockCamera("camera-B", _scene(), seed=1, faults=None), tmp_path / "r",
-                   CapturePlan(plan.frames[:2]), retry=FAST, progress=False).run()
+    CaptureSession(
+        MockCamera("camera-B", _scene(), seed=1, faults=None),
+        tmp_path / "r",
+        CapturePlan(plan.frames[:2]),
+        retry=FAST,
+        progress=False,
+    ).run()
     other = MockCamera("camera-B", _scene(), seed=2)  # same model, another serial
     with pytest.raises(RunConflictError, match="serial") as info:
-        CaptureSession(other, tmp_path / "r", CapturePlan(plan.frames[:2]), retry=FAST, progress=False,
-                       resume=True).run()
+        CaptureSession(
+            other, tmp_path / "r", CapturePlan(plan.frames[:2]), retry=FAST, progress=False, resume=True
+        ).run()
     assert info.value.exit_code == 5 and other.calls == 0
 
 
@@ -194,8 +224,9 @@ def test_masters_at_any_temperature_are_a_warning_when_the_camera_reports_none(t
     model = MockCamera("camera-B", _scene()).identity.model
     for t in (0.001, 0.004):
         lib.add(np.full((24, 32), 32.0), 4, camera=model, iso=400, exposure_time=t, temperature=35.0)
-    p = _job(tmp_path, darks='strategy = "master"\ncount = 2',
-             calibration='preset = "camera-B"\ndark_library = "darks"')
+    p = _job(
+        tmp_path, darks='strategy = "master"\ncount = 2', calibration='preset = "camera-B"\ndark_library = "darks"'
+    )
     said = []
     run_job(load_job(p), progress=False, echo=said.append)
     assert any("no temperature" in s for s in said)

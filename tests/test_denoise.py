@@ -79,7 +79,7 @@ def test_cfa_planes_never_mix():
     sig = 0.05 * np.abs(irr)
     # an infinite bandwidth would average the planes if it ever crossed them
     r = bilateral_constant(irr, sig, bandwidth=np.inf, layout="cfa")
-    for (dy, dx) in levels:
+    for dy, dx in levels:
         plane_in, plane_out = irr[dy::2, dx::2], r.irradiance[dy::2, dx::2]
         assert plane_out.min() >= plane_in.min() * (1 - 1e-6)
         assert plane_out.max() <= plane_in.max() * (1 + 1e-6)
@@ -87,7 +87,7 @@ def test_cfa_planes_never_mix():
         mono = bilateral_constant(plane_in, sig[dy::2, dx::2], bandwidth=np.inf, layout="mono")
         np.testing.assert_allclose(plane_out, mono.irradiance, rtol=1e-6)
     ra = bilateral_adaptive(irr, sig, layout="cfa")
-    for (dy, dx) in levels:
+    for dy, dx in levels:
         assert ra.irradiance[dy::2, dx::2].max() <= irr[dy::2, dx::2].max() * (1 + 1e-6)
         assert ra.irradiance[dy::2, dx::2].min() >= irr[dy::2, dx::2].min() * (1 - 1e-6)
 
@@ -128,9 +128,9 @@ def test_step_edge_keeps_position_and_height():
     ok, prof, unc, ref = check(bilateral_adaptive(merged.irradiance, merged.sigma, merged.nexp))
     assert ok, (prof, unc, ref)
     # and the filter did reduce the noise there
-    assert np.median(bilateral_adaptive(merged.irradiance, merged.sigma, merged.nexp).sigma[rows][:, cols]) < 0.5 * np.median(
-        merged.sigma[rows][:, cols]
-    )
+    assert np.median(
+        bilateral_adaptive(merged.irradiance, merged.sigma, merged.nexp).sigma[rows][:, cols]
+    ) < 0.5 * np.median(merged.sigma[rows][:, cols])
     blurred, *_ = check(bilateral_constant(merged.irradiance, merged.sigma, merged.nexp, bandwidth=np.inf))
     assert not blurred
 
@@ -213,7 +213,13 @@ def test_cli_denoise_keeps_header_and_adds_settings(tmp_path, capsys):
     code, out, err = _run(capsys, "denoise", src, "-o", dst, "--radius", 1, "--spatial-sigma", 1.0, "--json")
     assert code == 0, err
     info = json.loads(out)
-    assert info["settings"] == {"layout": "cfa", "method": "adaptive", "radius": 1, "range_scale": 3.0, "spatial_sigma": 1.0}
+    assert info["settings"] == {
+        "layout": "cfa",
+        "method": "adaptive",
+        "radius": 1,
+        "range_scale": 3.0,
+        "spatial_sigma": 1.0,
+    }
     im = read_exr(dst)
     assert im.attrs["custom"] == [1, 2] and im.attrs["cfa_pattern"] == "RGGB"
     assert im.attrs["denoise"]["settings"]["radius"] == 1 and "bias" in im.attrs["sigma"]
@@ -223,8 +229,21 @@ def test_cli_denoise_keeps_header_and_adds_settings(tmp_path, capsys):
     # no overwrite without --force; constant method; mono layout
     code, _, err = _run(capsys, "denoise", src, "-o", dst)
     assert code != 0 and "exists" in err and "--force" in err
-    code, out, err = _run(capsys, "denoise", src, "-o", dst, "--force", "--method", "constant", "--bandwidth", 50,
-                          "--layout", "mono", "--json")
+    code, out, err = _run(
+        capsys,
+        "denoise",
+        src,
+        "-o",
+        dst,
+        "--force",
+        "--method",
+        "constant",
+        "--bandwidth",
+        50,
+        "--layout",
+        "mono",
+        "--json",
+    )
     assert code == 0, err
     assert json.loads(out)["settings"]["bandwidth"] == 50.0
     assert read_exr(dst).attrs["denoise"]["settings"]["layout"] == "mono"

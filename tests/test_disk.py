@@ -69,8 +69,9 @@ def test_a_full_host_disk_is_a_local_io_error_not_the_cameras_fault(tmp_path, wr
     assert cam.calls == 3  # no retries, no reconnects: the camera is fine
     stop = [e for e in EventLog(tmp_path / "r").events() if e["event"] == "stop"]
     assert stop[-1]["exit_code"] == 6 and stop[-1]["kind"] == "local_io"
-    res = CaptureSession(MockCamera("camera-B", _scene()), tmp_path / "r", _plan(), retry=FAST, progress=False,
-                         resume=True).run()
+    res = CaptureSession(
+        MockCamera("camera-B", _scene()), tmp_path / "r", _plan(), retry=FAST, progress=False, resume=True
+    ).run()
     assert res.resumed == 2 and res.captured == len(_plan().frames) - 2
     _frames_once(tmp_path / "r", _plan())
 
@@ -112,8 +113,9 @@ def test_free_space_is_checked_before_the_first_frame(tmp_path, monkeypatch):
         CaptureSession(cam, tmp_path / "r", _plan(), retry=FAST, progress=False).run()
     assert info.value.exit_code == 6 and cam.calls == 0
     monkeypatch.setattr(session_mod.shutil, "disk_usage", lambda p: usage._replace(free=need + 1))
-    CaptureSession(MockCamera("camera-B", _scene()), tmp_path / "r", _plan(), retry=FAST, progress=False,
-                   resume=True).run()
+    CaptureSession(
+        MockCamera("camera-B", _scene()), tmp_path / "r", _plan(), retry=FAST, progress=False, resume=True
+    ).run()
     _frames_once(tmp_path / "r", _plan())
 
 
@@ -150,8 +152,14 @@ def no_hard_links(monkeypatch):
 def test_run_folders_without_hard_links(tmp_path, no_hard_links):
     from hdrcap.acquire.cliutil import resolve_calibration
 
-    res = CaptureSession(MockCamera("camera-B", _scene()), tmp_path / "r", _plan(), retry=FAST, progress=False,
-                         calibration=resolve_calibration(None, "camera-B")).run()
+    res = CaptureSession(
+        MockCamera("camera-B", _scene()),
+        tmp_path / "r",
+        _plan(),
+        retry=FAST,
+        progress=False,
+        calibration=resolve_calibration(None, "camera-B"),
+    ).run()
     assert res.captured == len(_plan().frames) and res.merge is not None
     _frames_once(tmp_path / "r", _plan())
     assert not list((tmp_path / "r").glob(".partial/*"))

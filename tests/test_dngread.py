@@ -8,6 +8,7 @@ import struct
 import numpy as np
 import pytest
 import tifffile
+
 from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline import io as pio
 from hdrcap.pipeline.dngread import decode_dng
@@ -16,19 +17,39 @@ from hdrcap.pipeline.errors import InputError
 
 def _sim_dng(path, data, cfa="RGGB", black=128.0, white=4095, t=1 / 250):
     with open(path, "wb") as f:
-        write_dng(f, data, exposure_time=t, iso=400, black_level=black, white_level=white, cfa=cfa,
-                  make="Acme", model="Sim 1", serial="42", timestamp=dt.datetime(2026, 1, 2, 3, 4, 5))
+        write_dng(
+            f,
+            data,
+            exposure_time=t,
+            iso=400,
+            black_level=black,
+            white_level=white,
+            cfa=cfa,
+            make="Acme",
+            model="Sim 1",
+            serial="42",
+            timestamp=dt.datetime(2026, 1, 2, 3, 4, 5),
+        )
     return path
 
 
 def _tiff_dng(path, data, *, cfa=(0, 1, 1, 2), black=128, white=4095, active=None, **kw):
     """An uncompressed DNG written by tifffile, in the layouts the simulator does not use."""
-    tags = [(50706, "B", 4, (1, 4, 0, 0), True), (271, "s", 0, "Acme", True), (272, "s", 0, "Sim 1", True),
-            (33421, "H", 2, (2, 2), True), (33422, "B", 4, cfa, True), (50710, "B", 3, (0, 1, 2), True),
-            (50714, "I", 1, black, True), (50717, "I", 1, white, True), (50708, "s", 0, "Acme Sim 1", True),
-            (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True),
-            (33434, "2I", 1, (1, 250), True), (34855, "H", 1, 400, True),
-            (36867, "s", 0, "2026:01:02 03:04:05", True)]
+    tags = [
+        (50706, "B", 4, (1, 4, 0, 0), True),
+        (271, "s", 0, "Acme", True),
+        (272, "s", 0, "Sim 1", True),
+        (33421, "H", 2, (2, 2), True),
+        (33422, "B", 4, cfa, True),
+        (50710, "B", 3, (0, 1, 2), True),
+        (50714, "I", 1, black, True),
+        (50717, "I", 1, white, True),
+        (50708, "s", 0, "Acme Sim 1", True),
+        (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True),
+        (33434, "2I", 1, (1, 250), True),
+        (34855, "H", 1, 400, True),
+        (36867, "s", 0, "2026:01:02 03:04:05", True),
+    ]
     if active is not None:
         tags.append((50829, "I", 4, active, True))
     tifffile.imwrite(path, data, photometric=32803, extratags=tags, metadata=None, subfiletype=0, **kw)
@@ -75,11 +96,19 @@ def test_simulated_camera_files_identical_to_libraw(tmp_path, preset):
     _assert_same_as_libraw(cam.capture_to(tmp_path / "d.dng", 0.1, dark=True))
 
 
-@pytest.mark.parametrize("layout", [
-    {"byteorder": ">"}, {"rowsperstrip": 7}, {"tile": (32, 48)}, {"tile": (64, 64), "byteorder": ">"},
-    {"dtype": np.uint8, "white": 255}, {"dtype": np.uint8, "tile": (32, 32), "white": 255},
-    {"active": (2, 4, 98, 146)}, {"cfa": (1, 0, 2, 1)},
-])
+@pytest.mark.parametrize(
+    "layout",
+    [
+        {"byteorder": ">"},
+        {"rowsperstrip": 7},
+        {"tile": (32, 48)},
+        {"tile": (64, 64), "byteorder": ">"},
+        {"dtype": np.uint8, "white": 255},
+        {"dtype": np.uint8, "tile": (32, 32), "white": 255},
+        {"active": (2, 4, 98, 146)},
+        {"cfa": (1, 0, 2, 1)},
+    ],
+)
 def test_uncompressed_layouts_identical_to_libraw(tmp_path, layout):
     layout = dict(layout)
     dtype = layout.pop("dtype", np.uint16)
@@ -87,8 +116,7 @@ def test_uncompressed_layouts_identical_to_libraw(tmp_path, layout):
     _assert_same_as_libraw(_tiff_dng(tmp_path / "v.dng", data, **layout))
 
 
-@pytest.mark.parametrize("layout", [{"active": (1, 0, 99, 150)}, {"active": (1, 1, 99, 149)},
-                                    {"cfa": (0, 1, 2, 1)}])
+@pytest.mark.parametrize("layout", [{"active": (1, 0, 99, 150)}, {"active": (1, 1, 99, 149)}, {"cfa": (0, 1, 2, 1)}])
 def test_what_libraw_reads_differently_goes_to_libraw(tmp_path, layout):
     data = np.random.default_rng(6).integers(0, 4096, (100, 150), dtype=np.uint16)
     _assert_same_as_libraw(_tiff_dng(tmp_path / "v.dng", data, **layout), direct=False)
@@ -105,9 +133,15 @@ def test_compressed_dng_is_left_to_libraw(tmp_path):
 def test_missing_metadata_falls_back_to_libraw(tmp_path):
     """Without DateTimeOriginal the timestamp is LibRaw's, as before."""
     data = np.random.default_rng(8).integers(0, 4096, (64, 64), dtype=np.uint16)
-    tags = [(50706, "B", 4, (1, 4, 0, 0), True), (33421, "H", 2, (2, 2), True), (33422, "B", 4, (0, 1, 1, 2), True),
-            (50717, "I", 1, 4095, True), (50708, "s", 0, "Acme Sim 1", True), (33434, "2I", 1, (1, 250), True),
-            (34855, "H", 1, 400, True)]
+    tags = [
+        (50706, "B", 4, (1, 4, 0, 0), True),
+        (33421, "H", 2, (2, 2), True),
+        (33422, "B", 4, (0, 1, 1, 2), True),
+        (50717, "I", 1, 4095, True),
+        (50708, "s", 0, "Acme Sim 1", True),
+        (33434, "2I", 1, (1, 250), True),
+        (34855, "H", 1, 400, True),
+    ]
     path = tmp_path / "m.dng"
     tifffile.imwrite(path, data, photometric=32803, extratags=tags, metadata=None, subfiletype=0)
     fr = pio.read_raw(path)
@@ -132,7 +166,7 @@ def _patch_tag(blob: bytes, tag: int, value: int) -> bytes:
     for i in range(n):
         pos = ifd + 2 + 12 * i
         if struct.unpack_from("<H", blob, pos)[0] == tag:
-            return blob[: pos + 8] + struct.pack("<I", value) + blob[pos + 12:]
+            return blob[: pos + 8] + struct.pack("<I", value) + blob[pos + 12 :]
     raise KeyError(tag)
 
 

@@ -86,8 +86,16 @@ def test_colour_matrix_and_white_balance_copied_from_a_dng(tmp_path):
     matrix = [[0.7, -0.2, -0.05], [-0.4, 1.2, 0.2], [-0.1, 0.2, 0.6]]
     buf = io.BytesIO()
     mosaic = np.full((32, 32), 1000, np.uint16)
-    write_dng(buf, mosaic, exposure_time=0.01, iso=100, black_level=64, white_level=4095, color_matrix=matrix,
-              as_shot_neutral=(0.5, 1.0, 0.625))
+    write_dng(
+        buf,
+        mosaic,
+        exposure_time=0.01,
+        iso=100,
+        black_level=64,
+        white_level=4095,
+        color_matrix=matrix,
+        as_shot_neutral=(0.5, 1.0, 0.625),
+    )
     src.write_bytes(buf.getvalue())
     irr = np.random.default_rng(1).gamma(2.0, 50.0, (32, 32)).astype(np.float32)
     write_float_dng(tmp_path / "o.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "GRBG"}), source=src)
@@ -110,9 +118,9 @@ def test_sixteen_bit_dng_scales_by_a_power_of_two(tmp_path):
     tags, data = _tags(tmp_path / "h.dng")
     assert data.dtype == np.float16 and tags[258] == 16 and tags[339] == 3 and lay.exponent > 0
     assert f"2^{lay.exponent} =" in tags[270]
-    back = data.astype(np.float64) * 2.0 ** lay.exponent
+    back = data.astype(np.float64) * 2.0**lay.exponent
     normal = data.astype(np.float64) >= np.finfo(np.float16).tiny
-    np.testing.assert_allclose(back[normal], irr[normal], rtol=2.0 ** -11)
+    np.testing.assert_allclose(back[normal], irr[normal], rtol=2.0**-11)
 
 
 def test_invalid_input_is_refused(tmp_path):
@@ -147,8 +155,12 @@ def test_layout_never_clips_and_fits_the_float(irr, bits):
 def test_darktable_develops_the_float_dng(merged, tmp_path):
     d, _, _ = merged
     out = tmp_path / "dt.tif"
-    proc = subprocess.run(["darktable-cli", str(d / "m.dng"), str(out), "--core", "--configdir", str(tmp_path / "cfg")],
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        ["darktable-cli", str(d / "m.dng"), str(out), "--core", "--configdir", str(tmp_path / "cfg")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     lum = tifffile.imread(out).astype(np.float64).mean(axis=2)
     irr = read_exr(d / "m.exr").channels["irradiance"].astype(np.float64)
@@ -167,8 +179,19 @@ def test_format_option_and_help(merged, tmp_path):
     from tests.conftest import run_cli
 
     _, _, frames = merged
-    run_cli("merge", *frames, "--camera", "camera-A", "-o", tmp_path / "x.raw", "--format", "dng", "--dng-bits", "16",
-            check=True)
+    run_cli(
+        "merge",
+        *frames,
+        "--camera",
+        "camera-A",
+        "-o",
+        tmp_path / "x.raw",
+        "--format",
+        "dng",
+        "--dng-bits",
+        "16",
+        check=True,
+    )
     tags, data = _tags(tmp_path / "x.raw")
     assert data.dtype == np.float16 and tuple(tags[50706]) == (1, 4, 0, 0)
     text = run_cli("merge", "--help", check=True).stdout

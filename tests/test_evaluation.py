@@ -14,8 +14,14 @@ import pytest
 
 from hdrcap.experiments import BASELINES, TEN_X_READOUT, ZERO_READOUT, make_setup, qq_experiment, snr_experiment
 from hdrcap.mock_camera import PRESETS
-from hdrcap.pipeline.evaluation import (bound_variance, log_bins, paired_difference, qq_data, snr_per_bin,
-                                        weights_vs_output)
+from hdrcap.pipeline.evaluation import (
+    bound_variance,
+    log_bins,
+    paired_difference,
+    qq_data,
+    snr_per_bin,
+    weights_vs_output,
+)
 from hdrcap.pipeline.params import SensorParams
 
 _CACHE: dict = {}
@@ -25,8 +31,12 @@ def experiment(label: str, seed: int = 0) -> dict:
     """Seeded SNR experiment, cached across tests of this module."""
     key = (label, seed)
     if key not in _CACHE:
-        spec = {"A": PRESETS["camera-A"], "B": PRESETS["camera-B"], "B0": ZERO_READOUT(PRESETS["camera-B"]),
-                "B10": TEN_X_READOUT(PRESETS["camera-B"])}[label]
+        spec = {
+            "A": PRESETS["camera-A"],
+            "B": PRESETS["camera-B"],
+            "B0": ZERO_READOUT(PRESETS["camera-B"]),
+            "B10": TEN_X_READOUT(PRESETS["camera-B"]),
+        }[label]
         _CACHE[key] = snr_experiment(make_setup(spec, shape=(32, 192), seed=seed), reps=2, n_bins=12, seed=seed)
     return _CACHE[key]
 
@@ -68,7 +78,10 @@ def test_bound_is_the_sum_of_eq13_weights():
     p = SensorParams(g=0.92, mu_R=32, sigma2_R=18, v_sat=1000, white_level=1023, dark_current=1.0)
     times = [0.01, 0.1, 1.0]
     X = np.array([10.0, 500.0, 5000.0])
-    w = lambda t, x: t**2 * p.g**2 / (p.g**2 * t * (x + 2 * 1.0) + 2 * 18.0)  # Eq. 13, written out
+
+    def w(t, x):  # Eq. 13, written out
+        return t**2 * p.g**2 / (p.g**2 * t * (x + 2 * 1.0) + 2 * 18.0)
+
     got = bound_variance(X, times, p)
     # X = 5000: the 1 s exposure (4600 DN expected) saturates, the others count
     expect = [1 / sum(w(t, x) for t in times if 32 + p.g * t * (x + 1) < 1000) for x in X]
@@ -89,8 +102,10 @@ def test_mitsunaga_nayar_weights_are_optimal_without_readout_noise():
     # ... but not with camera-B's readout noise (Fig. 2): low outputs are over-weighted
     p18 = p.replace(sigma2_R=18.0)
     d = weights_vs_output(p18, X=1000.0, methods=["mitsunaga-nayar", "optimal"])
-    assert d["weights"]["mitsunaga-nayar"][0] > 2 * d["weights"]["optimal"][0] or \
-        d["weights"]["mitsunaga-nayar"][0] < 0.5 * d["weights"]["optimal"][0]
+    assert (
+        d["weights"]["mitsunaga-nayar"][0] > 2 * d["weights"]["optimal"][0]
+        or d["weights"]["mitsunaga-nayar"][0] < 0.5 * d["weights"]["optimal"][0]
+    )
 
 
 # ------------------------------------------------------------------------- the paper's claims

@@ -48,8 +48,20 @@ def _dng(path: Path, t: float) -> None:
 
     data = (np.arange(32 * 32, dtype=np.uint16).reshape(32, 32) % 900 + 40).astype(np.uint16)
     with open(path, "wb") as f:
-        write_dng(f, data, exposure_time=t, iso=200, black_level=32, white_level=1023, cfa="RGGB", make="hdrcap",
-                  model="vcam test", serial="7", timestamp=datetime.datetime(2026, 1, 1), description="")
+        write_dng(
+            f,
+            data,
+            exposure_time=t,
+            iso=200,
+            black_level=32,
+            white_level=1023,
+            cfa="RGGB",
+            make="hdrcap",
+            model="vcam test",
+            serial="7",
+            timestamp=datetime.datetime(2026, 1, 1),
+            description="",
+        )
 
 
 def run_vcam(tmp_path: Path, body: str, vdir: Path | None = None) -> dict:
@@ -64,7 +76,9 @@ def run_vcam(tmp_path: Path, body: str, vdir: Path | None = None) -> dict:
 
 
 def test_detect_identity_and_settings_read_back(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         RESULT["cameras"] = list_cameras()
         cam = Gphoto2Camera(model="d750")
         RESULT["identity"] = cam.identity.to_dict()
@@ -80,7 +94,8 @@ def test_detect_identity_and_settings_read_back(tmp_path):
         except CameraGoneError as e:
             RESULT["gone"] = str(e)
         cam.close()
-    """)
+    """,
+    )
     assert r["cameras"] == [["Nikon DSC D750", "usb:001,001"]]
     assert r["identity"]["model"] == "Nikon DSC D750" and r["identity"]["port"] == "usb:001,001"
     assert r["times"] == sorted(r["times"]) and 0.01 in r["times"] and 1.0 in r["times"]
@@ -95,7 +110,9 @@ def test_detect_identity_and_settings_read_back(tmp_path):
 def test_capture_download_delete_and_dng_from_card(tmp_path):
     vdir = _vcam_dir(tmp_path)
     _dng(vdir / "frame.dng", 1 / 125)
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera()
         before = cam.list_files()
         cam.set_exposure(0.01)
@@ -110,7 +127,9 @@ def test_capture_download_delete_and_dng_from_card(tmp_path):
         dng = [f for f in before if f.endswith(".dng")][0]
         RESULT["dng"] = str(cam.download(dng, OUT / "card.dng"))
         cam.close()
-    """, vdir)
+    """,
+        vdir,
+    )
     got = Path(r["path"])
     assert got.suffix == ".jpg"  # the suffix is the camera file's
     assert got.read_bytes() == (vdir / "scene.jpg").read_bytes()  # the virtual camera returns its .jpg
@@ -124,7 +143,9 @@ def test_capture_download_delete_and_dng_from_card(tmp_path):
 
 
 def test_long_exposure_uses_trigger_and_events(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera(long_exposure_s=0.5)
         cam.set_exposure(1.0)
         res = cam.capture(OUT / "long.dng")
@@ -132,14 +153,17 @@ def test_long_exposure_uses_trigger_and_events(tmp_path):
         RESULT["file"] = res.camera_file
         RESULT["exists"] = res.path.exists()
         cam.close()
-    """)
+    """,
+    )
     kinds = [k for k, _v in r["events"]]
     assert "file_added" in kinds and r["exists"]
     assert dict(r["events"])["file_added"] == r["file"]
 
 
 def test_store_full_stops_with_a_clear_message(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera(pair_wait_s=0)
         cam.set_exposure(0.01)
         n = 0
@@ -151,13 +175,16 @@ def test_store_full_stops_with_a_clear_message(tmp_path):
             RESULT["error"] = str(e); RESULT["kind"] = fault_kind(e)
         RESULT["n"] = n
         cam.close()
-    """)
+    """,
+    )
     assert r["n"] == 26  # the virtual camera's store holds 26 captures
     assert r["kind"] == "fatal" and "storage is full" in r["error"]
 
 
 def test_busy_is_retried_and_two_threads_are_serialised(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera(backoff_s=0.01, busy_retries=3)
         cam._inject = [-110, -110]
         RESULT["t"] = cam.set_exposure(0.01)
@@ -180,7 +207,8 @@ def test_busy_is_retried_and_two_threads_are_serialised(tmp_path):
         RESULT["paths"] = paths; RESULT["errors"] = errors
         RESULT["files"] = sorted(set(cam.list_files()))
         cam.close()
-    """)
+    """,
+    )
     assert r["t"] == pytest.approx(0.01) and r["busy"] == 2
     assert r["gave_up"] == "busy"
     assert r["errors"] == [] and len(set(r["paths"])) == 6
@@ -188,7 +216,9 @@ def test_busy_is_retried_and_two_threads_are_serialised(tmp_path):
 
 
 def test_reconnect_builds_a_new_worker_and_reapplies_settings(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera()
         cam.set_exposure(0.05)
         first = cam.worker_pid
@@ -205,7 +235,8 @@ def test_reconnect_builds_a_new_worker_and_reapplies_settings(tmp_path):
         RESULT["reconnects"] = cam.reconnects
         RESULT["events"] = cam.events
         cam.close()
-    """)
+    """,
+    )
     assert r["kind"] == "reconnect" and r["new_worker"] and r["ok"] and r["reconnects"] == 1
     assert r["t_after"] == "0.0500s"  # settings re-applied on the new connection
     assert ["port_reset", "usb:001,001"] in r["events"]
@@ -214,7 +245,9 @@ def test_reconnect_builds_a_new_worker_and_reapplies_settings(tmp_path):
 def test_a_hung_call_kills_the_worker_and_reconnect_starts_a_new_one(tmp_path):
     """A call that never answers (a USB transfer stuck in the kernel does not cooperate with
     any timeout): the worker process that holds the device is killed, not abandoned."""
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera(reconnect_backoff_s=0.05)
         cam.set_exposure(0.01)
         pid = cam.worker_pid
@@ -236,7 +269,8 @@ def test_a_hung_call_kills_the_worker_and_reconnect_starts_a_new_one(tmp_path):
         RESULT["new_pid"] = cam.worker_pid not in (None, pid)
         RESULT["ok"] = cam.capture(OUT / "c.dng").path.exists()
         cam.close()
-    """)
+    """,
+    )
     assert r["hang"] == ["CameraTimeoutError", "reconnect"] and r["hang_s"] < 5
     assert r["old_alive"] is False  # the USB claim went with the process
     assert r["before_reconnect"] == ["CameraDisconnectedError", "reconnect"]  # not AttributeError
@@ -244,7 +278,9 @@ def test_a_hung_call_kills_the_worker_and_reconnect_starts_a_new_one(tmp_path):
 
 
 def test_failed_reconnect_leaves_a_disconnected_camera_not_an_empty_one(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera(reconnect_deadline_s=3.0, reconnect_backoff_s=0.05)
         cam.set_exposure(0.01)
         cam._inject = [("open", -53)] * 100   # gvfs holds the camera for longer than the deadline
@@ -266,7 +302,8 @@ def test_failed_reconnect_leaves_a_disconnected_camera_not_an_empty_one(tmp_path
         RESULT["ok"] = cam.capture(OUT / "c.dng").path.exists()
         RESULT["t"] = cam.applied["shutterspeed"]
         cam.close()
-    """)
+    """,
+    )
     assert r["reconnect"] == ["CameraDisconnectedError", "reconnect"]
     assert r["next_call"] == ["CameraDisconnectedError", "reconnect"]
     assert r["attempts"] >= 2 and r["polled_s"] >= 2.5  # polled with backoff until the deadline, not tried once
@@ -274,7 +311,9 @@ def test_failed_reconnect_leaves_a_disconnected_camera_not_an_empty_one(tmp_path
 
 
 def test_reconnect_finds_the_camera_by_serial_on_a_new_port(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         import dataclasses
         cam = Gphoto2Camera(serial="0.1")   # what the virtual camera reports
         RESULT["serial"] = cam.identity.serial
@@ -289,7 +328,8 @@ def test_reconnect_finds_the_camera_by_serial_on_a_new_port(tmp_path):
         except CameraGoneError as e:
             RESULT["other"] = str(e)
         RESULT["cameras"] = list_cameras(serials=True)
-    """)
+    """,
+    )
     assert r["serial"] == "0.1" and r["port"] == "usb:001,001" and r["ok"]
     assert ["port_changed", "usb:003,017 -> usb:001,001"] in r["events"]
     assert "serial '0815'" in r["other"] and "serial 0.1" in r["other"]
@@ -297,7 +337,9 @@ def test_reconnect_finds_the_camera_by_serial_on_a_new_port(tmp_path):
 
 
 def test_a_failed_constructor_releases_the_camera(tmp_path):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         from hdrcap.acquire import gphoto2_camera as g
         made = []
         class Spy(g._Worker):
@@ -313,19 +355,24 @@ def test_a_failed_constructor_releases_the_camera(tmp_path):
         RESULT["ok"] = cam.capture(OUT / "c.dng").path.exists()
         cam.close()
         RESULT["closed"] = made[-1].proc.poll() is not None
-    """)
+    """,
+    )
     assert r["error"][0] == "InputError" and "no-such-setting" in r["error"][1]
     assert r["ended"] and all(r["ended"]) and r["ok"] and r["closed"]
 
 
 @pytest.mark.parametrize("shade, dark", [(0, True), (200, False)])
 def test_cover_detection(tmp_path, shade, dark):
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera()
         cam.set_exposure(0.01)
         RESULT["dark"] = frame_is_dark(cam.capture(OUT / "x.dng").path)
         cam.close()
-    """, _vcam_dir(tmp_path, shade))
+    """,
+        _vcam_dir(tmp_path, shade),
+    )
     assert r["dark"] is dark
 
 
@@ -334,7 +381,7 @@ def test_job_check_against_the_virtual_camera(tmp_path, cli):
     job = tmp_path / "job.toml"
     text = (
         '[camera]\nbackend = "gphoto2"\nmodel = "D750"\nsettings = { autofocus = "Off" }\n\n'
-        '[exposure]\ntimes = [0.01, 0.1, 1.0]\n\n'
+        "[exposure]\ntimes = [0.01, 0.1, 1.0]\n\n"
         '[darks]\nstrategy = "matched"\nblock_light = "command"\ncover_command = "true"\nuncover_command = "true"\n\n'
         '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n'
     )
@@ -361,11 +408,16 @@ def test_session_on_the_virtual_camera_refuses_jpeg(tmp_path, cli):
     cal = resolve_calibration(None, "camera-B")
     save_calibration(tmp_path / "cal.json", cal.replace(provenance={"camera": "NIKON CORPORATION NIKON D750"}))
     job = tmp_path / "job.toml"
-    job.write_text('[camera]\nbackend = "gphoto2"\nenforce = true\n\n[exposure]\ntimes = [0.01]\n\n'
-                   '[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
-                   '[calibration]\nfile = "cal.json"\n\n[output]\nfolder = "runs/x"\n')
-    env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
-           "HDRCAP_LOCK_DIR": str(tmp_path / "locks")}
+    job.write_text(
+        '[camera]\nbackend = "gphoto2"\nenforce = true\n\n[exposure]\ntimes = [0.01]\n\n'
+        '[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
+        '[calibration]\nfile = "cal.json"\n\n[output]\nfolder = "runs/x"\n'
+    )
+    env = {
+        "VCAMERADIR": str(_vcam_dir(tmp_path)),
+        "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
+        "HDRCAP_LOCK_DIR": str(tmp_path / "locks"),
+    }
     proc = cli("run", job, "--no-progress", env=env)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr  # a configuration error
     assert "delivers .jpg files, not raw" in proc.stderr and "imageformat" in proc.stderr
@@ -377,13 +429,14 @@ def test_cameras_command_shows_serials_and_a_job_selects_by_serial(tmp_path, cli
     env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg")}
     listed = cli("cameras", "--json", env=env)
     assert listed.returncode == 0, listed.stderr
-    assert json.loads(listed.stdout)["gphoto2"] == [{"model": "Nikon DSC D750", "port": "usb:001,001",
-                                                     "serial": "0.1"}]
+    assert json.loads(listed.stdout)["gphoto2"] == [{"model": "Nikon DSC D750", "port": "usb:001,001", "serial": "0.1"}]
     text = cli("cameras", env=env)
     assert "usb:001,001" in text.stdout and "serial 0.1" in text.stdout
     job = tmp_path / "job.toml"
-    body = ('[exposure]\ntimes = [0.01]\n\n[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
-            '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
+    body = (
+        '[exposure]\ntimes = [0.01]\n\n[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
+        '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n'
+    )
     job.write_text('[camera]\nbackend = "gphoto2"\nserial = "0.1"\nsettings = { autofocus = "Off" }\n\n' + body)
     ok = cli("run", job, "--check", env=env)
     assert ok.returncode == 0, ok.stderr
@@ -403,9 +456,12 @@ class FakeBody:
         self.raw_delay, self.canon = raw_delay, canon
         self.storages = storages if storages is not None else [{"freeimages": 100, "access": "rw"}]
         labels = ["1/100", "1/10", "1", longest, "Bulb"]
-        self.widgets = {"shutterspeed": ("radio", "1/100", labels), "imagequality": ("radio", fmt, [fmt]),
-                        "capturetarget": ("radio", "Memory card", ["Internal RAM", "Memory card"]),
-                        "serialnumber": ("text", "F00D", [])}
+        self.widgets = {
+            "shutterspeed": ("radio", "1/100", labels),
+            "imagequality": ("radio", fmt, [fmt]),
+            "capturetarget": ("radio", "Memory card", ["Internal RAM", "Memory card"]),
+            "serialnumber": ("text", "F00D", []),
+        }
         if canon:
             self.widgets["eosremoterelease"] = ("radio", "None", ["None", "Press Full", "Release Full"])
         else:
@@ -520,13 +576,16 @@ def test_stale_files_are_drained_before_the_release(tmp_path):
     assert ("stale_file", "/store/DCIM/DSC_0001.NEF") in cam.events
 
 
-@pytest.mark.parametrize("storages, full", [
-    ([{"freeimages": 0, "access": "rw"}], True),
-    ([{"freekbytes": 0, "access": "rw"}], False),           # no valid image count: unknown, not full
-    ([{"access": "rw"}], False),                              # nothing valid at all
-    ([{"freeimages": 0, "access": "rw"}, {"freeimages": 12, "access": "rw"}], False),  # second card
-    ([{"freeimages": 0, "access": "rw"}, {"freeimages": 50, "access": "ro"}], True),  # read-only card
-])
+@pytest.mark.parametrize(
+    "storages, full",
+    [
+        ([{"freeimages": 0, "access": "rw"}], True),
+        ([{"freekbytes": 0, "access": "rw"}], False),  # no valid image count: unknown, not full
+        ([{"access": "rw"}], False),  # nothing valid at all
+        ([{"freeimages": 0, "access": "rw"}, {"freeimages": 12, "access": "rw"}], False),  # second card
+        ([{"freeimages": 0, "access": "rw"}, {"freeimages": 50, "access": "ro"}], True),  # read-only card
+    ],
+)
 def test_storage_full_only_from_valid_fields_of_every_storage(tmp_path, storages, full):
     from hdrcap.acquire.camera import StorageFullError
 
@@ -548,8 +607,9 @@ def test_worker_reads_only_the_storage_fields_marked_valid():
     from hdrcap.acquire.gphoto2_camera import _WorkerState, free_images
 
     def info(fields, **kw):
-        base = dict(basedir="/store_1", freeimages=0, freekbytes=0, access=gp.GP_STORAGEINFO_AC_READWRITE,
-                    description="SD")
+        base = dict(
+            basedir="/store_1", freeimages=0, freekbytes=0, access=gp.GP_STORAGEINFO_AC_READWRITE, description="SD"
+        )
         return types.SimpleNamespace(fields=fields, **{**base, **kw})
 
     st = _WorkerState.__new__(_WorkerState)
@@ -558,16 +618,21 @@ def test_worker_reads_only_the_storage_fields_marked_valid():
     st.cam = types.SimpleNamespace(get_storageinfo=lambda: [info(bits, freekbytes=900000)])
     assert st.op_storage() == [{"base": "/store_1", "freekbytes": 900000, "access": "rw"}]
     assert free_images(st.op_storage()) is None
-    st.cam = types.SimpleNamespace(get_storageinfo=lambda: [
-        info(bits | gp.GP_STORAGEINFO_FREESPACEIMAGES, freeimages=0),
-        info(gp.GP_STORAGEINFO_FREESPACEIMAGES, freeimages=40, basedir="/store_2")])
+    st.cam = types.SimpleNamespace(
+        get_storageinfo=lambda: [
+            info(bits | gp.GP_STORAGEINFO_FREESPACEIMAGES, freeimages=0),
+            info(gp.GP_STORAGEINFO_FREESPACEIMAGES, freeimages=40, basedir="/store_2"),
+        ]
+    )
     assert free_images(st.op_storage()) == 40  # the second storage still has room
 
 
 def test_no_full_config_tree_read_per_frame(tmp_path):
     """The configuration tree is read once per connection; a frame writes and reads back one
     widget (the shutter speed). The code this replaced read the whole tree five times a frame."""
-    r = run_vcam(tmp_path, """
+    r = run_vcam(
+        tmp_path,
+        """
         cam = Gphoto2Camera(pair_wait_s=0)
         cam.set_exposure(0.01)
         before = cam.tree_reads()
@@ -578,7 +643,8 @@ def test_no_full_config_tree_read_per_frame(tmp_path):
         RESULT["per_frame"] = {k: (after[k] - before[k]) / 4 for k in after}
         RESULT["label"] = cam.get_setting("shutterspeed", fresh=True)
         cam.close()
-    """)
+    """,
+    )
     assert r["per_frame"] == {"tree": 0, "single": 1, "set": 1}
     assert r["t"] == [0.02, 0.05, 0.02, 0.05] and r["label"] == "0.0500s"
 
@@ -618,18 +684,21 @@ def test_no_bulb_without_a_bulb_speed(tmp_path):
 
 def _canon_like_body(dial_readonly=False):
     body = FakeBody(fmt="Large Fine JPEG", canon=True)
-    body.widgets.update({
-        "imageformat": ("radio", "Large Fine JPEG", ["Large Fine JPEG", "RAW + Large Fine JPEG", "RAW"]),
-        "autoexposuremode": ("radio", "AV", ["P", "TV", "AV", "Manual", "Bulb"]),
-        "focusmode": ("radio", "One Shot", ["One Shot", "AI Servo", "Manual"]),
-        "iso": ("radio", "Auto", ["Auto", "100", "200", "400", "800"]),
-        "longexpnr": ("radio", "On", ["Off", "Auto", "On"]),
-    })
+    body.widgets.update(
+        {
+            "imageformat": ("radio", "Large Fine JPEG", ["Large Fine JPEG", "RAW + Large Fine JPEG", "RAW"]),
+            "autoexposuremode": ("radio", "AV", ["P", "TV", "AV", "Manual", "Bulb"]),
+            "focusmode": ("radio", "One Shot", ["One Shot", "AI Servo", "Manual"]),
+            "iso": ("radio", "Auto", ["Auto", "100", "200", "400", "800"]),
+            "longexpnr": ("radio", "On", ["Off", "Auto", "On"]),
+        }
+    )
     del body.widgets["imagequality"]
     if dial_readonly:
         real = body.op_describe
         body.op_describe = lambda names: (lambda d: d and dict(d, readonly=d["name"] == "autoexposuremode"))(
-            real(names))
+            real(names)
+        )
     return body
 
 
@@ -643,8 +712,13 @@ def test_preflight_reports_every_wrong_setting_and_changes_nothing(tmp_path):
         cam.preflight()
     msg = str(e.value)
     assert "\n" not in msg and "enforce = true" in msg
-    for words in ("autoexposuremode is 'AV'", "focusmode is 'One Shot'", "imageformat is 'Large Fine JPEG'",
-                  "iso is 'Auto'", "longexpnr is 'On'"):
+    for words in (
+        "autoexposuremode is 'AV'",
+        "focusmode is 'One Shot'",
+        "imageformat is 'Large Fine JPEG'",
+        "iso is 'Auto'",
+        "longexpnr is 'On'",
+    ):
         assert words in msg
     assert {k: v[1] for k, v in body.widgets.items()} == before  # nothing changed
 
@@ -656,8 +730,12 @@ def test_preflight_enforce_sets_allowed_values_and_the_jobs_iso(tmp_path):
     cam = _fake_camera(body)
     found = {f["setting"]: f for f in cam.preflight(enforce=True, iso=400)}
     assert {k: f["changed"] for k, f in found.items()} == {
-        "exposureprogram": "Manual", "focusmode": "Manual", "imageformat": "RAW + Large Fine JPEG", "iso": "400",
-        "longexposurenr": "Off"}
+        "exposureprogram": "Manual",
+        "focusmode": "Manual",
+        "imageformat": "RAW + Large Fine JPEG",
+        "iso": "400",
+        "longexposurenr": "Off",
+    }
     assert all(f["ok"] for f in found.values())
     assert all(f["changed"] is None for f in cam.preflight())  # a second check finds nothing to do
     dial = _fake_camera(_canon_like_body(dial_readonly=True))
@@ -669,8 +747,10 @@ def test_preflight_on_the_virtual_camera(tmp_path, cli):
     vdir = _vcam_dir(tmp_path)
     env = {"VCAMERADIR": str(vdir), "XDG_CONFIG_HOME": str(tmp_path / "xdg")}
     job = tmp_path / "job.toml"
-    body = ('\n[exposure]\ntimes = [0.01]\n\n[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
-            '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n')
+    body = (
+        '\n[exposure]\ntimes = [0.01]\n\n[darks]\nstrategy = "model"\nblock_light = "none"\n\n'
+        '[calibration]\npreset = "camera-B"\n\n[output]\nfolder = "runs/x"\n'
+    )
     job.write_text('[camera]\nbackend = "gphoto2"\n' + body)
     refused = cli("run", job, "--check", env=env)
     assert refused.returncode != 0 and "Traceback" not in refused.stderr
@@ -683,16 +763,35 @@ def test_preflight_on_the_virtual_camera(tmp_path, cli):
 def test_capture_command_sets_iso_and_enforces_on_the_virtual_camera(tmp_path, cli):
     """`hdrcap capture --enforce` switches autofocus off on the virtual camera (which has no
     ISO setting: --iso is refused there with the camera's own words)."""
-    env = {"VCAMERADIR": str(_vcam_dir(tmp_path)), "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
-           "HDRCAP_LOCK_DIR": str(tmp_path / "locks")}
+    env = {
+        "VCAMERADIR": str(_vcam_dir(tmp_path)),
+        "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
+        "HDRCAP_LOCK_DIR": str(tmp_path / "locks"),
+    }
     from hdrcap.acquire.cliutil import resolve_calibration
     from hdrcap.pipeline.calibration.archive import save_calibration
 
     # a calibration of this camera (the compatibility check refuses a simulator preset's)
-    calib = save_calibration(tmp_path / "calib.npz", resolve_calibration(None, "camera-B").replace(
-        provenance={"camera": "NIKON CORPORATION NIKON D750"}))
-    base = ["capture", "--camera", "gphoto2", "--times", "0.01", "--darks", "model", "--block-light", "none",
-            "--calibration", calib, "--out", tmp_path / "run", "--no-progress"]
+    calib = save_calibration(
+        tmp_path / "calib.npz",
+        resolve_calibration(None, "camera-B").replace(provenance={"camera": "NIKON CORPORATION NIKON D750"}),
+    )
+    base = [
+        "capture",
+        "--camera",
+        "gphoto2",
+        "--times",
+        "0.01",
+        "--darks",
+        "model",
+        "--block-light",
+        "none",
+        "--calibration",
+        calib,
+        "--out",
+        tmp_path / "run",
+        "--no-progress",
+    ]
     refused = cli(*base, env=env)
     assert refused.returncode != 0 and "autofocus is 'On'" in refused.stderr and "Traceback" not in refused.stderr
     enforced = cli(*base, "--enforce", env=env)
@@ -717,9 +816,24 @@ def test_gphoto2_success_path_raw_frames_through_the_virtual_camera(tmp_path):
     placeholder = np.zeros((32, 48), np.uint16)
     with open(vdir / "scene.jpg", "wb") as f:
         import datetime
-        write_dng(f, placeholder, exposure_time=0.01, iso=200, black_level=32, white_level=4095, cfa="RGGB",
-                  make="hdrcap", model="sim", serial="1", timestamp=datetime.datetime(2026, 1, 1), description="x")
-    r = run_vcam(tmp_path, """
+
+        write_dng(
+            f,
+            placeholder,
+            exposure_time=0.01,
+            iso=200,
+            black_level=32,
+            white_level=4095,
+            cfa="RGGB",
+            make="hdrcap",
+            model="sim",
+            serial="1",
+            timestamp=datetime.datetime(2026, 1, 1),
+            description="x",
+        )
+    r = run_vcam(
+        tmp_path,
+        """
         import datetime, dataclasses
         import numpy as np
         from hdrcap.mock_camera.backend import SimulatedCamera
@@ -772,7 +886,9 @@ def test_gphoto2_success_path_raw_frames_through_the_virtual_camera(tmp_path):
         RESULT["z_spread"] = float(1.4826 * np.median(np.abs(z - np.median(z))))
         RESULT["covered"] = float(ok.mean())
         cam.close()
-    """, vdir)
+    """,
+        vdir,
+    )
     assert r["captured"] == 6 and len(r["frames"]) == 6
     for cam_file, file_t, applied in r["frames"].values():
         assert cam_file.startswith("/store_00010001/DCIM/") and cam_file.endswith(".JPG")

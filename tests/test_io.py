@@ -7,6 +7,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
+
 from hdrcap.mock_camera.dng import exposure_rational, write_dng
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 from hdrcap.pipeline.io import (
@@ -23,8 +24,19 @@ from hdrcap.pipeline.io import (
 
 def _dng(path, data, t=1 / 250, iso=400, cfa="RGGB", black=128, white=4095):
     with open(path, "wb") as f:
-        write_dng(f, data, exposure_time=t, iso=iso, black_level=black, white_level=white, cfa=cfa,
-                  make="Acme", model="Sim 1", serial="42", timestamp=dt.datetime(2026, 1, 2, 3, 4, 5))
+        write_dng(
+            f,
+            data,
+            exposure_time=t,
+            iso=iso,
+            black_level=black,
+            white_level=white,
+            cfa=cfa,
+            make="Acme",
+            model="Sim 1",
+            serial="42",
+            timestamp=dt.datetime(2026, 1, 2, 3, 4, 5),
+        )
     return path
 
 
@@ -112,9 +124,14 @@ def test_exr_round_trip_all_channels_and_attributes(tmp_path):
         "sigma": rng.random((20, 30)).astype(np.float32),
         "nexp": rng.integers(0, 7, (20, 30)).astype(np.float32),
     }
-    attrs = {"unit": "electrons per second per photosite", "cfa_pattern": "RGGB",
-             "exposure_times": [1 / 3, 0.001, 1000.0], "calibration": {"g": 0.23, "name": "x"},
-             "hdrcap_version": "0.1.0", "merge": {"iterations": 3, "saturation": "threshold"}}
+    attrs = {
+        "unit": "electrons per second per photosite",
+        "cfa_pattern": "RGGB",
+        "exposure_times": [1 / 3, 0.001, 1000.0],
+        "calibration": {"g": 0.23, "name": "x"},
+        "hdrcap_version": "0.1.0",
+        "merge": {"iterations": 3, "saturation": "threshold"},
+    }
     path = write_exr(tmp_path / "o.exr", HdrImage(ch, attrs))
     back = read_exr(path)
     assert set(back.channels) == set(ch)
@@ -201,8 +218,11 @@ def test_check_frames_catches_a_copy_with_another_exposure_time(tmp_path):
 def _merge_like_channels(shape=(20, 30)):
     rng = np.random.default_rng(4)
     irr = rng.lognormal(5, 3, shape).astype(np.float32)
-    return {"irradiance": irr, "sigma": (np.sqrt(irr) + 15).astype(np.float32),
-            "nexp": rng.integers(0, 7, shape).astype(np.float32)}
+    return {
+        "irradiance": irr,
+        "sigma": (np.sqrt(irr) + 15).astype(np.float32),
+        "nexp": rng.integers(0, 7, shape).astype(np.float32),
+    }
 
 
 @pytest.mark.parametrize("compression", ["zip", "zips", "piz", "zstd", "rle", "none"])
@@ -210,8 +230,13 @@ def test_exr_half_sigma_and_uint_nexp_read_back_as_float32(tmp_path, compression
     from hdrcap.pipeline.io import HALF_RELATIVE_ERROR
 
     ch = _merge_like_channels()
-    path = write_exr(tmp_path / "o.exr", HdrImage(ch, {"unit": "e-/s"}), compression=compression,
-                     precision={"sigma": "half", "nexp": "uint"}, threads=2)
+    path = write_exr(
+        tmp_path / "o.exr",
+        HdrImage(ch, {"unit": "e-/s"}),
+        compression=compression,
+        precision={"sigma": "half", "nexp": "uint"},
+        threads=2,
+    )
     back = read_exr(path)
     assert all(back.channels[k].dtype == np.float32 for k in ch)
     assert np.array_equal(back.channels["irradiance"], ch["irradiance"])

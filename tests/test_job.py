@@ -59,10 +59,10 @@ def test_good_job_loads_with_defaults(tmp_path):
         (("[darks]", "[dark]"), 19, "unknown section"),
         (('strategy = "matched"', 'strategy = "best"'), 20, "matched, master or model"),
         (('size = "64x48"', "size = 64"), 7, "expected a string"),
-        (("block_light = \"mock\"", "block_light = \"command\""), 19, "cover_command"),
-        (('[output]', '[calibration]\nfile = "nope.json"\n\n[output]'), 24, "does not exist"),
+        (('block_light = "mock"', 'block_light = "command"'), 19, "cover_command"),
+        (("[output]", '[calibration]\nfile = "nope.json"\n\n[output]'), 24, "does not exist"),
         (('folder = "runs/{job}-{date}"', 'folder = "afile/runs"'), 24, "not a writable folder"),
-        (("mode = \"bracket\"", "mode = \"snr\""), 15, "target_snr_db"),
+        (('mode = "bracket"', 'mode = "snr"'), 15, "target_snr_db"),
     ],
 )
 def test_bad_jobs_name_the_line(tmp_path, change, line, words):
@@ -77,7 +77,7 @@ def test_bad_jobs_name_the_line(tmp_path, change, line, words):
 
 
 def test_toml_syntax_error_names_the_line(tmp_path):
-    p = _write(tmp_path, GOOD.replace('preset = "camera-B"', 'preset = camera-B'))
+    p = _write(tmp_path, GOOD.replace('preset = "camera-B"', "preset = camera-B"))
     with pytest.raises(InputError, match=r"line 6"):
         load_job(p)
 
@@ -136,23 +136,47 @@ def test_run_killed_then_resumed_completes(tmp_path, cli):
 
 
 def test_repeat_every_makes_separate_runs(tmp_path, cli):
-    p = _write(tmp_path, GOOD.replace('folder = "runs/{job}-{date}"', 'folder = "runs/{job}-{n:02d}"')
-               .replace("[0.001, 0.004, 0.016, 0.064, 0.25, 1.0]", "[0.004, 0.064]"))
+    p = _write(
+        tmp_path,
+        GOOD.replace('folder = "runs/{job}-{date}"', 'folder = "runs/{job}-{n:02d}"').replace(
+            "[0.001, 0.004, 0.016, 0.064, 0.25, 1.0]", "[0.004, 0.064]"
+        ),
+    )
     proc = cli("run", p, "--repeat", "2", "--every", "0.5", "--json", "--no-progress")
     assert proc.returncode == 0, proc.stderr
     runs = [json.loads(l) for l in proc.stdout.strip().splitlines()]
     assert [Path(r["run_dir"]).name for r in runs] == ["t-00", "t-01"]
     # the two repetitions are independent captures (different noise)
-    a, b = ([json.loads(line) for line in (Path(r["run_dir"]) / "manifest.jsonl").read_text().splitlines()
-             if '"type":"frame"' in line][-1]["sha256"] for r in runs)
+    a, b = (
+        [
+            json.loads(line)
+            for line in (Path(r["run_dir"]) / "manifest.jsonl").read_text().splitlines()
+            if '"type":"frame"' in line
+        ][-1]["sha256"]
+        for r in runs
+    )
     assert a != b
     again = cli("run", p, "--no-progress")
     assert again.returncode == 5 and "--resume" in again.stderr and "Traceback" not in again.stderr
 
 
 def test_capture_command_plans_for_a_target_snr(tmp_path, cli):
-    proc = cli("capture", "--camera", "mock:camera-A", "--size", "48x32", "--target-snr", "20", "--times", "0.01",
-               "0.1", "--out", tmp_path / "cap", "--no-progress", "--json")
+    proc = cli(
+        "capture",
+        "--camera",
+        "mock:camera-A",
+        "--size",
+        "48x32",
+        "--target-snr",
+        "20",
+        "--times",
+        "0.01",
+        "0.1",
+        "--out",
+        tmp_path / "cap",
+        "--no-progress",
+        "--json",
+    )
     assert proc.returncode == 0, proc.stderr
     assert "plan:" in proc.stderr
     res = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -169,10 +193,9 @@ def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
 
 
 def test_master_darks_come_from_the_dark_library(tmp_path, cli):
-    from hdrcap.pipeline import darklibrary
-
     from hdrcap.mock_camera.camera import MockCamera
     from hdrcap.mock_camera.scenes import make_scene
+    from hdrcap.pipeline import darklibrary
     from hdrcap.pipeline.io import read_frame
 
     lib = darklibrary.DarkLibrary(tmp_path / "darks")
@@ -183,7 +206,8 @@ def test_master_darks_come_from_the_dark_library(tmp_path, cli):
         stack = [read_frame(cam.capture(tmp_path / f"d{t:g}_{k}.dng").path).data for k in range(6)]
         lib.add(np.mean(stack, axis=0), 6, camera=cam.identity.model, iso=None, exposure_time=t)
     text = GOOD.replace('strategy = "matched"', 'strategy = "master"\ncount = 2').replace(
-        "[output]", '[calibration]\npreset = "camera-B"\ndark_library = "darks"\n\n[output]')
+        "[output]", '[calibration]\npreset = "camera-B"\ndark_library = "darks"\n\n[output]'
+    )
     p = _write(tmp_path, text)
     proc = cli("run", p, "--json", "--no-progress")
     assert proc.returncode == 0, proc.stderr
@@ -210,29 +234,49 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
 
     # a calibration that knows the mock camera's fixed patterns (seed 3), so z measures the merge alone
     sensor = SimulatedSensor(PRESETS["camera-B"], (48, 64), seed=3)
-    save_calibration(tmp_path / "cal.npz", Calibration(
-        params=PRESETS["camera-B"].nominal_params(), prnu=sensor.prnu.astype(np.float32),
-        dark_current_map=sensor.dark_current_map().astype(np.float32), provenance={"source": "simulator truth"}))
+    save_calibration(
+        tmp_path / "cal.npz",
+        Calibration(
+            params=PRESETS["camera-B"].nominal_params(),
+            prnu=sensor.prnu.astype(np.float32),
+            dark_current_map=sensor.dark_current_map().astype(np.float32),
+            provenance={"source": "simulator truth"},
+        ),
+    )
     times = [1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0]  # from the camera's ladder, as the planner's
     darks = ["model", "matched", "model", "matched", "model", "matched"]
-    decisions = {"saturation": {"choice": "probabilistic", "reason": "test", "figure": 0.2},
-                 "prnu": {"choice": "map", "reason": "test", "figure": 0.4},
-                 "iterations": {"choice": 5, "reason": "test", "figure": 0.01}}
+    decisions = {
+        "saturation": {"choice": "probabilistic", "reason": "test", "figure": 0.2},
+        "prnu": {"choice": "map", "reason": "test", "figure": 0.4},
+        "iterations": {"choice": 5, "reason": "test", "figure": 0.01},
+    }
     fake = Plan(times, darks, 22.0, 3.0, decisions, True, "a test plan", 20.0, 1.0, [0] * 6, {})
     monkeypatch.setattr(planner, "meter", lambda *a, **k: np.ones((48, 64)))
     monkeypatch.setattr(planner, "plan_exposures", lambda *a, **k: fake)
-    text = GOOD.replace('mode = "bracket"', 'mode = "snr"\ntarget_snr_db = 20.0').replace(
-        'strategy = "matched"\n', "").replace("[output]", '[calibration]\nfile = "cal.npz"\n\n[output]')
-    summary, res = run_job(load_job(_write(tmp_path, text)), run_dir=tmp_path / "run", progress=False,
-                           echo=lambda s: None, return_result=True)
+    text = (
+        GOOD.replace('mode = "bracket"', 'mode = "snr"\ntarget_snr_db = 20.0')
+        .replace('strategy = "matched"\n', "")
+        .replace("[output]", '[calibration]\nfile = "cal.npz"\n\n[output]')
+    )
+    summary, res = run_job(
+        load_job(_write(tmp_path, text)),
+        run_dir=tmp_path / "run",
+        progress=False,
+        echo=lambda s: None,
+        return_result=True,
+    )
     dark_times = sorted(r["file_exposure_s"] for r in res.frames.values() if r["kind"] == "dark")
     assert dark_times == pytest.approx([1 / 250, 1 / 15, 1.0], rel=1e-3)
     img = read_exr(summary["exr"])
     m, p = img.attrs["merge"], img.attrs["planner"]
     assert m["dark_strategies"] == darks and m["iterations"] == 5 and m["saturation"] == "probabilistic"
     assert p["decisions"] == decisions and p["predicted_min_snr_db"] == 22.0
-    assert p["options_from_plan"] == {"saturation": "probabilistic", "prnu": "map", "iterations": 5,
-                                      "saturation_sigmas": 3.0}
+    assert p["options_from_plan"] == {
+        "saturation": "probabilistic",
+        "prnu": "map",
+        "iterations": 5,
+        "saturation_sigmas": 3.0,
+    }
     truth = make_scene("hdr", (48, 64), decades=3.0, x_max=2e4)
     ok = img.channels["nexp"] > 0
     z = (img.channels["irradiance"][ok] - truth[ok]) / img.channels["sigma"][ok]

@@ -29,8 +29,12 @@ FORBIDDEN = {
     "mock_camera": ("hdrcap.planner", "hdrcap.acquire", "hdrcap.experiments", "hdrcap.api"),
 }
 #: The only modules of pipeline the simulator may read: shared parameter and error types.
-MOCK_CAMERA_MAY_READ = ("hdrcap.pipeline.params", "hdrcap.pipeline.errors", "hdrcap.pipeline.camera_types",
-                        "hdrcap.pipeline.times")
+MOCK_CAMERA_MAY_READ = (
+    "hdrcap.pipeline.params",
+    "hdrcap.pipeline.errors",
+    "hdrcap.pipeline.camera_types",
+    "hdrcap.pipeline.times",
+)
 
 
 def _modules():
@@ -98,7 +102,9 @@ def test_imports_point_downward(layer, name, path):
 def test_the_rule_test_can_fail(tmp_path):
     """The checker flags the import the layering forbids (pipeline importing the simulator)."""
     src = tmp_path / "denoise.py"
-    src.write_text("def f():\n    from hdrcap.mock_camera.sensor import PRESETS\n    from ..mock_camera import scenes\n")
+    src.write_text(
+        "def f():\n    from hdrcap.mock_camera.sensor import PRESETS\n    from ..mock_camera import scenes\n"
+    )
     imported = imports_of("hdrcap.pipeline.denoise", src)
     assert "hdrcap.mock_camera.scenes" in _violations("pipeline", "hdrcap.pipeline.denoise", imported)
     assert "hdrcap.mock_camera.sensor" in _violations("pipeline", "hdrcap.pipeline.denoise", imported)

@@ -24,8 +24,9 @@ MARGIN = 3.0  # the merge's default saturation_sigmas
 
 
 def _truth_calibration(sensor, params):
-    return Calibration(params, prnu=sensor.prnu.astype(np.float32),
-                       dark_current_map=sensor.dark_current_map().astype(np.float32))
+    return Calibration(
+        params, prnu=sensor.prnu.astype(np.float32), dark_current_map=sensor.dark_current_map().astype(np.float32)
+    )
 
 
 def _bound(X, a, D, p, times, dark, n_dark=1):
@@ -71,16 +72,22 @@ def _monte_carlo(cam, dark="matched", seeds=(0, 1, 2), shape=(256, 256), n_dark=
         if dark == "matched":
             darks = [sensor.expose(X, t, dark=True) for t in TIMES]
         elif dark == "master":
-            darks = [np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
-                     for t in TIMES]
+            darks = [
+                np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
+                for t in TIMES
+            ]
             kw.update(dark_strategy="master", n_dark=n_dark)
         elif dark == "model":
             darks = None
         else:  # one strategy per exposure
-            darks = [None if d == "model" else
-                     sensor.expose(X, t, dark=True) if d == "matched" else
-                     np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
-                     for d, t in zip(dark, TIMES)]
+            darks = [
+                None
+                if d == "model"
+                else sensor.expose(X, t, dark=True)
+                if d == "matched"
+                else np.mean([sensor.expose(X, t, dark=True) for _ in range(n_dark)], axis=0).astype(np.float32)
+                for d, t in zip(dark, TIMES)
+            ]
             kw.update(dark_strategies=list(dark), n_darks=[n_dark if d == "master" else None for d in dark])
         res = merge_arrays(values, TIMES, cal, darks, **kw)
         if not isinstance(dark, str):
@@ -268,8 +275,17 @@ def test_master_dark_single_array_and_info():
     times = [0.01, 0.1]
     values = [sensor.expose(X, t) for t in times]
     master = np.mean([sensor.expose(X, 0.1, dark=True) for _ in range(16)], axis=0)
-    res = merge_arrays(values, times, _truth_calibration(sensor, p), master, n_dark=16, master_dark_time=0.1,
-                       iterations=5, tolerance=1e-3, prnu="scalar")
+    res = merge_arrays(
+        values,
+        times,
+        _truth_calibration(sensor, p),
+        master,
+        n_dark=16,
+        master_dark_time=0.1,
+        iterations=5,
+        tolerance=1e-3,
+        prnu="scalar",
+    )
     assert res.info["dark_strategy"] == "master" and res.info["n_dark"] == 16
     assert res.info["iterations"] == 5 and res.info["prnu"] == "scalar"
     z = (res.irradiance - X * sensor.prnu) / res.sigma  # scalar PRNU estimates a*X
@@ -291,12 +307,20 @@ def _simulate_plain(p, X, times, rng, dark=True):
     out, darks = [], []
     for t in times:
         e = rng.poisson(np.full(X.shape, (X + p.dark_current) * t))
-        v = np.clip(np.rint(p.g * e + p.mu_R + math.sqrt(max(p.sigma2_R - 1 / 12, 0)) * rng.standard_normal(X.shape)),
-                    0, p.white_level)
+        v = np.clip(
+            np.rint(p.g * e + p.mu_R + math.sqrt(max(p.sigma2_R - 1 / 12, 0)) * rng.standard_normal(X.shape)),
+            0,
+            p.white_level,
+        )
         out.append(v.astype(np.float32))
         e = rng.poisson(np.full(X.shape, p.dark_current * t))
-        darks.append(np.clip(np.rint(p.g * e + p.mu_R + math.sqrt(max(p.sigma2_R - 1 / 12, 0))
-                                     * rng.standard_normal(X.shape)), 0, p.white_level).astype(np.float32))
+        darks.append(
+            np.clip(
+                np.rint(p.g * e + p.mu_R + math.sqrt(max(p.sigma2_R - 1 / 12, 0)) * rng.standard_normal(X.shape)),
+                0,
+                p.white_level,
+            ).astype(np.float32)
+        )
     return out, (darks if dark else None)
 
 
@@ -394,8 +418,10 @@ def _emva_steps(emva_dir):
 
     def load(step, k):
         d = darks[round(step.exposure_time, 9)]
-        return (read_image16(step.images[k], step.exposure_time).data,
-                read_image16(d.images[k], step.exposure_time).data)
+        return (
+            read_image16(step.images[k], step.exposure_time).data,
+            read_image16(d.images[k], step.exposure_time).data,
+        )
 
     return ds, steps, load
 

@@ -14,9 +14,28 @@ def test_merge_cli_knobs_recorded_and_accurate(tmp_path, cli):
     frames = sorted(sim.glob("frame_*.dng"))
     darks = sorted(sim.glob("dark_*.dng"))
     out = tmp_path / "m.exr"
-    cli("merge", *frames, "--darks", *darks, "--camera", "camera-A", "-o", out, "--iterations", "9",
-        "--tolerance", "1e-5", "--saturation", "threshold", "--prnu", "scalar", "--dark-strategy", "matched",
-        "--json", check=True)
+    cli(
+        "merge",
+        *frames,
+        "--darks",
+        *darks,
+        "--camera",
+        "camera-A",
+        "-o",
+        out,
+        "--iterations",
+        "9",
+        "--tolerance",
+        "1e-5",
+        "--saturation",
+        "threshold",
+        "--prnu",
+        "scalar",
+        "--dark-strategy",
+        "matched",
+        "--json",
+        check=True,
+    )
     img = read_exr(out)
     m = img.attrs["merge"]
     assert m["iterations"] == 9 and m["tolerance"] == 1e-5 and m["saturation"] == "threshold"
@@ -31,7 +50,20 @@ def test_merge_cli_knobs_recorded_and_accurate(tmp_path, cli):
     assert proc.returncode != 0 and "hdrcap: error:" in proc.stderr and "Traceback" not in proc.stderr
     proc = cli("merge", *frames, "--camera", "camera-A", "-o", tmp_path / "w.exr", "--weighting", "nonsense")
     assert proc.returncode != 0 and "hdrcap: error:" in proc.stderr and "Traceback" not in proc.stderr
-    cli("merge", *frames, "--camera", "camera-A", "-o", tmp_path / "p.exr", "--saturation", "probabilistic",
-        "--master-dark", darks[-1], "--master-dark-frames", "1", check=True)
+    cli(
+        "merge",
+        *frames,
+        "--camera",
+        "camera-A",
+        "-o",
+        tmp_path / "p.exr",
+        "--saturation",
+        "probabilistic",
+        "--master-dark",
+        darks[-1],
+        "--master-dark-frames",
+        "1",
+        check=True,
+    )
     p = read_exr(tmp_path / "p.exr").attrs["merge"]
     assert p["dark_strategy"] == "master" and p["saturation"] == "probabilistic" and p["master_dark"]

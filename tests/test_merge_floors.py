@@ -79,8 +79,11 @@ def test_negative_dark_current_map_gives_the_read_noise_floor(dark_strategy):
     rng = np.random.default_rng(5)
     times = (50.0, 100.0, 300.0)
     vals = [np.rint(100.0 + rng.normal(0, 2.0, (8, 8))).astype(np.uint16) for _ in times]
-    darks = [np.rint(100.0 + rng.normal(0, 2.0, (8, 8))).astype(np.uint16) for _ in times] \
-        if dark_strategy == "matched" else None
+    darks = (
+        [np.rint(100.0 + rng.normal(0, 2.0, (8, 8))).astype(np.uint16) for _ in times]
+        if dark_strategy == "matched"
+        else None
+    )
     res = merge_arrays(vals, times, cal, darks=darks, dark_strategy=dark_strategy)
     assert np.all(res.nexp == 3)
     k = 1.0 if dark_strategy == "matched" else 0.0

@@ -43,8 +43,28 @@ def data(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("mergeplan")
     sim = root / "sim"
-    assert main(["simulate", "--camera", "camera-B", "--out", str(sim), "--size", "64x48", "--darks", "--seed", "5",
-                 "--decades", "3", "--x-max", "2e4", "--json"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--camera",
+                "camera-B",
+                "--out",
+                str(sim),
+                "--size",
+                "64x48",
+                "--darks",
+                "--seed",
+                "5",
+                "--decades",
+                "3",
+                "--x-max",
+                "2e4",
+                "--json",
+            ]
+        )
+        == 0
+    )
     frames = sorted(sim.glob("frame_*.dng"))
     darks = sorted(sim.glob("dark_*.dng"))
     sensor = SimulatedSensor(PRESETS["camera-B"], (48, 64), seed=5)  # same fixed patterns as the simulation
@@ -55,19 +75,31 @@ def data(tmp_path_factory):
         if t != 0.25:
             stack = [sensor.expose(0.0, t, dark=True, rng=rng) for _ in range(N_LIB)]
             lib.add(np.mean(stack, axis=0), N_LIB, camera=model, iso=None, exposure_time=t)
-    cal = Calibration(params=PRESETS["camera-B"].nominal_params(), prnu=sensor.prnu.astype(np.float32),
-                      dark_current_map=sensor.dark_current_map().astype(np.float32),
-                      provenance={"source": "simulator truth"}, dark_library=str(root / "darklib"))
+    cal = Calibration(
+        params=PRESETS["camera-B"].nominal_params(),
+        prnu=sensor.prnu.astype(np.float32),
+        dark_current_map=sensor.dark_current_map().astype(np.float32),
+        provenance={"source": "simulator truth"},
+        dark_library=str(root / "darklib"),
+    )
     save_calibration(root / "cal.npz", cal)
     truth = read_exr(sim / "truth.exr").channels["irradiance"].astype(np.float64)
     return {"root": root, "frames": frames, "darks": darks, "cal": root / "cal.npz", "truth": truth}
 
 
 def _plan(path, darks=MIXED, times=TIMES, **more):
-    plan = {"exposures": list(times), "darks": list(darks), "predicted_min_snr_db": 21.5, "total_time_s": 2.9,
-            "decisions": {"saturation": {"choice": "probabilistic", "reason": "test", "figure": 0.3},
-                          "prnu": {"choice": "map", "reason": "test", "figure": 0.5},
-                          "iterations": {"choice": 6, "reason": "test", "figure": 0.01}}, **more}
+    plan = {
+        "exposures": list(times),
+        "darks": list(darks),
+        "predicted_min_snr_db": 21.5,
+        "total_time_s": 2.9,
+        "decisions": {
+            "saturation": {"choice": "probabilistic", "reason": "test", "figure": 0.3},
+            "prnu": {"choice": "map", "reason": "test", "figure": 0.5},
+            "iterations": {"choice": 6, "reason": "test", "figure": 0.01},
+        },
+        **more,
+    }
     path.write_text(json.dumps(plan))
     return path
 
@@ -75,8 +107,22 @@ def _plan(path, darks=MIXED, times=TIMES, **more):
 def test_merge_plan_applies_per_exposure_strategies_and_records_decisions(data, tmp_path, capsys):
     plan = _plan(tmp_path / "plan.json")  # no merge_options key: derived from the decisions
     out = tmp_path / "m.exr"
-    code, _, err = _run(capsys, "merge", *data["frames"], "--darks", *data["darks"], "--calibration", data["cal"],
-                        "--plan", plan, "--iterations", "9", "-o", out, "--json")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *data["frames"],
+        "--darks",
+        *data["darks"],
+        "--calibration",
+        data["cal"],
+        "--plan",
+        plan,
+        "--iterations",
+        "9",
+        "-o",
+        out,
+        "--json",
+    )
     assert code == 0, err
     img = read_exr(out)
     m, p = img.attrs["merge"], img.attrs["planner"]
@@ -94,8 +140,21 @@ def test_merge_plan_applies_per_exposure_strategies_and_records_decisions(data, 
     # The model frames carry no dark-frame noise: in the darkest tenth of the scene the 1 s frame
     # (model) dominates with ~20 e-, and its variance g^2 tX + s_R^2 ~ 35 DN^2 is well below the
     # matched frame's g^2 tX + 2 s_R^2 ~ 53 DN^2 (Eq. 3, 5): sigma about 0.8x the all-matched merge's.
-    code, _, err = _run(capsys, "merge", *data["frames"], "--darks", *data["darks"], "--calibration", data["cal"],
-                        "--dark-strategy", "matched", "--saturation", "probabilistic", "-o", tmp_path / "all.exr")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *data["frames"],
+        "--darks",
+        *data["darks"],
+        "--calibration",
+        data["cal"],
+        "--dark-strategy",
+        "matched",
+        "--saturation",
+        "probabilistic",
+        "-o",
+        tmp_path / "all.exr",
+    )
     assert code == 0, err
     ref = read_exr(tmp_path / "all.exr").channels["sigma"]
     dark = data["truth"] < np.quantile(data["truth"], 0.1)
@@ -113,39 +172,99 @@ def test_master_darks_from_the_calibration_dark_library(data, tmp_path, capsys):
     z = _z(img, data["truth"])
     assert 0.9 < z.std() < 1.1 and abs(z.mean()) < 0.1, (z.std(), z.mean())
     # the library lacks 0.25 s: the error names the time
-    code, _, err = _run(capsys, "merge", *data["frames"], "--calibration", data["cal"], "--dark-strategy", "master",
-                        "-o", tmp_path / "x.exr")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *data["frames"],
+        "--calibration",
+        data["cal"],
+        "--dark-strategy",
+        "master",
+        "-o",
+        tmp_path / "x.exr",
+    )
     assert code != 0 and err.startswith("hdrcap: error:") and "exposure 0.25 s" in err and "dark library" in err
 
 
-@pytest.mark.parametrize("plan_kw, drop_dark, words", [
-    ({"times": TIMES + [0.5], "darks": MIXED + ["model"]}, None, "planned exposure 0.5 s matches no frame"),
-    ({"times": TIMES[:-1], "darks": MIXED[:-1]}, None, "exposure 1 s is not in the plan"),
-    ({}, "0.016", "no dark frame with exposure time 0.016 s"),
-    ({"darks": ["model"] * 5 + ["best"]}, None, "'best' is not matched, master or model"),
-])
+@pytest.mark.parametrize(
+    "plan_kw, drop_dark, words",
+    [
+        ({"times": TIMES + [0.5], "darks": MIXED + ["model"]}, None, "planned exposure 0.5 s matches no frame"),
+        ({"times": TIMES[:-1], "darks": MIXED[:-1]}, None, "exposure 1 s is not in the plan"),
+        ({}, "0.016", "no dark frame with exposure time 0.016 s"),
+        ({"darks": ["model"] * 5 + ["best"]}, None, "'best' is not matched, master or model"),
+    ],
+)
 def test_merge_plan_errors_are_one_line(data, tmp_path, capsys, plan_kw, drop_dark, words):
     plan = _plan(tmp_path / "plan.json", **plan_kw)
     darks = [d for d in data["darks"] if drop_dark is None or f"_{drop_dark}" not in d.name]
-    code, _, err = _run(capsys, "merge", *data["frames"], "--darks", *darks, "--calibration", data["cal"],
-                        "--plan", plan, "-o", tmp_path / "e.exr")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *data["frames"],
+        "--darks",
+        *darks,
+        "--calibration",
+        data["cal"],
+        "--plan",
+        plan,
+        "-o",
+        tmp_path / "e.exr",
+    )
     assert code != 0 and err.startswith("hdrcap: error:") and words in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "e.exr").exists()
 
 
 def test_merge_takes_the_json_of_hdrcap_plan(data, tmp_path, capsys):
     """The contract end to end: `hdrcap plan --json` -> simulate its exposures -> merge --plan."""
-    code, out, err = _run(capsys, "plan", "--camera", "camera-B", "--irradiance", data["root"] / "sim" / "truth.exr",
-                          "--target-snr-db", 15, "--json")
+    code, out, err = _run(
+        capsys,
+        "plan",
+        "--camera",
+        "camera-B",
+        "--irradiance",
+        data["root"] / "sim" / "truth.exr",
+        "--target-snr-db",
+        15,
+        "--json",
+    )
     assert code == 0, err
     (tmp_path / "plan.json").write_text(out)
     plan = json.loads(out)
     sim = tmp_path / "sim"
-    code, _, err = _run(capsys, "simulate", "--camera", "camera-B", "--out", sim, "--size", "64x48", "--seed", "5",
-                        "--decades", "3", "--x-max", "2e4", "--darks", "--times", *sorted(set(plan["exposures"])))
+    code, _, err = _run(
+        capsys,
+        "simulate",
+        "--camera",
+        "camera-B",
+        "--out",
+        sim,
+        "--size",
+        "64x48",
+        "--seed",
+        "5",
+        "--decades",
+        "3",
+        "--x-max",
+        "2e4",
+        "--darks",
+        "--times",
+        *sorted(set(plan["exposures"])),
+    )
     assert code == 0, err
-    code, _, err = _run(capsys, "merge", *sorted(sim.glob("frame_*.dng")), "--darks", *sorted(sim.glob("dark_*.dng")),
-                        "--camera", "camera-B", "--plan", tmp_path / "plan.json", "-o", tmp_path / "p.exr")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *sorted(sim.glob("frame_*.dng")),
+        "--darks",
+        *sorted(sim.glob("dark_*.dng")),
+        "--camera",
+        "camera-B",
+        "--plan",
+        tmp_path / "plan.json",
+        "-o",
+        tmp_path / "p.exr",
+    )
     assert code == 0, err
     img = read_exr(tmp_path / "p.exr")
     p, m = img.attrs["planner"], img.attrs["merge"]
@@ -158,8 +277,21 @@ def test_merge_takes_the_json_of_hdrcap_plan(data, tmp_path, capsys):
 
 def test_dark_strategy_given_overrides_the_plan_and_bad_plans_fail(data, tmp_path, capsys):
     plan = _plan(tmp_path / "plan.json", darks=["model"] * 6, merge_options={"saturation": "threshold", "denoise": 1})
-    code, _, err = _run(capsys, "merge", *data["frames"], "--darks", *data["darks"], "--calibration", data["cal"],
-                        "--plan", plan, "--dark-strategy", "matched", "-o", tmp_path / "o.exr")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *data["frames"],
+        "--darks",
+        *data["darks"],
+        "--calibration",
+        data["cal"],
+        "--plan",
+        plan,
+        "--dark-strategy",
+        "matched",
+        "-o",
+        tmp_path / "o.exr",
+    )
     assert code == 0, err
     assert "'denoise' is not one hdrcap merge knows" in err
     img = read_exr(tmp_path / "o.exr")
@@ -168,6 +300,15 @@ def test_dark_strategy_given_overrides_the_plan_and_bad_plans_fail(data, tmp_pat
     assert p["options_overridden"] == {"darks": {"plan": ["model"] * 6, "used": "matched"}}
     assert p["options_from_plan"] == {"saturation": "threshold"} and p["options_ignored"] == ["denoise"]
     (tmp_path / "bad.json").write_text("{not json")
-    code, _, err = _run(capsys, "merge", *data["frames"], "--camera", "camera-B", "--plan", tmp_path / "bad.json",
-                        "-o", tmp_path / "b.exr")
+    code, _, err = _run(
+        capsys,
+        "merge",
+        *data["frames"],
+        "--camera",
+        "camera-B",
+        "--plan",
+        tmp_path / "bad.json",
+        "-o",
+        tmp_path / "b.exr",
+    )
     assert code != 0 and err.startswith(f"hdrcap: error: {tmp_path / 'bad.json'}: not a plan")

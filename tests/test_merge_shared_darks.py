@@ -25,8 +25,11 @@ def _bracket(cam, times, seed, shape=(160, 160), dark_current=None):
     sensor = SimulatedSensor(spec, shape, seed=seed)
     rng = np.random.default_rng([seed, 9])
     X = 10 ** rng.uniform(0.3, 3.0, shape)  # 2 to 1000 e-/s
-    cal = Calibration(spec.nominal_params(), prnu=sensor.prnu.astype(np.float32),
-                      dark_current_map=sensor.dark_current_map().astype(np.float32))
+    cal = Calibration(
+        spec.nominal_params(),
+        prnu=sensor.prnu.astype(np.float32),
+        dark_current_map=sensor.dark_current_map().astype(np.float32),
+    )
     values, ts, darks = [], [], []
     for t in times:
         dark = sensor.expose(X, t, dark=True)

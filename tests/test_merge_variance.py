@@ -36,8 +36,12 @@ def _setup(seed=0, shape=(48, 64)):
             darks.append(None)
     p = spec.nominal_params()
     bias = (spec.mu_R + sensor.offset).astype(np.float32)
-    cal = Calibration(p, prnu=sensor.prnu.astype(np.float32), bias_map=bias,
-                      dark_current_map=sensor.dark_current_map().astype(np.float32))
+    cal = Calibration(
+        p,
+        prnu=sensor.prnu.astype(np.float32),
+        bias_map=bias,
+        dark_current_map=sensor.dark_current_map().astype(np.float32),
+    )
     return spec, p, cal, values, darks
 
 
@@ -70,9 +74,17 @@ def test_sigma_is_inverse_root_of_weight_sum_at_the_estimate(single, monkeypatch
     the merge's own estimate, to 1e-6 (float64 weights; 1e-5 with float32 weights)."""
     monkeypatch.setattr(pm, "SINGLE_PRECISION_WEIGHTS", single)
     spec, p, cal, values, darks = _setup()
-    res = pm.merge_arrays(values, TIMES, cal, darks, dark_strategies=STRATEGIES,
-                          n_darks=[N_MASTER if s == "master" else None for s in STRATEGIES],
-                          saturation_sigmas=0.0, iterations=60, tolerance=1e-12)
+    res = pm.merge_arrays(
+        values,
+        TIMES,
+        cal,
+        darks,
+        dark_strategies=STRATEGIES,
+        n_darks=[N_MASTER if s == "master" else None for s in STRATEGIES],
+        saturation_sigmas=0.0,
+        iterations=60,
+        tolerance=1e-12,
+    )
     assert res.info["weights_precision"] == ("float32" if single else "float64")
     mu = res.irradiance.astype(np.float64)
     x, w, ok = _expected(p, cal, values, darks, mu)
@@ -105,8 +117,11 @@ def test_master_dark_at_t_ref_honest_per_decade():
         times = [0.1, 0.25]
         values = [sensor.expose(X, t, rng=rng) for t in times]
         master = np.mean([sensor.expose(X, 4.0, dark=True, rng=rng) for _ in range(4)], axis=0).astype(np.float32)
-        cal = Calibration(spec.nominal_params(), prnu=sensor.prnu.astype(np.float32),
-                          dark_current_map=sensor.dark_current_map().astype(np.float32))
+        cal = Calibration(
+            spec.nominal_params(),
+            prnu=sensor.prnu.astype(np.float32),
+            dark_current_map=sensor.dark_current_map().astype(np.float32),
+        )
         res = pm.merge_arrays(values, times, cal, master, n_dark=4, master_dark_time=4.0)
         z = (res.irradiance.astype(np.float64) - X) / res.sigma
         lx = np.log10(X)

@@ -46,8 +46,11 @@ def test_no_environment_change_and_wide_vectors_in_compiled_code():
         "print(dict(os.environ) == before)\n"
         "print('zmm' in next(iter(f.inspect_asm().values())))\n"
     )
-    env = {k: v for k, v in __import__("os").environ.items()
-           if k not in ("NUMBA_CPU_FEATURES", "NUMBA_CPU_NAME", "HDRCAP_NUMBA_PREFER_256")}
+    env = {
+        k: v
+        for k, v in __import__("os").environ.items()
+        if k not in ("NUMBA_CPU_FEATURES", "NUMBA_CPU_NAME", "HDRCAP_NUMBA_PREFER_256")
+    }
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     unchanged, zmm = out.stdout.split()

@@ -35,10 +35,7 @@ def test_wheel_holds_only_hdrcap(tmp_path):
 
 def test_old_top_level_names_are_not_importable():
     """In the test environment the four folders exist only inside ``hdrcap``."""
-    code = (
-        "import importlib.util as u, sys; "
-        f"print([n for n in {OLD_NAMES!r} if u.find_spec(n) is not None])"
-    )
+    code = f"import importlib.util as u, sys; print([n for n in {OLD_NAMES!r} if u.find_spec(n) is not None])"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd="/")
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"

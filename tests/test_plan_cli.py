@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from hdrcap.acquire.cli import main
-from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.mock_camera import PRESETS
+from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 from hdrcap.pipeline.params import THIRD_STOP_TIMES
 
@@ -29,8 +29,19 @@ def scene_exr(tmp_path):
 
 
 def test_plan_json_contract_from_irradiance_map(capsys, scene_exr):
-    code, out, _ = _run(capsys, "plan", "--camera", "camera-B", "--irradiance", scene_exr, "--target-snr-db", 20,
-                        "--overhead", 0.1, "--json")
+    code, out, _ = _run(
+        capsys,
+        "plan",
+        "--camera",
+        "camera-B",
+        "--irradiance",
+        scene_exr,
+        "--target-snr-db",
+        20,
+        "--overhead",
+        0.1,
+        "--json",
+    )
     assert code == 0
     d = json.loads(out)
     for key in ("exposures", "darks", "predicted_min_snr_db", "total_time_s", "decisions", "feasible"):
@@ -61,8 +72,23 @@ def test_plan_json_contract_from_irradiance_map(capsys, scene_exr):
 
 
 def test_plan_allowed_times_budget_and_infeasible(capsys, scene_exr):
-    code, out, _ = _run(capsys, "plan", "--camera", "camera-B", "--irradiance", scene_exr, "--target-snr-db", 30,
-                        "--allowed-times", "1/1000", "1/100", "1/10", "--time-budget", 0.5, "--json")
+    code, out, _ = _run(
+        capsys,
+        "plan",
+        "--camera",
+        "camera-B",
+        "--irradiance",
+        scene_exr,
+        "--target-snr-db",
+        30,
+        "--allowed-times",
+        "1/1000",
+        "1/100",
+        "1/10",
+        "--time-budget",
+        0.5,
+        "--json",
+    )
     assert code == 0
     d = json.loads(out)
     assert not d["feasible"] and "INFEASIBLE" in d["message"]
@@ -71,23 +97,45 @@ def test_plan_allowed_times_budget_and_infeasible(capsys, scene_exr):
 
 def test_plan_meter_explain_and_plot(capsys, tmp_path):
     png = tmp_path / "plan.png"
-    code, out, _ = _run(capsys, "plan", "--camera", "camera-B", "--meter", "--scene", "gradient", "--size", "64x32",
-                        "--decades", 2, "--x-max", 2e4, "--target-snr-db", 18, "--explain", "--plot", png)
+    code, out, _ = _run(
+        capsys,
+        "plan",
+        "--camera",
+        "camera-B",
+        "--meter",
+        "--scene",
+        "gradient",
+        "--size",
+        "64x32",
+        "--decades",
+        2,
+        "--x-max",
+        2e4,
+        "--target-snr-db",
+        18,
+        "--explain",
+        "--plot",
+        png,
+    )
     assert code == 0
     assert "metered with" in out and "decisions:" in out and "dark_strategy" in out
     assert png.stat().st_size > 10000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    code, _, err = _run(capsys, "plan", "--camera", "camera-B", "--meter", "--size", "64x32", "--target-snr-db", 18,
-                        "--plot", png)
+    code, _, err = _run(
+        capsys, "plan", "--camera", "camera-B", "--meter", "--size", "64x32", "--target-snr-db", 18, "--plot", png
+    )
     assert code != 0 and "exists" in err
 
 
-@pytest.mark.parametrize("args,msg", [
-    (["--camera", "camera-B", "--target-snr-db", 20], "exactly one scene source"),
-    (["--camera", "camera-B", "--meter", "--target-snr-db", 20, "--allowed-times", "0"], "--allowed-times"),
-    (["--meter", "--calibration", "nope.toml", "--target-snr-db", 20], "calibration"),
-    (["--camera", "camera-B", "--irradiance", "missing.exr", "--target-snr-db", 20], "missing.exr"),
-    (["--camera", "camera-B", "--meter", "--target-snr-db", 20, "--dark-library", "1/8"], "--dark-library"),
-])
+@pytest.mark.parametrize(
+    "args,msg",
+    [
+        (["--camera", "camera-B", "--target-snr-db", 20], "exactly one scene source"),
+        (["--camera", "camera-B", "--meter", "--target-snr-db", 20, "--allowed-times", "0"], "--allowed-times"),
+        (["--meter", "--calibration", "nope.toml", "--target-snr-db", 20], "calibration"),
+        (["--camera", "camera-B", "--irradiance", "missing.exr", "--target-snr-db", 20], "missing.exr"),
+        (["--camera", "camera-B", "--meter", "--target-snr-db", 20, "--dark-library", "1/8"], "--dark-library"),
+    ],
+)
 def test_plan_user_errors_are_one_line(capsys, args, msg):
     code, _, err = _run(capsys, "plan", *args)
     assert code != 0 and msg in err and "Traceback" not in err and err.startswith("hdrcap: error:")

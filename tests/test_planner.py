@@ -89,7 +89,11 @@ def test_single_exposure_snr_prediction_matches_simulation(dark):
     S = 6
     for _ in range(S):
         v = sensor.expose(X, t, rng=rng).astype(float)
-        b = sensor.expose(0, t, dark=True, rng=rng).astype(float) if dark == "matched" else p.mu_R + t * p.g * p.dark_current
+        b = (
+            sensor.expose(0, t, dark=True, rng=rng).astype(float)
+            if dark == "matched"
+            else p.mu_R + t * p.g * p.dark_current
+        )
         err2 += ((v - b) / (t * p.g) - X) ** 2
     for lv in levels:
         m = X == lv
@@ -108,8 +112,11 @@ def test_planned_capture_reaches_target_against_truth(target):
     H, W = 32, 128
     X = make_scene("gradient", (H, W), decades=3, x_max=1e5)  # one irradiance per column
     sensor = SimulatedSensor(CAM_B, (H, W), seed=3)
-    cal = Calibration(CAM_B.nominal_params(), prnu=sensor.prnu.astype(np.float32),
-                      dark_current_map=sensor.dark_current_map().astype(np.float32))
+    cal = Calibration(
+        CAM_B.nominal_params(),
+        prnu=sensor.prnu.astype(np.float32),
+        dark_current_map=sensor.dark_current_map().astype(np.float32),
+    )
     plan = plan_exposures(cal, X, target)
     assert plan.feasible and plan.predicted_min_snr_db >= target - 1e-6
     assert set(plan.darks) == {"model"}  # exact maps: dark frames are not worth their time
@@ -126,8 +133,15 @@ def test_planned_capture_reaches_target_against_truth(target):
     assert np.mean(measured >= target - margin) >= 0.99, np.round(measured - target, 2)
     # the prediction is honest, not just conservative: the typical column matches it
     opts = plan.merge_options()
-    pred = predict_snr(X[0], plan.exposures, cal, plan.darks, errors=systematic_errors_from_calibration(cal),
-                       prnu=opts["prnu"], saturation=opts["saturation"]).snr_db
+    pred = predict_snr(
+        X[0],
+        plan.exposures,
+        cal,
+        plan.darks,
+        errors=systematic_errors_from_calibration(cal),
+        prnu=opts["prnu"],
+        saturation=opts["saturation"],
+    ).snr_db
     assert abs(np.median(measured - pred)) < 0.3
 
 
@@ -192,9 +206,16 @@ def test_first_exposure_is_the_longest_that_spares_the_bulk(scene):
 # --------------------------------------------------------------------------- (iii), (iv)
 
 
-@pytest.mark.parametrize("cam,decades,target,overhead", [
-    ("camera-B", 2, 20, 0.002), ("camera-B", 3, 15, 0.002), ("camera-A", 2, 15, 0.002), ("camera-A", 3.5, 20, 0.002),
-    ("camera-A", 2, 25, DEFAULT_OVERHEAD_S)])
+@pytest.mark.parametrize(
+    "cam,decades,target,overhead",
+    [
+        ("camera-B", 2, 20, 0.002),
+        ("camera-B", 3, 15, 0.002),
+        ("camera-A", 2, 15, 0.002),
+        ("camera-A", 3.5, 20, 0.002),
+        ("camera-A", 2, 25, DEFAULT_OVERHEAD_S),
+    ],
+)
 def test_greedy_within_15_percent_of_exhaustive(cam, decades, target, overhead):
     """(camera-A, 2 decades, 25 dB) costs 1.21x the optimum at 0.002 s overhead because the
     plan must start with the bulk exposure; 1.06x at the default overhead (docs/planner.md)."""
@@ -227,8 +248,9 @@ def test_plan_needs_less_time_than_naive_brackets(target):
 def test_constraints_are_respected_and_time_is_accounted():
     X = make_scene("hdr", (48, 48), decades=3, x_max=5e4)
     allowed = [1 / 500, 1 / 125, 1 / 30, 1 / 8, 0.5, 2.0]
-    plan = plan_exposures(CAL_B, X, 20, allowed, overhead=0.3, max_exposures=12,
-                          errors=SystematicErrors(dark_current=6.0))
+    plan = plan_exposures(
+        CAL_B, X, 20, allowed, overhead=0.3, max_exposures=12, errors=SystematicErrors(dark_current=6.0)
+    )
     assert plan.feasible
     assert set(plan.exposures) <= set(allowed)
     # Every frame costs its time plus the overhead; one matched dark frame per exposure time,
@@ -281,8 +303,16 @@ def _full_model(X, plan, cal, errors):
 
 
 def _selected(X, plan, cal, errors):
-    return predict_snr(X, plan.exposures, cal, plan.darks, [n or 1 for n in plan.n_dark], errors=errors,
-                       prnu=plan.decisions["prnu"]["choice"], saturation=plan.decisions["saturation"]["choice"]).snr_db
+    return predict_snr(
+        X,
+        plan.exposures,
+        cal,
+        plan.darks,
+        [n or 1 for n in plan.n_dark],
+        errors=errors,
+        prnu=plan.decisions["prnu"]["choice"],
+        saturation=plan.decisions["saturation"]["choice"],
+    ).snr_db
 
 
 def test_simple_models_selected_when_negligible_and_within_0p2_db():
@@ -439,15 +469,18 @@ def test_dark_error_model_matches_simulated_merge_without_dark_frames():
     assert plan_exposures(cal, X, 20.0, [1.0], errors=errors).darks == ["matched", "matched"]
 
 
-@pytest.mark.parametrize("kw,msg", [
-    ({"target_snr_db": float("nan")}, "target SNR"),
-    ({"allowed_times": [0.01, -1.0]}, "positive"),
-    ({"allowed_times": []}, "no allowed"),
-    ({"max_exposures": 0}, "max exposures"),
-    ({"time_budget": -1.0}, "time budget"),
-    ({"overhead": -0.1}, "overhead"),
-    ({"quantile": 1.5}, "quantile"),
-])
+@pytest.mark.parametrize(
+    "kw,msg",
+    [
+        ({"target_snr_db": float("nan")}, "target SNR"),
+        ({"allowed_times": [0.01, -1.0]}, "positive"),
+        ({"allowed_times": []}, "no allowed"),
+        ({"max_exposures": 0}, "max exposures"),
+        ({"time_budget": -1.0}, "time budget"),
+        ({"overhead": -0.1}, "overhead"),
+        ({"quantile": 1.5}, "quantile"),
+    ],
+)
 def test_bad_requests_raise_input_errors(kw, msg):
     from hdrcap.pipeline.errors import InputError
 
@@ -473,8 +506,11 @@ def test_saturation_and_iteration_decisions_match_the_real_merge():
     H, W = 32, 128
     X = make_scene("gradient", (H, W), decades=3, x_max=1e5)
     sensor = SimulatedSensor(CAM_B, (H, W), seed=3)
-    cal = Calibration(CAM_B.nominal_params(), prnu=sensor.prnu.astype(np.float32),
-                      dark_current_map=sensor.dark_current_map().astype(np.float32))
+    cal = Calibration(
+        CAM_B.nominal_params(),
+        prnu=sensor.prnu.astype(np.float32),
+        dark_current_map=sensor.dark_current_map().astype(np.float32),
+    )
     plan = plan_exposures(cal, X, 24.0)
     opts = plan.merge_options()
     # the probabilistic model's gain is predicted (and checked below) but it is not chosen: it is
@@ -564,8 +600,9 @@ def test_dark_frames_only_where_the_target_needs_them_simulated():
     err2 = np.zeros(X.shape)
     for s in range(S):
         rng = np.random.default_rng([5, s])
-        res = merge_mod.merge_arrays([sensor.expose(X, t, rng=rng) for t in plan.exposures], plan.exposures, cal,
-                                     **plan.merge_options())
+        res = merge_mod.merge_arrays(
+            [sensor.expose(X, t, rng=rng) for t in plan.exposures], plan.exposures, cal, **plan.merge_options()
+        )
         err2 += (res.irradiance - X) ** 2
     measured = np.array([10 * np.log10(lv**2 * S / err2[X == lv].mean()) for lv in levels])
     # 3 sigma Monte-Carlo margin: noise over S*1024 samples, the fixed pattern over 1024 photosites
@@ -648,9 +685,16 @@ def test_systematic_errors_are_per_photosite_rms_not_errors_of_means():
 
     p = SensorParams(g=0.23, mu_R=128.0, sigma2_R=6.5, v_sat=3709.0, white_level=4095.0, dark_current=0.2)
     f = np.ones((32, 32), np.float32)
-    cal = Calibration(p, prnu=f, bias_map=128 * f, dark_current_map=0.2 * f, bias_map_stderr=f * np.sqrt(6.5 / 2),
-                      dark_current_map_stderr=0.03 * f, prnu_stderr=0.002 * f,
-                      stderr={"mu_R": np.sqrt(6.5 / 2 / f.size), "dark_current": 0.001})
+    cal = Calibration(
+        p,
+        prnu=f,
+        bias_map=128 * f,
+        dark_current_map=0.2 * f,
+        bias_map_stderr=f * np.sqrt(6.5 / 2),
+        dark_current_map_stderr=0.03 * f,
+        prnu_stderr=0.002 * f,
+        stderr={"mu_R": np.sqrt(6.5 / 2 / f.size), "dark_current": 0.001},
+    )
     e = systematic_errors_from_calibration(cal)
     assert e.bias == pytest.approx(np.sqrt(6.5 / 2), rel=1e-6)
     assert e.dark_current == pytest.approx(np.hypot(0.03, 0.05 * 0.2), rel=1e-6)

@@ -260,8 +260,14 @@ def test_calibration_recovers_its_camera_within_stated_errors(log_g, log_s2, bit
     assume(mu + 8 * np.sqrt(s2) < 0.5 * white and (white - mu) / g >= 100)
     assume(g * level * (white - mu) >= s2 / 10)  # photon noise of the flats not buried in read noise
     spec = dataclasses.replace(
-        PRESETS["camera-B"], g=g, sigma2_R=s2, mu_R=mu, bits=bits, full_well=1.1 * (white - mu) / g,
-        dark_current=0.0, dcnu=0.0,
+        PRESETS["camera-B"],
+        g=g,
+        sigma2_R=s2,
+        mu_R=mu,
+        bits=bits,
+        full_well=1.1 * (white - mu) / g,
+        dark_current=0.0,
+        dcnu=0.0,
     )
     sensor = SimulatedSensor(spec, (96, 96), seed=seed)
     rng = np.random.default_rng([seed, 5])
@@ -269,11 +275,14 @@ def test_calibration_recovers_its_camera_within_stated_errors(log_g, log_s2, bit
     X = level * (white - mu) / g / t
 
     def shots(x, tt, n, kind, dark=False):
-        return [RawFrame(sensor.expose(x, tt, dark=dark, rng=rng), tt, path=f"{kind}{i}.dng", white_level=white)
-                for i in range(n)]
+        return [
+            RawFrame(sensor.expose(x, tt, dark=dark, rng=rng), tt, path=f"{kind}{i}.dng", white_level=white)
+            for i in range(n)
+        ]
 
-    cal = calibrate(shots(0.0, 1e-4, 2, "bias", True), shots(X, 10 * t, 1, "sat"), shots(X, t, 24, "flat"),
-                    white_level=white)
+    cal = calibrate(
+        shots(0.0, 1e-4, 2, "bias", True), shots(X, 10 * t, 1, "sat"), shots(X, t, 24, "flat"), white_level=white
+    )
     p, se = cal.params, cal.stderr
     assert abs(p.g - g) <= 4 * se["g"], (p.g, g, se["g"])
     assert abs(p.mu_R - mu) <= 4 * se["mu_R"] + 0.02, (p.mu_R, mu, se["mu_R"])

@@ -61,8 +61,20 @@ def test_capture_ends_cleanly_on_sigterm_and_resume_completes(tmp_path, monkeypa
 
     monkeypatch.setattr(job_mod, "open_camera", open_signalling)
     out = tmp_path / "c"
-    args = ["capture", "--camera", "mock:camera-B", "--size", "32x24", "--times", "0.004", "0.064", "0.5",
-            "--out", str(out), "--no-progress"]
+    args = [
+        "capture",
+        "--camera",
+        "mock:camera-B",
+        "--size",
+        "32x24",
+        "--times",
+        "0.004",
+        "0.064",
+        "0.5",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     assert main(args) == 143  # 128 + SIGTERM, as documented
     err = capsys.readouterr().err
     assert "--resume" in err.strip().splitlines()[-1] and "Traceback" not in err
@@ -134,11 +146,13 @@ def _capture(capsys, *args) -> dict:
 
 def test_capture_plan_and_merge_spell_camera_snr_darks_and_folder_alike(tmp_path, capsys):
     # the spellings of plan / merge / run ...
-    new = _capture(capsys, "--camera", "camera-B", "--target-snr-db", 20, "--dark-strategy", "model",
-                   "--run-dir", tmp_path / "new")
+    new = _capture(
+        capsys, "--camera", "camera-B", "--target-snr-db", 20, "--dark-strategy", "model", "--run-dir", tmp_path / "new"
+    )
     # ... and the older ones of capture mean the same run: same plan, same frames
-    old = _capture(capsys, "--camera", "mock:camera-B", "--target-snr", 20, "--darks", "model",
-                   "--out", tmp_path / "old")
+    old = _capture(
+        capsys, "--camera", "mock:camera-B", "--target-snr", 20, "--darks", "model", "--out", tmp_path / "old"
+    )
     assert new["run_dir"] == str(tmp_path / "new") and old["run_dir"] == str(tmp_path / "old")
     plans = [Manifest(tmp_path / d).header()["plan"] for d in ("new", "old")]
     assert plans[0] == plans[1] and plans[0]["dark_strategy"] == "model"
@@ -150,8 +164,9 @@ def test_capture_plan_and_merge_spell_camera_snr_darks_and_folder_alike(tmp_path
     assert main(base + ["--camera", "mock:camera-B", "--target-snr", "20"]) == 0
     assert json.loads(capsys.readouterr().out) == a
     # merge takes it too (its calibration: the preset's nominal parameters)
-    lights = sorted(str(tmp_path / "new" / r["file"]) for r in Manifest(tmp_path / "new").frames().values()
-                    if r["kind"] == "light")
+    lights = sorted(
+        str(tmp_path / "new" / r["file"]) for r in Manifest(tmp_path / "new").frames().values() if r["kind"] == "light"
+    )
     for cam, name in (("camera-B", "a.exr"), ("mock:camera-B", "b.exr")):
         assert main(["merge", *lights, "--camera", cam, "-o", str(tmp_path / name), "--json"]) == 0
         capsys.readouterr()

@@ -28,8 +28,16 @@ G14 = 0.4
 
 def spec14(**changes) -> SensorSpec:
     """A 14-bit sensor (ADC clips before the full well), 1 % PRNU, 0.5 e-/s dark current."""
-    spec = SensorSpec(name="sim-14bit", g=G14, mu_R=512.0, sigma2_R=9.0, bits=14, full_well=1.1 * (16383 - 512) / G14,
-                      iso=200, model="Simulated 14-bit")
+    spec = SensorSpec(
+        name="sim-14bit",
+        g=G14,
+        mu_R=512.0,
+        sigma2_R=9.0,
+        bits=14,
+        full_well=1.1 * (16383 - 512) / G14,
+        iso=200,
+        model="Simulated 14-bit",
+    )
     return spec.replace(**changes) if changes else spec
 
 
@@ -43,8 +51,18 @@ def bracket(tmp_path: Path, spec: SensorSpec, shape, seed: int, times=TIMES, sce
 
 def arrays(spec: SensorSpec, X, times, seed: int, **meta) -> list[RawFrame]:
     sensor = SimulatedSensor(spec, np.shape(X), seed=seed)
-    return [RawFrame(sensor.expose(X, t), t, iso=meta.get("iso", 100), black_level=spec.mu_R,
-                     white_level=float(spec.white_level), cfa_pattern="RGGB", camera="sim") for t in times]
+    return [
+        RawFrame(
+            sensor.expose(X, t),
+            t,
+            iso=meta.get("iso", 100),
+            black_level=spec.mu_R,
+            white_level=float(spec.white_level),
+            cfa_pattern="RGGB",
+            camera="sim",
+        )
+        for t in times
+    ]
 
 
 def test_merge_without_calibration_14bit_against_truth(tmp_path, cli):
@@ -153,8 +171,13 @@ def test_snr_at_least_hdrmerge_in_every_decade(tmp_path):
     DNGs, SNR per decade after a global scale fit (equal, to float rounding, in the top decade
     where both have only the shortest exposure)."""
     env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
-    proc = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bench_selfcal.py"), "--size", "512x384",
-                           "--out", str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "bench_selfcal.py"), "--size", "512x384", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     diff = res["hdrcap_minus_hdrmerge_db"]

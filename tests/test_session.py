@@ -55,8 +55,15 @@ def test_session_records_verified_frames_and_merges(tmp_path):
 
     plan = CapturePlan.bracket(TIMES, _camera().allowed_exposure_times(), "matched")
     cam = _camera()
-    res = CaptureSession(cam, tmp_path / "run", plan, calibration=resolve_calibration(None, "camera-B"),
-                         retry=FAST, progress=False, meta={"seed": 0}).run()
+    res = CaptureSession(
+        cam,
+        tmp_path / "run",
+        plan,
+        calibration=resolve_calibration(None, "camera-B"),
+        retry=FAST,
+        progress=False,
+        meta={"seed": 0},
+    ).run()
     frames = _check_run(tmp_path / "run", plan)
     assert res.captured == len(plan.frames) == 2 * len(TIMES)
     darks = [r for r in frames.values() if r["kind"] == "dark"]
@@ -76,8 +83,16 @@ def test_session_records_verified_frames_and_merges(tmp_path):
 
 
 def test_session_survives_faults_and_counts_retries(tmp_path):
-    faults = MockFaults(seed=3, busy_first=2, busy_rate=0.3, disconnect_rate=0.1, corrupt_rate=0.1,
-                        truncate_rate=0.05, hang_rate=0.05, hang_s=0.01)
+    faults = MockFaults(
+        seed=3,
+        busy_first=2,
+        busy_rate=0.3,
+        disconnect_rate=0.1,
+        corrupt_rate=0.1,
+        truncate_rate=0.05,
+        hang_rate=0.05,
+        hang_s=0.01,
+    )
     plan = CapturePlan.bracket(TIMES, None, "master", n_dark=2)
     cam = _camera(faults=faults)
     res = CaptureSession(cam, tmp_path / "run", plan, retry=FAST, progress=False).run()
@@ -92,8 +107,9 @@ def test_session_survives_faults_and_counts_retries(tmp_path):
 def test_card_full_stops_cleanly_then_resume_completes(tmp_path):
     plan = CapturePlan.bracket(TIMES, None, "matched")
     with pytest.raises(SessionError, match="card full"):
-        CaptureSession(_camera(faults=MockFaults(card_full_after=5)), tmp_path / "run", plan, retry=FAST,
-                       progress=False).run()
+        CaptureSession(
+            _camera(faults=MockFaults(card_full_after=5)), tmp_path / "run", plan, retry=FAST, progress=False
+        ).run()
     assert len(Manifest(tmp_path / "run").frames()) == 5
     with pytest.raises(SessionError, match="--resume"):
         CaptureSession(_camera(), tmp_path / "run", plan, retry=FAST, progress=False).run()
@@ -120,8 +136,9 @@ def test_resume_adopts_landed_frame_and_voids_tampered_one(tmp_path):
 def test_resume_rejects_a_different_plan(tmp_path):
     CaptureSession(_camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:2]), retry=FAST, progress=False).run()
     with pytest.raises(SessionError, match="different plan"):
-        CaptureSession(_camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:3]), retry=FAST, progress=False,
-                       resume=True).run()
+        CaptureSession(
+            _camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:3]), retry=FAST, progress=False, resume=True
+        ).run()
 
 
 def test_lock_prevents_two_sessions(tmp_path, monkeypatch):
@@ -144,8 +161,9 @@ def test_lock_prevents_two_sessions(tmp_path, monkeypatch):
 def test_light_blocking_by_command(tmp_path):
     log = tmp_path / "light.log"
     blocker = LightBlocker("command", cover_command=f"echo cover >> {log}", uncover_command=f"echo open >> {log}")
-    CaptureSession(_camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:3]), light=blocker, retry=FAST,
-                   progress=False).run()
+    CaptureSession(
+        _camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:3]), light=blocker, retry=FAST, progress=False
+    ).run()
     assert log.read_text().split() == ["cover", "open"]  # blocked once for all dark frames
     bad = LightBlocker("command", cover_command="exit 3", uncover_command="true")
     with pytest.raises(SessionError, match="cover command"):
@@ -184,15 +202,25 @@ def test_soak_faults_kill_and_resume(tmp_path):
 
     run = tmp_path / "run"
     env = dict(os.environ, HDRCAP_LOCK_DIR=str(tmp_path / "locks"))
-    first = subprocess.run([sys.executable, "-c", SOAK, str(REPO), str(run), "11", "100"], capture_output=True,
-                           text=True, env=env, timeout=300)
+    first = subprocess.run(
+        [sys.executable, "-c", SOAK, str(REPO), str(run), "11", "100"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert first.returncode == 137, first.stderr  # killed in the middle of a download
     assert "Traceback" not in first.stderr
     n_before = len(Manifest(run).frames())
     assert 90 <= n_before < 210
     # resume, and kill it from outside once ~40 more frames are in
-    proc = subprocess.Popen([sys.executable, "-c", SOAK, str(REPO), str(run), "12", "0"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SOAK, str(REPO), str(run), "12", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
         if (run / "manifest.jsonl").read_bytes().count(b'"type":"frame"') >= n_before + 40:
@@ -203,8 +231,13 @@ def test_soak_faults_kill_and_resume(tmp_path):
     assert proc.returncode == -signal.SIGKILL and "Traceback" not in err2
     n_mid = len(Manifest(run).frames())
     assert n_before + 40 <= n_mid < 210
-    third = subprocess.run([sys.executable, "-c", SOAK, str(REPO), str(run), "13", "0"], capture_output=True,
-                           text=True, env=env, timeout=300)
+    third = subprocess.run(
+        [sys.executable, "-c", SOAK, str(REPO), str(run), "13", "0"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert third.returncode == 0 and "Traceback" not in third.stderr, third.stderr
     out = json.loads(third.stdout)
     print("soak:", n_before, n_mid, out)
@@ -219,7 +252,9 @@ def test_soak_faults_kill_and_resume(tmp_path):
     assert files == sorted(Path(r["file"]).name for r in frames.values())
     assert all(sha256_file(run / r["file"]) == r["sha256"] for r in frames.values())
     assert not (run / ".partial").exists()
-    events = [json.loads(line) for line in (run / "events.jsonl").read_text().splitlines() if line.strip().endswith("}")]
+    events = [
+        json.loads(line) for line in (run / "events.jsonl").read_text().splitlines() if line.strip().endswith("}")
+    ]
     kinds = {e["event"] for e in events}
     assert {"fault", "reconnect", "resume", "done"} <= kinds
 
@@ -228,19 +263,24 @@ def test_dark_frame_with_light_stops_the_session(tmp_path):
     cam = _camera()
     cam.cover = lambda: None  # someone forgot the lens cap
     with pytest.raises(SessionError, match="light is not blocked"):
-        CaptureSession(cam, tmp_path / "run", CapturePlan.bracket([1.0]), light=LightBlocker("none"),
-                       retry=FAST, progress=False).run()
+        CaptureSession(
+            cam, tmp_path / "run", CapturePlan.bracket([1.0]), light=LightBlocker("none"), retry=FAST, progress=False
+        ).run()
     assert Manifest(tmp_path / "run").frames() == {}
 
 
 def test_calibration_series_prompt_blocking_and_temperature(tmp_path):
     asked = []
-    series = [{"kind": "bias", "times": [1 / 8000], "count": 3}, {"kind": "darkseries", "times": [0.5, 2.0], "count": 2},
-              {"kind": "flat", "times": [1 / 60], "count": 2}]
+    series = [
+        {"kind": "bias", "times": [1 / 8000], "count": 3},
+        {"kind": "darkseries", "times": [0.5, 2.0], "count": 2},
+        {"kind": "flat", "times": [1 / 60], "count": 2},
+    ]
     plan = CapturePlan.bracket([1 / 250], None, "master", n_dark=2, series=series)
     cam = MockCamera("camera-B", np.full((32, 32), 2e4), seed=4, temperature=30.0)
-    res = CaptureSession(cam, tmp_path / "run", plan, light=LightBlocker("prompt", prompt=asked.append), retry=FAST,
-                         progress=False).run()
+    res = CaptureSession(
+        cam, tmp_path / "run", plan, light=LightBlocker("prompt", prompt=asked.append), retry=FAST, progress=False
+    ).run()
     frames = _check_run(tmp_path / "run", plan)
     kinds = sorted(r["kind"] for r in frames.values())
     assert kinds == sorted(["dark"] * 2 + ["light"] + ["bias"] * 3 + ["darkseries"] * 4 + ["flat"] * 2)
@@ -270,8 +310,14 @@ def test_session_learns_the_size_from_the_first_frame(tmp_path):
     from hdrcap.acquire.cliutil import resolve_calibration
 
     plan = CapturePlan.bracket(TIMES[:3], None, "matched")
-    res = CaptureSession(_NoShape(_camera()), tmp_path / "run", plan, calibration=resolve_calibration(None, "camera-B"),
-                         retry=FAST, progress=False).run()
+    res = CaptureSession(
+        _NoShape(_camera()),
+        tmp_path / "run",
+        plan,
+        calibration=resolve_calibration(None, "camera-B"),
+        retry=FAST,
+        progress=False,
+    ).run()
     assert res.merge.irradiance.shape == (32, 32)
     _check_run(tmp_path / "run", plan)
 
@@ -290,8 +336,15 @@ def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
     plan = CapturePlan.bracket(TIMES[:3], None, "master", n_dark=2, library_times=TIMES[:2])
     assert [f.kind for f in plan.frames].count("dark") == 2  # only the time without a library master
     cam = _camera()
-    res = CaptureSession(cam, tmp_path / "run", plan, calibration=resolve_calibration(None, "camera-B"),
-                         retry=FAST, progress=False, master_darks=masters).run()
+    res = CaptureSession(
+        cam,
+        tmp_path / "run",
+        plan,
+        calibration=resolve_calibration(None, "camera-B"),
+        retry=FAST,
+        progress=False,
+        master_darks=masters,
+    ).run()
     _check_run(tmp_path / "run", plan)
     m = res.merge
     ok = m.nexp > 0
@@ -312,10 +365,17 @@ def test_capture_plan_per_exposure_strategies_and_old_manifests():
         CapturePlan.bracket(t, None, ["model", "matched", "master", "model"])
     # a manifest written before per-exposure strategies (fingerprint by the code before them):
     # the same plan, the same fingerprint
-    old = {"dark_strategy": "master", "n_dark": 2, "library_times": [], "fingerprint": "109ac916a4f30da9", "frames": [
-        {"key": "dark-0.001-0", "kind": "dark", "exposure_s": 0.001},
-        {"key": "dark-0.001-1", "kind": "dark", "exposure_s": 0.001},
-        {"key": "light-0.001-0", "kind": "light", "exposure_s": 0.001}]}
+    old = {
+        "dark_strategy": "master",
+        "n_dark": 2,
+        "library_times": [],
+        "fingerprint": "109ac916a4f30da9",
+        "frames": [
+            {"key": "dark-0.001-0", "kind": "dark", "exposure_s": 0.001},
+            {"key": "dark-0.001-1", "kind": "dark", "exposure_s": 0.001},
+            {"key": "light-0.001-0", "kind": "light", "exposure_s": 0.001},
+        ],
+    }
     p = CapturePlan.from_dict(old)
     assert p == CapturePlan.bracket([0.001], None, "master", n_dark=2) and p.strategy_for(0.001) == "master"
     assert p.fingerprint() == old["fingerprint"]
@@ -354,10 +414,12 @@ def test_a_light_leak_at_a_short_exposure_is_caught_with_a_calibration(tmp_path)
     leaky = _camera()
     leaky.cover = lambda: None
     with pytest.raises(VerificationError, match="above the calibrated dark level"):
-        CaptureSession(leaky, tmp_path / "run", plan, calibration=cal, light=LightBlocker("none"), retry=FAST,
-                       progress=False).run()
+        CaptureSession(
+            leaky, tmp_path / "run", plan, calibration=cal, light=LightBlocker("none"), retry=FAST, progress=False
+        ).run()
     # no false alarm for real dark frames up to 30 s, also 5 C warmer than the calibration
     warm = MockCamera("camera-B", _scene((32, 32)), seed=4, temperature=25.0)
     times = [1 / 8000, 1 / 60, 1.0, 8.0, 30.0]
-    CaptureSession(warm, tmp_path / "ok", CapturePlan.bracket(times, None, "matched"), calibration=cal, retry=FAST,
-                   progress=False).run()
+    CaptureSession(
+        warm, tmp_path / "ok", CapturePlan.bracket(times, None, "matched"), calibration=cal, retry=FAST, progress=False
+    ).run()

@@ -108,11 +108,16 @@ def test_scenes_span_requested_range(name):
         make_scene("nope")
 
 
-@pytest.mark.parametrize("options, digest", [
-    ({}, "c871365578517b488e7d8abe9db286d153f2fb767c74e11032534cb5a4845f89"),
-    ({"description": "dark frame", "cfa": "BGGR", "f_number": 2.8, "serial": "S1"},
-     "74e80a1029ab5ec7295eb40427a290e96a30ec6c859cb70d86ff8d2e2482a499"),
-])
+@pytest.mark.parametrize(
+    "options, digest",
+    [
+        ({}, "c871365578517b488e7d8abe9db286d153f2fb767c74e11032534cb5a4845f89"),
+        (
+            {"description": "dark frame", "cfa": "BGGR", "f_number": 2.8, "serial": "S1"},
+            "74e80a1029ab5ec7295eb40427a290e96a30ec6c859cb70d86ff8d2e2482a499",
+        ),
+    ],
+)
 def test_dng_bytes_are_stable(options, digest):
     """The DNG writer's output, byte for byte (seeded mosaic, fixed timestamp)."""
     import datetime as dt
@@ -123,6 +128,14 @@ def test_dng_bytes_are_stable(options, digest):
 
     mosaic = np.random.default_rng(1).integers(0, 4096, (30, 40), dtype=np.uint16)
     buf = io.BytesIO()
-    write_dng(buf, mosaic, exposure_time=1 / 3, iso=200, black_level=64.5, white_level=4095,
-              timestamp=dt.datetime(2024, 1, 2, 3, 4, 5), **options)
+    write_dng(
+        buf,
+        mosaic,
+        exposure_time=1 / 3,
+        iso=200,
+        black_level=64.5,
+        white_level=4095,
+        timestamp=dt.datetime(2024, 1, 2, 3, 4, 5),
+        **options,
+    )
     assert hashlib.sha256(buf.getvalue()).hexdigest() == digest

@@ -89,8 +89,14 @@ folder = "runs/{job}-{date}"
 
 def _start(tmp_path, enospc_at, *args) -> subprocess.Popen:
     env = {"HDRCAP_LOCK_DIR": str(tmp_path / "locks"), "PATH": "/usr/bin:/bin"}
-    return subprocess.Popen([sys.executable, "-c", SCRIPT, str(enospc_at), *map(str, args)], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", SCRIPT, str(enospc_at), *map(str, args)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _frames_in(run_dir: Path) -> int:
@@ -144,8 +150,9 @@ def test_soak_unattended_rig(tmp_path):
     live = Counter(r["key"] for r in m.records() if r["type"] == "frame")
     voided = {r["key"] for r in m.records() if r["type"] == "void"}
     assert all(n == 1 or key in voided for key, n in live.items())
-    assert sorted(p.name for p in (run_dir / "frames").iterdir()) == sorted(Path(r["file"]).name
-                                                                            for r in frames.values())
+    assert sorted(p.name for p in (run_dir / "frames").iterdir()) == sorted(
+        Path(r["file"]).name for r in frames.values()
+    )
     assert all(sha256_file(run_dir / r["file"]) == r["sha256"] for r in frames.values())
     hdr = read_exr(run_dir / "hdr.exr")
     assert hdr.shape == (24, 32)
@@ -162,6 +169,8 @@ def test_soak_unattended_rig(tmp_path):
     assert failed_reconnects >= 4 and len(ports) >= 2  # reconnects that failed twice; the port renumbered
     names = [e["event"] for e in events]
     assert names.count("resume") == 2 and names.count("done") == 1  # the 4th start did not touch the run
-    print(f"soak: 310 frames, {sum(faults.values())} faults {dict(faults)} ({hangs} hangs), {failed_reconnects} failed "
-          f"reconnects, {len(ports)} ports, stops at {n_full} (ENOSPC) and {n_term} (SIGTERM) frames, "
-          f"{time.monotonic() - t0:.1f} s")
+    print(
+        f"soak: 310 frames, {sum(faults.values())} faults {dict(faults)} ({hangs} hangs), {failed_reconnects} failed "
+        f"reconnects, {len(ports)} ports, stops at {n_full} (ENOSPC) and {n_term} (SIGTERM) frames, "
+        f"{time.monotonic() - t0:.1f} s"
+    )

@@ -77,8 +77,14 @@ def _quiet(_msg):
 
 def _hdrcap(*args, env=None, **kw) -> subprocess.Popen:
     full = dict(os.environ, **(env or {}))
-    return subprocess.Popen([sys.executable, "-m", "hdrcap", *map(str, args)], cwd=kw.get("cwd", REPO),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=full)
+    return subprocess.Popen(
+        [sys.executable, "-m", "hdrcap", *map(str, args)],
+        cwd=kw.get("cwd", REPO),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=full,
+    )
 
 
 def _frames_once(run_dir: Path) -> dict:
@@ -89,8 +95,9 @@ def _frames_once(run_dir: Path) -> dict:
     assert set(frames) == planned
     for rec in frames.values():
         assert sha256_file(run_dir / rec["file"]) == rec["sha256"]
-    assert sorted(p.name for p in (run_dir / "frames").iterdir()) == sorted(Path(r["file"]).name
-                                                                            for r in frames.values())
+    assert sorted(p.name for p in (run_dir / "frames").iterdir()) == sorted(
+        Path(r["file"]).name for r in frames.values()
+    )
     return frames
 
 
@@ -156,8 +163,14 @@ def test_keep_going_reports_each_repetition_and_exits_with_the_first_failure(tmp
     # without --keep-going the first failure ends the schedule
     seen.clear()
     with pytest.raises(RunConflictError):
-        run_schedule(load_job(_job(tmp_path, folder="runs/{job}-{n}")), repeat=3, on_result=seen.append,
-                     progress=False, echo=_quiet, resume=False)
+        run_schedule(
+            load_job(_job(tmp_path, folder="runs/{job}-{n}")),
+            repeat=3,
+            on_result=seen.append,
+            progress=False,
+            echo=_quiet,
+            resume=False,
+        )
     assert seen == []  # u-0 holds a finished run now: the first repetition conflicts
 
 
@@ -180,8 +193,13 @@ def test_json_error_object_and_exit_codes_on_the_command_line(tmp_path, cli):
 
 
 def test_exit_codes_are_distinct_and_documented():
-    codes = {RunConflictError("x").exit_code, LocalIOError("x").exit_code, VerificationError("x").exit_code,
-             RunInterrupted("x", signal.SIGTERM).exit_code, RunInterrupted("x", signal.SIGINT).exit_code}
+    codes = {
+        RunConflictError("x").exit_code,
+        LocalIOError("x").exit_code,
+        VerificationError("x").exit_code,
+        RunInterrupted("x", signal.SIGTERM).exit_code,
+        RunInterrupted("x", signal.SIGINT).exit_code,
+    }
     assert codes == {5, 6, 7, 143, 130}
     doc = (REPO / "docs" / "acquisition.md").read_text()
     for code in EXIT_CODES:
@@ -225,8 +243,15 @@ def test_stop_event_ends_the_session_between_frames_and_resume_completes(tmp_pat
     events = EventLog(tmp_path / "r").events()
     assert events[-1]["event"] == "stop" and events[-1]["exit_code"] == 143
     assert len(Manifest(tmp_path / "r").frames()) == 4
-    res = CaptureSession(MockCamera("camera-B", _scene((24, 32)), seed=2), tmp_path / "r", plan, calibration=cal,
-                         retry=FAST, progress=False, resume=True).run()
+    res = CaptureSession(
+        MockCamera("camera-B", _scene((24, 32)), seed=2),
+        tmp_path / "r",
+        plan,
+        calibration=cal,
+        retry=FAST,
+        progress=False,
+        resume=True,
+    ).run()
     assert res.resumed == 4 and res.captured == 2
     frames = [e for e in EventLog(tmp_path / "r").events() if e["event"] == "frame"]
     # one frame event per captured frame, with index, total, ETA and temperature; the ETA ends at 0
@@ -275,8 +300,10 @@ def test_verbose_logs_events_and_quiet_hides_them(tmp_path, cli):
 
 def test_notification_hooks_get_the_summary(tmp_path):
     log = tmp_path / "hook.log"
-    extra = (f'\n[notify]\non_done = "cat >> {log}; echo \\" $HDRCAP_STATUS\\" >> {log}"\n'
-             f'on_failure = "echo \\"failed $HDRCAP_EXIT_CODE $HDRCAP_RUN_DIR\\" >> {log}"\n')
+    extra = (
+        f'\n[notify]\non_done = "cat >> {log}; echo \\" $HDRCAP_STATUS\\" >> {log}"\n'
+        f'on_failure = "echo \\"failed $HDRCAP_EXIT_CODE $HDRCAP_RUN_DIR\\" >> {log}"\n'
+    )
     job = load_job(_job(tmp_path, folder="runs/{job}-{n}", extra=extra))
     blocked = tmp_path / "runs" / "u-1"
     blocked.mkdir(parents=True)
@@ -299,12 +326,12 @@ def test_a_failing_hook_is_only_a_warning(tmp_path):
 
 
 # --------------------------------------------------------------------------- item: metering
-SNR = '''
+SNR = """
 [exposure]
 mode = "snr"
 target_snr_db = 20.0
 max_exposures = 3
-'''
+"""
 
 
 def _snr_job(tmp_path, faults, folder="runs/{job}-{date}") -> Path:
@@ -361,9 +388,14 @@ def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
             run_job(job, progress=False, echo=_quiet)
     assert info.value.exit_code == 5 and opened == [] and not (tmp_path / "runs").exists()
     # a real camera named by the job: locked by its serial (else model, port) before it is opened
-    gp = job_from_dict({"camera": {"backend": "gphoto2", "model": "Nikon DSC D750", "serial": "300123"},
-                        "darks": {"block_light": "none"}, "exposure": {"times": [0.01]},
-                        "calibration": {"preset": "camera-B"}})
+    gp = job_from_dict(
+        {
+            "camera": {"backend": "gphoto2", "model": "Nikon DSC D750", "serial": "300123"},
+            "darks": {"block_light": "none"},
+            "exposure": {"times": [0.01]},
+            "calibration": {"preset": "camera-B"},
+        }
+    )
     assert job_mod.job_camera_key(gp) == "gphoto2-serial-300123"
     with FileLock(str(lock_dir() / "open-gphoto2-serial-300123.lock")):
         with pytest.raises(RunConflictError, match="300123 is in use"):

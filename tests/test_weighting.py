@@ -16,27 +16,39 @@ T = np.array([0.01, 0.02, 0.1, 0.5, 1.0, 2.0])
 
 
 def test_registry_has_the_papers_names():
-    assert list(WEIGHTING_METHODS) == ["uniform", "mann-picard", "debevec-malik", "mitsunaga-nayar", "reinhard",
-                                       "robertson", "tsin", "kirk-andersen", "optimal"]
+    assert list(WEIGHTING_METHODS) == [
+        "uniform",
+        "mann-picard",
+        "debevec-malik",
+        "mitsunaga-nayar",
+        "reinhard",
+        "robertson",
+        "tsin",
+        "kirk-andersen",
+        "optimal",
+    ]
     for name, fn in WEIGHTING_METHODS.items():
         assert fn.__doc__ and ("Table 1" in fn.__doc__ or "Eq. 13" in fn.__doc__), name
         w = fn(V, T, P)
         assert w.shape == V.shape and np.all(np.isfinite(w)) and np.all(w >= 0), name
 
 
-@pytest.mark.parametrize("name, expected", [
-    # closed forms for a linear sensor, g(v) = v/g, written independently of the module
-    ("uniform", lambda v, t: np.ones_like(v)),
-    ("mann-picard", lambda v, t: v),
-    ("mitsunaga-nayar", lambda v, t: v),
-    ("debevec-malik", lambda v, t: np.minimum(v, (1023.0 - 32.0) - v)),
-    ("reinhard", lambda v, t: np.maximum(v * (1 - (v / 495.5 - 1) ** 12), 0)),
-    ("robertson", lambda v, t: t**2 * v),
-    ("tsin", lambda v, t: t * 0.92 / np.sqrt(0.92 * v + 18.0)),
-    ("kirk-andersen", lambda v, t: t**2 * 0.92**2 / (0.92 * v + 18.0)),
-    # Eq. 13 with mu at the observed value v/(t g) - D, one matched dark frame
-    ("optimal", lambda v, t: t**2 * 0.92**2 / (0.92**2 * t * (np.maximum(v / (t * 0.92) - 1.0, 0) + 2.0) + 36.0)),
-])
+@pytest.mark.parametrize(
+    "name, expected",
+    [
+        # closed forms for a linear sensor, g(v) = v/g, written independently of the module
+        ("uniform", lambda v, t: np.ones_like(v)),
+        ("mann-picard", lambda v, t: v),
+        ("mitsunaga-nayar", lambda v, t: v),
+        ("debevec-malik", lambda v, t: np.minimum(v, (1023.0 - 32.0) - v)),
+        ("reinhard", lambda v, t: np.maximum(v * (1 - (v / 495.5 - 1) ** 12), 0)),
+        ("robertson", lambda v, t: t**2 * v),
+        ("tsin", lambda v, t: t * 0.92 / np.sqrt(0.92 * v + 18.0)),
+        ("kirk-andersen", lambda v, t: t**2 * 0.92**2 / (0.92 * v + 18.0)),
+        # Eq. 13 with mu at the observed value v/(t g) - D, one matched dark frame
+        ("optimal", lambda v, t: t**2 * 0.92**2 / (0.92**2 * t * (np.maximum(v / (t * 0.92) - 1.0, 0) + 2.0) + 36.0)),
+    ],
+)
 def test_closed_forms(name, expected):
     np.testing.assert_allclose(weights(name, V, T, P), expected(V, T), rtol=1e-12)
 

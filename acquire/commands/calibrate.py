@@ -18,47 +18,105 @@ _FRAMES = click.Path(path_type=Path)
 
 @many_values("--bias", "--saturation", "--flat", "--dark", "--times")
 @click.command("calibrate", short_help="Calibrate the camera noise model from bias, saturation, flat and dark frames.")
-@click.option("--bias", multiple=True, type=_FRAMES,
-              help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.")
+@click.option(
+    "--bias",
+    multiple=True,
+    type=_FRAMES,
+    help="Bias frames (zero or shortest exposure); two or more for the pair-difference read noise.",
+)
 @click.option("--saturation", multiple=True, type=_FRAMES, help="Saturation frame(s): every photosite at full well.")
-@click.option("--flat", multiple=True, type=_FRAMES,
-              help="Flat fields; consecutive frames at the same exposure time form pairs (gain). "
-                   "Pairs at >= 3 levels give the photon-transfer regression.")
-@click.option("--dark", multiple=True, type=_FRAMES,
-              help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.")
-@click.option("--times", multiple=True, type=float,
-              help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; "
-                   "needed for PNG/TIFF frames, override EXIF.")
-@click.option("--emva", "emva", type=_FILE,
-              help="EMVA 1288 descriptor file (EMVA1288_Data.txt) instead of frame lists.")
+@click.option(
+    "--flat",
+    multiple=True,
+    type=_FRAMES,
+    help="Flat fields; consecutive frames at the same exposure time form pairs (gain). "
+    "Pairs at >= 3 levels give the photon-transfer regression.",
+)
+@click.option(
+    "--dark",
+    multiple=True,
+    type=_FRAMES,
+    help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.",
+)
+@click.option(
+    "--times",
+    multiple=True,
+    type=float,
+    help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; "
+    "needed for PNG/TIFF frames, override EXIF.",
+)
+@click.option(
+    "--emva", "emva", type=_FILE, help="EMVA 1288 descriptor file (EMVA1288_Data.txt) instead of frame lists."
+)
 @click.option("-o", "--output", type=_FILE, required=True, help="Calibration file to write (.npz format, any name).")
-@click.option("--force", is_flag=True,
-              help="Overwrite an existing output file (and report plots, dark-library entries).")
+@click.option(
+    "--force", is_flag=True, help="Overwrite an existing output file (and report plots, dark-library entries)."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-@click.option("--report", type=_FOLDER,
-              help="Folder for PNG plots: photon transfer, PRNU histogram and map, dark-current fit.")
-@click.option("--dark-library", type=_FOLDER,
-              help="Store the master darks (with their frame count) in this dark-library folder.")
-@click.option("--gain-method", type=click.Choice(["auto", "pairs", "ptc"]), default="auto", show_default=True,
-              help="ptc: EMVA 1288 regression; pairs: Eq. 16 average; auto: ptc when >= 3 levels.")
-@click.option("--clip", type=float, default=5.0, show_default=True,
-              help="Sigma-clipping threshold for hot pixels and cosmic rays.")
+@click.option(
+    "--report", type=_FOLDER, help="Folder for PNG plots: photon transfer, PRNU histogram and map, dark-current fit."
+)
+@click.option(
+    "--dark-library", type=_FOLDER, help="Store the master darks (with their frame count) in this dark-library folder."
+)
+@click.option(
+    "--gain-method",
+    type=click.Choice(["auto", "pairs", "ptc"]),
+    default="auto",
+    show_default=True,
+    help="ptc: EMVA 1288 regression; pairs: Eq. 16 average; auto: ptc when >= 3 levels.",
+)
+@click.option(
+    "--clip",
+    type=float,
+    default=5.0,
+    show_default=True,
+    help="Sigma-clipping threshold for hot pixels and cosmic rays.",
+)
 @click.option("--no-clip", is_flag=True, help="Disable all outlier rejection (for comparison only).")
-@click.option("--saturation-criterion", type=click.Choice(["frame", "emva"]), default="frame", show_default=True,
-              help="For --emva: v_sat as mean - 3 std of the brightest frames (Sec. 6) "
-                   "or the EMVA 1288 saturation point.")
+@click.option(
+    "--saturation-criterion",
+    type=click.Choice(["frame", "emva"]),
+    default="frame",
+    show_default=True,
+    help="For --emva: v_sat as mean - 3 std of the brightest frames (Sec. 6) or the EMVA 1288 saturation point.",
+)
 @click.option("--white-level", type=float, help="ADC white level, DN (default: from the raw files).")
 @click.option("--camera-name", help="Camera model for the provenance (default: from the files).")
 @click.option("--serial", help="Camera serial number for the provenance.")
 @click.option("--iso", type=float, help="ISO for the provenance (default: from EXIF).")
-@click.option("--temperature", type=float,
-              help="Sensor temperature, degrees C, for the provenance and the dark library.")
-@click.option("--save-to-library", is_flag=True,
-              help="Also store the calibration in the calibration library (keyed by camera model, serial and ISO; "
-                   "`hdrcap merge` without --calibration finds it there; see `hdrcap calibrations`).")
-def command(bias, saturation, flat, dark, times, emva, output, force, as_json, report, dark_library, gain_method,
-            clip, no_clip, saturation_criterion, white_level, camera_name, serial, iso, temperature,
-            save_to_library):
+@click.option(
+    "--temperature", type=float, help="Sensor temperature, degrees C, for the provenance and the dark library."
+)
+@click.option(
+    "--save-to-library",
+    is_flag=True,
+    help="Also store the calibration in the calibration library (keyed by camera model, serial and ISO; "
+    "`hdrcap merge` without --calibration finds it there; see `hdrcap calibrations`).",
+)
+def command(
+    bias,
+    saturation,
+    flat,
+    dark,
+    times,
+    emva,
+    output,
+    force,
+    as_json,
+    report,
+    dark_library,
+    gain_method,
+    clip,
+    no_clip,
+    saturation_criterion,
+    white_level,
+    camera_name,
+    serial,
+    iso,
+    temperature,
+    save_to_library,
+):
     """Calibrate the camera noise model (Sec. 6 of the paper, EMVA 1288) into a calibration file.
 
     From frame lists: mu_R and sigma2_R from bias frames (pair difference), v_sat from a
@@ -70,8 +128,7 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
     from hdrcap.pipeline.calibration import calibrate_files, calibration_summary, format_summary, save_calibration
 
     t0 = time.perf_counter()
-    prov = {"hdrcap_version": __version__,
-            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+    prov = {"hdrcap_version": __version__, "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     for key, val in (("camera", camera_name), ("serial", serial), ("iso", iso), ("temperature", temperature)):
         if val is not None:
             prov[key] = val
@@ -85,9 +142,19 @@ def command(bias, saturation, flat, dark, times, emva, output, force, as_json, r
 
         calib, emva_res = calibrate_descriptor(emva, saturation_criterion, prov)
     else:
-        calib = calibrate_files(bias, saturation, flat, dark, times, clip=None if no_clip else clip,
-                                gain_method=gain_method, white_level=white_level, provenance=prov,
-                                dark_library=dark_library, force=force)
+        calib = calibrate_files(
+            bias,
+            saturation,
+            flat,
+            dark,
+            times,
+            clip=None if no_clip else clip,
+            gain_method=gain_method,
+            white_level=white_level,
+            provenance=prov,
+            dark_library=dark_library,
+            force=force,
+        )
     save_calibration(output, calib, force=force)
     stored = None
     if save_to_library:

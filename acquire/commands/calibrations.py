@@ -22,9 +22,15 @@ def list_(as_json):
 
     entries = library_entries()
     if as_json:
-        echo_json({"folder": str(library_dir()), "entries": [
-            {"name": e.name, "model": e.model, "serial": e.serial, "iso": e.iso, "path": str(e.path)}
-            for e in entries]})
+        echo_json(
+            {
+                "folder": str(library_dir()),
+                "entries": [
+                    {"name": e.name, "model": e.model, "serial": e.serial, "iso": e.iso, "path": str(e.path)}
+                    for e in entries
+                ],
+            }
+        )
         return
     click.echo(f"{library_dir()}: {len(entries)} calibration(s)")
     for e in entries:
@@ -44,18 +50,29 @@ def show(name, as_json):
     if not path.is_file():
         raise InputError(f"{name}: no such calibration in the library {library_dir()}")
     calib = load_calibration(path)
-    info = {"name": path.name, "path": str(path), "params": calib.params.to_dict(), "stderr": calib.stderr,
-            "camera": calib.provenance.get("camera"), "iso": calib.provenance.get("iso"),
-            "created": calib.provenance.get("created"),
-            "maps": [k for k in ("prnu", "bias_map", "dark_current_map", "saturation_map", "defect_map")
-                     if getattr(calib, k) is not None]}
+    info = {
+        "name": path.name,
+        "path": str(path),
+        "params": calib.params.to_dict(),
+        "stderr": calib.stderr,
+        "camera": calib.provenance.get("camera"),
+        "iso": calib.provenance.get("iso"),
+        "created": calib.provenance.get("created"),
+        "maps": [
+            k
+            for k in ("prnu", "bias_map", "dark_current_map", "saturation_map", "defect_map")
+            if getattr(calib, k) is not None
+        ],
+    }
     if as_json:
         echo_json(info)
         return
     p = calib.params
-    click.echo(f"{path}\n  camera {info['camera']}, ISO {info['iso']}, created {info['created']}\n"
-               f"  g = {p.g:.4g} DN/e-, mu_R = {p.mu_R:.4g} DN, sigma_R^2 = {p.sigma2_R:.4g} DN^2, "
-               f"v_sat = {p.v_sat:.6g} DN, D = {p.dark_current:.3g} e-/s\n  maps: {', '.join(info['maps']) or 'none'}")
+    click.echo(
+        f"{path}\n  camera {info['camera']}, ISO {info['iso']}, created {info['created']}\n"
+        f"  g = {p.g:.4g} DN/e-, mu_R = {p.mu_R:.4g} DN, sigma_R^2 = {p.sigma2_R:.4g} DN^2, "
+        f"v_sat = {p.v_sat:.6g} DN, D = {p.dark_current:.3g} e-/s\n  maps: {', '.join(info['maps']) or 'none'}"
+    )
 
 
 @command.command("remove")

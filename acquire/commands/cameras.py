@@ -24,12 +24,13 @@ def command(as_json):
         found, problem = [], f"{type(err).__name__}: {err}"
     mock = [{"preset": k, "model": v.model} for k, v in PRESETS.items()]
     if as_json:
-        echo_json({"gphoto2": [{"model": m, "port": p, "serial": s} for m, p, s in found], "mock": mock,
-                   "problem": problem})
+        echo_json(
+            {"gphoto2": [{"model": m, "port": p, "serial": s} for m, p, s in found], "mock": mock, "problem": problem}
+        )
         return
     if found:
         for m, p, s in found:
             click.echo(f"{m:40s} {p:16s} serial {s or '(not reported)'}")
     else:
         click.echo("no camera detected by libgphoto2" + (f" ({problem})" if problem else ""))
-    click.echo("simulated cameras (backend = \"mock\"): " + ", ".join(x["preset"] for x in mock))
+    click.echo('simulated cameras (backend = "mock"): ' + ", ".join(x["preset"] for x in mock))

@@ -13,8 +13,16 @@ from hdrcap.acquire.cliutil import echo_json
 DEMO_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
 
-def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bool, progress: bool = True,
-             target_snr: float | None = None) -> dict:
+def run_demo(
+    out: Path,
+    camera: str,
+    scene: str,
+    size: str,
+    seed: int,
+    force: bool,
+    progress: bool = True,
+    target_snr: float | None = None,
+) -> dict:
     """Capture, merge and summarise the demo into ``out``; returns the summary text and paths."""
     from hdrcap.acquire.job import job_from_dict, run_job
     from hdrcap.acquire.manifest import Manifest
@@ -37,16 +45,26 @@ def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bo
     exposure = {"mode": "bracket", "times": list(DEMO_TIMES)}
     if target_snr is not None:
         exposure = {"mode": "snr", "target_snr_db": target_snr, "times": list(DEMO_TIMES)}
-    job = job_from_dict({
-        "job": {"name": "demo"},
-        "camera": {"backend": "mock", "preset": camera, "size": size, "seed": seed},
-        "scene": {"name": scene, "decades": 4.0, "x_max": 2e5},
-        "exposure": exposure,
-        "darks": {"strategy": "matched", "block_light": "mock"},
-        "output": {"folder": str(run_dir)},
-    })
-    res, session = run_job(job, run_dir=run_dir, progress=progress, force=force, exr_path=out / "demo.exr",
-                           png_path=out / "demo.png", return_result=True, echo=lambda s: click.echo(s, err=True))
+    job = job_from_dict(
+        {
+            "job": {"name": "demo"},
+            "camera": {"backend": "mock", "preset": camera, "size": size, "seed": seed},
+            "scene": {"name": scene, "decades": 4.0, "x_max": 2e5},
+            "exposure": exposure,
+            "darks": {"strategy": "matched", "block_light": "mock"},
+            "output": {"folder": str(run_dir)},
+        }
+    )
+    res, session = run_job(
+        job,
+        run_dir=run_dir,
+        progress=progress,
+        force=force,
+        exr_path=out / "demo.exr",
+        png_path=out / "demo.png",
+        return_result=True,
+        echo=lambda s: click.echo(s, err=True),
+    )
     err = res["error_vs_truth"]
     m = session.merge
     times = sorted(unique_exposures(r["file_exposure_s"] for r in session.frames.values() if r["kind"] == "light"))
@@ -69,19 +87,33 @@ def run_demo(out: Path, camera: str, scene: str, size: str, seed: int, force: bo
     text = "\n".join(lines) + "\n"
     with atomic_output(out / "summary.txt", force=force) as tmp:
         tmp.write_text(text)
-    return {"text": text, "error": err, "exr": str(out / "demo.exr"), "png": str(out / "demo.png"),
-            "run_dir": str(run_dir)}
+    return {
+        "text": text,
+        "error": err,
+        "exr": str(out / "demo.exr"),
+        "png": str(out / "demo.png"),
+        "run_dir": str(run_dir),
+    }
 
 
 @click.command("demo")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=Path("out"), show_default=True,
-              help="Output folder (demo-run/ holds the captured DNGs, manifest and event log).")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("out"),
+    show_default=True,
+    help="Output folder (demo-run/ holds the captured DNGs, manifest and event log).",
+)
 @click.option("--camera", default="camera-B", show_default=True, help="Simulator preset: camera-A or camera-B.")
 @click.option("--scene", default="hdr", show_default=True, help="Synthetic scene name or an EXR file.")
 @click.option("--size", default="1024x768", show_default=True, help="Mosaic size WIDTHxHEIGHT.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Random seed.")
-@click.option("--target-snr", type=float, default=None,
-              help="Plan the exposures for this SNR (dB) with the planner instead of the fixed bracket.")
+@click.option(
+    "--target-snr",
+    type=float,
+    default=None,
+    help="Plan the exposures for this SNR (dB) with the planner instead of the fixed bracket.",
+)
 @click.option("--force", is_flag=True, help="Overwrite the outputs (and the capture) of an earlier demo.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary instead of the text.")
 def command(out, camera, scene, size, seed, target_snr, force, as_json):

@@ -22,21 +22,45 @@ def _median_rel(irr, sig, ok):
 
 @click.command("denoise")
 @click.argument("input_exr", metavar="IN.exr", type=click.Path(path_type=Path))
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Output EXR file.")
-@click.option("--method", type=click.Choice(["adaptive", "constant"]), default="adaptive", show_default=True,
-              help="adaptive: range bandwidth K x predicted sigma per photosite (Sec. 9); constant: one bandwidth B.")
-@click.option("--range-scale", "range_scale", type=float, default=None,
-              help="K, the range bandwidth as a multiple of the predicted sigma (adaptive; default 3).")
-@click.option("--bandwidth", type=float, default=None,
-              help="Constant range bandwidth B, e-/s (constant method; 'inf' = Gaussian).")
-@click.option("--radius", type=int, default=None,
-              help="Half-width of the square support, same-colour steps (default 2).")
-@click.option("--spatial-sigma", "spatial_sigma", type=float, default=None,
-              help="Spatial Gaussian standard deviation, same-colour steps (default 1.5).")
-@click.option("--layout", type=click.Choice(["auto", "cfa", "mono"]), default="auto", show_default=True,
-              help="cfa: filter each colour plane of the 2x2 mosaic; mono: one channel; "
-                   "auto: cfa when the header names a CFA pattern.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output EXR file.")
+@click.option(
+    "--method",
+    type=click.Choice(["adaptive", "constant"]),
+    default="adaptive",
+    show_default=True,
+    help="adaptive: range bandwidth K x predicted sigma per photosite (Sec. 9); constant: one bandwidth B.",
+)
+@click.option(
+    "--range-scale",
+    "range_scale",
+    type=float,
+    default=None,
+    help="K, the range bandwidth as a multiple of the predicted sigma (adaptive; default 3).",
+)
+@click.option(
+    "--bandwidth",
+    type=float,
+    default=None,
+    help="Constant range bandwidth B, e-/s (constant method; 'inf' = Gaussian).",
+)
+@click.option(
+    "--radius", type=int, default=None, help="Half-width of the square support, same-colour steps (default 2)."
+)
+@click.option(
+    "--spatial-sigma",
+    "spatial_sigma",
+    type=float,
+    default=None,
+    help="Spatial Gaussian standard deviation, same-colour steps (default 1.5).",
+)
+@click.option(
+    "--layout",
+    type=click.Choice(["auto", "cfa", "mono"]),
+    default="auto",
+    show_default=True,
+    help="cfa: filter each colour plane of the 2x2 mosaic; mono: one channel; "
+    "auto: cfa when the header names a CFA pattern.",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, force, as_json):
@@ -48,8 +72,13 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
     bias the filter introduces. Photosites with nexp = 0 (saturated everywhere) are unchanged.
     """
     from hdrcap import __version__
-    from hdrcap.pipeline.denoise import (SIGMA_MEANING, denoise, denoise_header, layout_from_metadata,
-                                         settings_from_options)
+    from hdrcap.pipeline.denoise import (
+        SIGMA_MEANING,
+        denoise,
+        denoise_header,
+        layout_from_metadata,
+        settings_from_options,
+    )
     from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
     t0 = time.perf_counter()
@@ -64,8 +93,9 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
     image = read_exr(input_exr)
     missing = [c for c in ("irradiance", "sigma") if c not in image.channels]
     if missing:
-        raise InputError(f"{input_exr}: no {' or '.join(missing)} channel; "
-                         "denoise needs an EXR written by `hdrcap merge`")
+        raise InputError(
+            f"{input_exr}: no {' or '.join(missing)} channel; denoise needs an EXR written by `hdrcap merge`"
+        )
     ch = image.channels
     shapes = {name: arr.shape for name, arr in ch.items()}
     if len(set(shapes.values())) > 1:
@@ -73,16 +103,22 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
         raise InputError(f"{input_exr}: channel sizes differ ({sizes})")
     chosen_layout = layout_from_metadata(image.attrs) if layout == "auto" else layout
     settings = settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma, chosen_layout)
-    result = denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings, name=str(input_exr),
-                     quality=ch.get("quality"))
+    result = denoise(
+        ch["irradiance"], ch["sigma"], ch.get("nexp"), settings, name=str(input_exr), quality=ch.get("quality")
+    )
     channels = dict(ch)  # other channels are carried over unchanged
     channels["irradiance"] = result.irradiance
     channels["sigma"] = result.sigma
     attrs = dict(image.attrs)
     attrs["sigma"] = SIGMA_MEANING
-    attrs["denoise"] = denoise_header(settings, result, "header cfa_pattern" if layout == "auto" else "--layout",
-                                      image.attrs.get("sigma", "standard deviation of irradiance"), __version__,
-                                      source_file=str(input_exr))
+    attrs["denoise"] = denoise_header(
+        settings,
+        result,
+        "header cfa_pattern" if layout == "auto" else "--layout",
+        image.attrs.get("sigma", "standard deviation of irradiance"),
+        __version__,
+        source_file=str(input_exr),
+    )
     write_exr(output, HdrImage(channels, attrs), force=force)
     ok = np.asarray(ch["nexp"]) > 0 if "nexp" in ch else np.ones(result.irradiance.shape, bool)
     info = {

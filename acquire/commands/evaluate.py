@@ -20,17 +20,24 @@ def _print_summary(results: dict) -> None:
         click.echo(f"{label}: mean efficiency (bound/MSE) and mean SNR - optimal (dB) per method")
         for name, row in rows.items():
             d = row.get("mean_snr_minus_optimal_db")
-            click.echo(f"  {name:18s} eff {row['mean_efficiency']:.3f} (min {row['min_efficiency']:.3f})"
-                       + (f"  {d:+.2f} dB" if d is not None else ""))
+            click.echo(
+                f"  {name:18s} eff {row['mean_efficiency']:.3f} (min {row['min_efficiency']:.3f})"
+                + (f"  {d:+.2f} dB" if d is not None else "")
+            )
     for label, d in results["qq"].items():
         rates = ", ".join(f"{k} {v['test']['rejection_rate']:.0%}" for k, v in d["levels"].items())
         click.echo(f"Gaussian check {label}: Shapiro-Wilk rejection at 5 %: {rates}")
 
 
-@click.command("evaluate", short_help="Reproduce the paper's Sec. 7 evaluation: SNR per weighting vs the bound, "
-                                      "Q-Q, efficiency.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), required=True,
-              help="Output folder for evaluation.json and the PNG plots.")
+@click.command(
+    "evaluate", short_help="Reproduce the paper's Sec. 7 evaluation: SNR per weighting vs the bound, Q-Q, efficiency."
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Output folder for evaluation.json and the PNG plots.",
+)
 @click.option("--quick", is_flag=True, help="Smaller images and fewer repetitions (about 4x faster).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--denoise", is_flag=True, help="Also run the denoising experiment (Sec. 9, Fig. 8d).")
@@ -57,13 +64,11 @@ def command(out, quick, seed, denoise, force, as_json):
                 raise InputError(f"{out / name}: exists; use --force to overwrite")
     say = None if as_json else (lambda msg: click.echo(msg, err=True))
     results = run_evaluation(out, quick=quick, seed=seed, force=force, progress=say)
-    summary = {"out": str(out), "plots": results["plots"], "seconds": results["seconds"],
-               "summary": results["summary"]}
+    summary = {"out": str(out), "plots": results["plots"], "seconds": results["seconds"], "summary": results["summary"]}
     if denoise:
         summary["denoise"] = evaluate_denoising(out, seed=seed, quick=quick)
     if as_json:
         echo_json(summary)
     else:
         _print_summary(results)
-        click.echo(f"wrote {out / 'evaluation.json'} and {', '.join(results['plots'])} "
-                   f"in {results['seconds']:.1f} s")
+        click.echo(f"wrote {out / 'evaluation.json'} and {', '.join(results['plots'])} in {results['seconds']:.1f} s")

@@ -9,11 +9,17 @@ import click
 
 @click.command("export")
 @click.argument("archive", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--run", "run", type=click.IntRange(min=0), required=True,
-              help="Run number (the archive's run coordinate).")
+@click.option(
+    "--run", "run", type=click.IntRange(min=0), required=True, help="Run number (the archive's run coordinate)."
+)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output EXR file.")
-@click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip",
-              show_default=True, help="EXR compression.")
+@click.option(
+    "--exr-compression",
+    type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]),
+    default="zip",
+    show_default=True,
+    help="EXR compression.",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 def command(archive, run, output, exr_compression, force):
     """Write run RUN of the zarr ARCHIVE (from `hdrcap batch`) as an EXR: the channels

@@ -15,38 +15,163 @@ from hdrcap.pipeline.noise import DarkStrategy
 @many_values("--darks", "--times")
 @click.command("merge")
 @click.argument("frames", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--darks", multiple=True, type=click.Path(path_type=Path), help="Dark frames, one per exposure time (several after one flag); for master exposures, the master dark of that time (several of one time are averaged).")
-@click.option("--calibration", type=click.Path(path_type=Path), help="Calibration file written by `hdrcap calibrate` (its dark library serves master darks). Without it and --camera the bracket calibrates itself (docs/selfcal.md).")
+@click.option(
+    "--darks",
+    multiple=True,
+    type=click.Path(path_type=Path),
+    help="Dark frames, one per exposure time (several after one flag); for master exposures, the master dark of that time (several of one time are averaged).",
+)
+@click.option(
+    "--calibration",
+    type=click.Path(path_type=Path),
+    help="Calibration file written by `hdrcap calibrate` (its dark library serves master darks). Without it and --camera the bracket calibrates itself (docs/selfcal.md).",
+)
 @click.option("--camera", help="Use a simulator preset's nominal parameters as the calibration (camera-A, camera-B).")
-@click.option("--times", multiple=True, type=float, help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).")
-@click.option("--plan", "plan_file", type=click.Path(dir_okay=False, path_type=Path), help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="Output file: EXR (default), or a float DNG when it ends in .dng or with --format dng.")
-@click.option("--format", "out_format", type=click.Choice(["exr", "dng"]), default=None,
-              help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, nexp and the "
-                   "header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour "
-                   "matrices, white balance, orientation) that raw developers open like any raw; it cannot hold "
-                   "sigma or nexp (docs/merge.md, Float DNG).")
-@click.option("--dng-bits", type=click.Choice(["32", "16"]), default="32", show_default=True,
-              help="Float width of the DNG; 16 scales the irradiance by a power of two written in the file.")
-@click.option("--weighting", default="optimal", show_default=True, help="Weighting: 'optimal' (iterative ML merge) or a baseline name from hdrcap.pipeline.weighting.")
-@click.option("--iterations", type=click.IntRange(min=1), default=20, show_default=True, help="Maximum re-weighting steps per photosite.")
-@click.option("--tolerance", type=click.FloatRange(min=0), default=1e-6, show_default=True, help="Stop when the change is below this times max(|estimate|, sigma).")
-@click.option("--saturation", type=click.Choice(["threshold", "probabilistic"]), default="threshold", show_default=True, help="Saturation model: Eq. 11 plus the near-saturation rule, or the blended likelihood of Eq. 8-10.")
-@click.option("--saturation-sigmas", type=click.FloatRange(min=0), default=3.0, show_default=True, help="Drop samples predicted within this many sigma of v_sat (0: off).")
-@click.option("--prnu", type=click.Choice(["map", "scalar"]), default="map", show_default=True, help="Per-photosite gain map from the calibration, or a = 1.")
-@click.option("--dark-strategy", type=click.Choice([s.value for s in DarkStrategy]), default=None, help="For every exposure (overrides a --plan's). Default: the plan's per exposure; else matched with --darks, master with --master-dark, model otherwise. master without --darks/--master-dark: the calibration's dark library.")
-@click.option("--master-dark", type=click.Path(path_type=Path), help="One master dark frame (raw file or 16-bit image) for the master exposures.")
-@click.option("--master-dark-frames", type=click.FloatRange(min=1), default=None, help="Number of frames averaged into each master dark file given here (N; library masters carry their own).")
-@click.option("--exposure-times", "exposure_times", type=click.Choice(["effective", "nominal"]), default="effective", show_default=True, help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.")
-@click.option("--exr-compression", type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]), default="zip", show_default=True, help="EXR compression (none/rle write fastest, zip is about a third smaller; zstd is smaller and faster but needs OpenEXR >= 3.4 to read).")
-@click.option("--sigma-precision", type=click.Choice(["auto", "half", "float"]), default="auto", show_default=True, help="Storage of sigma (and sigma_calibration): half loses at most 0.05 %% of sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always float32; nexp and quality are stored as uint (lossless).")
+@click.option(
+    "--times",
+    multiple=True,
+    type=float,
+    help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).",
+)
+@click.option(
+    "--plan",
+    "plan_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Plan JSON from `hdrcap plan --json`: its per-exposure dark strategies and decided merge options are applied (options given here win); recorded in the EXR header.",
+)
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Output file: EXR (default), or a float DNG when it ends in .dng or with --format dng.",
+)
+@click.option(
+    "--format",
+    "out_format",
+    type=click.Choice(["exr", "dng"]),
+    default=None,
+    help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, nexp and the "
+    "header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour "
+    "matrices, white balance, orientation) that raw developers open like any raw; it cannot hold "
+    "sigma or nexp (docs/merge.md, Float DNG).",
+)
+@click.option(
+    "--dng-bits",
+    type=click.Choice(["32", "16"]),
+    default="32",
+    show_default=True,
+    help="Float width of the DNG; 16 scales the irradiance by a power of two written in the file.",
+)
+@click.option(
+    "--weighting",
+    default="optimal",
+    show_default=True,
+    help="Weighting: 'optimal' (iterative ML merge) or a baseline name from hdrcap.pipeline.weighting.",
+)
+@click.option(
+    "--iterations",
+    type=click.IntRange(min=1),
+    default=20,
+    show_default=True,
+    help="Maximum re-weighting steps per photosite.",
+)
+@click.option(
+    "--tolerance",
+    type=click.FloatRange(min=0),
+    default=1e-6,
+    show_default=True,
+    help="Stop when the change is below this times max(|estimate|, sigma).",
+)
+@click.option(
+    "--saturation",
+    type=click.Choice(["threshold", "probabilistic"]),
+    default="threshold",
+    show_default=True,
+    help="Saturation model: Eq. 11 plus the near-saturation rule, or the blended likelihood of Eq. 8-10.",
+)
+@click.option(
+    "--saturation-sigmas",
+    type=click.FloatRange(min=0),
+    default=3.0,
+    show_default=True,
+    help="Drop samples predicted within this many sigma of v_sat (0: off).",
+)
+@click.option(
+    "--prnu",
+    type=click.Choice(["map", "scalar"]),
+    default="map",
+    show_default=True,
+    help="Per-photosite gain map from the calibration, or a = 1.",
+)
+@click.option(
+    "--dark-strategy",
+    type=click.Choice([s.value for s in DarkStrategy]),
+    default=None,
+    help="For every exposure (overrides a --plan's). Default: the plan's per exposure; else matched with --darks, master with --master-dark, model otherwise. master without --darks/--master-dark: the calibration's dark library.",
+)
+@click.option(
+    "--master-dark",
+    type=click.Path(path_type=Path),
+    help="One master dark frame (raw file or 16-bit image) for the master exposures.",
+)
+@click.option(
+    "--master-dark-frames",
+    type=click.FloatRange(min=1),
+    default=None,
+    help="Number of frames averaged into each master dark file given here (N; library masters carry their own).",
+)
+@click.option(
+    "--exposure-times",
+    "exposure_times",
+    type=click.Choice(["effective", "nominal"]),
+    default="effective",
+    show_default=True,
+    help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.",
+)
+@click.option(
+    "--exr-compression",
+    type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]),
+    default="zip",
+    show_default=True,
+    help="EXR compression (none/rle write fastest, zip is about a third smaller; zstd is smaller and faster but needs OpenEXR >= 3.4 to read).",
+)
+@click.option(
+    "--sigma-precision",
+    type=click.Choice(["auto", "half", "float"]),
+    default="auto",
+    show_default=True,
+    help="Storage of sigma (and sigma_calibration): half loses at most 0.05 %% of sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always float32; nexp and quality are stored as uint (lossless).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
-def command(ctx, frames, darks, calibration, camera, times, plan_file, output, weighting, iterations, tolerance,
-            saturation, saturation_sigmas, prnu, dark_strategy, master_dark, master_dark_frames, exposure_times,
-            exr_compression, sigma_precision, force, as_json, out_format, dng_bits):
+def command(
+    ctx,
+    frames,
+    darks,
+    calibration,
+    camera,
+    times,
+    plan_file,
+    output,
+    weighting,
+    iterations,
+    tolerance,
+    saturation,
+    saturation_sigmas,
+    prnu,
+    dark_strategy,
+    master_dark,
+    master_dark_frames,
+    exposure_times,
+    exr_compression,
+    sigma_precision,
+    force,
+    as_json,
+    out_format,
+    dng_bits,
+):
     """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR (or a float DNG).
 
     The EXR holds float32 channels irradiance (e-/s per photosite), sigma (its standard
@@ -86,23 +211,45 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
         raise InputError(f"--master-dark needs --dark-strategy master, not {dark_strategy}")
     t0 = time.perf_counter()
     warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
-    calib, times, selfcal = resolve_merge_calibration(str(calibration) if calibration else None, camera, frames,
-                                                      times, darks=bool(darks), warn=warn,
-                                                      say=lambda m: click.echo(m, err=True))
+    calib, times, selfcal = resolve_merge_calibration(
+        str(calibration) if calibration else None,
+        camera,
+        frames,
+        times,
+        darks=bool(darks),
+        warn=warn,
+        say=lambda m: click.echo(m, err=True),
+    )
     if selfcal is not None:
         click.echo(f"  {_selfcal_summary(selfcal)}", err=True)
     lib_root = library_root(calib, calibration)
     if dark_strategy == DarkStrategy.MASTER and not (darks or master_dark or lib_root):
-        raise InputError("--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
-                         "or a calibration with a dark library (--calibration)")
+        raise InputError(
+            "--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
+            "or a calibration with a dark library (--calibration)"
+        )
     if weighting != "optimal" and weighting not in WEIGHTING_METHODS:
         raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(WEIGHTING_METHODS)}")
-    options = merge_options(iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames,
-                            saturation_sigmas, exposure_times)
-    done = merge_files(frames, calib, options, dark_paths=darks, times=times, weighting=weighting, plan=plan,
-                       plan_file=str(plan_file) if plan_file else None, dark_strategy=dark_strategy,
-                       master_dark=master_dark, master_dark_frames=master_dark_frames, library=lib_root, given=given,
-                       progress=not as_json, warn=warn)
+    options = merge_options(
+        iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, exposure_times
+    )
+    done = merge_files(
+        frames,
+        calib,
+        options,
+        dark_paths=darks,
+        times=times,
+        weighting=weighting,
+        plan=plan,
+        plan_file=str(plan_file) if plan_file else None,
+        dark_strategy=dark_strategy,
+        master_dark=master_dark,
+        master_dark_frames=master_dark_frames,
+        library=lib_root,
+        given=given,
+        progress=not as_json,
+        warn=warn,
+    )
     image = build_hdr_image(done.result, done.frames, calib, done.extra)
     if selfcal is not None:
         from hdrcap.pipeline.selfcal import apply_self_calibration
@@ -113,19 +260,30 @@ def command(ctx, frames, darks, calibration, camera, times, plan_file, output, w
 
         write_float_dng(output, image, bits=int(dng_bits), force=force)
     else:
-        write_exr(output, image, force=force, compression=exr_compression,
-                  precision=exr_precision(image.channels, sigma_precision))
-    info = summary(done.result) | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3),
-                                   "n_frames": len(done.frames), "n_darks": len(done.darks)}
+        write_exr(
+            output,
+            image,
+            force=force,
+            compression=exr_compression,
+            precision=exr_precision(image.channels, sigma_precision),
+        )
+    info = summary(done.result) | {
+        "output": str(output),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "n_frames": len(done.frames),
+        "n_darks": len(done.darks),
+    }
     if selfcal is not None:
         info["calibration"] = selfcal.calibration.provenance["source"]
         info["unit"] = selfcal.unit
     if as_json:
         echo_json(info)
     else:
-        click.echo(f"wrote {output}: {info['shape'][1]}x{info['shape'][0]}, irradiance "
-                   f"{info['irradiance_min']:.4g}..{info['irradiance_max']:.4g} e-/s, "
-                   f"{info['saturated_everywhere']} photosites saturated everywhere, {info['seconds']:.2f} s")
+        click.echo(
+            f"wrote {output}: {info['shape'][1]}x{info['shape'][0]}, irradiance "
+            f"{info['irradiance_min']:.4g}..{info['irradiance_max']:.4g} e-/s, "
+            f"{info['saturated_everywhere']} photosites saturated everywhere, {info['seconds']:.2f} s"
+        )
 
 
 def _selfcal_summary(sc) -> str:
@@ -133,5 +291,7 @@ def _selfcal_summary(sc) -> str:
     f = sc.fit
     if not sc.gain_known:
         return "gain not estimable: irradiance in DN/s, sigma relative"
-    return (f"g = {f['g']:.4g} +- {f['g_stderr']:.2g} DN/e-, sigma_R^2 = {f['sigma2_R']:.3g} +- "
-            f"{f['sigma2_R_stderr']:.2g} DN^2, from {f['n_photosites']} photosites in {len(sc.pairs)} pairs")
+    return (
+        f"g = {f['g']:.4g} +- {f['g_stderr']:.2g} DN/e-, sigma_R^2 = {f['sigma2_R']:.3g} +- "
+        f"{f['sigma2_R_stderr']:.2g} DN^2, from {f['n_photosites']} photosites in {len(sc.pairs)} pairs"
+    )

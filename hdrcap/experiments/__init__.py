@@ -11,9 +11,22 @@ below it imports it; ``hdrcap evaluate`` is its command line.
 """
 
 from .denoising import CONTROL_SCENES, EVAL_SCENES, EVAL_TIMES, evaluate_denoising, simulate_merged_scene
-from .snr import (BASELINES, CURVES, OPTIMAL_OPTIONS, TEN_X_READOUT, ZERO_READOUT, EvalSetup, evaluation_params,
-                  make_setup, merge_method, qq_experiment, run_evaluation, simulate_bracket_arrays, snr_experiment,
-                  summarise)
+from .snr import (
+    BASELINES,
+    CURVES,
+    OPTIMAL_OPTIONS,
+    TEN_X_READOUT,
+    ZERO_READOUT,
+    EvalSetup,
+    evaluation_params,
+    make_setup,
+    merge_method,
+    qq_experiment,
+    run_evaluation,
+    simulate_bracket_arrays,
+    snr_experiment,
+    summarise,
+)
 
 __all__ = [
     "BASELINES",

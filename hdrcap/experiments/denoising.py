@@ -18,14 +18,28 @@ import numpy as np
 
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline.denoise import (DEFAULT_RADIUS, DEFAULT_RANGE_SCALE, DEFAULT_SPATIAL_SIGMA, bilateral_adaptive,
-                                     bilateral_constant, normalised_mse)
+from hdrcap.pipeline.denoise import (
+    DEFAULT_RADIUS,
+    DEFAULT_RANGE_SCALE,
+    DEFAULT_SPATIAL_SIGMA,
+    bilateral_adaptive,
+    bilateral_constant,
+    normalised_mse,
+)
 from hdrcap.pipeline.io import atomic_output
 from hdrcap.pipeline.merge import MergeResult, merge_arrays
 from hdrcap.pipeline.params import Calibration
 
-__all__ = ["EVAL_TIMES", "EVAL_SCENES", "CONTROL_SCENES", "RANGE_SCALES", "DenoisedScene", "simulate_merged_scene",
-           "denoise_scene", "evaluate_denoising"]
+__all__ = [
+    "EVAL_TIMES",
+    "EVAL_SCENES",
+    "CONTROL_SCENES",
+    "RANGE_SCALES",
+    "DenoisedScene",
+    "simulate_merged_scene",
+    "denoise_scene",
+    "evaluate_denoising",
+]
 
 #: Fixed bracket for camera-B in :func:`evaluate_denoising`, seconds (factor 8 apart: the
 #: brightest scene value, 2e5 e-/s, stays below saturation at the shortest time).
@@ -104,8 +118,11 @@ def simulate_merged_scene(scene: str, shape: tuple[int, int], seed: int) -> tupl
     rng = np.random.default_rng([seed, 8, zlib.crc32(scene.encode())])
     values = [sensor.expose(truth, t, rng=rng) for t in EVAL_TIMES]
     darks = [sensor.expose(truth, t, dark=True, rng=rng) for t in EVAL_TIMES]
-    calibration = Calibration(params=spec.nominal_params(), prnu=sensor.prnu,
-                              provenance={"source": "camera-B nominal parameters and true PRNU map"})
+    calibration = Calibration(
+        params=spec.nominal_params(),
+        prnu=sensor.prnu,
+        provenance={"source": "camera-B nominal parameters and true PRNU map"},
+    )
     return truth, merge_arrays(values, list(EVAL_TIMES), calibration, darks=darks)
 
 
@@ -174,8 +191,9 @@ def denoise_scene(name: str, truth: np.ndarray, merged: MergeResult, n_bandwidth
         "z_robust_std_adaptive": float(1.4826 * np.median(np.abs(z_ad))),
         "saturated_everywhere": int((~ok).sum()),
     }
-    return DenoisedScene(truth, claim, bandwidths, const[:-1], best[2], best[1], best[0], adaptive.irradiance, e_ad,
-                         e_raw, report)
+    return DenoisedScene(
+        truth, claim, bandwidths, const[:-1], best[2], best[1], best[0], adaptive.irradiance, e_ad, e_raw, report
+    )
 
 
 def evaluate_denoising(out_dir: str | Path, seed: int = 0, quick: bool = False) -> dict:
@@ -223,8 +241,12 @@ def evaluate_denoising(out_dir: str | Path, seed: int = 0, quick: bool = False) 
         "shape": list(shape),
         "seed": seed,
         "nmse_definition": "mean over photosites with nexp > 0 of ((estimate - truth) / truth)^2",
-        "settings": {"radius": DEFAULT_RADIUS, "spatial_sigma": DEFAULT_SPATIAL_SIGMA, "layout": "cfa",
-                     "default_range_scale": DEFAULT_RANGE_SCALE},
+        "settings": {
+            "radius": DEFAULT_RADIUS,
+            "spatial_sigma": DEFAULT_SPATIAL_SIGMA,
+            "layout": "cfa",
+            "default_range_scale": DEFAULT_RANGE_SCALE,
+        },
         "scenes": {},
     }
     scenes = {}

@@ -22,9 +22,15 @@ __all__ = ["write_plots", "plot_denoising"]
 
 #: Colour and line style of each curve.
 _STYLE = {
-    "uniform": ("tab:gray", ":"), "mann-picard": ("tab:brown", "--"), "debevec-malik": ("tab:orange", "-"),
-    "mitsunaga-nayar": ("tab:green", "-"), "reinhard": ("tab:olive", "--"), "robertson": ("tab:purple", "-"),
-    "tsin": ("tab:pink", "-"), "kirk-andersen": ("tab:cyan", "-"), "optimal@observed": ("tab:blue", ":"),
+    "uniform": ("tab:gray", ":"),
+    "mann-picard": ("tab:brown", "--"),
+    "debevec-malik": ("tab:orange", "-"),
+    "mitsunaga-nayar": ("tab:green", "-"),
+    "reinhard": ("tab:olive", "--"),
+    "robertson": ("tab:purple", "-"),
+    "tsin": ("tab:pink", "-"),
+    "kirk-andersen": ("tab:cyan", "-"),
+    "optimal@observed": ("tab:blue", ":"),
     "optimal-defaults": ("tab:red", ":"),
     "optimal": ("tab:red", "-"),
 }
@@ -32,8 +38,12 @@ _STYLE = {
 #: The SNR figures: file name, cases, panel titles, the per-bin figure plotted.
 _SNR_FIGURES = (
     ("fig4_snr.png", ("camera-A", "camera-B"), ("(a) camera-A", "(b) camera-B"), "snr_db"),
-    ("fig5_readout.png", ("camera-B zero readout", "camera-B 10x readout"),
-     ("(a) camera-B, zero readout noise, D = 0", "(b) camera-B, 10x readout noise σ_R"), "snr_db"),
+    (
+        "fig5_readout.png",
+        ("camera-B zero readout", "camera-B 10x readout"),
+        ("(a) camera-B, zero readout noise, D = 0", "(b) camera-B, 10x readout noise σ_R"),
+        "snr_db",
+    ),
     ("efficiency.png", ("camera-A", "camera-B"), ("(a) camera-A", "(b) camera-B"), "efficiency"),
 )
 
@@ -103,8 +113,11 @@ def _qq_figure(qq: dict, path: Path, force: bool) -> None:
             ax.plot(q["theoretical"], q["ordered"], "o", ms=3)
             lim = [min(q["theoretical"]), max(q["theoretical"])]
             ax.plot(lim, lim, "k-", lw=0.8)
-            ax.set_title(f"{label}: {lname.replace('_', ' ')}\n{lv['electrons']:.3g} e⁻, "
-                         f"r = {q['r']:.3f}, reject {lv['test']['rejection_rate']:.0%}", fontsize=8)
+            ax.set_title(
+                f"{label}: {lname.replace('_', ' ')}\n{lv['electrons']:.3g} e⁻, "
+                f"r = {q['r']:.3f}, reject {lv['test']['rejection_rate']:.0%}",
+                fontsize=8,
+            )
             ax.set_xlabel("normal quantile", fontsize=8)
             ax.set_ylabel("standardised sample", fontsize=8)
     fig.tight_layout()
@@ -158,8 +171,7 @@ def plot_denoising(path: Path, scenes: dict[str, DenoisedScene]) -> Path:
     from matplotlib.colors import LogNorm
 
     n = len(scenes)
-    fig, axes = new_figure(n, 4, figsize=(17, 3.8 * n), squeeze=False,
-                           gridspec_kw={"width_ratios": [1, 1, 1.12, 1.15]})
+    fig, axes = new_figure(n, 4, figsize=(17, 3.8 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1, 1.12, 1.15]})
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.06, top=0.95, wspace=0.45, hspace=0.3)
     for row, (name, sc) in enumerate(scenes.items()):
         lo, hi = float(sc.truth.min()), float(sc.truth.max())

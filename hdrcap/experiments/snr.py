@@ -17,28 +17,58 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
 from hdrcap.mock_camera import PRESETS, SensorSpec, SimulatedSensor
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline.evaluation import (bound_variance, gaussianity, log_bins, paired_difference, qq_data,
-                                        snr_per_bin, weights_vs_output)
+from hdrcap.pipeline.evaluation import (
+    bound_variance,
+    gaussianity,
+    log_bins,
+    paired_difference,
+    qq_data,
+    snr_per_bin,
+    weights_vs_output,
+)
 from hdrcap.pipeline.io import atomic_output
 from hdrcap.pipeline.merge import MergeResult, merge_arrays
 from hdrcap.pipeline.params import Calibration, SensorParams
 from hdrcap.pipeline.weighting import merge_weighted
 
-__all__ = ["EvalSetup", "evaluation_params", "make_setup", "TEN_X_READOUT", "ZERO_READOUT",
-           "simulate_bracket_arrays", "merge_method", "snr_experiment", "qq_experiment", "evaluation_cases",
-           "run_evaluation", "summarise", "BASELINES", "CURVES", "OPTIMAL_OPTIONS"]
+__all__ = [
+    "EvalSetup",
+    "evaluation_params",
+    "make_setup",
+    "TEN_X_READOUT",
+    "ZERO_READOUT",
+    "simulate_bracket_arrays",
+    "merge_method",
+    "snr_experiment",
+    "qq_experiment",
+    "evaluation_cases",
+    "run_evaluation",
+    "summarise",
+    "BASELINES",
+    "CURVES",
+    "OPTIMAL_OPTIONS",
+]
 
 #: The Table 1 baselines, in the paper's order.
-BASELINES = ("uniform", "mann-picard", "debevec-malik", "mitsunaga-nayar", "reinhard", "robertson", "tsin",
-             "kirk-andersen")
+BASELINES = (
+    "uniform",
+    "mann-picard",
+    "debevec-malik",
+    "mitsunaga-nayar",
+    "reinhard",
+    "robertson",
+    "tsin",
+    "kirk-andersen",
+)
 #: Curves of the SNR plots: the baselines, Eq. 13 at the observed value (one pass), and the
 #: maximum-likelihood merge of pipeline.merge ("optimal").
 CURVES = BASELINES + ("optimal@observed", "optimal-defaults", "optimal")
@@ -54,7 +84,7 @@ NOTES = {
     "snr_db": "-10 log10(mean ((estimate - X)/X)^2) over the photosites and repetitions of each bin",
     "efficiency": "mean(bound/X^2) / mean(((estimate - X)/X)^2); bound = 1/sum_i w_i(X), Eq. 12-13",
     "optimal": "maximum-likelihood merge of pipeline.merge (iterative Eq. 12-13), options "
-               + json.dumps(OPTIMAL_OPTIONS),
+    + json.dumps(OPTIMAL_OPTIONS),
     "optimal-defaults": "the same merge with its default options (near-saturation rule 3 sigma on)",
     "optimal@observed": "Eq. 13 evaluated at each sample's observed value, one pass",
     "zero readout": "sigma2_R = 1/12 DN^2 (quantisation only), no dark current",
@@ -146,9 +176,17 @@ def evaluation_params(spec: SensorSpec) -> SensorParams:
     return p.replace(v_sat=float(min(p.v_sat, spec.v_saturation - 5.0 * np.sqrt(p.sigma2_R))))
 
 
-def make_setup(spec: SensorSpec, shape: tuple[int, int] = (64, 256), seed: int = 0, decades: float = 4.0,
-               n_exp: int = 6, ratio: float = 4.0, t_max: float = 1.0, fill: float = 0.8,
-               params: SensorParams | None = None) -> EvalSetup:
+def make_setup(
+    spec: SensorSpec,
+    shape: tuple[int, int] = (64, 256),
+    seed: int = 0,
+    decades: float = 4.0,
+    n_exp: int = 6,
+    ratio: float = 4.0,
+    t_max: float = 1.0,
+    fill: float = 0.8,
+    params: SensorParams | None = None,
+) -> EvalSetup:
     """Build the experiment of the module docstring for sensor ``spec``.
 
     Parameters
@@ -181,9 +219,12 @@ def make_setup(spec: SensorSpec, shape: tuple[int, int] = (64, 256), seed: int =
     x_max = fill * (p.v_sat - p.mu_R) / (p.g * times[0])
     scene = make_scene("gradient", shape, decades=decades, x_max=x_max)
     sensor = SimulatedSensor(spec, shape, seed=seed)
-    calib = Calibration(params=p, prnu=sensor.prnu.astype(np.float32),
-                        dark_current_map=sensor.dark_current_map().astype(np.float32),
-                        provenance={"source": f"perfect calibration of simulated {spec.name}"})
+    calib = Calibration(
+        params=p,
+        prnu=sensor.prnu.astype(np.float32),
+        dark_current_map=sensor.dark_current_map().astype(np.float32),
+        provenance={"source": f"perfect calibration of simulated {spec.name}"},
+    )
     return EvalSetup(spec=spec, times=times, scene=scene, calibration=calib, sensor=sensor)
 
 
@@ -208,8 +249,14 @@ def simulate_bracket_arrays(setup: EvalSetup, rng: np.random.Generator) -> tuple
     return frames, darks
 
 
-def merge_method(name: str, frames: Sequence[np.ndarray], darks: Sequence[np.ndarray] | None,
-                 times: Sequence[float], calibration: Calibration, **options: Any) -> MergeResult:
+def merge_method(
+    name: str,
+    frames: Sequence[np.ndarray],
+    darks: Sequence[np.ndarray] | None,
+    times: Sequence[float],
+    calibration: Calibration,
+    **options: Any,
+) -> MergeResult:
     """Merge with curve ``name`` of :data:`CURVES`.
 
     ``optimal`` is the maximum-likelihood merge (:func:`pipeline.merge.merge_arrays` with
@@ -243,8 +290,9 @@ def merge_method(name: str, frames: Sequence[np.ndarray], darks: Sequence[np.nda
     return merge_weighted(frames, times, calibration, darks, method=method)
 
 
-def _monte_carlo(setup: EvalSetup, reps: int, seed: int, curves: Sequence[str],
-                 options: dict) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+def _monte_carlo(
+    setup: EvalSetup, reps: int, seed: int, curves: Sequence[str], options: dict
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Merge ``reps`` seeded brackets with every curve; the stacked estimates and merge seconds."""
     est: dict[str, list] = {c: [] for c in curves}
     seconds = {c: 0.0 for c in curves}
@@ -259,8 +307,15 @@ def _monte_carlo(setup: EvalSetup, reps: int, seed: int, curves: Sequence[str],
     return {c: np.stack(v) for c, v in est.items()}, seconds
 
 
-def snr_experiment(setup: EvalSetup, reps: int = 4, seed: int = 0, curves: Sequence[str] = CURVES,
-                   n_bins: int = 24, keep: bool = False, options: dict | None = None) -> dict:
+def snr_experiment(
+    setup: EvalSetup,
+    reps: int = 4,
+    seed: int = 0,
+    curves: Sequence[str] = CURVES,
+    n_bins: int = 24,
+    keep: bool = False,
+    options: dict | None = None,
+) -> dict:
     """Monte-Carlo SNR of every curve against the truth and the bound, per irradiance bin (Fig. 4).
 
     Parameters
@@ -300,10 +355,16 @@ def snr_experiment(setup: EvalSetup, reps: int = 4, seed: int = 0, curves: Seque
     mp = truth.size * reps / 1e6
     out = {
         "camera": setup.spec.name,
-        "g": p.g, "sigma2_R": p.sigma2_R, "v_sat": p.v_sat, "mu_R": p.mu_R, "dark_current": p.dark_current,
+        "g": p.g,
+        "sigma2_R": p.sigma2_R,
+        "v_sat": p.v_sat,
+        "mu_R": p.mu_R,
+        "dark_current": p.dark_current,
         "exposure_times": list(setup.times),
         "irradiance_range": [float(truth.min()), float(truth.max())],
-        "shape": list(truth.shape), "reps": reps, "seed": seed,
+        "shape": list(truth.shape),
+        "reps": reps,
+        "seed": seed,
         "samples_per_bin": None,
         "bins": edges.tolist(),
         "curves": {},
@@ -336,8 +397,9 @@ def _qq_levels(p: SensorParams) -> dict[str, float]:
     return {"noise_floor": max(3.0, sigma_r_e), "mid_range": 0.5 * e_max, "near_saturation": e_high}
 
 
-def qq_experiment(spec: SensorSpec, n_frames: int = 36, n_pixels: int = 400, seed: int = 0,
-                  levels_e: dict[str, float] | None = None) -> dict:
+def qq_experiment(
+    spec: SensorSpec, n_frames: int = 36, n_pixels: int = 400, seed: int = 0, levels_e: dict[str, float] | None = None
+) -> dict:
     """Normal Q-Q data of raw outputs at three levels (Fig. 6) and Shapiro-Wilk rejection rates.
 
     A flat field is exposed ``n_frames`` times; each photosite's ``n_frames`` outputs form one
@@ -374,8 +436,12 @@ def qq_experiment(spec: SensorSpec, n_frames: int = 36, n_pixels: int = 400, see
     for k, (name, e) in enumerate(levels_e.items()):
         rng = np.random.default_rng([seed, 77, k])
         s = np.stack([sensor.expose(e / t, t, rng=rng)[0].astype(np.float64) for _ in range(n_frames)], axis=1)
-        out["levels"][name] = {"electrons": float(e), "mean_dn": float(s.mean()),
-                               "qq": qq_data(s[0]), "test": gaussianity(s)}
+        out["levels"][name] = {
+            "electrons": float(e),
+            "mean_dn": float(s.mean()),
+            "qq": qq_data(s[0]),
+            "test": gaussianity(s),
+        }
     return out
 
 
@@ -396,8 +462,13 @@ def evaluation_cases() -> dict[str, SensorSpec]:
     }
 
 
-def run_evaluation(out: Path | None = None, quick: bool = False, seed: int = 0, force: bool = False,
-                   progress: Callable[[str], None] | None = None) -> dict:
+def run_evaluation(
+    out: Path | None = None,
+    quick: bool = False,
+    seed: int = 0,
+    force: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
     """Run Sec. 7 on camera-A and camera-B; with ``out``, write ``evaluation.json`` and the PNGs.
 
     Parameters
@@ -430,14 +501,19 @@ def run_evaluation(out: Path | None = None, quick: bool = False, seed: int = 0, 
     t_start = time.perf_counter()
     for label, spec in cases.items():
         say(f"SNR experiment: {label}")
-        results["snr"][label] = snr_experiment(make_setup(spec, shape=shape, seed=seed), reps=reps, seed=seed,
-                                               n_bins=n_bins)
+        results["snr"][label] = snr_experiment(
+            make_setup(spec, shape=shape, seed=seed), reps=reps, seed=seed, n_bins=n_bins
+        )
     say("weights against output value (Fig. 2)")
-    results["weights_vs_output"] = {label: weights_vs_output(evaluation_params(cases[label]), X=1000.0)
-                                    for label in ("camera-B", "camera-B zero readout", "camera-B 10x readout")}
+    results["weights_vs_output"] = {
+        label: weights_vs_output(evaluation_params(cases[label]), X=1000.0)
+        for label in ("camera-B", "camera-B zero readout", "camera-B 10x readout")
+    }
     say("Gaussian check (Fig. 6)")
-    results["qq"] = {label: qq_experiment(cases[label], seed=seed, n_pixels=n_pixels)
-                     for label in ("camera-B", "camera-B zero readout")}
+    results["qq"] = {
+        label: qq_experiment(cases[label], seed=seed, n_pixels=n_pixels)
+        for label in ("camera-B", "camera-B zero readout")
+    }
     results["summary"] = summarise(results)
     results["seconds"] = round(time.perf_counter() - t_start, 2)
     if out is not None:
@@ -476,8 +552,10 @@ def summarise(results: dict) -> dict:
         rows = {}
         for name, r in res["curves"].items():
             eff = [e for e in r["efficiency"] if e is not None]
-            row = {"mean_efficiency": float(np.mean(eff)) if eff else None,
-                   "min_efficiency": float(np.min(eff)) if eff else None}
+            row = {
+                "mean_efficiency": float(np.mean(eff)) if eff else None,
+                "min_efficiency": float(np.min(eff)) if eff else None,
+            }
             if opt is not None:
                 d = [a - b for a, b in zip(r["snr_db"], opt["snr_db"]) if a is not None and b is not None]
                 row["mean_snr_minus_optimal_db"] = float(np.mean(d)) if d else None

@@ -39,8 +39,15 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]
 FORMAT = "hdrcap-calibration"
 FORMAT_VERSION = 1
 
-_MAP_FIELDS = ("prnu", "prnu_stderr", "bias_map", "bias_map_stderr", "dark_current_map", "dark_current_map_stderr",
-               "saturation_map")
+_MAP_FIELDS = (
+    "prnu",
+    "prnu_stderr",
+    "bias_map",
+    "bias_map_stderr",
+    "dark_current_map",
+    "dark_current_map_stderr",
+    "saturation_map",
+)
 #: Maps stored with their own integer type instead of float32.
 _INT_MAPS = {"defect_map": np.uint8}
 
@@ -156,8 +163,9 @@ def _memmap_member(path: Path, zf: zipfile.ZipFile, name: str) -> np.ndarray | N
         local = fh.read(30)
         if len(local) != 30 or local[:4] != b"PK\x03\x04":
             return None
-        start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(
-            local[28:30], "little")
+        start = (
+            info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
+        )
         fh.seek(start)
         fmt = np.lib.format
         version = fmt.read_magic(fh)
@@ -176,8 +184,21 @@ def _memmap_member(path: Path, zf: zipfile.ZipFile, name: str) -> np.ndarray | N
 
 #: What zipfile, zlib and numpy raise for a damaged archive (a corrupt member name, CRC,
 #: compressed stream, npy header or JSON).
-_ARCHIVE_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError,
-                   RuntimeError, TypeError, OverflowError, struct.error, SyntaxError, tokenize.TokenError)
+_ARCHIVE_ERRORS = (
+    OSError,
+    ValueError,
+    KeyError,
+    EOFError,
+    zipfile.BadZipFile,
+    zlib.error,
+    NotImplementedError,
+    RuntimeError,
+    TypeError,
+    OverflowError,
+    struct.error,
+    SyntaxError,
+    tokenize.TokenError,
+)
 
 
 def _read_archive(path: Path) -> tuple[Any, dict[str, np.ndarray]]:
@@ -195,23 +216,30 @@ def _read_archive(path: Path) -> tuple[Any, dict[str, np.ndarray]]:
         raise
     except _ARCHIVE_ERRORS as err:
         detail = str(err).splitlines()[0][:200] if str(err) else ""
-        raise InputError(f"{path}: not a readable hdrcap calibration file ({type(err).__name__}"
-                         f"{': ' + detail if detail else ''})") from None
+        raise InputError(
+            f"{path}: not a readable hdrcap calibration file ({type(err).__name__}{': ' + detail if detail else ''})"
+        ) from None
     return meta, maps
 
 
 def _check_metadata(path: Path, meta: Any) -> tuple[int, ...] | None:
     """Refuse metadata of the wrong format, version or types; return the recorded map shape."""
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise InputError(f"{path}: not an hdrcap calibration file (format {meta.get('format')!r})"
-                         if isinstance(meta, dict) else f"{path}: not an hdrcap calibration file")
+        raise InputError(
+            f"{path}: not an hdrcap calibration file (format {meta.get('format')!r})"
+            if isinstance(meta, dict)
+            else f"{path}: not an hdrcap calibration file"
+        )
     version = meta.get("version")
     if not isinstance(version, int) or version < 1 or version > FORMAT_VERSION:
-        raise InputError(f"{path}: calibration format version {version!r} is not supported "
-                         f"(this hdrcap reads versions 1..{FORMAT_VERSION})")
+        raise InputError(
+            f"{path}: calibration format version {version!r} is not supported "
+            f"(this hdrcap reads versions 1..{FORMAT_VERSION})"
+        )
     shape = meta.get("shape")
-    if shape is not None and not (isinstance(shape, list) and len(shape) == 2
-                                  and all(type(n) is int and n > 0 for n in shape)):
+    if shape is not None and not (
+        isinstance(shape, list) and len(shape) == 2 and all(type(n) is int and n > 0 for n in shape)
+    ):
         raise InputError(f"{path}: bad map shape {shape!r} in the metadata")
     for key in ("params", "stderr", "provenance"):
         if meta.get(key) is not None and not isinstance(meta[key], dict):
@@ -219,8 +247,9 @@ def _check_metadata(path: Path, meta: Any) -> tuple[int, ...] | None:
     stderr = meta.get("stderr") or {}
     if not all(v is None or (type(v) in (int, float) and math.isfinite(v) and v >= 0) for v in stderr.values()):
         raise InputError(f"{path}: standard errors must be finite numbers >= 0")
-    if meta.get("maps") is not None and not (isinstance(meta["maps"], list)
-                                             and all(isinstance(m, str) for m in meta["maps"])):
+    if meta.get("maps") is not None and not (
+        isinstance(meta["maps"], list) and all(isinstance(m, str) for m in meta["maps"])
+    ):
         raise InputError(f"{path}: metadata entry 'maps' is not a list of map names")
     if meta.get("dark_library") is not None and not isinstance(meta["dark_library"], str):
         raise InputError(f"{path}: dark_library must be a folder name")
@@ -240,8 +269,10 @@ def _check_params(path: Path, raw: Any) -> SensorParams:
     except (TypeError, ValueError) as err:
         raise InputError(f"{path}: bad camera parameters ({err})") from None
     if not params.mu_R < params.v_sat <= params.white_level:
-        raise InputError(f"{path}: bad camera parameters (need bias level {params.mu_R:g} < saturation limit "
-                         f"{params.v_sat:g} <= white level {params.white_level:g} DN)")
+        raise InputError(
+            f"{path}: bad camera parameters (need bias level {params.mu_R:g} < saturation limit "
+            f"{params.v_sat:g} <= white level {params.white_level:g} DN)"
+        )
     return params
 
 

@@ -76,12 +76,14 @@ def _split_times(groups: Mapping[str, list], times: Sequence[float] | None) -> d
     """One exposure time per frame, in the order bias, saturation, flat, dark, split by kind."""
     total = sum(len(v) for v in groups.values())
     if times and len(times) != total:
-        raise InputError(f"--times gives {len(times)} exposure times for {total} frames "
-                         "(one per frame, in the order bias, saturation, flat, dark)")
+        raise InputError(
+            f"--times gives {len(times)} exposure times for {total} frames "
+            "(one per frame, in the order bias, saturation, flat, dark)"
+        )
     tl = list(times) if times else None
     split, i = {}, 0
     for what, paths in groups.items():
-        split[what] = tl[i:i + len(paths)] if tl else None
+        split[what] = tl[i : i + len(paths)] if tl else None
         i += len(paths)
     return split
 
@@ -93,19 +95,34 @@ def _dark_library_sink(folder: PathLike, meta: Mapping[str, Any], provenance: Ma
     lib = DarkLibrary(folder)
 
     def sink(master: MasterDark) -> None:
-        lib.add(master.data, master.n_frames, camera=str(meta.get("camera") or provenance.get("camera") or "unknown"),
-                iso=meta.get("iso"), exposure_time=master.exposure_time,
-                temperature=provenance.get("temperature"), force=force,
-                created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+        lib.add(
+            master.data,
+            master.n_frames,
+            camera=str(meta.get("camera") or provenance.get("camera") or "unknown"),
+            iso=meta.get("iso"),
+            exposure_time=master.exposure_time,
+            temperature=provenance.get("temperature"),
+            force=force,
+            created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        )
 
     return sink
 
 
-def calibrate_files(bias: Sequence[PathLike], saturation: Sequence[PathLike] = (), flats: Sequence[PathLike] = (),
-                    darks: Sequence[PathLike] = (), times: Sequence[float] | None = None, *,
-                    clip: float | None = DEFAULT_CLIP, gain_method: str = "auto", white_level: float | None = None,
-                    provenance: Mapping[str, Any] | None = None, dark_library: PathLike | None = None,
-                    force: bool = False) -> Calibration:
+def calibrate_files(
+    bias: Sequence[PathLike],
+    saturation: Sequence[PathLike] = (),
+    flats: Sequence[PathLike] = (),
+    darks: Sequence[PathLike] = (),
+    times: Sequence[float] | None = None,
+    *,
+    clip: float | None = DEFAULT_CLIP,
+    gain_method: str = "auto",
+    white_level: float | None = None,
+    provenance: Mapping[str, Any] | None = None,
+    dark_library: PathLike | None = None,
+    force: bool = False,
+) -> Calibration:
     """Calibrate from frame files (:func:`~hdrcap.pipeline.calibration.calibrate` on files).
 
     Parameters
@@ -154,10 +171,20 @@ def calibrate_files(bias: Sequence[PathLike], saturation: Sequence[PathLike] = (
     sink = None if dark_library is None else _dark_library_sink(dark_library, meta, provenance, force)
     if lazy["bias"] is None:
         raise InputError("no bias frames given (--bias)")
-    calib = calibrate(lazy["bias"], lazy["saturation"], lazy["flat"], lazy["dark"], clip=clip,
-                      gain_method=gain_method, white_level=white_level, dark_sink=sink, provenance=provenance)
-    calib = with_file_metadata(calib, meta, white_level,
-                               dark_library=None if dark_library is None else str(dark_library))
+    calib = calibrate(
+        lazy["bias"],
+        lazy["saturation"],
+        lazy["flat"],
+        lazy["dark"],
+        clip=clip,
+        gain_method=gain_method,
+        white_level=white_level,
+        dark_sink=sink,
+        provenance=provenance,
+    )
+    calib = with_file_metadata(
+        calib, meta, white_level, dark_library=None if dark_library is None else str(dark_library)
+    )
     prov = dict(calib.provenance)
     prov["files"] = {w: [str(p) for p in v] for w, v in groups.items() if v}
     return calib.replace(provenance=prov)

@@ -106,8 +106,9 @@ def _check_levels(means: list[tuple[float, float, str]]) -> None:
     low = float(np.min(levels))
     for m, _s, name in means:
         if m - low > max(2.0, 0.5 * spread):
-            raise InputError(f"{name}: bias frame with signal? its mean {m:.2f} DN lies above the "
-                             f"darkest bias frame ({low:.2f} DN)")
+            raise InputError(
+                f"{name}: bias frame with signal? its mean {m:.2f} DN lies above the darkest bias frame ({low:.2f} DN)"
+            )
 
 
 def _from_pairs(mean_map: np.ndarray, pairs: list[PairStats], n: int, clip: float | None):
@@ -134,8 +135,9 @@ def _from_one_frame(frame: np.ndarray, clip: float | None):
     return mu, float(np.sqrt(sigma2 / P)), sigma2, sigma2_se, "spatial", float("nan"), None
 
 
-def estimate_readout(frames: Iterable, clip: float | None = DEFAULT_CLIP,
-                     white_level: float | None = None) -> ReadoutEstimate:
+def estimate_readout(
+    frames: Iterable, clip: float | None = DEFAULT_CLIP, white_level: float | None = None
+) -> ReadoutEstimate:
     """mu_R, sigma2_R and the offset map from bias frames (zero or shortest exposure).
 
     sigma2_R is half the clipped variance of the difference of consecutive pairs (frames 1-2,
@@ -175,5 +177,4 @@ def estimate_readout(frames: Iterable, clip: float | None = DEFAULT_CLIP,
     else:
         est = _from_one_frame(mean_map, clip)
     mu, mu_se, sigma2, sigma2_se, method, dsnu, bias_map = est
-    return ReadoutEstimate(float(mu), mu_se, sigma2, sigma2_se, bias_map, method, n, float(series.exposure_time),
-                           dsnu)
+    return ReadoutEstimate(float(mu), mu_se, sigma2, sigma2_se, bias_map, method, n, float(series.exposure_time), dsnu)

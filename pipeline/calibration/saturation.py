@@ -25,8 +25,9 @@ def _pooled_limit(ms: list[float], vs: list[float], ns: list[int], n_sigma: floa
     return mean - n_sigma * std, float(max(se, 1e-12)), mean, std
 
 
-def estimate_saturation(frames: Iterable, clip: float | None = DEFAULT_CLIP, n_sigma: float = 3.0
-                        ) -> tuple[float, float, float, float, int, np.ndarray | None]:
+def estimate_saturation(
+    frames: Iterable, clip: float | None = DEFAULT_CLIP, n_sigma: float = 3.0
+) -> tuple[float, float, float, float, int, np.ndarray | None]:
     """Saturation limit v_sat = mean - 3 std of saturation frames (Sec. 6), DN.
 
     With several frames the clipped spatial means and variances are pooled; the standard

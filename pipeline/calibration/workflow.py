@@ -60,13 +60,19 @@ def _readout_step(bias: Iterable, clip: float | None, white_level: float | None,
     ro = estimate_readout(bias, clip, white_level)
     rec.counts["bias"] = ro.n_frames
     rec.stderr.update(mu_R=ro.mu_R_stderr, sigma2_R=ro.sigma2_R_stderr)
-    rec.info.update(sigma2_R_method=ro.method, bias_exposure_time=ro.exposure_time, bias_dsnu_DN=ro.dsnu,
-                    clip_sigma=clip)
+    rec.info.update(
+        sigma2_R_method=ro.method, bias_exposure_time=ro.exposure_time, bias_dsnu_DN=ro.dsnu, clip_sigma=clip
+    )
     return ro
 
 
-def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
-               dark_sink: Callable[[MasterDark], Any] | None, rec: _Record) -> tuple[DarkFit | None, DarkSeries | None]:
+def _dark_step(
+    darks: Iterable | None,
+    ro: ReadoutEstimate,
+    clip: float | None,
+    dark_sink: Callable[[MasterDark], Any] | None,
+    rec: _Record,
+) -> tuple[DarkFit | None, DarkSeries | None]:
     """Master darks per exposure time (each handed to ``dark_sink``), then the dark-current
     fit and the series (for the per-photosite maps) when it has >= 6 exposure times."""
     if darks is None:
@@ -86,13 +92,16 @@ def _dark_step(darks: Iterable | None, ro: ReadoutEstimate, clip: float | None,
     if series.n_times() >= 6:
         return series.fit(), series
     if dark_sink is None:
-        raise InputError(f"dark current needs dark frames at >= 6 exposure times, got {len(series.times)} "
-                         "(or give a dark library to store master darks only)")
+        raise InputError(
+            f"dark current needs dark frames at >= 6 exposure times, got {len(series.times)} "
+            "(or give a dark library to store master darks only)"
+        )
     return None, None
 
 
-def _saturation_step(saturation: Iterable | None, white_level: float | None, ro: ReadoutEstimate,
-                     clip: float | None, rec: _Record) -> tuple[float, np.ndarray | None]:
+def _saturation_step(
+    saturation: Iterable | None, white_level: float | None, ro: ReadoutEstimate, clip: float | None, rec: _Record
+) -> tuple[float, np.ndarray | None]:
     """v_sat (DN) from saturation frames (Sec. 6) or, without any, the white level."""
     sat_map = None
     if saturation is not None:
@@ -108,13 +117,21 @@ def _saturation_step(saturation: Iterable | None, white_level: float | None, ro:
         rec.stderr["v_sat"] = 0.0
         rec.info["v_sat_method"] = "white level (no saturation frame given)"
     if v_sat <= ro.mu_R:
-        raise InputError(f"saturation limit {v_sat:.1f} DN is not above the bias level {ro.mu_R:.1f} DN; "
-                         "is the saturation frame a dark or bias frame?")
+        raise InputError(
+            f"saturation limit {v_sat:.1f} DN is not above the bias level {ro.mu_R:.1f} DN; "
+            "is the saturation frame a dark or bias frame?"
+        )
     return v_sat, sat_map
 
 
-def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: float | None,
-               dark_slope_map: np.ndarray | None, rec: _Record) -> tuple[FlatResult, np.ndarray | None]:
+def _flat_step(
+    flats: Iterable | None,
+    ro: ReadoutEstimate,
+    v_sat: float,
+    clip: float | None,
+    dark_slope_map: np.ndarray | None,
+    rec: _Record,
+) -> tuple[FlatResult, np.ndarray | None]:
     """The PRNU map (Eq. 14) and the flat pairs; the a_j error map includes the offset map's
     own noise (sigma2_R / n_bias, common to every flat)."""
     if flats is None:
@@ -132,12 +149,16 @@ def _flat_step(flats: Iterable | None, ro: ReadoutEstimate, v_sat: float, clip: 
     return fl, prnu_stderr
 
 
-def _response_defect_step(fl: FlatResult, prnu_stderr: np.ndarray | None, ro: ReadoutEstimate,
-                          ) -> tuple[FlatResult, np.ndarray | None, np.ndarray]:
+def _response_defect_step(
+    fl: FlatResult,
+    prnu_stderr: np.ndarray | None,
+    ro: ReadoutEstimate,
+) -> tuple[FlatResult, np.ndarray | None, np.ndarray]:
     """Dead, weak and stuck photosites (:mod:`.defects`); dead and stuck ones get a_j = 1 and
     the PRNU map and spread are taken over the normal photosites."""
-    defects = response_defects(fl.prnu, prnu_stderr, fl.prnu_std, ro.bias_map, ro.mu_R, ro.sigma2_R, ro.n_frames,
-                               ro.dsnu)
+    defects = response_defects(
+        fl.prnu, prnu_stderr, fl.prnu_std, ro.bias_map, ro.mu_R, ro.sigma2_R, ro.n_frames, ro.dsnu
+    )
     prnu, prnu_stderr, prnu_std = neutral_prnu(fl.prnu, prnu_stderr, defects)
     return dataclasses.replace(fl, prnu=prnu, prnu_std=prnu_std), prnu_stderr, defects
 
@@ -146,8 +167,11 @@ def _hot_defect_step(defects: np.ndarray, dmap: DarkCurrentMap | None, rec: _Rec
     """Add the hot photosites (with a dark series) to the defect map; record the counts."""
     if dmap is not None:
         defects[hot_defects(dmap.raw, dmap.raw_stderr, dmap.prior_mean, dmap.prior_sd)] |= DEFECT_BITS["hot"]
-    rec.info["defects"] = {"counts": defect_counts(defects), "hot_measured": dmap is not None,
-                           "thresholds": dataclasses.asdict(DefectThresholds())}
+    rec.info["defects"] = {
+        "counts": defect_counts(defects),
+        "hot_measured": dmap is not None,
+        "thresholds": dataclasses.asdict(DefectThresholds()),
+    }
     return defects
 
 
@@ -158,8 +182,9 @@ def _bias_stderr_map(ro: ReadoutEstimate) -> np.ndarray | None:
     return np.full(ro.bias_map.shape, np.sqrt(ro.sigma2_R / ro.n_frames), np.float32)
 
 
-def _ptc_points(pairs: list, ro: ReadoutEstimate, dark_fit: DarkFit | None,
-                dark_var: DarkVariance | None) -> tuple[np.ndarray, np.ndarray, float, str]:
+def _ptc_points(
+    pairs: list, ro: ReadoutEstimate, dark_fit: DarkFit | None, dark_var: DarkVariance | None
+) -> tuple[np.ndarray, np.ndarray, float, str]:
     """Photon-transfer points of the flat pairs (EMVA 1288): mean above dark (DN) and variance
     above the dark temporal variance (DN^2), both at each pair's exposure time.
 
@@ -178,13 +203,22 @@ def _ptc_points(pairs: list, ro: ReadoutEstimate, dark_fit: DarkFit | None,
     x = x - dark_fit.slope * times
     y = np.array([p.variance - dark_var.at(p.exposure_time)[0] for p in pairs])
     common = dark_var.at(float(np.mean(times)))[1]
-    how = (f"dark mean (fit) and dark temporal variance ({dark_var.n_pairs} dark pairs, "
-           f"{dark_var.slope:.4g} DN^2/s) subtracted at each pair's exposure time")
+    how = (
+        f"dark mean (fit) and dark temporal variance ({dark_var.n_pairs} dark pairs, "
+        f"{dark_var.slope:.4g} DN^2/s) subtracted at each pair's exposure time"
+    )
     return x, y, common, how
 
 
-def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: DarkFit | None, gain_method: str,
-               fit_fraction: float, rec: _Record) -> tuple[float, float]:
+def _gain_step(
+    fl: FlatResult,
+    ro: ReadoutEstimate,
+    v_sat: float,
+    dark_fit: DarkFit | None,
+    gain_method: str,
+    fit_fraction: float,
+    rec: _Record,
+) -> tuple[float, float]:
     """g and its standard error, DN per electron: the Eq. 16 average over every usable flat
     pair, whatever its level (with the Eq. 17 factor k from the flats' dark/light signal
     ratio), and the photon-transfer regression over the levels within ``fit_fraction`` of
@@ -205,8 +239,10 @@ def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: Dark
     if n_levels >= 3:
         ptc = photon_transfer_gain(x, y, sat_span, fit_fraction, var_se, common_se)
     if gain_method == "ptc" and ptc is None:
-        raise InputError(f"the photon-transfer regression needs flat pairs at >= 3 levels within "
-                         f"{fit_fraction:.0%} of saturation; got {n_levels}")
+        raise InputError(
+            f"the photon-transfer regression needs flat pairs at >= 3 levels within "
+            f"{fit_fraction:.0%} of saturation; got {n_levels}"
+        )
     if g_pairs is None:
         raise InputError(f"no usable flat pair for the gain (Eq. 16): {pair_log[0]['reason']}")
     if gain_method == "ptc" or (gain_method == "auto" and ptc is not None):
@@ -226,8 +262,7 @@ def _gain_step(fl: FlatResult, ro: ReadoutEstimate, v_sat: float, dark_fit: Dark
     rec.info["flat_frames"] = fl.frames
     rec.info["flat_pairs_skipped"] = fl.skipped_pairs
     rec.info["prnu_never_measured"] = fl.n_never_measured
-    rec.info.setdefault("warnings", []).extend(
-        nonlinearity_warnings(x, y, np.hypot(var_se, common_se), g, sat_span))
+    rec.info.setdefault("warnings", []).extend(nonlinearity_warnings(x, y, np.hypot(var_se, common_se), g, sat_span))
     rec.info["flat_levels"] = [{"t": t, "level": lv, "file": nm} for t, lv, nm in fl.levels]
     rec.info["prnu_frames"] = fl.n_prnu_frames
     rec.info["prnu_rejected_samples"] = fl.n_rejected
@@ -238,31 +273,54 @@ def _ptc_info(ptc: PhotonTransferFit | None, x: np.ndarray, y: np.ndarray, sat_s
     """The photon-transfer points for the report (the fit's when there is one)."""
     if ptc is None:
         return {"means": x.tolist(), "variances": y.tolist(), "used": [False] * len(x), "saturation": sat_span}
-    return {"g": ptc.g, "g_stderr": ptc.g_stderr, "means": ptc.means.tolist(), "variances": ptc.variances.tolist(),
-            "used": ptc.used.tolist(), "saturation": ptc.saturation}
+    return {
+        "g": ptc.g,
+        "g_stderr": ptc.g_stderr,
+        "means": ptc.means.tolist(),
+        "variances": ptc.variances.tolist(),
+        "used": ptc.used.tolist(),
+        "saturation": ptc.saturation,
+    }
 
 
-def _dark_current_step(dark_fit: DarkFit | None, series: DarkSeries | None, g: float, g_se: float,
-                       sigma2_R: float, rec: _Record) -> tuple[float, Any]:
+def _dark_current_step(
+    dark_fit: DarkFit | None, series: DarkSeries | None, g: float, g_se: float, sigma2_R: float, rec: _Record
+) -> tuple[float, Any]:
     """D in electrons per second (clipped at 0) and the per-photosite map with its standard
     error, shrunk toward D (:func:`~.dark.shrink_dark_current_map`), from the DN/s fit."""
     if dark_fit is None:
         return 0.0, None
     D = max(dark_fit.slope / g, 0.0)
     rec.stderr["dark_current"] = float(np.hypot(dark_fit.slope_stderr / g, D * g_se / g))
-    rec.info["dark_fit"] = {"slope_DN_per_s": dark_fit.slope, "slope_stderr": dark_fit.slope_stderr,
-                            "intercept_DN": dark_fit.intercept, "D_raw_e_per_s": dark_fit.slope / g}
+    rec.info["dark_fit"] = {
+        "slope_DN_per_s": dark_fit.slope,
+        "slope_stderr": dark_fit.slope_stderr,
+        "intercept_DN": dark_fit.intercept,
+        "D_raw_e_per_s": dark_fit.slope / g,
+    }
     dmap = shrink_dark_current_map(series, g, sigma2_R, D, rec.stderr["dark_current"])
-    rec.info["dark_map"] = {"prior_sd_e_per_s": dmap.prior_sd, "outlier_fraction": dmap.outlier_fraction,
-                            "chi2": dmap.chi2, "raw_negative_fraction": float(np.mean(dmap.raw < 0))}
+    rec.info["dark_map"] = {
+        "prior_sd_e_per_s": dmap.prior_sd,
+        "outlier_fraction": dmap.outlier_fraction,
+        "chi2": dmap.chi2,
+        "raw_negative_fraction": float(np.mean(dmap.raw < 0)),
+    }
     return D, dmap
 
 
-def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterable | None = None,
-              darks: Iterable | None = None, *, clip: float | None = DEFAULT_CLIP, gain_method: str = "auto",
-              white_level: float | None = None, fit_fraction: float = 0.7,
-              dark_sink: Callable[[MasterDark], Any] | None = None,
-              provenance: Mapping[str, Any] | None = None) -> Calibration:
+def calibrate(
+    bias: Iterable,
+    saturation: Iterable | None = None,
+    flats: Iterable | None = None,
+    darks: Iterable | None = None,
+    *,
+    clip: float | None = DEFAULT_CLIP,
+    gain_method: str = "auto",
+    white_level: float | None = None,
+    fit_fraction: float = 0.7,
+    dark_sink: Callable[[MasterDark], Any] | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> Calibration:
     """Full Sec. 6 calibration from streamed frames.
 
     Order: bias (mu_R, sigma2_R, offset map) -> darks (master darks, dark current) ->
@@ -321,23 +379,38 @@ def calibrate(bias: Iterable, saturation: Iterable | None = None, flats: Iterabl
         rec.stderr["prnu_std"] = float(fl.prnu_std / np.sqrt(2 * fl.prnu.size)) if fl.prnu_std > 0 else 0.0
     prov: dict[str, Any] = dict(provenance or {})
     wl = float(white_level) if white_level is not None else float(max(v_sat, 1.0))
-    params = SensorParams(g=float(g), mu_R=float(ro.mu_R), sigma2_R=float(ro.sigma2_R), v_sat=float(v_sat),
-                          white_level=max(wl, float(v_sat)), dark_current=float(D),
-                          name=str(prov.get("camera", "") or ""))
-    prov.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    params = SensorParams(
+        g=float(g),
+        mu_R=float(ro.mu_R),
+        sigma2_R=float(ro.sigma2_R),
+        v_sat=float(v_sat),
+        white_level=max(wl, float(v_sat)),
+        dark_current=float(D),
+        name=str(prov.get("camera", "") or ""),
+    )
+    prov.setdefault("created", _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"))
     prov["frame_counts"] = rec.counts
     prov["n_frames"] = int(sum(rec.counts.values()))
     prov["prnu_std"] = fl.prnu_std
     prov["calibration"] = rec.info
-    return Calibration(params=params, prnu=fl.prnu, bias_map=ro.bias_map,
-                       dark_current_map=None if dmap is None else dmap.rate,
-                       stderr={k: float(v) for k, v in rec.stderr.items()}, provenance=prov,
-                       prnu_stderr=prnu_stderr, saturation_map=sat_map, bias_map_stderr=_bias_stderr_map(ro),
-                       dark_current_map_stderr=None if dmap is None else dmap.stderr, defect_map=defects)
+    return Calibration(
+        params=params,
+        prnu=fl.prnu,
+        bias_map=ro.bias_map,
+        dark_current_map=None if dmap is None else dmap.rate,
+        stderr={k: float(v) for k, v in rec.stderr.items()},
+        provenance=prov,
+        prnu_stderr=prnu_stderr,
+        saturation_map=sat_map,
+        bias_map_stderr=_bias_stderr_map(ro),
+        dark_current_map_stderr=None if dmap is None else dmap.stderr,
+        defect_map=defects,
+    )
 
 
-def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None,
-                       **changes: Any) -> Calibration:
+def with_file_metadata(
+    calib: Calibration, meta: Mapping[str, Any], white_level: float | None = None, **changes: Any
+) -> Calibration:
     """Complete a calibration with what the frame files said.
 
     Copies the camera model, ISO and capture timestamps the files recorded into the
@@ -373,9 +446,14 @@ def with_file_metadata(calib: Calibration, meta: Mapping[str, Any], white_level:
     return calib.replace(provenance=prov, params=params, **changes)
 
 
-def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | None = None,
-                        seconds: float | None = None, emva: Any = None,
-                        report: Sequence[str | os.PathLike[str]] = ()) -> dict[str, Any]:
+def calibration_summary(
+    calib: Calibration,
+    *,
+    output: str | os.PathLike[str] | None = None,
+    seconds: float | None = None,
+    emva: Any = None,
+    report: Sequence[str | os.PathLike[str]] = (),
+) -> dict[str, Any]:
     """The summary printed by ``hdrcap calibrate`` (one JSON line with ``--json``).
 
     Parameters
@@ -406,12 +484,17 @@ def calibration_summary(calib: Calibration, *, output: str | os.PathLike[str] | 
     if prnu_std is None and calib.prnu is not None:
         prnu_std = float(np.std(calib.prnu))
     summary = {
-        "g": p.g, "g_stderr": se.get("g"),
-        "mu_R": p.mu_R, "mu_R_stderr": se.get("mu_R"),
-        "sigma2_R": p.sigma2_R, "sigma2_R_stderr": se.get("sigma2_R"),
-        "v_sat": p.v_sat, "v_sat_stderr": se.get("v_sat"),
+        "g": p.g,
+        "g_stderr": se.get("g"),
+        "mu_R": p.mu_R,
+        "mu_R_stderr": se.get("mu_R"),
+        "sigma2_R": p.sigma2_R,
+        "sigma2_R_stderr": se.get("sigma2_R"),
+        "v_sat": p.v_sat,
+        "v_sat_stderr": se.get("v_sat"),
         "prnu_std": prnu_std,
-        "dark_current": p.dark_current, "dark_current_stderr": se.get("dark_current"),
+        "dark_current": p.dark_current,
+        "dark_current_stderr": se.get("dark_current"),
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
         "defects": prov.get("calibration", {}).get("defects", {}).get("counts"),
@@ -442,10 +525,13 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     str
     """
     s = summary
-    return (f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
-            f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
-            f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %" + _defect_text(s)
-            + "".join(f"\nwarning: {w}" for w in s.get("warnings") or ()))
+    return (
+        f"g = {s['g']:.5g} ± {s['g_stderr']:.2g} DN/e-  mu_R = {s['mu_R']:.4g} DN  "
+        f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
+        f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %"
+        + _defect_text(s)
+        + "".join(f"\nwarning: {w}" for w in s.get("warnings") or ())
+    )
 
 
 def _defect_text(summary: Mapping[str, Any]) -> str:
