@@ -77,7 +77,7 @@ def run_demo(
         f"({res['elapsed_s']:.1f} s)",
         f"merge: {m.info.get('method', 'ML')}, dark strategy {m.info.get('dark_strategy', 'matched')}, "
         f"{'streamed as frames landed' if res['streamed_merge'] else 'merged after the last frame'}",
-        f"output: {out / 'demo.exr'} (irradiance, sigma, nexp), preview {out / 'demo.png'}",
+        f"output: {out / 'demo.exr'} (irradiance, sigma, sigma_calibration, nexp, quality), preview {out / 'demo.png'}",
         "error against the simulator's ground truth (photosites with an unsaturated exposure):",
         f"  median |relative error|   {err['median_abs_relative_error']:.4%}",
         f"  z = (estimate - truth)/sigma: mean {err['z_mean']:+.3f}, std {err['z_std']:.3f} (1 = honest sigma)",

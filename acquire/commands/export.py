@@ -23,7 +23,7 @@ import click
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 def command(archive, run, output, exr_compression, force):
     """Write run RUN of the zarr ARCHIVE (from `hdrcap batch`) as an EXR: the channels
-    irradiance, sigma, nexp and the header attributes `hdrcap merge` writes for that run."""
+    the channels and header attributes `hdrcap merge` writes for that run."""
     from hdrcap.acquire.archive import read_run
     from hdrcap.pipeline.errors import InputError
     from hdrcap.pipeline.io import write_exr
