@@ -145,6 +145,7 @@ def resolve_merge_calibration(
     warn=None,
     temperature: float | None = None,
     say=None,
+    exposure_times: str = "effective",
 ):
     """The camera model of a merge: a calibration file or preset when given, else the
     calibration library's entry for the frames' camera model, ISO and size
@@ -160,13 +161,16 @@ def resolve_merge_calibration(
     times : sequence of float, optional
         Exposure times (s) overriding the files'.
     darks : bool
-        Dark frames are given: they are matched to the frames by nominal exposure time, so the
-        merge keeps the nominal times where an effective one differs by more than the matching
-        tolerance (and says so).
+        Dark frames are given: they are matched to the frames by nominal exposure time, so a
+        self-calibration hands the merge the nominal times where an effective one differs by more
+        than the matching tolerance (the merge then estimates the effective times itself, after
+        matching the dark frames, and says so).
     warn : callable, optional
         Called with one-line messages on what was assumed.
     say : callable, optional
         Called with one line saying which calibration is used when none was given.
+    exposure_times : {"effective", "nominal"}
+        ``nominal``: a self-calibration hands the merge the nominal times, not its effective ones.
 
     Returns
     -------
@@ -194,12 +198,13 @@ def resolve_merge_calibration(
             f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
             f"{sc.calibration.provenance['source']}"
         )
-    use = list(sc.effective_times)
+    if exposure_times == "nominal":
+        return sc.calibration, list(sc.nominal_times), sc
     if darks and not all(same_exposure(a, b) for a, b in zip(sc.effective_times, sc.nominal_times)):
         if warn is not None:
             warn(
                 "effective exposure times differ from the nominal ones, but dark frames are matched by nominal "
-                "time: the merge uses the nominal times"
+                "time: the merge estimates the effective times itself after matching them"
             )
-        use = list(sc.nominal_times)
-    return sc.calibration, use, sc
+        return sc.calibration, list(sc.nominal_times), sc
+    return sc.calibration, list(sc.effective_times), sc

@@ -92,6 +92,24 @@ def test_merge_without_calibration_14bit_against_truth(tmp_path, cli):
             assert abs(np.median(z[sel])) < 0.5, (e, np.median(z[sel]))
 
 
+def test_self_calibrated_merge_applies_the_times_asked_for_once(tmp_path, cli):
+    """The self-calibration's effective times are the ones merged (the merge does not estimate
+    them a second time), and --exposure-times nominal merges the nominal times."""
+    files, X, sensor = bracket(tmp_path, spec14(shutter_error=0.03), (192, 256), seed=3)
+    eff = tmp_path / "eff.exr"
+    cli("merge", *files, "-o", eff, check=True)
+    img = read_exr(eff)
+    sc = img.attrs["self_calibration"]
+    assert sc["merged_with"] == "effective exposure times"
+    assert img.attrs["exposure_times_effective"] == sc["effective_exposure_times"]
+    assert max(abs(a / b - 1) for a, b in zip(sc["effective_exposure_times"], TIMES)) > 1e-3  # shutter errors seen
+    nom = tmp_path / "nom.exr"
+    cli("merge", *files, "-o", nom, "--exposure-times", "nominal", check=True)
+    img = read_exr(nom)
+    assert img.attrs["self_calibration"]["merged_with"] == "nominal exposure times"
+    np.testing.assert_allclose(img.attrs["exposure_times_effective"], TIMES, rtol=1e-9)
+
+
 def test_shutter_errors_give_effective_times(tmp_path):
     """Shutter errors of +-3 % per nominal time are found from the pairs: the estimated ratios
     match the true ones within 3 standard errors and 0.2 %."""

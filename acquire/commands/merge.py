@@ -219,7 +219,11 @@ def command(
         darks=bool(darks),
         warn=warn,
         say=lambda m: click.echo(m, err=True),
+        exposure_times=exposure_times,
     )
+    merge_times = exposure_times
+    if selfcal is not None and times == list(selfcal.effective_times):
+        merge_times = "nominal"  # the self-calibration's pairs gave the effective times: not estimated twice
     if selfcal is not None:
         click.echo(f"  {_selfcal_summary(selfcal)}", err=True)
     lib_root = library_root(calib, calibration)
@@ -231,7 +235,7 @@ def command(
     if weighting != "optimal" and weighting not in WEIGHTING_METHODS:
         raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(WEIGHTING_METHODS)}")
     options = merge_options(
-        iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, exposure_times
+        iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, merge_times
     )
     done = merge_files(
         frames,
@@ -254,7 +258,7 @@ def command(
     if selfcal is not None:
         from hdrcap.pipeline.selfcal import apply_self_calibration
 
-        apply_self_calibration(image, selfcal, times_applied=list(times) == list(selfcal.effective_times))
+        apply_self_calibration(image, selfcal, times_applied=exposure_times == "effective")
     if out_format == "dng":
         from hdrcap.pipeline.dngwrite import write_float_dng
 
