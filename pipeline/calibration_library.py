@@ -18,6 +18,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from .camera_types import same_model
 from .errors import InputError
 from .params import Calibration
 
@@ -50,8 +51,10 @@ def library_dir() -> Path:
 
 
 def normalise_model(name: str | None) -> str:
-    """A camera model as a key: lower case, runs of anything but letters and digits as one
-    ``-`` (``"Canon EOS 5D Mark II"`` -> ``"canon-eos-5d-mark-ii"``).
+    """A camera model as a file-name key: lower case, runs of anything but letters and digits as
+    one ``-`` (``"Canon EOS 5D Mark II"`` -> ``"canon-eos-5d-mark-ii"``). Entries are matched to
+    frames by :func:`pipeline.camera_types.same_model`, the one model rule (libgphoto2's and
+    EXIF's spellings of one camera match), not by this key.
 
     Parameters
     ----------
@@ -212,7 +215,11 @@ def find_calibration(
     if not model or iso is None:
         return None
     ser = normalise_model(serial) or None
-    cands = [e for e in library_entries() if e.model == model and abs(e.iso - float(iso)) <= 0.01 * float(iso)]
+    cands = [
+        e
+        for e in library_entries()
+        if same_model(e.model, camera) and abs(e.iso - float(iso)) <= 0.01 * float(iso)  # the one model rule
+    ]
     cands.sort(key=lambda e: (e.serial != ser, e.serial is not None, e.name))
     for e in cands:
         calib = load_calibration(e.path)

@@ -88,3 +88,18 @@ def test_calibrate_once_then_merge_finds_it(tmp_path, cli):
     assert json.loads(cli("calibrations", "list", "--json", check=True, env=env).stdout)["entries"] == []
     proc = cli("calibrations", "remove", name, env=env)
     assert proc.returncode != 0 and "no such calibration" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_entries_match_by_the_shared_model_rule(monkeypatch, tmp_path):
+    """An entry stored under libgphoto2's name serves frames whose EXIF spells the model its own
+    way, and a different model (D7500) is not served."""
+    from hdrcap.pipeline.calibration_library import find_calibration, store_calibration
+    from hdrcap.pipeline.params import Calibration, SensorParams
+
+    monkeypatch.setenv("HDRCAP_DATA_DIR", str(tmp_path / "lib"))
+    cal = Calibration(params=SensorParams(g=0.5, mu_R=64.0, sigma2_R=4.0, v_sat=4000.0, white_level=4095.0))
+    store_calibration(cal, camera="Nikon DSC D750", iso=400)
+    found = find_calibration("NIKON CORPORATION NIKON D750", 400, (100, 150))
+    assert found is not None and found[1].params == cal.params
+    assert find_calibration("NIKON CORPORATION NIKON D7500", 400, (100, 150)) is None
+    assert find_calibration("NIKON CORPORATION NIKON D750", 800, (100, 150)) is None
