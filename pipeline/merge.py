@@ -317,6 +317,7 @@ class MergeAccumulator:
         self._shares: list[Any] = []  # what the frame's dark level is shared by (see _dark_groups)
         self._strats: list[DarkStrategy] = []
         self._ndark: list[float] = []
+        self._ratios: ExposureRatios | None = None  # the effective-time estimate, once made
         self.stream = bool(stream)
         init_shape = self.shape if self.stream else (1, 1)
         self._sum = np.zeros(init_shape, np.float64)
@@ -551,7 +552,7 @@ class MergeAccumulator:
         """
         if self.options.exposure_times != "effective" or len(self._values) < 2:
             return None
-        if getattr(self, "_ratios", None) is not None:
+        if self._ratios is not None:
             return self._ratios
         p = self.calibration.params
         win = self._subsample()
@@ -579,7 +580,7 @@ class MergeAccumulator:
 
     def _exposure_info(self) -> dict[str, Any]:
         """The header entries of the exposure times: nominal, effective and the estimate."""
-        ratios = getattr(self, "_ratios", None)
+        ratios = self._ratios
         if ratios is None:
             return {"exposure_times_nominal": list(self._times), "exposure_time_ratios": None}
         return {"exposure_times_nominal": list(ratios.nominal), "exposure_time_ratios": ratios.to_dict()}
