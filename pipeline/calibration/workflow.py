@@ -62,8 +62,20 @@ def _readout_step(bias: Iterable, clip: float | None, white_level: float | None,
     rec.counts["bias"] = ro.n_frames
     rec.stderr.update(mu_R=ro.mu_R_stderr, sigma2_R=ro.sigma2_R_stderr)
     rec.info.update(
-        sigma2_R_method=ro.method, bias_exposure_time=ro.exposure_time, bias_dsnu_DN=ro.dsnu, clip_sigma=clip
+        sigma2_R_method=ro.method,
+        bias_exposure_time=ro.exposure_time,
+        bias_dsnu_DN=ro.dsnu,
+        clip_sigma=clip,
+        sigma2_R_quantisation_limited=ro.quantisation_limited,
+        sigma2_R_measured=ro.measured_sigma2,
+        bias_drift_DN=ro.drift,
     )
+    if ro.quantisation_limited:
+        rec.info.setdefault("warnings", []).append(
+            f"bias frames are quantisation-limited (pair variance {ro.measured_sigma2:.3g} DN^2 < 0.24 DN^2): "
+            f"sigma2_R set to 0.24 DN^2, an upper limit (EMVA 1288; the truth lies in 1/12..0.24 DN^2), and "
+            f"mu_R carries the quantiser's bias (standard error {ro.mu_R_stderr:.2g} DN)"
+        )
     return ro
 
 
