@@ -96,6 +96,9 @@ class ExposureRatios:
         Covariance of the log corrections log(factor) (n x n, dimensionless; rows and columns
         of frames not estimated are 0), under the constraint that each connected set of frames
         averages to 0; ``stderr`` is the square root of its diagonal.
+    linked_set : tuple of int
+        Per frame, the index of its connected set of frames (linked by pairs, each set's
+        corrections averaging to 0), -1 for a frame not estimated; empty when not computed.
     """
 
     nominal: tuple[float, ...]
@@ -105,6 +108,7 @@ class ExposureRatios:
     estimated: tuple[bool, ...]
     pairs: int
     covariance: np.ndarray | None = field(default=None, repr=False, compare=False)
+    linked_set: tuple[int, ...] = ()
 
     def to_dict(self) -> dict:
         """JSON-ready fields."""
@@ -284,6 +288,7 @@ def estimate_exposure_ratios(
     errs = np.zeros(n)
     cov = np.zeros((n, n))
     estimated = [False] * n
+    linked = [-1] * n
     if rows:
         A = np.zeros((len(rows), n))
         for r, (i, j) in enumerate(rows):
@@ -296,6 +301,7 @@ def estimate_exposure_ratios(
             C[r, c] = 1.0 / len(c)  # the corrections of each connected set average to 0
             for i in c:
                 estimated[i] = True
+                linked[i] = r
         # weighted least squares with the constraints (KKT system), unused frames pinned at 0
         free = np.asarray(estimated)
         N = A.T @ (W[:, None] * A) + np.diag(~free * 1.0)
@@ -315,4 +321,5 @@ def estimate_exposure_ratios(
         estimated=tuple(estimated),
         pairs=len(rows),
         covariance=cov,
+        linked_set=tuple(linked),
     )

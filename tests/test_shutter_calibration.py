@@ -162,8 +162,11 @@ def test_refusals_are_one_line_input_errors():
     with pytest.raises(InputError, match="reference time 3 s"):
         estimate_shutter_table(frames, cal, reference=3.0)
     gap = [f for f in frames if f.exposure_time in (1 / 1000, 1 / 30, 1.0)]
-    with pytest.raises(InputError, match="shares no well-exposed photosites"):
+    with pytest.raises(InputError, match="at 0.001 s shares no well-exposed photosites"):
         estimate_shutter_table(gap, cal)
+    two_sets = [f for f in frames if f.exposure_time <= 1 / 500 or f.exposure_time >= 1 / 15]
+    with pytest.raises(InputError, match="at 0.001 s shares no well-exposed photosites"):
+        estimate_shutter_table(two_sets, cal)  # two linked sets, the reference in the longer one
     small = RawFrame(frames[0].data[:64], frames[0].exposure_time, path="small.dng")
     with pytest.raises(InputError, match="size"):
         estimate_shutter_table([frames[0], small], cal)

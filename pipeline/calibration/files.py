@@ -235,7 +235,7 @@ def calibrate_files(
         groups["dark"] = [groups["dark"][k] for k in order]
         split["dark"] = [split["dark"][k] for k in order]
     meta: dict[str, Any] = {}
-    lazy = {w: FileFrames(groups[w], split[w], meta) if groups[w] else None for w in _KINDS}
+    lazy = {w: FileFrames(groups[w], split[w], meta) if groups[w] else None for w in _KINDS if w != "shutter"}
     sink = None if dark_library is None else _dark_library_sink(dark_library, meta, provenance, force)
     if lazy["bias"] is None:
         raise InputError("no bias frames given (--bias)")

@@ -173,17 +173,9 @@ def estimate_shutter_table(
 
 def _check_connected(est, times: list[float], distinct: list[float], ref: int) -> None:
     """Refuse when a frame's time is not linked to the reference time by overlapping pairs."""
-    if est.covariance is None:
-        raise InputError("shutter corrections: no frame pair shares well-exposed photosites")
-    linked = np.abs(est.covariance) > 0
-    ref_frames = [i for i, t in enumerate(times) if find_exposure(t, distinct) == ref]
-    reach = np.zeros(len(times), bool)
-    for i in ref_frames:
-        reach |= linked[i]
-    # frames of one connected set share a nonzero covariance with each other (their corrections
-    # are tied by the set's constraint); a frame outside the reference's set shares none
+    ref_sets = {est.linked_set[i] for i, t in enumerate(times) if find_exposure(t, distinct) == ref} - {-1}
     for i, t in enumerate(times):
-        if not (est.estimated[i] and reach[i]):
+        if est.linked_set[i] not in ref_sets:
             raise InputError(
                 f"shutter frame at {t:g} s shares no well-exposed photosites with the frames linked to the "
                 f"reference time {distinct[ref]:g} s: add frames at times in between, or a scene with a "
