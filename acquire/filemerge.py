@@ -79,6 +79,11 @@ def build_hdr_image(result, frames, calibration, extra=None):
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
         "exposure_times_effective": result.info.get("exposure_times", [fr.exposure_time for fr in frames]),
+        # after the calibration's shutter table alone (before the bracket's own estimate)
+        "exposure_times_calibrated": result.info.get(
+            "exposure_times_calibrated", result.info.get("exposure_times", [fr.exposure_time for fr in frames])
+        ),
+        "shutter_corrections": _shutter_header(calibration, result.info),
         "source_files": [fr.path for fr in frames],
         "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
         "hdrcap_version": __version__,
@@ -98,6 +103,17 @@ def build_hdr_image(result, frames, calibration, extra=None):
             f"{bit} {name}" for name, bit in QUALITY_BITS.items()
         )
     return HdrImage(channels, attrs)
+
+
+def _shutter_header(calibration, info) -> dict[str, Any] | None:
+    """The calibration's shutter table as the EXR header records it (None without one): the
+    table (times s, factors, relative standard errors, reference s) and, per frame, whether it
+    applied (``--exposure-times nominal`` or a time not in the table: not applied)."""
+    table = getattr(calibration, "shutter", None)
+    if table is None:
+        return None
+    applied = (info.get("shutter_table") or {}).get("applied")
+    return {**table.to_dict(), "applied": applied}
 
 
 def exr_precision(channels, sigma: str = "auto") -> dict[str, str]:

@@ -127,7 +127,9 @@ from hdrcap.pipeline.noise import DarkStrategy
     type=click.Choice(["effective", "nominal"]),
     default="effective",
     show_default=True,
-    help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.",
+    help="effective: each frame's actual exposure time, from the calibration's shutter table (calibrate --shutter) "
+    "refined by the bracket's own estimate (photosites well exposed in two frames; nominal, calibrated and effective "
+    "times in the EXR header); nominal: the times as given, neither correction.",
 )
 @click.option(
     "--exr-compression",
