@@ -75,9 +75,9 @@ def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None,
     path : str or Path
         Output PNG.
     irradiance : numpy.ndarray
-        (H, W) irradiance mosaic, e-/s.
+        (H, W) irradiance mosaic, e-/s, or (H, W, 3) RGB (a developed image, shown as it is).
     cfa : str or None
-        2x2 CFA pattern of the mosaic (None: grey).
+        2x2 CFA pattern of the mosaic (None: grey; ignored for RGB).
     force : bool
         Replace an existing file.
 
@@ -88,7 +88,8 @@ def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None,
     """
     from PIL import Image
 
-    img = tonemap_log(mosaic_to_rgb(irradiance, cfa))
+    rgb = np.asarray(irradiance, dtype=np.float64) if np.ndim(irradiance) == 3 else mosaic_to_rgb(irradiance, cfa)
+    img = tonemap_log(rgb)
     with atomic_output(path, force=force, suffix=".png") as tmp:
         Image.fromarray(img, "RGB").save(tmp, format="PNG")
     return Path(path)
