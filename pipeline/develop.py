@@ -31,11 +31,11 @@ errors are independent from photosite to photosite, Eq. 12)::
 
 The weights are measured from the library itself (its response to one unit impulse at each
 of the four tile positions, :func:`linear_weights`), so the propagation follows whatever
-filter the library applies. The three channels of a pixel share photosites: their errors are
-correlated, and sigma gives each channel's standard deviation alone. The sum is exact at
-pixels farther than the filter's radius (1 bilinear, 2 Malvar) from the image edge; nearer,
-the library mirrors the image and a photosite can enter a pixel twice, counted here as two
-independent terms. Menon's method is non-linear (direction decisions): its sigma is not
+filter the library applies. Within the filter's radius (1 bilinear, 2 Malvar) of the image
+edge the library mirrors the image and a photosite can enter a pixel twice; there the sum is
+taken by applying the library to sigma on sparse grids of photosites (:func:`_strip_variance`),
+exact too. The three channels of a pixel share photosites: their errors are correlated, and
+sigma gives each channel's standard deviation alone. Menon's method is non-linear (direction decisions): its sigma is not
 propagated and no sigma channels are written (:data:`SIGMA_NOT_PROPAGATED`).
 
 Flags
@@ -139,11 +139,11 @@ def demosaic(mosaic: np.ndarray, cfa: str, method: str = "malvar2004") -> np.nda
     cfa = _check_cfa(cfa)
     import warnings
 
-    import colour_demosaicing
-
-    fn = getattr(colour_demosaicing, DEMOSAIC_METHODS[method])
-    with warnings.catch_warnings():  # colour-science's notes on optional packages it lacks
+    with warnings.catch_warnings():  # colour-science's notes on optional packages, scipy's deprecations
         warnings.simplefilter("ignore")
+        import colour_demosaicing
+
+        fn = getattr(colour_demosaicing, DEMOSAIC_METHODS[method])
         return np.asarray(fn(np.asarray(mosaic, dtype=np.float64), cfa), dtype=np.float64)
 
 
@@ -187,7 +187,10 @@ def linear_weights(cfa: str, method: str, matrix: np.ndarray | None = None) -> n
 def propagate_variance(variance: np.ndarray, cfa: str, method: str, matrix: np.ndarray | None = None) -> np.ndarray:
     """Variance of a linear demosaic (and ``matrix``) of independent photosites.
 
-    ``Var(y_pk) = sum_q w_pqk^2 Var(x_q)`` with the weights of :func:`linear_weights`.
+    ``Var(y_pk) = sum_q w_pqk^2 Var(x_q)``: with the weights of :func:`linear_weights` (one
+    convolution per tile position and channel) away from the image edge, and within the support
+    radius of the edge by :func:`_edge_variance`, where the library's mirrored border makes the
+    weights differ.
 
     Parameters
     ----------
@@ -199,8 +202,7 @@ def propagate_variance(variance: np.ndarray, cfa: str, method: str, matrix: np.n
     Returns
     -------
     numpy.ndarray
-        (H, W, 3) variance of each output channel (exact beyond the support radius from the
-        edge; the edge as the module docstring says).
+        (H, W, 3) variance of each output channel.
     """
     from scipy.ndimage import convolve
 
@@ -212,8 +214,51 @@ def propagate_variance(variance: np.ndarray, cfa: str, method: str, matrix: np.n
             phase = np.zeros_like(var)
             phase[a::2, b::2] = var[a::2, b::2]
             for k in range(3):
-                out[..., k] += convolve(phase, w2[a, b, k], mode="reflect")
+                out[..., k] += convolve(phase, w2[a, b, k], mode="constant")
+    _edge_variance(out, var, cfa, method, matrix)
     return out
+
+
+def _strip_variance(var: np.ndarray, cfa: str, method: str, m: np.ndarray) -> np.ndarray:
+    """Exact variance of a linear demosaic of a small image, edges included.
+
+    The library is applied to the standard deviations on a sparse grid of photosites, spaced so
+    that no output pixel depends on two of them (4r + 2, r the support radius, mirrored copies
+    included): each output then holds one photosite's weight times its sigma, and the squares
+    summed over the grid's offsets give ``sum_q w_pq^2 sigma_q^2``.
+    """
+    step = 4 * support_radius(method) + 2
+    sd = np.sqrt(var)
+    out = np.zeros((*var.shape, 3))
+    for oy in range(min(step, var.shape[0])):
+        for ox in range(min(step, var.shape[1])):
+            grid = np.zeros_like(sd)
+            grid[oy::step, ox::step] = sd[oy::step, ox::step]
+            out += (demosaic(grid, cfa, method) @ m.T) ** 2
+    return out
+
+
+def _edge_variance(out: np.ndarray, var: np.ndarray, cfa: str, method: str, matrix: np.ndarray | None) -> None:
+    """Replace ``out`` within the support radius of each image edge by :func:`_strip_variance`
+    of a strip along that edge (deep enough that its cut side does not reach the band; its
+    start even, so the CFA tile is unchanged)."""
+    m = np.eye(3) if matrix is None else np.asarray(matrix, dtype=np.float64)
+    r = support_radius(method)
+    depth = 4 * r + 2
+    h, w = var.shape
+    if h <= depth + 2 or w <= depth + 2:  # a small image: all of it
+        out[...] = _strip_variance(var, cfa, method, m)
+        return
+    top = _strip_variance(var[:depth], cfa, method, m)
+    out[:r] = top[:r]
+    y0 = (h - depth) // 2 * 2
+    bottom = _strip_variance(var[y0:], cfa, method, m)
+    out[h - r :] = bottom[h - r - y0 :]
+    left = _strip_variance(var[:, :depth], cfa, method, m)
+    out[:, :r] = left[:, :r]
+    x0 = (w - depth) // 2 * 2
+    right = _strip_variance(var[:, x0:], cfa, method, m)
+    out[:, w - r :] = right[:, w - r - x0 :]
 
 
 def _same_colour_neighbour_sum(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
