@@ -113,7 +113,18 @@ def _check_cfa(cfa) -> str:
 
 
 def support_radius(method: str) -> int:
-    """Largest distance (photosites, per axis) from which a photosite changes an output pixel."""
+    """Largest distance from which a photosite changes an output pixel.
+
+    Parameters
+    ----------
+    method : str
+        A key of :data:`DEMOSAIC_METHODS`.
+
+    Returns
+    -------
+    int
+        Photosites, per axis (measured by perturbing single photosites; Menon's is the largest).
+    """
     _check_method(method)
     return _SUPPORT_RADIUS[method]
 
@@ -318,6 +329,16 @@ def white_xy(colour: CameraColour) -> np.ndarray:
     """CIE 1931 xy of the scene white: AsShotWhiteXY, or the chromaticity whose camera neutral
     (DNG 1.4, "Translating White Balance xy Coordinates to Camera Neutral Coordinates") is
     AsShotNeutral, found by the specification's fixed-point iteration.
+
+    Parameters
+    ----------
+    colour : CameraColour
+        The raw file's colour metadata.
+
+    Returns
+    -------
+    numpy.ndarray
+        (2,) CIE 1931 x, y of the white.
 
     Raises
     ------

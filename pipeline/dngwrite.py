@@ -287,9 +287,19 @@ class CameraColour:
 
 
 def colour_from_dng_tags(tags: dict, source: str = "") -> CameraColour | None:
-    """The :class:`CameraColour` of a DNG's IFD0 tags (code -> value as tifffile reads them).
+    """The :class:`CameraColour` of a DNG's IFD0 tags.
 
-    Returns None when there is no ColorMatrix1 (50721).
+    Parameters
+    ----------
+    tags : dict
+        Tag code -> value as tifffile reads it ((S)RATIONALs as flat numerator, denominator pairs).
+    source : str
+        Recorded in :attr:`CameraColour.source`.
+
+    Returns
+    -------
+    CameraColour or None
+        None when there is no ColorMatrix1 (50721).
     """
     if 50721 not in tags:
         return None

@@ -415,3 +415,13 @@ def test_colour_tags_round_trip_through_a_dng(matrix, neutral):
     np.testing.assert_allclose(back.color_matrix_1, matrix, atol=1e-6)
     np.testing.assert_allclose(back.as_shot_neutral, neutral, atol=1e-6)
     assert back.illuminant_1 == 17
+
+
+def test_colour_preview_keeps_hues_and_orders_brightness():
+    from hdrcap.pipeline.preview import tonemap_log_colour
+
+    rgb = np.array([[[1.0, 0.5, 0.25], [10.0, 5.0, 2.5], [100.0, 100.0, 100.0], [-1.0, 2.0, 0.0]]])
+    out = tonemap_log_colour(rgb, 0, 100).astype(float)
+    np.testing.assert_allclose(out[0, 1] / out[0, 1, 0], [1.0, 0.5, 0.25], atol=2 / 255)  # hue kept
+    assert out[0, 0, 0] < out[0, 1, 0] < out[0, 2, 0] == 255 and out[0, 2, 0] == out[0, 2, 2]
+    assert out[0, 3, 0] == 0 and out[0, 3, 1] > 0  # negatives to 0, never wrapped
