@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import shutil
+import subprocess
 
 import numpy as np
 import pytest
@@ -230,6 +233,8 @@ PATCHES = np.array([[0.6, 0.15, 0.08], [0.12, 0.5, 0.15], [0.08, 0.15, 0.7], [0.
 #: about 1000 e- in the longest exposure) that photon noise, which the merge's sigma states, dwarfs
 #: the simulator's 1 % PRNU, which a preset camera model leaves out.
 SCALE = 1500.0
+#: Width of each patch, photosites (RawTherapee 5.9 refuses float DNGs under about 30000 photosites).
+PATCH_W = 32
 
 
 @pytest.fixture(scope="module")
@@ -239,10 +244,10 @@ def colour_bracket(tmp_path_factory):
     from tests.conftest import run_cli
 
     d = tmp_path_factory.mktemp("develop")
-    h, w = 48, 64
+    h, w = 256, 4 * PATCH_W
     rgb = np.empty((h, w, 3))
     for i, patch in enumerate(PATCHES):
-        rgb[:, i * 16 : (i + 1) * 16] = patch
+        rgb[:, i * PATCH_W : (i + 1) * PATCH_W] = patch
     camera = np.einsum("ij,hwj->hwi", CANON_CM @ SRGB_TO_XYZ, rgb) * SCALE / CANON_NEUTRAL.max()
     write_exr(d / "scene.exr", HdrImage({"irradiance": _mosaic(camera).astype(np.float32)}))
     sim = d / "sim"
@@ -298,7 +303,7 @@ def test_developed_colours_are_the_scenes_within_sigma(colour_bracket):
     developed = read_exr(d / "rgb.exr")
     rgb, sig, nexp = developed.channels["RGB"], developed.channels["sigma"], developed.channels["nexp"]
     for i, patch in enumerate(PATCHES):
-        sl = (slice(3, -3), slice(i * 16 + 3, (i + 1) * 16 - 3))  # away from the patch edges
+        sl = (slice(3, -3), slice(i * PATCH_W + 3, (i + 1) * PATCH_W - 3))  # away from the patch edges
         assert (nexp[sl] > 0).all()
         z = (rgb[sl] - patch * SCALE) / sig[sl]
         for k in range(3):
@@ -425,3 +430,33 @@ def test_colour_preview_keeps_hues_and_orders_brightness():
     np.testing.assert_allclose(out[0, 1] / out[0, 1, 0], [1.0, 0.5, 0.25], atol=2 / 255)  # hue kept
     assert out[0, 0, 0] < out[0, 1, 0] < out[0, 2, 0] == 255 and out[0, 2, 0] == out[0, 2, 2]
     assert out[0, 3, 0] == 0 and out[0, 3, 1] > 0  # negatives to 0, never wrapped
+
+
+@pytest.mark.skipif(shutil.which("rawtherapee-cli") is None, reason="rawtherapee-cli is not installed")
+def test_rawtherapee_develops_the_float_dng_with_the_cameras_colours(colour_bracket, tmp_path):
+    """RawTherapee (5.9) reads the float DNG, its CFA and colour tags; in its picture of the
+    scene each colour patch keeps its dominant primary and the grey patch stays grey."""
+    from tests.conftest import run_cli
+
+    d, _ = colour_bracket
+    frames = sorted(d.glob("frame_*.dng"))
+    run_cli("merge", *frames, "--camera", "camera-A", "-o", tmp_path / "m.dng", check=True)
+    env = dict(os.environ, HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / "cfg"))
+    proc = subprocess.run(
+        ["rawtherapee-cli", "-q", "-o", str(tmp_path / "rt.tif"), "-t", "-b16", "-Y", "-c", str(tmp_path / "m.dng")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stderr
+    rgb = tifffile.imread(tmp_path / "rt.tif").astype(np.float64)
+    irr = read_exr(d / "m.exr").channels["irradiance"].astype(np.float64)
+    cut = ((irr.shape[0] - rgb.shape[0]) // 2, (irr.shape[1] - rgb.shape[1]) // 2)  # its border crop
+    assert 0 <= cut[0] <= 8 and 0 <= cut[1] <= 8
+    for i, patch in enumerate(PATCHES[:3]):  # red, green, blue
+        x0, x1 = i * PATCH_W + 4 - cut[1], (i + 1) * PATCH_W - 4 - cut[1]
+        mean = rgb[6:-6, x0:x1].reshape(-1, 3).mean(axis=0)
+        assert np.argmax(mean) == np.argmax(patch), (i, mean)
+    grey = rgb[6:-6, 3 * PATCH_W + 4 - cut[1] : 4 * PATCH_W - 4 - cut[1]].reshape(-1, 3).mean(axis=0)
+    assert grey.max() < 65000 and grey.max() / grey.min() < 1.05, grey  # AsShotNeutral applied: grey stays grey
