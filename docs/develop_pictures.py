@@ -6,7 +6,7 @@ Not run by the tests. Run it from the repository root with the project's environ
 
 The demo scene (``hdr``: gradient, patches, edges; 4 decades) is tinted column by column with
 eight linear sRGB colours and seen through a camera with a real colour matrix (Adobe's D65
-matrix of the Canon EOS 5D Mark II) under D65 light: each photosite gets the irradiance its
+matrix of the Canon EOS 5D Mark II, tests/colour_sim.py) under D65 light: each photosite gets the irradiance its
 colour filter passes. The simulated camera-B shoots the demo's bracket, the frames carry that
 matrix and the D65 white balance, ``hdrcap merge`` merges them without options beyond the
 preset, and ``hdrcap develop --space linear-srgb`` develops the result. Written to docs/:
@@ -16,7 +16,6 @@ tone-mapped) and ``develop_after.png`` (the developed RGB, the same tone map).
 
 from __future__ import annotations
 
-import io
 import subprocess
 import sys
 import tempfile
@@ -24,16 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrcap.mock_camera.dng import write_dng
-from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline.io import HdrImage, read_exr, read_raw, write_exr
-from hdrcap.pipeline.preview import write_preview_png
-
 DOCS = Path(__file__).resolve().parent
-#: Adobe's D65 ColorMatrix2 (XYZ to camera) of the Canon EOS 5D Mark II.
-CAMERA_MATRIX = np.array([[0.4716, 0.0603, -0.0830], [-0.7798, 1.5474, 0.2480], [-0.1496, 0.1937, 0.6651]])
-#: Linear sRGB (D65) to XYZ, IEC 61966-2-1.
-SRGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+sys.path.insert(0, str(DOCS.parent))  # the tests' colour camera (tests/colour_sim.py)
+
+from hdrcap.mock_camera.scenes import make_scene  # noqa: E402
+from hdrcap.pipeline.io import HdrImage, read_exr, write_exr  # noqa: E402
+from hdrcap.pipeline.preview import write_preview_png  # noqa: E402
+from tests.colour_sim import camera_mosaic, recolour_frames  # noqa: E402
+
 #: The eight column tints (linear sRGB).
 TINTS = np.array(
     [
@@ -55,16 +52,11 @@ def _hdrcap(*args) -> None:
 
 
 def colour_scene() -> np.ndarray:
-    """The demo scene as per-photosite irradiance (e-/s) of a colour camera, RGGB mosaic."""
+    """The demo scene as per-photosite irradiance (e-/s) of the colour camera, RGGB mosaic."""
     h, w = SIZE
     grey = make_scene("hdr", SIZE, decades=4.0, x_max=2e5)
     tint = TINTS[np.minimum(np.arange(w) * len(TINTS) // w, len(TINTS) - 1)]
-    camera_rgb = (CAMERA_MATRIX @ SRGB_TO_XYZ @ tint.T).T  # (w, 3): the camera's response to each tint
-    camera_rgb /= (CAMERA_MATRIX @ SRGB_TO_XYZ @ np.ones(3)).max()
-    mosaic = np.empty((h, w))
-    for (a, b), c in {(0, 0): 0, (0, 1): 1, (1, 0): 1, (1, 1): 2}.items():
-        mosaic[a::2, b::2] = grey[a::2, b::2] * camera_rgb[b::2, c]
-    return mosaic
+    return camera_mosaic(grey[..., None] * tint[None], 1.0)
 
 
 def main(work: Path) -> None:
@@ -72,24 +64,7 @@ def main(work: Path) -> None:
     write_exr(work / "scene.exr", HdrImage({"irradiance": colour_scene().astype(np.float32)}), force=True)
     sim = work / "sim"
     _hdrcap("simulate", "--camera", "camera-B", "--scene", work / "scene.exr", "--out", sim, "--seed", "0", "--force")
-    neutral = CAMERA_MATRIX @ SRGB_TO_XYZ @ np.ones(3)
-    frames = []
-    for path in sorted(sim.glob("frame_*.dng")):
-        fr = read_raw(path)
-        buf = io.BytesIO()
-        write_dng(
-            buf,
-            fr.data,
-            exposure_time=fr.exposure_time,
-            iso=int(fr.iso),
-            black_level=fr.black_level,
-            white_level=int(fr.white_level),
-            cfa=fr.cfa_pattern,
-            color_matrix=CAMERA_MATRIX,
-            as_shot_neutral=tuple(neutral / neutral.max()),
-        )
-        (work / path.name).write_bytes(buf.getvalue())
-        frames.append(work / path.name)
+    frames = recolour_frames(sorted(sim.glob("frame_*.dng")), work)
     _hdrcap("merge", *frames, "--camera", "camera-B", "-o", work / "m.exr", "--force")
     _hdrcap("develop", work / "m.exr", "-o", work / "rgb.exr", "--space", "linear-srgb", "--force")
     merged = read_exr(work / "m.exr").channels["irradiance"]

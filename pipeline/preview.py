@@ -57,14 +57,25 @@ def tonemap_log(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> n
     numpy.ndarray
         uint8 image of ``rgb``'s shape (log scale, gamma 1/1.2); all black without positive values.
     """
-    lum = rgb.mean(axis=-1)
-    pos = lum[lum > 0]
-    if pos.size == 0:
+    levels = _log_levels(rgb.mean(axis=-1), lo_pct, hi_pct)
+    if levels is None:
         return np.zeros(rgb.shape, dtype=np.uint8)
+    return np.round(255 * _log_map(rgb, *levels)).astype(np.uint8)
+
+
+def _log_levels(ref: np.ndarray, lo_pct: float, hi_pct: float) -> tuple[float, float] | None:
+    """The values mapped to black and white: two percentiles of the positive ``ref`` (None if none)."""
+    pos = ref[ref > 0]
+    if pos.size == 0:
+        return None
     lo, hi = np.percentile(pos, [lo_pct, hi_pct])
-    lo = max(lo, hi * 1e-8)
-    val = (np.log10(np.clip(rgb, lo, hi)) - np.log10(lo)) / max(np.log10(hi) - np.log10(lo), 1e-12)
-    return np.round(255 * np.clip(val, 0, 1) ** (1 / 1.2)).astype(np.uint8)
+    return max(lo, hi * 1e-8), hi
+
+
+def _log_map(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``x`` on a log scale from ``lo`` (0) to ``hi`` (1), clipped, gamma 1/1.2."""
+    val = (np.log10(np.clip(x, lo, hi)) - np.log10(lo)) / max(np.log10(hi) - np.log10(lo), 1e-12)
+    return np.clip(val, 0, 1) ** (1 / 1.2)
 
 
 def tonemap_log_colour(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> np.ndarray:
@@ -87,13 +98,10 @@ def tonemap_log_colour(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.
     """
     rgb = np.clip(np.asarray(rgb, dtype=np.float64), 0, None)
     top = rgb.max(axis=-1)
-    pos = top[top > 0]
-    if pos.size == 0:
+    levels = _log_levels(top, lo_pct, hi_pct)
+    if levels is None:
         return np.zeros(rgb.shape, dtype=np.uint8)
-    lo, hi = np.percentile(pos, [lo_pct, hi_pct])
-    lo = max(lo, hi * 1e-8)
-    val = (np.log10(np.clip(top, lo, hi)) - np.log10(lo)) / max(np.log10(hi) - np.log10(lo), 1e-12)
-    val = np.clip(val, 0, 1) ** (1 / 1.2)
+    val = _log_map(top, *levels)
     ratio = np.divide(rgb, top[..., None], out=np.zeros_like(rgb), where=top[..., None] > 0)
     return np.round(255 * ratio * val[..., None]).astype(np.uint8)
 

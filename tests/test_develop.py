@@ -20,7 +20,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hdrcap.acquire.cli import main
-from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline.develop import (
     DEMOSAIC_METHODS,
     SIGMA_NOT_PROPAGATED,
@@ -39,38 +38,21 @@ from hdrcap.pipeline.dngwrite import (
     write_float_dng,
 )
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import HdrImage, read_exr, read_raw, write_exr
+from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+from tests.colour_sim import CANON_CM, CANON_NEUTRAL, XYZ_TO_SRGB, camera_mosaic, mosaic, recolour_frames
 
-#: XYZ (D65) to linear sRGB, IEC 61966-2-1 (published, 4 decimals).
-XYZ_TO_SRGB = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
-SRGB_TO_XYZ = np.linalg.inv(XYZ_TO_SRGB)
 #: D50 white, CIE 15 chromaticity (0.3457, 0.3585), as XYZ with Y = 1 (the DNG connection space white).
 D50_XYZ = np.array([0.3457 / 0.3585, 1.0, (1 - 0.3457 - 0.3585) / 0.3585])
-#: Adobe's D65 ColorMatrix2 of the Canon EOS 5D Mark II (XYZ to camera), as LibRaw tabulates it.
-CANON_CM = np.array([[0.4716, 0.0603, -0.0830], [-0.7798, 1.5474, 0.2480], [-0.1496, 0.1937, 0.6651]])
-#: That camera's neutral under D65 light: its camera values of the D65 white.
-CANON_NEUTRAL = CANON_CM @ (SRGB_TO_XYZ @ np.ones(3))
-#: Tile positions of each colour of an RGGB mosaic.
-RGGB = {(0, 0): 0, (0, 1): 1, (1, 0): 1, (1, 1): 2}
 
 
-def _mosaic(rgb_image, cfa_index=RGGB):
-    """An RGGB mosaic sampling an (H, W, 3) image."""
-    h, w, _ = rgb_image.shape
-    out = np.empty((h, w))
-    for (a, b), c in cfa_index.items():
-        out[a::2, b::2] = rgb_image[a::2, b::2, c]
-    return out
-
-
-def _reference(mosaic, cfa, method):
+def _reference(mos, cfa, method):
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # the library's scipy.ndimage.filters imports
         import colour_demosaicing
 
-    return getattr(colour_demosaicing, DEMOSAIC_METHODS[method])(mosaic, cfa)
+    return getattr(colour_demosaicing, DEMOSAIC_METHODS[method])(mos, cfa)
 
 
 # --------------------------------------------------------------------------- colour
@@ -80,7 +62,7 @@ def test_grey_comes_out_grey_with_the_published_whites():
     colour = CameraColour(color_matrix_1=CANON_CM.ravel(), as_shot_neutral=tuple(CANON_NEUTRAL))
     k = 1234.5
     grey = np.broadcast_to(k * CANON_NEUTRAL / CANON_NEUTRAL.max(), (16, 16, 3))
-    mos = _mosaic(np.array(grey))
+    mos = mosaic(np.array(grey))
     for space, expected in (("xyz", k * D50_XYZ), ("linear-srgb", k * np.ones(3)), ("camera", grey[0, 0])):
         res = develop(mos, None, None, "RGGB", method="bilinear", space=space, colour=colour)
         np.testing.assert_allclose(res.rgb[8, 8], expected, rtol=2e-4, err_msg=space)
@@ -129,7 +111,7 @@ def test_spaces_that_need_a_matrix_are_refused_without_one():
 
 @pytest.mark.parametrize("method", sorted(DEMOSAIC_METHODS))
 @pytest.mark.parametrize("cfa", ["RGGB", "GBRG"])
-def test_channels_agree_with_the_library_on_the_same_mosaic(method, cfa):
+def test_channels_agree_with_the_library_on_the_samemosaic(method, cfa):
     mos = np.random.default_rng(3).lognormal(6, 1.5, (24, 32))
     res = develop(mos, None, None, cfa, method=method)
     ref = _reference(mos, cfa, method)
@@ -248,28 +230,10 @@ def colour_bracket(tmp_path_factory):
     rgb = np.empty((h, w, 3))
     for i, patch in enumerate(PATCHES):
         rgb[:, i * PATCH_W : (i + 1) * PATCH_W] = patch
-    camera = np.einsum("ij,hwj->hwi", CANON_CM @ SRGB_TO_XYZ, rgb) * SCALE / CANON_NEUTRAL.max()
-    write_exr(d / "scene.exr", HdrImage({"irradiance": _mosaic(camera).astype(np.float32)}))
+    write_exr(d / "scene.exr", HdrImage({"irradiance": camera_mosaic(rgb, SCALE).astype(np.float32)}))
     sim = d / "sim"
     run_cli("simulate", "--camera", "camera-A", "--scene", d / "scene.exr", "--out", sim, "--seed", "9", check=True)
-    frames = []
-    for path in sorted(sim.glob("frame_*.dng")):
-        fr = read_raw(path)
-        buf = io.BytesIO()
-        write_dng(
-            buf,
-            fr.data,
-            exposure_time=fr.exposure_time,
-            iso=int(fr.iso),
-            black_level=fr.black_level,
-            white_level=int(fr.white_level),
-            cfa=fr.cfa_pattern,
-            color_matrix=CANON_CM,
-            as_shot_neutral=tuple(CANON_NEUTRAL / CANON_NEUTRAL.max()),
-        )
-        out = d / path.name
-        out.write_bytes(buf.getvalue())
-        frames.append(out)
+    frames = recolour_frames(sorted(sim.glob("frame_*.dng")), d)
     run_cli("merge", *frames, "--camera", "camera-A", "-o", d / "m.exr", check=True)
     proc = run_cli(
         "develop", d / "m.exr", "-o", d / "rgb.exr", "--space", "linear-srgb", "--preview", d / "p.png", "--json"
