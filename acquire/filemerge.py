@@ -65,6 +65,22 @@ def _read_parallel(paths, times, what, progress) -> Iterator[RawFrame]:
             yield fut.result()
 
 
+def _camera_colour(frames) -> dict | None:
+    """The first frame's colour metadata (colour matrices, white balance) for the header, so
+    that ``hdrcap develop`` works from the EXR alone; None without a file or a matrix."""
+    from hdrcap.pipeline.dngwrite import camera_colour
+
+    path = frames[0].path if frames else None
+    if not path:
+        return None
+    try:
+        found = camera_colour(path)
+    except InputError as err:
+        _warn(f"no colour matrix recorded: {err}")
+        return None
+    return None if found is None else found.to_attrs()
+
+
 def build_hdr_image(result, frames, calibration, extra=None):
     """The EXR content of a merge: channels and header attributes."""
     from hdrcap import __version__
@@ -89,6 +105,9 @@ def build_hdr_image(result, frames, calibration, extra=None):
         "hdrcap_version": __version__,
         "merge": result.info,
     }
+    colour = _camera_colour(frames)
+    if colour is not None:
+        attrs["camera_colour"] = colour
     if extra:
         attrs.update(extra)
     channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
