@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,7 +22,9 @@ from hdrcap.pipeline.darks import DarkResolver, default_strategy
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import RawFrame
 from hdrcap.pipeline.noise import DarkStrategy
-from hdrcap.planner.planfile import PlanFile, apply_plan_options, planner_attribute
+
+if TYPE_CHECKING:  # the planner (and scipy under it) is imported only for a merge with a plan
+    from hdrcap.planner.planfile import PlanFile
 
 __all__ = [
     "FileMerge",
@@ -234,7 +236,7 @@ def streamed_merge(
     master dark); default: the one of ``options``) and the dark level ``resolver`` serves it
     (default: ``dark_paths`` matched by exposure time). With a ``plan``, every plan exposure
     time must be among the frames. Returns (result, frames, darks, per-frame dark sources)."""
-    from hdrcap.pipeline.io import check_frames
+    from hdrcap.pipeline.io import check_frames, release_mapped_pages
     from hdrcap.pipeline.merge import MergeAccumulator
 
     darks = list(_read_parallel(dark_paths, None, "dark frame", progress)) if dark_paths else []
@@ -292,7 +294,10 @@ def streamed_merge(
     check_frames(frames)
     if plan is not None:
         _check_plan_covered(plan, frames, warn)
-    return acc.result(), frames, darks, used
+    result = acc.result()
+    # The pixels are merged: memory-mapped frames stop counting in memory (still readable).
+    release_mapped_pages([fr.data for fr in (*frames, *darks)])
+    return result, frames, darks, used
 
 
 def _read_master_dark(path: Path | None, options: dict) -> RawFrame | None:
@@ -379,6 +384,8 @@ def merge_files(
     md = _read_master_dark(master_dark, options)
     strategy_for = taken = overridden = ignored = None
     if plan is not None:
+        from hdrcap.planner.planfile import apply_plan_options
+
         options, taken, overridden, ignored = apply_plan_options(plan, options, given)
         for name in ignored:
             warn(f"{plan.path}: merge option {name!r} is not one hdrcap merge knows; ignored")
@@ -408,6 +415,8 @@ def merge_files(
     if master_dark:
         extra["master_dark_file"] = str(master_dark)
     if plan is not None:
+        from hdrcap.planner.planfile import planner_attribute
+
         extra["planner"] = planner_attribute(
             plan.data, plan_file, plan.sha256, taken, overridden, options_ignored=ignored
         )
