@@ -11,6 +11,7 @@ one-line figures.
 from __future__ import annotations
 
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,24 @@ __all__ = [
 
 def _warn(message: str) -> None:
     print(f"hdrcap: warning: {message}", file=sys.stderr)
+
+
+def _warm_up() -> None:
+    """:func:`pipeline.merge.warm_up_kernels`, in a background thread; a failure is left to the
+    merge itself to report."""
+    from hdrcap.pipeline.merge import warm_up_kernels
+
+    try:
+        warm_up_kernels()
+    except Exception:  # noqa: BLE001, S110  (the merge reports its own errors)
+        pass
+
+
+def start_warm_up() -> threading.Thread:
+    """Start :func:`_warm_up` in a thread (numba's set-up overlaps reading the frames)."""
+    thread = threading.Thread(target=_warm_up, name="hdrcap-kernel-warm-up")
+    thread.start()
+    return thread
 
 
 def read_frames(paths, times=None, what="frame", progress=False) -> list[RawFrame]:
@@ -380,6 +399,7 @@ def merge_files(
             method=weighting,
         )
         return FileMerge(result, fr, dk, extra)
+    start_warm_up()
     dark_strategy = None if dark_strategy is None else DarkStrategy(dark_strategy)
     md = _read_master_dark(master_dark, options)
     strategy_for = taken = overridden = ignored = None

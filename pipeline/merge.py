@@ -828,6 +828,19 @@ def _add_in_quadrature(sigma: np.ndarray, *terms: np.ndarray | None, rows: int =
         np.sqrt(total, out=sigma[sl], casting="unsafe")
 
 
+def warm_up_kernels() -> None:
+    """Import the merge kernels and initialise numba's CPU target (its registries of numpy
+    implementations, which numba builds once per process before it compiles or loads any
+    function: a third of a second or more), so that the first merge only loads its compiled
+    code. For a background thread started while the frames are read (:mod:`acquire.filemerge`);
+    it changes no result."""
+    from . import kernels  # noqa: F401  (first: it configures numba's compile target)
+    from ._numba_target import numba
+
+    with numba.core.compiler_lock.global_compiler_lock:  # as numba's own loading does
+        numba.core.registry.cpu_target.target_context.refresh()
+
+
 def merge_arrays(
     values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None, **options
 ) -> MergeResult:

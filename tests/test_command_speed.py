@@ -142,3 +142,30 @@ def test_help_does_not_import_numpy(args):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert "Usage: hdrcap" in out
     assert out.strip().splitlines()[-1] == "RESULT 0 []", f"`hdrcap {' '.join(args)}`: {out.splitlines()[-1]}"
+
+
+_MERGE_DIGEST = """
+import hashlib, sys
+from hdrcap.api import simulate
+from hdrcap.pipeline.merge import merge_arrays
+warm = sys.argv[1] == "warm"
+if warm:
+    from hdrcap.acquire.filemerge import start_warm_up
+    thread = start_warm_up()  # the merge below races it, as in hdrcap merge
+sim = simulate("camera-A", "hdr", [0.001, 0.01, 0.1], seed=5, shape=(24, 36), darks=True)
+res = merge_arrays(list(sim.frames), [0.001, 0.01, 0.1], sim.calibration, list(sim.darks))
+if warm:
+    thread.join(timeout=300)
+    assert not thread.is_alive()
+h = hashlib.sha256(b"".join(getattr(res, n).tobytes() for n in ("irradiance", "sigma", "nexp")))
+print(h.hexdigest())
+"""
+
+
+def test_kernel_warm_up_thread_racing_the_merge_changes_nothing():
+    digests = [
+        subprocess.run([sys.executable, "-c", _MERGE_DIGEST, mode], capture_output=True, text=True, check=True).stdout
+        for mode in ("warm", "cold")
+    ]
+    assert len(digests[0].strip()) == 64
+    assert digests[0] == digests[1]
