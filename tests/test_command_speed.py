@@ -2,7 +2,6 @@
 channel checks by blocks, the total sigma by blocks, memory-mapped frames released after the
 merge; and `hdrcap --help` / `hdrcap merge --help` do not import numpy."""
 
-import datetime as dt
 import subprocess
 import sys
 
@@ -12,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline import io as pio
 from hdrcap.pipeline.merge import _add_in_quadrature
+from tests.test_io import _dng
 
 _FLOATS = hnp.arrays(
     np.float32,
@@ -88,24 +87,6 @@ def test_add_in_quadrature_by_blocks_equals_the_full_array_formula(sig, n_terms,
     got = sig.copy()
     _add_in_quadrature(got, *terms, None, rows=rows)
     assert got.tobytes() == expected.tobytes()  # bit-identical, not merely close
-
-
-def _dng(path, data):
-    with open(path, "wb") as f:
-        write_dng(
-            f,
-            data,
-            exposure_time=0.01,
-            iso=100,
-            black_level=64,
-            white_level=4095,
-            cfa="RGGB",
-            make="Acme",
-            model="Sim 1",
-            serial="42",
-            timestamp=dt.datetime(2026, 1, 2, 3, 4, 5),
-        )
-    return path
 
 
 def _resident_mb() -> float:
