@@ -215,6 +215,8 @@ def _flag_defects(irr: np.ndarray, sig: np.ndarray, nexp: np.ndarray, defect_map
     irradiance keeps the kernel's value, which must not be used); returns the quality channel
     (:func:`quality_channel`, from ``nexp`` before the change) and the number of defects."""
     quality = quality_channel(nexp, defect_map)
+    if defect_map is None:  # no defect bits in the quality channel
+        return quality, 0
     bad = (quality & np.uint8(sum(DEFECT_BITS.values()))) != 0
     nexp[bad] = 0
     sig[bad] = 0
@@ -671,13 +673,7 @@ class MergeAccumulator:
                 np.zeros(1, np.float32 if single else np.float64),
             )
         sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp)
-        np.sqrt(
-            np.square(sig, dtype=np.float64)
-            + np.square(sig_cal, dtype=np.float64)
-            + np.square(sig_master, dtype=np.float64),
-            out=sig,
-            casting="unsafe",
-        )
+        _add_in_quadrature(sig, sig_cal if cal_info["included"] else None, sig_master)
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         info = {
@@ -750,7 +746,9 @@ class MergeAccumulator:
         }
         return s_b, s_d, s_a, desc
 
-    def _shared_terms(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, np.ndarray, dict]:
+    def _shared_terms(
+        self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64
+    ) -> tuple[np.ndarray, np.ndarray | None, dict]:
         """The errors common to all exposures of a photosite, propagated to X at the estimate
         with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
         rule, evaluated at the final estimate), in blocks of ``rows``:
@@ -763,15 +761,16 @@ class MergeAccumulator:
 
         Returns
         -------
-        (numpy.ndarray, numpy.ndarray, dict)
-            sigma_calibration and the master dark's term, e-/s, float32; the description of the
-            calibration's errors.
+        (numpy.ndarray, numpy.ndarray or None, dict)
+            sigma_calibration (zeros when ``desc["included"]`` is empty) and the master dark's
+            term (None when no frame shares a timed master dark), e-/s, float32; the
+            description of the calibration's errors.
         """
         s_b, s_d, s_a, desc = self._calibration_errors()
         out = np.zeros(self.shape, np.float32)
-        out_m = np.zeros(self.shape, np.float32)
         master_used = self._shares_timed_master().astype(np.float64)
-        if not desc["included"] and not master_used.any():
+        out_m = np.zeros(self.shape, np.float32) if master_used.any() else None
+        if not desc["included"] and out_m is None:
             return out, out_m, desc
         p = self.calibration.params
         g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
@@ -827,6 +826,46 @@ class MergeAccumulator:
                 var = calibration_variance(mu, w, times, g, master_used, 0.0 * coefs, sd_m, 0.0, 0.0, a)
                 out_m[sl] = np.where(used, np.sqrt(var), 0.0)
         return out, out_m, desc
+
+
+def _add_in_quadrature(sigma: np.ndarray, *terms: np.ndarray | None, rows: int = 256) -> None:
+    """sigma = sqrt(sigma^2 + sum of terms^2), in place, in float64 (the total uncertainty of
+    independent error sources), a block of ``rows`` rows at a time (no full-size float64
+    temporaries). Without terms it is |sigma| (sqrt of an exact float64 square: the same
+    bits).
+
+    Parameters
+    ----------
+    sigma : numpy.ndarray
+        float32 standard uncertainties (any unit), 2-D; overwritten.
+    *terms : numpy.ndarray or None
+        Further standard uncertainties of the same shape and unit; None entries are skipped.
+    rows : int
+        Rows per block.
+    """
+    terms = [t for t in terms if t is not None]
+    if not terms:
+        np.abs(sigma, out=sigma)
+        return
+    for r0 in range(0, sigma.shape[0], rows):
+        sl = slice(r0, r0 + rows)
+        total = np.square(sigma[sl], dtype=np.float64)
+        for t in terms:
+            total += np.square(t[sl], dtype=np.float64)
+        np.sqrt(total, out=sigma[sl], casting="unsafe")
+
+
+def warm_up_kernels() -> None:
+    """Import the merge kernels and initialise numba's CPU target (its registries of numpy
+    implementations, which numba builds once per process before it compiles or loads any
+    function: a third of a second or more), so that the first merge only loads its compiled
+    code. For a background thread started while the frames are read (:mod:`acquire.filemerge`);
+    it changes no result."""
+    from . import kernels  # noqa: F401  (first: it configures numba's compile target)
+    from ._numba_target import numba
+
+    with numba.core.compiler_lock.global_compiler_lock:  # as numba's own loading does
+        numba.core.registry.cpu_target.target_context.refresh()
 
 
 def merge_arrays(
