@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from .develop_names import DEMOSAIC_METHODS, LINEAR_METHODS, OUTPUT_SPACES
 from .dngwrite import CameraColour
 from .errors import InputError
 
@@ -74,16 +75,6 @@ __all__ = [
     "white_xy",
 ]
 
-#: Demosaicing methods: name -> colour_demosaicing function name.
-DEMOSAIC_METHODS: dict[str, str] = {
-    "bilinear": "demosaicing_CFA_Bayer_bilinear",
-    "malvar2004": "demosaicing_CFA_Bayer_Malvar2004",
-    "menon2007": "demosaicing_CFA_Bayer_Menon2007",
-}
-#: The methods that are linear filters of the mosaic (sigma propagated).
-LINEAR_METHODS = frozenset({"bilinear", "malvar2004"})
-#: Output colour spaces.
-OUTPUT_SPACES = ("camera", "xyz", "linear-srgb")
 #: Header statement for a non-linear method.
 SIGMA_NOT_PROPAGATED = "sigma not propagated: the demosaicing method is non-linear; no sigma channels"
 

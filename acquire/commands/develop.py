@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from hdrcap.acquire.cliutil import echo_json
-from hdrcap.pipeline.develop import DEMOSAIC_METHODS, OUTPUT_SPACES
+from hdrcap.pipeline.develop_names import DEMOSAIC_METHODS, OUTPUT_SPACES
 from hdrcap.pipeline.errors import InputError
 
 __all__ = ["command"]
