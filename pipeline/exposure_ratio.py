@@ -7,21 +7,17 @@ SNR. The paper normalises its reference images for this reason (Sec. 7: "we norm
 images such that the spatial average is constant for every sample of each exposure time").
 This module generalises that normalisation to a bracket of different times:
 
-* for every pair of frames (i, j), the photosites exposed in both (in the longer frame above
-  ``min_snr`` standard deviations and below ``max_level`` of the range above the dark level,
-  in the shorter one above 0; no defect) lie on the line s_j = q s_i + c, s = v - b the
-  dark-corrected signal (DN); the PRNU gain, the gain g and the irradiance cancel, so
-  q = t_j^eff / t_i^eff up to noise. The selection is judged on the pair's inverse-variance
-  weighted rate (the merge's Eq. 12 estimate of the two), whose noise is uncorrelated with the
-  line's residual: a selection on either observed signal would bias q (cutting s_j at the top
-  and s_i at the bottom keeps the photosites whose q fluctuated low: -0.35 % per factor 8 in
-  time on camera-R);
-* q and c come from York's straight-line fit with errors in both signals (Eq. 3, 5 variances at
-  the predicted signals), robust by iterative clipping at ``clip_sigmas`` standard deviations.
-  The offset c takes up a bias level that drifts between a frame and its dark frame (0.2 DN on
-  camera-R): a mean of log(s_j / s_i) over well-exposed photosites carried it as c / s_i, an
-  error of the ratio 1.3-3.3 times its stated error on camera-R (256 x 256), now 1.0-1.3 times;
-  the shorter frame's dim photosites, down to no signal, tell c;
+* for every pair of frames (i, j), the photosites well exposed in both (signal above
+  ``min_snr`` standard deviations, below ``max_level`` of the range above the dark level,
+  no defect) give q = s_j / s_i, s = v - b the dark-corrected signal (DN); the PRNU gain, the
+  gain g and the irradiance cancel, so q = t_j^eff / t_i^eff up to noise. "Well exposed" is
+  judged on the pair's inverse-variance weighted rate (the merge's Eq. 12 estimate of the two),
+  whose noise is uncorrelated with that of log q: a selection on either observed signal would
+  bias q (cutting s_j at the top and s_i at the bottom keeps the photosites whose q fluctuated
+  low: -0.35 % per factor 8 in time on camera-R);
+* log q is averaged with inverse-variance weights (Var(v - b) of Eq. 3, 5 at the observed
+  signal, delta method), corrected for the second-order bias of the logarithm and made robust by
+  iterative clipping at ``clip_sigmas`` standard deviations;
 * the pair estimates d_ij = log(t_j^eff / t_i^eff) are combined by weighted least squares into
   one log correction l_i per frame (t_i^eff = t_i exp(l_i)), normalised so that the corrections
   of each connected set of frames average to 0 (the nominal times are right on average: a
@@ -35,13 +31,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["RatioOptions", "ExposureRatios", "estimate_exposure_ratios", "EXPOSURE_TIME_MODES"]
+__all__ = [
+    "RatioOptions",
+    "ExposureRatios",
+    "estimate_exposure_ratios",
+    "subsample_window",
+    "EXPOSURE_TIME_MODES",
+]
 
 #: Values of the merge option ``exposure_times``: estimated effective times, or the nominal ones.
 EXPOSURE_TIME_MODES = ("effective", "nominal")
@@ -54,13 +56,12 @@ class RatioOptions:
     Attributes
     ----------
     min_snr : float
-        Least signal-to-noise ratio of a photosite in the longer frame of a pair (dimensionless;
-        the shorter frame's signal only has to be above 0, its dim photosites tell the offset).
+        Least signal-to-noise ratio of a photosite in both frames of a pair (dimensionless).
     max_level : float
         Largest signal as a fraction of the range above the dark level, v_sat - b (keeps clear
         of saturation and of the non-linearity near full well; EMVA 1288 uses 70 %).
     clip_sigmas : float
-        Robust clipping of the residuals of the pair's line fit, in their standard deviations.
+        Robust clipping of the per-photosite log ratios, in their standard deviations.
     min_photosites : int
         Least number of photosites for a pair to count.
     """
@@ -91,6 +92,13 @@ class ExposureRatios:
         Whether the frame shared well-exposed photosites with another frame.
     pairs : int
         Frame pairs used.
+    covariance : numpy.ndarray or None
+        Covariance of the log corrections log(factor) (n x n, dimensionless; rows and columns
+        of frames not estimated are 0), under the constraint that each connected set of frames
+        averages to 0; ``stderr`` is the square root of its diagonal.
+    linked_set : tuple of int
+        Per frame, the index of its connected set of frames (linked by pairs, each set's
+        corrections averaging to 0), -1 for a frame not estimated; empty when not computed.
     """
 
     nominal: tuple[float, ...]
@@ -99,6 +107,8 @@ class ExposureRatios:
     stderr: tuple[float, ...]
     estimated: tuple[bool, ...]
     pairs: int
+    covariance: np.ndarray | None = field(default=None, repr=False, compare=False)
+    linked_set: tuple[int, ...] = ()
 
     def to_dict(self) -> dict:
         """JSON-ready fields."""
@@ -112,50 +122,60 @@ class ExposureRatios:
         }
 
 
+def subsample_window(shape: tuple[int, int], max_photosites: int = 250_000) -> tuple[slice, slice]:
+    """A regular grid of at most about ``max_photosites`` photosites of a mosaic of ``shape``
+    (rows, columns), both CFA phases of each axis kept (an odd step): what the ratio estimate
+    needs, at a fraction of the cost on large frames.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Mosaic size, photosites.
+    max_photosites : int
+        Target number of photosites.
+
+    Returns
+    -------
+    (slice, slice)
+        Row and column slices.
+    """
+    h, w = shape
+    step = max(1, int(math.ceil(math.sqrt(h * w / max_photosites))))
+    step += 1 - step % 2
+    return slice(0, h, step), slice(0, w, step)
+
+
 def _pair_rate(si, vi, ti, sj, vj, tj):
     """The inverse-variance weighted rate of two frames' signals, DN/s (Eq. 12 for two)."""
     wi, wj = ti * ti / vi, tj * tj / vj
     return (wi * si / ti + wj * sj / tj) / (wi + wj)
 
 
-def _pair_offset_fit(si, vi, sj, vj, ok, clip, prior_var):
-    """Straight line s_j = q s_i + c through the photosites ``ok`` of a pair, errors in both
-    signals (York's least squares with the Eq. 3, 5 variances ``vi``, ``vj`` at the predicted
-    signals, DN^2), robust by iterative clipping at ``clip`` standard deviations of the residual.
-
-    The offset c (DN) takes up what the dark frames leave of the frames' bias levels (a bias
-    that drifts between a frame and its dark frame): a ratio of signals would carry it as
-    c / s, a bias of the exposure ratio. ``prior_var`` (DN^2) keeps c finite when the pair's
-    photosites span too short a range to tell it. Returns (log q, its standard error,
+def _pair_log_ratio(si, vi, pi, sj, vj, pj, ok, clip):
+    """Robust weighted mean of log(s_j / s_i) over ``ok`` (Eq. 3, 5 variances ``vi``, ``vj`` of
+    the signals at their predicted values ``pi``, ``pj``, DN^2): (estimate, standard error,
     photosites kept) or None."""
-    x, y, vx, vy = si[ok], sj[ok], vi[ok], vj[ok]
-    q = float(np.sum(y * x / vy) / np.sum(x * x / vy))
-    if not q > 0:
-        return None
-    c = 0.0
-    keep = np.ones(x.shape, bool)
-    for _ in range(30):
-        W = 1.0 / (vy + q * q * vx)
-        r = y - q * x - c
-        new = np.abs(r) * np.sqrt(W) < clip
-        if new.sum() < 3:
+    ri = vi[ok] / (pi[ok] * pi[ok])  # relative variances
+    rj = vj[ok] / (pj[ok] * pj[ok])
+    # E[log s] = log mu - Var/(2 mu^2) to second order: add the half relative variances back
+    lq = (np.log(sj[ok]) + 0.5 * rj) - (np.log(si[ok]) + 0.5 * ri)
+    var = ri + rj
+    w = 1.0 / var
+    keep = np.ones(lq.shape, bool)
+    m = float(np.median(lq))
+    for _ in range(5):
+        r = (lq - m) / np.sqrt(var)
+        new = np.abs(r) < clip
+        if new.sum() < 2:
             return None
-        c = float(np.sum(W[new] * (y[new] - q * x[new])) / (np.sum(W[new]) + 1.0 / prior_var))
-        yc = y - c
-        beta = W * (x * vy + q * yc * vx)  # the adjusted s_i of each photosite (York 2004)
-        q_new = float(np.sum((W * beta * yc)[new]) / np.sum((W * beta * x)[new]))
-        done = abs(q_new - q) < 1e-10 * q and np.array_equal(new, keep)
-        q, keep = q_new, new
-        if not q > 0:
-            return None
-        if done:
+        m = float(np.sum(w[new] * lq[new]) / np.sum(w[new]))
+        if np.array_equal(new, keep):
             break
-    W, beta = W[keep], beta[keep]
-    F = np.array([[np.sum(W * beta * beta), np.sum(W * beta)], [np.sum(W * beta), np.sum(W) + 1.0 / prior_var]])
+        keep = new
     n = int(keep.sum())
-    chi2 = float(np.sum(W * (y[keep] - q * x[keep] - c) ** 2)) / max(n - 2, 1)
-    var_q = float(np.linalg.inv(F)[0, 0]) * max(chi2, 1.0)
-    return math.log(q), math.sqrt(var_q) / q, n
+    chi2 = float(np.sum(w[keep] * (lq[keep] - m) ** 2)) / max(n - 1, 1)
+    se = math.sqrt(max(chi2, 1.0) / float(np.sum(w[keep])))
+    return m, se, n
 
 
 def _components(n, edges):
@@ -228,7 +248,7 @@ def estimate_exposure_ratios(
         b = np.broadcast_to(np.asarray(b, np.float64), v.shape)
         s = v - b
         vs = g * np.maximum(s, 0.0) + sigma2_R * (1.0 + k)  # Var(v - b) at the observed signal (Eq. 3, 5)
-        ok = (v < v_sat) & np.isfinite(s)  # no cut on the observed signal (it would bias the fit)
+        ok = (v < v_sat) & (s > 0) & np.isfinite(s)
         if exclude is not None:
             ok &= ~np.asarray(exclude, bool)
         sig.append(s)
@@ -252,13 +272,11 @@ def estimate_exposure_ratios(
             vi = g * np.maximum(pi, 0.0) + sigma2_R * (1.0 + ks[i])
             vj = g * np.maximum(pj, 0.0) + sigma2_R * (1.0 + ks[j])
             lo, hi = (i, j) if times[i] <= times[j] else (j, i)
-            p_lo = pi if lo == i else pj
-            p_hi, v_hi = (pj, vj) if hi == j else (pi, vi)
-            both &= (p_hi <= room[hi]) & (p_hi * p_hi >= options.min_snr**2 * v_hi) & (p_lo > 0)
+            p_lo, v_lo = (pi, vi) if lo == i else (pj, vj)
+            both &= ((pj if hi == j else pi) <= room[hi]) & (p_lo * p_lo >= options.min_snr**2 * v_lo) & (p_lo > 0)
             if both.sum() < options.min_photosites:
                 continue
-            prior = sigma2_R * (2.0 + ks[i] + ks[j])  # offsets within a readout sigma of each signal
-            est = _pair_offset_fit(sig[i], vi, sig[j], vj, both, options.clip_sigmas, prior)
+            est = _pair_log_ratio(sig[i], vi, pi, sig[j], vj, pj, both, options.clip_sigmas)
             if est is None or est[2] < options.min_photosites:
                 continue
             m, se, _ = est
@@ -268,7 +286,9 @@ def estimate_exposure_ratios(
             edges.append((i, j))
     logs = np.zeros(n)
     errs = np.zeros(n)
+    cov = np.zeros((n, n))
     estimated = [False] * n
+    linked = [-1] * n
     if rows:
         A = np.zeros((len(rows), n))
         for r, (i, j) in enumerate(rows):
@@ -281,6 +301,7 @@ def estimate_exposure_ratios(
             C[r, c] = 1.0 / len(c)  # the corrections of each connected set average to 0
             for i in c:
                 estimated[i] = True
+                linked[i] = r
         # weighted least squares with the constraints (KKT system), unused frames pinned at 0
         free = np.asarray(estimated)
         N = A.T @ (W[:, None] * A) + np.diag(~free * 1.0)
@@ -289,7 +310,8 @@ def estimate_exposure_ratios(
         Kinv = np.linalg.pinv(K)
         sol = Kinv @ rhs
         logs = np.where(free, sol[:n], 0.0)
-        errs = np.where(free, np.sqrt(np.maximum(np.diag(Kinv)[:n], 0.0)), 0.0)
+        cov = np.where(free[:, None] & free[None, :], Kinv[:n, :n], 0.0)
+        errs = np.sqrt(np.maximum(np.diag(cov), 0.0))
     factors = np.exp(logs)
     return ExposureRatios(
         nominal=tuple(times),
@@ -298,4 +320,6 @@ def estimate_exposure_ratios(
         stderr=tuple(float(e) for e in errs),
         estimated=tuple(estimated),
         pairs=len(rows),
+        covariance=cov,
+        linked_set=tuple(linked),
     )
