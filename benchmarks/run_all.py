@@ -33,6 +33,7 @@ BENCHMARKS: dict[str, tuple[list[str], list[str]]] = {
     "bench_trade": (["--cameras", "camera-B", "--size", "256x128", "--reps", "1", "--timing-runs", "1"], []),
     "bench_peers": (["--size", "256x192"], []),
     "merge_accuracy": (["--seeds", "1"], []),
+    "bench_realistic": (["--size", "128", "--seeds", "1,2"], []),
     "calibration_memory": (["--mpix", "2", "--flats", "10"], []),
     "planner_sec8": (["--quick"], ["--quick"]),
     "session_overhead": ([], []),

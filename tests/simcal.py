@@ -21,9 +21,13 @@ def shots(sensor, X, t, n, rng, kind, dark=False):
         )
 
 
-def calibrated_sensor(spec, seed, shape, *, flat_level=0.75, n_flats=16, n_darks=2, dark_sink=None):
+def calibrated_sensor(
+    spec, seed, shape, *, flat_level=0.75, n_flats=16, n_darks=2, dark_sink=None, ptc_levels=(), ptc_pairs=1
+):
     """A :class:`SimulatedSensor` and the calibration estimated from its frames (flats at
-    ``flat_level`` of the range above bias, the dark series at :data:`DARK_TIMES`)."""
+    ``flat_level`` of the range above bias, the dark series at :data:`DARK_TIMES`), and
+    ``ptc_pairs`` flat pairs at each fraction of ``ptc_levels`` (a photon-transfer series at the
+    flats' irradiance, varying the exposure time, as ``hdrcap simulate --calibration-set``)."""
     sensor = SimulatedSensor(spec, shape, seed=seed)
     rng = np.random.default_rng([seed, 53])
     t_flat = 0.01
@@ -33,10 +37,15 @@ def calibrated_sensor(spec, seed, shape, *, flat_level=0.75, n_flats=16, n_darks
         for t in DARK_TIMES:
             yield from shots(sensor, 0.0, t, n_darks, rng, f"dark{t:g}", dark=True)
 
+    def flats():
+        yield from shots(sensor, X, t_flat, n_flats, rng, "flat")
+        for f in ptc_levels:
+            yield from shots(sensor, X, t_flat * f / flat_level, 2 * ptc_pairs, rng, f"ptc{f:g}")
+
     cal = calibrate(
         shots(sensor, 0.0, 1e-4, 2, rng, "bias", dark=True),
         shots(sensor, X, 0.1, 1, rng, "sat"),
-        shots(sensor, X, t_flat, n_flats, rng, "flat"),
+        flats(),
         darks(),
         white_level=spec.white_level,
         dark_sink=dark_sink,

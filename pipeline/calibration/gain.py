@@ -22,6 +22,7 @@ __all__ = [
     "fit_dark_variance",
     "usable_pairs",
     "nonlinearity_warnings",
+    "linear_range_warnings",
 ]
 
 
@@ -394,4 +395,41 @@ def nonlinearity_warnings(
         f"({x[i]:.0f} DN above dark): variance {100 * resid[i] / model[i]:+.1f} % from g mu "
         f"({resid[i] / se[i]:+.1f} sigma), {n_above} of {int(np.count_nonzero(x >= x[i]))} "
         "levels from there depart; keep flats for the PRNU map and exposures below this level"
+    ]
+
+
+def linear_range_warnings(
+    levels: Sequence[float] | np.ndarray, saturation: float, fit_fraction: float = 0.7
+) -> list[str]:
+    """A warning when every flat pair that gave the gain lies above the EMVA 1288 linear range.
+
+    Near full well many sensors compress their response; the variance then falls faster than
+    the mean and Eq. 16 comes out low (camera-R of the simulator: -1.1 % with every pair at
+    87.5 % of saturation, six times its standard error on 256 x 256 photosites). Pairs at one
+    level, or only above ``fit_fraction`` of saturation, cannot show it: the photon-transfer
+    residuals (:func:`nonlinearity_warnings`) need points inside the linear range.
+
+    Parameters
+    ----------
+    levels : array_like
+        Mean above the bias of every pair that gave the gain, DN.
+    saturation : float
+        Saturation level above the bias, DN.
+    fit_fraction : float
+        Upper end of the linear range (EMVA 1288: 0.7), fraction of ``saturation``.
+
+    Returns
+    -------
+    list of str
+        One warning naming the pairs' range of levels, or none when a pair lies within the range.
+    """
+    frac = np.asarray(levels, float) / saturation
+    if frac.size == 0 or np.any(frac <= fit_fraction):
+        return []
+    lo, hi = 100 * float(frac.min()), 100 * float(frac.max())
+    span = f"{lo:.0f} %" if round(lo) == round(hi) else f"{lo:.0f}-{hi:.0f} %"
+    return [
+        f"gain from flat pairs at {span} of saturation only, above the EMVA 1288 linear range "
+        f"(0-{100 * fit_fraction:.0f} %): a response that compresses near full well biases it low and "
+        "pairs there cannot show it; add flat pairs at lower levels (a photon-transfer series)"
     ]

@@ -28,6 +28,7 @@ from .gain import (
     PhotonTransferFit,
     fit_dark_variance,
     gain_from_pairs,
+    linear_range_warnings,
     nonlinearity_warnings,
     photon_transfer_gain,
     prnu_correction_factor,
@@ -276,6 +277,8 @@ def _gain_step(
     rec.info["flat_pairs_skipped"] = fl.skipped_pairs
     rec.info["prnu_never_measured"] = fl.n_never_measured
     rec.info.setdefault("warnings", []).extend(nonlinearity_warnings(x, y, np.hypot(var_se, common_se), g, sat_span))
+    if g_method != _PTC_METHOD:
+        rec.info["warnings"].extend(linear_range_warnings([p.mean - ro.mu_R for p in ok_pairs], sat_span, fit_fraction))
     rec.info["flat_levels"] = [{"t": t, "level": lv, "file": nm} for t, lv, nm in fl.levels]
     rec.info["prnu_frames"] = fl.n_prnu_frames
     rec.info["prnu_rejected_samples"] = fl.n_rejected
