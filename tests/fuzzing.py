@@ -15,9 +15,11 @@ runs one target (or all) for a time budget and prints one JSON line per target::
 
     .venv/bin/python tests/fuzzing.py --minutes 30 [--target dng] [--corpus DIR]
 
-Every failure it finds is printed with the smallest input hypothesis reduced it to; store it
-under ``tests/data/fuzz/<target>/`` and it becomes a regression test (``test_fuzz.py`` replays
-every file there).
+A failure does not end a target's budget: its input is shrunk and stored, and fuzzing goes on
+with a fresh random seed; the JSON line lists every distinct failure (exception type, first line,
+location) with its count and the smallest input found, stored under ``tests/data/fuzz/<target>/``
+(``--save DIR``). Give a stored input a name that says what it was and it is a regression test
+(``test_fuzz.py`` replays every file there).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import contextlib
 import io
 import json
 import os
+import random
 import signal
 import sys
 import time
@@ -421,12 +424,12 @@ def check_outcome(outcome: Outcome, what: str) -> None:
     assert "Traceback" not in outcome.stderr, f"{what}: traceback\n{outcome.stderr}"
     assert "internal error" not in outcome.stderr, f"{what}: {outcome.stderr.strip()}"
     if outcome.rc == 0:
-        assert not lines, f"{what}: a success that printed more than warnings on stderr:\n{outcome.stderr}"
+        assert not lines, f"{what}: a success that printed more than warnings on stderr: {lines[0]}\n{outcome.stderr}"
         assert outcome.output_finite, f"{what}: a success whose output holds NaN or infinite values"
         return
     assert outcome.rc == 2, f"{what}: exit status {outcome.rc}: {outcome.stderr.strip()}"
     assert len(lines) == 1 and lines[0].startswith("hdrcap: error: "), (
-        f"{what}: expected one 'hdrcap: error:' line, got:\n{outcome.stderr}"
+        f"{what}: expected one 'hdrcap: error:' line, got: {(lines + [''])[0]}\n{outcome.stderr}"
     )
 
 
@@ -583,75 +586,200 @@ TARGETS: dict[str, Target] = {
 
 # --------------------------------------------------------------------------- nightly command
 
+#: The repository root: a failure's location is its innermost frame in hdrcap's own code.
+REPO = Path(__file__).resolve().parent.parent
 
-def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Path | None = None) -> dict:
-    """Run one target for ``minutes`` of mutated inputs (hypothesis, random seed).
+
+@dataclass(frozen=True)
+class FailureKey:
+    """What makes two failures the same bug: exception type, first line of its message (numbers of
+    three or more digits and hex addresses replaced by ``N``), and location (``file:line``)."""
+
+    error: str
+    message: str
+    location: str
+
+
+def _location(err: BaseException) -> str:
+    """Innermost frame of ``err`` in hdrcap's code (else the innermost of all); for a broken
+    contract the innermost frame of the traceback it printed, else the rule that failed."""
+    import re
+    import traceback
+
+    if isinstance(err, Hang):  # where the alarm struck says nothing
+        return ""
+    printed = re.findall(r'File "([^"]+)", line (\d+)', str(err))
+    if printed:
+        return f"{_relative(printed[-1][0])}:{printed[-1][1]}"
+    frames = traceback.extract_tb(err.__traceback__)
+    ours = [f for f in frames if _is_ours(f.filename)]
+    frame = (ours or frames or [None])[-1]
+    return f"{_relative(frame.filename)}:{frame.lineno}" if frame else ""
+
+
+def _is_ours(filename: str) -> bool:
+    path = Path(filename).resolve()
+    return path.is_relative_to(REPO) and not path.is_relative_to(REPO / ".venv")
+
+
+def _relative(filename: str) -> str:
+    path = Path(filename).resolve()
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else path.name
+
+
+def failure_key(err: BaseException) -> FailureKey:
+    """The :class:`FailureKey` of an exception raised by a target call or its contract check."""
+    import re
+
+    text = str(err).strip()
+    first = text.splitlines()[0] if text else ""
+    first = re.sub(r"0x[0-9a-fA-F]+|\d{3,}", "N", first)[:300]
+    return FailureKey(type(err).__name__, first, _location(err))
+
+
+@dataclass
+class Failure:
+    """One distinct failure: how often it occurred and the smallest input (shortlex, the order
+    hypothesis shrinks in) that gave it."""
+
+    key: FailureKey
+    count: int = 0
+    data: bytes = b""
+    saved: Path | None = None
+
+    def seen(self, data: bytes) -> None:
+        self.count += 1
+        if self.count == 1 or (len(data), data) < (len(self.data), self.data):
+            self.data = data
+
+    def save(self, folder: Path) -> None:
+        """Write the smallest input to ``folder/<sha256 prefix>.bin`` (replacing a larger one)."""
+        import hashlib
+
+        path = folder / (hashlib.sha256(self.data).hexdigest()[:16] + ".bin")
+        if path == self.saved:
+            return
+        folder.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(self.data)
+        if self.saved is not None:
+            self.saved.unlink(missing_ok=True)
+        self.saved = path
+
+    def report(self) -> dict:
+        return {
+            "error": self.key.error,
+            "message": self.key.message,
+            "location": self.key.location,
+            "count": self.count,
+            "size": len(self.data),
+            "saved": str(self.saved) if self.saved else None,
+        }
+
+
+def fuzz(
+    strategy: st.SearchStrategy[bytes],
+    call: Callable[[bytes], object],
+    seconds: float,
+    save: Path | None = None,
+    shrink_s: float = SHRINK_S,
+    rng: random.Random | None = None,
+) -> dict:
+    """Feed inputs drawn from ``strategy`` to ``call`` for ``seconds``, going on after failures.
+
+    Each round is a hypothesis run with a fresh random seed. An exception of ``call`` with a new
+    :class:`FailureKey` ends the round after hypothesis has shrunk it (for at most ``shrink_s``
+    past the budget); its smallest input is stored under ``save`` and the next round starts.
+    Inputs that fail in a known way are counted, not shrunk again. ``rng`` draws the rounds'
+    seeds (default: the system's entropy).
 
     Returns
     -------
     dict
-        ``target``, ``executions``, ``seconds``, ``exit_status`` (count of each), the slowest
-        call (s) and the largest peak memory of a call (MiB), the ``failure`` (None if the
-        contract held) and where the input it was reduced to was ``saved``.
+        ``executions``, ``seconds``, ``rounds`` (the hypothesis seeds), the slowest call (s) and
+        ``failures``: one entry per distinct failure (error, message, location, count, size of
+        the smallest input in bytes, where it was saved), the most frequent first.
     """
-    from hypothesis import HealthCheck, Verbosity, given, settings
-
-    seed = TARGETS[name].seed(corpus)
-    stats = {"n": 0, "slowest": 0.0, "peak": 0.0, "rc": {}}
-    failing: dict[str, bytes] = {}
-    deadline = time.monotonic() + minutes * 60
-
-    @settings(
-        max_examples=10**9,
-        deadline=None,
-        database=None,
-        derandomize=False,
-        suppress_health_check=list(HealthCheck),
-        verbosity=Verbosity.quiet,
-    )
-    @given(TARGETS[name].strategy(seed))
-    def one(data: bytes) -> None:
-        now = time.monotonic()
-        if (now > deadline and not failing) or now > deadline + SHRINK_S:  # shrinking gets SHRINK_S more
-            raise _Done
-        stats["n"] += 1
-        t0 = time.monotonic()
-        try:
-            outcome = run_target(name, corpus, data, work / name)
-            check_outcome(outcome, name)
-        except Exception:
-            failing["data"] = data  # the last failing call replays the shrunk example
-            raise
-        finally:
-            stats["slowest"] = max(stats["slowest"], time.monotonic() - t0)
-            stats["peak"] = max(stats["peak"], _peak_mib())
-        stats["rc"][outcome.rc] = stats["rc"].get(outcome.rc, 0) + 1
+    from hypothesis import HealthCheck, Phase, Verbosity, given, settings
+    from hypothesis import seed as hypothesis_seed
 
     t0 = time.monotonic()
-    error = saved = None
-    try:
-        one()
-    except _Done:
-        if failing:  # shrinking ran out of time: the last failing input, not the smallest
-            error = "contract broken; shrinking stopped after SHRINK_S s: replay the saved input"
-    except Exception as err:  # a contract violation, reduced by hypothesis
-        error = _describe(err)
-    if error and "data" in failing and save is not None:
-        import hashlib
+    deadline = t0 + seconds
+    failures: dict[FailureKey, Failure] = {}
+    known: set[FailureKey] = set()
+    stats = {"n": 0, "slowest": 0.0}
+    seeds = []
 
-        (save / name).mkdir(parents=True, exist_ok=True)
-        saved = save / name / (hashlib.sha256(failing["data"]).hexdigest()[:16] + ".bin")
-        saved.write_bytes(failing["data"])
+    def one(data: bytes) -> None:
+        now = time.monotonic()
+        if now > deadline and (len(failures) == len(known) or now > deadline + shrink_s):
+            raise _Done
+        stats["n"] += 1
+        try:
+            call(data)
+        except Exception as err:
+            key = failure_key(err)
+            failures.setdefault(key, Failure(key)).seen(data)
+            if key not in known:
+                raise  # hypothesis shrinks it
+        finally:
+            stats["slowest"] = max(stats["slowest"], time.monotonic() - now)
+
+    while time.monotonic() < deadline:
+        seeds.append((rng or random.SystemRandom()).getrandbits(64))
+        run = settings(
+            max_examples=10**9,
+            deadline=None,
+            database=None,
+            phases=[Phase.generate, Phase.shrink],
+            suppress_health_check=list(HealthCheck),
+            verbosity=Verbosity.quiet,
+        )(hypothesis_seed(seeds[-1])(given(strategy)(one)))
+        with contextlib.suppress(_Done, Exception):  # what failed is in ``failures``
+            run()
+        known.update(failures)
+        if save is not None:
+            for failure in failures.values():
+                failure.save(save)
     return {
-        "target": name,
         "executions": stats["n"],
         "seconds": round(time.monotonic() - t0, 1),
-        "exit_status": stats["rc"],
+        "rounds": seeds,
         "slowest_call_s": round(stats["slowest"], 2),
-        "peak_mib": round(stats["peak"]),
-        "failure": error,
-        "saved": str(saved) if saved else None,
+        "failures": [f.report() for f in sorted(failures.values(), key=lambda f: -f.count)],
     }
+
+
+def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Path | None = None) -> dict:
+    """Run one target for ``minutes`` of mutated inputs (see :func:`fuzz`).
+
+    Returns
+    -------
+    dict
+        ``target``, the entries of :func:`fuzz`, ``exit_status`` (count of each) and the
+        largest peak memory of a call (MiB).
+    """
+    rcs: dict[int, int] = {}
+    peak = [0.0]
+
+    def call(data: bytes) -> None:
+        try:
+            outcome = run_target(name, corpus, data, work / name)
+        finally:
+            peak[0] = max(peak[0], _peak_mib())
+        rcs[outcome.rc] = rcs.get(outcome.rc, 0) + 1
+        check_outcome(outcome, name)
+
+    old = os.environ.get("HDRCAP_DEBUG")
+    os.environ["HDRCAP_DEBUG"] = "1"  # an internal error raises: its location tells bugs apart
+    try:
+        strategy = TARGETS[name].strategy(TARGETS[name].seed(corpus))
+        result = fuzz(strategy, call, minutes * 60, save / name if save else None)
+    finally:
+        if old is None:
+            del os.environ["HDRCAP_DEBUG"]
+        else:
+            os.environ["HDRCAP_DEBUG"] = old
+    return {"target": name, **result, "exit_status": rcs, "peak_mib": round(peak[0])}
 
 
 def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
@@ -660,19 +788,9 @@ def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, sa
     failed = 0
     for name in targets:
         result = fuzz_target(name, corpus, work, minutes, save)
-        failed += result["failure"] is not None
+        failed += bool(result["failures"])
         print(json.dumps(result), flush=True)
     return 1 if failed else 0
-
-
-def _describe(err: BaseException) -> str:
-    """The violated rule(s) of a failure, without hypothesis's repr of the (large) input."""
-    parts = list(getattr(err, "exceptions", None) or [err])
-    return " | ".join(
-        f"{type(e).__name__}: {str(e).splitlines()[0][:500] if str(e) else ''}"
-        + (f" ({_describe(e)})" if getattr(e, "exceptions", None) else "")
-        for e in parts
-    )
 
 
 class _Done(BaseException):

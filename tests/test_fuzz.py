@@ -7,9 +7,13 @@ Every input must end in a result or a one-line ``hdrcap: error:`` with exit stat
 
 from __future__ import annotations
 
+import random
+from pathlib import Path
+
 import pytest
-from fuzzing import DATA, TARGETS, build_corpus, check_outcome, run_target
+from fuzzing import DATA, TARGETS, build_corpus, check_outcome, failure_key, fuzz, run_target
 from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 EXAMPLES = 30
 
@@ -49,3 +53,38 @@ REGRESSIONS = sorted(p for p in DATA.glob("*/*") if p.is_file()) if DATA.is_dir(
 @pytest.mark.parametrize("path", REGRESSIONS, ids=[f"{p.parent.name}/{p.name}" for p in REGRESSIONS])
 def test_stored_crash_inputs(path, corpus, tmp_path):
     check_outcome(run_target(path.parent.name, corpus, path.read_bytes(), tmp_path), path.name)
+
+
+def test_fuzzing_goes_on_after_a_failure(tmp_path):
+    """The nightly loop stores each distinct failure's smallest input and keeps fuzzing."""
+
+    def call(data: bytes) -> None:
+        if data[:1] == b"\x07":
+            raise ValueError("starts with 7")
+        if len(data) > 40:
+            raise KeyError("long")
+
+    result = fuzz(st.binary(max_size=64), call, seconds=4, save=tmp_path, shrink_s=10, rng=random.Random(1))
+    found = {f["error"]: f for f in result["failures"]}
+    assert set(found) == {"ValueError", "KeyError"}, result["failures"]
+    assert Path(found["ValueError"]["saved"]).read_bytes() == b"\x07"
+    assert Path(found["KeyError"]["saved"]).read_bytes() == bytes(41)
+    assert len(result["rounds"]) >= 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(Path(f["saved"]).name for f in found.values())
+    assert result["executions"] > sum(f["count"] for f in found.values())
+
+
+def test_failure_key_ignores_numbers_and_tells_locations_apart():
+    def fail(n):
+        if n % 2:
+            raise ValueError(f"index {n} out of range")
+        raise ValueError(f"index {n} out of range")
+
+    keys = []
+    for n in (1001, 2003, 4000):
+        try:
+            fail(n)
+        except ValueError as err:
+            keys.append(failure_key(err))
+    assert keys[0] == keys[1] != keys[2]
+    assert keys[0].message == "index N out of range" and keys[0].location.startswith("tests/test_fuzz.py:")
