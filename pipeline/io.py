@@ -475,6 +475,20 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
     )
 
 
+def _first_tiff_page(path: Path) -> np.ndarray:
+    """The pixels of a TIFF file's first page.
+
+    Never ``tifffile.imread``: it builds the file's image series by iterating its pages, which
+    never ends on a circular chain of directories (a corrupt next-IFD offset). Counting the
+    pages follows the chain with a guard that logs the loop (a complaint that refuses the file).
+    """
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        len(tif.pages)  # walks the directory chain: a loop or a bad offset is logged
+        return tif.pages[0].asarray()
+
+
 def read_image16(path, exposure_time: float) -> RawFrame:
     """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time.
 
@@ -499,9 +513,7 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     with _tiff_complaints() as complaints:
         try:
             if suffix in (".tif", ".tiff"):
-                import tifffile
-
-                data = tifffile.imread(path)
+                data = _first_tiff_page(path)
             else:
                 from PIL import Image
 

@@ -31,6 +31,7 @@ import os
 import random
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -676,6 +677,37 @@ class Failure:
         }
 
 
+#: Seconds one call may run before the watchdog gives it up as stuck: the alarm of
+#: ``CALL_TIMEOUT_S`` cannot stop a hang in a worker thread (the main thread then waits for it).
+STUCK_S = 3 * CALL_TIMEOUT_S
+
+
+class _Watchdog:
+    """A daemon thread that calls ``on_stuck(data)`` once a call has run for ``seconds``."""
+
+    def __init__(self, seconds: float, on_stuck: Callable[[bytes], None]):
+        self.seconds, self.on_stuck = seconds, on_stuck
+        self.since: float | None = None
+        self.data = b""
+        self.stop = threading.Event()
+        threading.Thread(target=self._watch, daemon=True, name="fuzz-watchdog").start()
+
+    @contextlib.contextmanager
+    def call(self, data: bytes):
+        self.data, self.since = data, time.monotonic()
+        try:
+            yield
+        finally:
+            self.since = None
+
+    def _watch(self) -> None:
+        while not self.stop.wait(min(1.0, self.seconds / 4)):
+            since = self.since
+            if since is not None and time.monotonic() - since > self.seconds:
+                self.since = None
+                self.on_stuck(self.data)
+
+
 def fuzz(
     strategy: st.SearchStrategy[bytes],
     call: Callable[[bytes], object],
@@ -683,6 +715,8 @@ def fuzz(
     save: Path | None = None,
     shrink_s: float = SHRINK_S,
     rng: random.Random | None = None,
+    stuck_s: float | None = None,
+    on_stuck: Callable[[dict], None] | None = None,
 ) -> dict:
     """Feed inputs drawn from ``strategy`` to ``call`` for ``seconds``, going on after failures.
 
@@ -690,7 +724,9 @@ def fuzz(
     :class:`FailureKey` ends the round after hypothesis has shrunk it (for at most ``shrink_s``
     past the budget); its smallest input is stored under ``save`` and the next round starts.
     Inputs that fail in a known way are counted, not shrunk again. ``rng`` draws the rounds'
-    seeds (default: the system's entropy).
+    seeds (default: the system's entropy). A call still running after ``stuck_s`` (default
+    ``STUCK_S``) is a ``Hang`` failure, stored at once (it cannot be shrunk); then ``on_stuck``
+    receives the report so far (the call may never return).
 
     Returns
     -------
@@ -702,6 +738,7 @@ def fuzz(
     from hypothesis import HealthCheck, Phase, Verbosity, given, settings
     from hypothesis import seed as hypothesis_seed
 
+    stuck_s = STUCK_S if stuck_s is None else stuck_s
     t0 = time.monotonic()
     deadline = t0 + seconds
     failures: dict[FailureKey, Failure] = {}
@@ -709,13 +746,32 @@ def fuzz(
     stats = {"n": 0, "slowest": 0.0}
     seeds = []
 
+    def report() -> dict:
+        return {
+            "executions": stats["n"],
+            "seconds": round(time.monotonic() - t0, 1),
+            "rounds": seeds,
+            "slowest_call_s": round(stats["slowest"], 2),
+            "failures": [f.report() for f in sorted(failures.values(), key=lambda f: -f.count)],
+        }
+
+    def stuck(data: bytes) -> None:
+        key = FailureKey("Hang", f"no answer within {stuck_s:g} s (a thread the time limit cannot stop)", "")
+        known.add(key)
+        failures.setdefault(key, Failure(key)).seen(data)
+        if save is not None:
+            failures[key].save(save)
+        if on_stuck is not None:
+            on_stuck(report())
+
     def one(data: bytes) -> None:
         now = time.monotonic()
-        if now > deadline and (len(failures) == len(known) or now > deadline + shrink_s):
+        if now > deadline and (known.issuperset(failures) or now > deadline + shrink_s):
             raise _Done
         stats["n"] += 1
         try:
-            call(data)
+            with watchdog.call(data):
+                call(data)
         except Exception as err:
             key = failure_key(err)
             failures.setdefault(key, Failure(key)).seen(data)
@@ -724,32 +780,37 @@ def fuzz(
         finally:
             stats["slowest"] = max(stats["slowest"], time.monotonic() - now)
 
-    while time.monotonic() < deadline:
-        seeds.append((rng or random.SystemRandom()).getrandbits(64))
-        run = settings(
-            max_examples=10**9,
-            deadline=None,
-            database=None,
-            phases=[Phase.generate, Phase.shrink],
-            suppress_health_check=list(HealthCheck),
-            verbosity=Verbosity.quiet,
-        )(hypothesis_seed(seeds[-1])(given(strategy)(one)))
-        with contextlib.suppress(_Done, Exception):  # what failed is in ``failures``
-            run()
-        known.update(failures)
-        if save is not None:
-            for failure in failures.values():
-                failure.save(save)
-    return {
-        "executions": stats["n"],
-        "seconds": round(time.monotonic() - t0, 1),
-        "rounds": seeds,
-        "slowest_call_s": round(stats["slowest"], 2),
-        "failures": [f.report() for f in sorted(failures.values(), key=lambda f: -f.count)],
-    }
+    watchdog = _Watchdog(stuck_s, stuck)
+    try:
+        while time.monotonic() < deadline:
+            seeds.append((rng or random.SystemRandom()).getrandbits(64))
+            run = settings(
+                max_examples=10**9,
+                deadline=None,
+                database=None,
+                phases=[Phase.generate, Phase.shrink],
+                suppress_health_check=list(HealthCheck),
+                verbosity=Verbosity.quiet,
+            )(hypothesis_seed(seeds[-1])(given(strategy)(one)))
+            with contextlib.suppress(_Done, Exception):  # what failed is in ``failures``
+                run()
+            known.update(failures)
+            if save is not None:
+                for failure in failures.values():
+                    failure.save(save)
+    finally:
+        watchdog.stop.set()
+    return report()
 
 
-def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Path | None = None) -> dict:
+def fuzz_target(
+    name: str,
+    corpus: Corpus,
+    work: Path,
+    minutes: float,
+    save: Path | None = None,
+    on_stuck: Callable[[dict], None] | None = None,
+) -> dict:
     """Run one target for ``minutes`` of mutated inputs (see :func:`fuzz`).
 
     Returns
@@ -769,26 +830,50 @@ def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Pat
         rcs[outcome.rc] = rcs.get(outcome.rc, 0) + 1
         check_outcome(outcome, name)
 
+    def report(result: dict) -> dict:
+        return {"target": name, **result, "exit_status": rcs, "peak_mib": round(peak[0])}
+
     old = os.environ.get("HDRCAP_DEBUG")
     os.environ["HDRCAP_DEBUG"] = "1"  # an internal error raises: its location tells bugs apart
     try:
         strategy = TARGETS[name].strategy(TARGETS[name].seed(corpus))
-        result = fuzz(strategy, call, minutes * 60, save / name if save else None)
+        stuck = (lambda result: on_stuck(report(result))) if on_stuck else None
+        result = fuzz(strategy, call, minutes * 60, save / name if save else None, on_stuck=stuck)
     finally:
         if old is None:
             del os.environ["HDRCAP_DEBUG"]
         else:
             os.environ["HDRCAP_DEBUG"] = old
-    return {"target": name, **result, "exit_status": rcs, "peak_mib": round(peak[0])}
+    return report(result)
 
 
-def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
-    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure."""
+def nightly(
+    minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None, failed: bool = False
+) -> int:
+    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure.
+
+    A stuck call (see :func:`fuzz`) ends the target: its line is printed with the stacks of all
+    threads on stderr, and the process replaces itself with a new one for the remaining targets.
+    """
     corpus = build_corpus(corpus_dir)
-    failed = 0
-    for name in targets:
-        result = fuzz_target(name, corpus, work, minutes, save)
-        failed += bool(result["failures"])
+    for k, name in enumerate(targets):
+
+        def give_up(result: dict, rest: list[str] = targets[k + 1 :]) -> None:
+            import faulthandler
+
+            # the stuck call may have redirected sys.stdout and sys.stderr: the process's own
+            print(json.dumps({**result, "stuck": True}), file=sys.__stdout__, flush=True)
+            sys.__stderr__.flush()
+            faulthandler.dump_traceback(sys.__stderr__, all_threads=True)
+            if not rest:
+                os._exit(1)
+            args = [f"--minutes={minutes}", f"--corpus={corpus_dir}", "--failed-before"]
+            args += [f"--target={t}" for t in rest] + ([f"--save={save}"] if save else ["--no-save"])
+            env = {k: v for k, v in os.environ.items() if k != "HDRCAP_DEBUG"}
+            os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *args], env)
+
+        result = fuzz_target(name, corpus, work, minutes, save, on_stuck=give_up)
+        failed |= bool(result["failures"])
         print(json.dumps(result), flush=True)
     return 1 if failed else 0
 
@@ -808,10 +893,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--save", type=Path, default=DATA, help="where to store shrunk failing inputs (default: tests/data/fuzz)"
     )
+    ap.add_argument("--no-save", dest="save", action="store_const", const=None, help="store no failing inputs")
+    ap.add_argument("--failed-before", action="store_true", help=argparse.SUPPRESS)  # after a stuck call
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="hdrcap-fuzz-") as tmp:
         corpus_dir = args.corpus or Path(tmp) / "corpus"
-        return nightly(args.minutes, args.target or sorted(TARGETS), corpus_dir, Path(tmp) / "work", args.save)
+        targets = args.target or sorted(TARGETS)
+        return nightly(args.minutes, targets, corpus_dir, Path(tmp) / "work", args.save, args.failed_before)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ Every input must end in a result or a one-line ``hdrcap: error:`` with exit stat
 from __future__ import annotations
 
 import random
+import threading
 from pathlib import Path
 
 import pytest
@@ -59,16 +60,16 @@ def test_fuzzing_goes_on_after_a_failure(tmp_path):
     """The nightly loop stores each distinct failure's smallest input and keeps fuzzing."""
 
     def call(data: bytes) -> None:
-        if data[:1] == b"\x07":
-            raise ValueError("starts with 7")
-        if len(data) > 40:
+        if data[:1] and data[0] % 2:
+            raise ValueError("starts with an odd byte")
+        if len(data) > 4:
             raise KeyError("long")
 
-    result = fuzz(st.binary(max_size=64), call, seconds=4, save=tmp_path, shrink_s=10, rng=random.Random(1))
+    result = fuzz(st.binary(max_size=8), call, seconds=4, save=tmp_path, shrink_s=10, rng=random.Random(1))
     found = {f["error"]: f for f in result["failures"]}
     assert set(found) == {"ValueError", "KeyError"}, result["failures"]
-    assert Path(found["ValueError"]["saved"]).read_bytes() == b"\x07"
-    assert Path(found["KeyError"]["saved"]).read_bytes() == bytes(41)
+    assert Path(found["ValueError"]["saved"]).read_bytes() == b"\x01"
+    assert Path(found["KeyError"]["saved"]).read_bytes() == bytes(5)
     assert len(result["rounds"]) >= 2
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(Path(f["saved"]).name for f in found.values())
     assert result["executions"] > sum(f["count"] for f in found.values())
@@ -88,3 +89,24 @@ def test_failure_key_ignores_numbers_and_tells_locations_apart():
             keys.append(failure_key(err))
     assert keys[0] == keys[1] != keys[2]
     assert keys[0].message == "index N out of range" and keys[0].location.startswith("tests/test_fuzz.py:")
+
+
+def test_a_stuck_call_is_stored_and_reported(tmp_path):
+    """A call the time limit cannot stop (a hang in another thread) is a stored ``Hang`` failure."""
+    release = threading.Event()
+    reports = []
+
+    def call(data: bytes) -> None:
+        if data[:1] == b"\x05":
+            release.wait()
+
+    def on_stuck(report: dict) -> None:
+        reports.append(report)
+        release.set()
+
+    result = fuzz(
+        st.binary(max_size=8), call, seconds=4, save=tmp_path, rng=random.Random(2), stuck_s=1, on_stuck=on_stuck
+    )
+    assert len(reports) == 1 and [f["error"] for f in reports[0]["failures"]] == ["Hang"]
+    (hang,) = result["failures"]
+    assert Path(hang["saved"]).read_bytes()[:1] == b"\x05"
