@@ -110,3 +110,42 @@ def test_a_stuck_call_is_stored_and_reported(tmp_path):
     assert len(reports) == 1 and [f["error"] for f in reports[0]["failures"]] == ["Hang"]
     (hang,) = result["failures"]
     assert Path(hang["saved"]).read_bytes()[:1] == b"\x05"
+
+
+#: Decodes one file three times in a fresh interpreter: first thing, after another file, again.
+_DECODE_IN_ORDER = """
+import json, sys
+from hdrcap.pipeline.io import read_raw
+
+def outcome(path):
+    try:
+        frame = read_raw(path, mmap=False)
+    except Exception as err:
+        return f"{type(err).__name__}: {err}"
+    return [frame.cfa_pattern, int(frame.data.sum())]
+
+first = outcome(sys.argv[1])
+outcome(sys.argv[2])
+print(json.dumps([first, outcome(sys.argv[1]), outcome(sys.argv[1])]))
+"""
+
+
+@pytest.mark.parametrize("name", ["cfa-pattern-without-entries.bin", "first-directory-unreadable.bin"])
+def test_libraw_nondeterminism_is_refused_before_decoding(name, corpus, tmp_path):
+    """LibRaw decodes these bytes to a different colour layout depending on what it decoded
+    before (an uninitialised CFA buffer); hdrcap refuses them, the same way every time."""
+    import json
+    import subprocess
+    import sys
+
+    path = tmp_path / "input.dng"
+    path.write_bytes((DATA / "dng-libraw" / name).read_bytes())
+    run = subprocess.run(
+        [sys.executable, "-c", _DECODE_IN_ORDER, str(path), str(corpus.libraw_dng)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    outcomes = json.loads(run.stdout)
+    assert outcomes[0] == outcomes[1] == outcomes[2], outcomes
+    assert outcomes[0].startswith("InputError: ") and ("colour filter" in outcomes[0] or "directory" in outcomes[0])
