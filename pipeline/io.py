@@ -406,7 +406,7 @@ def _libraw_decode(path: Path) -> _Decoded:
     try:
         with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
-            other = raw.other
+            other = _libraw_other(path, raw)
             desc = raw.color_desc.decode("ascii", "replace")
             pattern = raw.raw_pattern
             if raw.num_colors >= 3 and pattern is not None and pattern.shape == (2, 2):
@@ -430,6 +430,15 @@ def _libraw_decode(path: Path) -> _Decoded:
         raise InputError(f"{path}: truncated or unreadable raw file") from None
     except rawpy.LibRawError as err:
         raise InputError(f"{path}: cannot decode raw data ({type(err).__name__})") from None
+
+
+def _libraw_other(path: Path, raw):
+    """rawpy's ``other`` metadata (shutter, ISO, capture time); an impossible capture time (rawpy
+    raises ValueError for e.g. the year 22026) is corrupt metadata and refused."""
+    try:
+        return raw.other
+    except (ValueError, OverflowError) as err:
+        raise InputError(f"{path}: impossible capture time in the raw metadata ({err})") from None
 
 
 def adc_maximum(white_level: float) -> int:
