@@ -309,6 +309,12 @@ def _check_values(job: Job) -> None:
     for k in ("exr", "png"):
         if out[k] and (Path(out[k]).is_absolute() or ".." in Path(out[k]).parts):
             raise job.error("output", k, "must be a file name inside the run folder")
+    try:
+        str(out["folder"]).format(job="", n=0, date="")
+    except (ValueError, KeyError, IndexError, AttributeError) as err:
+        raise job.error(
+            "output", "folder", f"not a valid pattern ({type(err).__name__}: {err}); fields: {{job}} {{n}} {{date}}"
+        ) from None
     _check_writable(job, out["folder"])
     sched = job["schedule"]
     if sched["repeat"] < 1 or sched["every_s"] < 0:

@@ -594,6 +594,10 @@ def emva_calibration(
     sigma2_R = float(data.dark_s2[0])
     if results.quantisation_limited:  # the standard's convention: 0.24 DN^2, an upper limit
         sigma2_R = max(sigma2_R, QUANTISATION_LIMIT)
+    if not (np.isfinite(sigma2_R) and sigma2_R > 0):
+        raise InputError(
+            f"dark images of the shortest exposure have temporal variance {sigma2_R!r} DN^2: no read noise to measure"
+        )
     white = float(2**data.bits - 1)
     if saturation == "emva":
         v_sat = results.u_y_sat

@@ -259,6 +259,70 @@ def _refuse_impossible_size(path: Path, tif) -> None:
         )
 
 
+def _refuse_unreadable_dng(path: Path, err: BaseException) -> None:
+    """Refuse a ``.dng`` file with a TIFF header whose first directory tifffile cannot read.
+
+    Other raw formats go to LibRaw then; a DNG would be decoded without the checks of its CFA
+    tags (:func:`_refuse_inconsistent_cfa`), and LibRaw fills what it cannot read from memory
+    an earlier call left behind.
+    """
+    if path.suffix.lower() != ".dng":
+        return
+    with open(path, "rb") as fh:
+        header = fh.read(4)
+    if header in (b"II*\x00", b"MM\x00*"):
+        raise InputError(f"{path}: corrupt DNG directory ({_one_line(err)})")
+
+
+def _one_line(err: BaseException, limit: int = 200) -> str:
+    """``Type: message`` of an exception on one line, at most ``limit`` characters."""
+    text = " ".join(f"{type(err).__name__}: {err}".split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _tag_values(tag) -> np.ndarray:
+    """The values of a TIFF tag as a flat integer array (BYTE tags come as ``bytes``)."""
+    value = tag.value
+    return np.frombuffer(value, np.uint8) if isinstance(value, bytes) else np.ravel(value).astype(np.int64)
+
+
+def _refuse_inconsistent_cfa(path: Path, tif) -> None:
+    """Refuse a raw file whose colour filter array tags contradict each other.
+
+    In every directory that has them (IFD0 and its SubIFDs, whatever their other tags say),
+    CFARepeatPatternDim gives (rows, columns), CFAPattern needs rows x columns entries and each
+    entry indexes CFAPlaneColor (default red, green, blue). LibRaw reads the pattern into an
+    uninitialised buffer of the repeat's size: missing entries are whatever an earlier call
+    left there, and the same bytes decode to a different colour layout (or none) from one call
+    to the next.
+    """
+    first = tif.pages[0]
+    for page in [first, *(getattr(first, "pages", None) or [])]:
+        if 33421 in page.tags or 33422 in page.tags:
+            _check_cfa_tags(path, page)
+
+
+def _check_cfa_tags(path: Path, page) -> None:
+    """One directory's CFA tags (see :func:`_refuse_inconsistent_cfa`)."""
+    try:
+        dims = tuple(_tag_values(page.tags[33421])) if 33421 in page.tags else ()
+        codes = _tag_values(page.tags[33422]) if 33422 in page.tags else None
+        n_planes = len(_tag_values(page.tags[50710])) if 50710 in page.tags else 3
+    except Exception as err:  # noqa: BLE001  (tifffile cannot read a tag: as corrupt as a wrong count)
+        raise InputError(f"{path}: corrupt colour filter tags ({type(err).__name__})") from None
+    if len(dims) != 2 or min(dims) < 1 or codes is None or len(codes) != dims[0] * dims[1]:
+        found = "no CFAPattern" if codes is None else f"a CFAPattern of {len(codes)} entries"
+        raise InputError(
+            f"{path}: corrupt colour filter tags: CFARepeatPatternDim {list(map(int, dims))} "
+            f"with {found} (need rows x columns entries)"
+        )
+    if codes.max() >= n_planes:
+        raise InputError(
+            f"{path}: corrupt colour filter tags: CFAPattern colour {int(codes.max())} "
+            f"beyond the {n_planes} colours of CFAPlaneColor"
+        )
+
+
 def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
     """EXIF values and, for a simple DNG, its decoded raw image (else None) of a TIFF-based raw
     file (DNG, NEF, ...); ``({}, None)`` for other formats.
@@ -273,7 +337,8 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
     with _tiff_complaints() as complaints:
         try:
             tif = tifffile.TiffFile(path)
-        except Exception:  # noqa: BLE001  (not a TIFF container, e.g. CR3, RAF: LibRaw's values are used)
+        except Exception as err:  # noqa: BLE001  (not a TIFF container, e.g. CR3, RAF: LibRaw's values are used)
+            _refuse_unreadable_dng(path, err)
             return {}, None
         with tif:
             try:
@@ -283,7 +348,8 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
                     exif_tag.value  # noqa: B018  (parse the EXIF IFD now, inside the complaint log)
                 size = path.stat().st_size
                 ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts)]
-            except Exception:  # noqa: BLE001  (a TIFF header but no readable first IFD: LibRaw decides)
+            except Exception as err:  # noqa: BLE001  (a TIFF header but no readable first IFD: LibRaw decides)
+                _refuse_unreadable_dng(path, err)
                 return {}, None
             exif = _exif_values(page, path)
             if ends and max(ends) > size:
@@ -296,6 +362,7 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
             except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
                 direct = None
             _refuse_corrupt_dng(path, page, complaints)  # IFD0, the EXIF IFD and the raw image's SubIFD
+            _refuse_inconsistent_cfa(path, tif)
     return exif, direct
 
 
@@ -340,7 +407,7 @@ def _libraw_decode(path: Path) -> _Decoded:
     try:
         with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             data = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
-            other = raw.other
+            other = _libraw_other(path, raw)
             desc = raw.color_desc.decode("ascii", "replace")
             pattern = raw.raw_pattern
             if raw.num_colors >= 3 and pattern is not None and pattern.shape == (2, 2):
@@ -364,6 +431,15 @@ def _libraw_decode(path: Path) -> _Decoded:
         raise InputError(f"{path}: truncated or unreadable raw file") from None
     except rawpy.LibRawError as err:
         raise InputError(f"{path}: cannot decode raw data ({type(err).__name__})") from None
+
+
+def _libraw_other(path: Path, raw):
+    """rawpy's ``other`` metadata (shutter, ISO, capture time); an impossible capture time (rawpy
+    raises ValueError for e.g. the year 22026) is corrupt metadata and refused."""
+    try:
+        return raw.other
+    except (ValueError, OverflowError) as err:
+        raise InputError(f"{path}: impossible capture time in the raw metadata ({err})") from None
 
 
 def adc_maximum(white_level: float) -> int:
@@ -476,6 +552,20 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
     )
 
 
+def _first_tiff_page(path: Path) -> np.ndarray:
+    """The pixels of a TIFF file's first page.
+
+    Never ``tifffile.imread``: it builds the file's image series by iterating its pages, which
+    never ends on a circular chain of directories (a corrupt next-IFD offset). Counting the
+    pages follows the chain with a guard that logs the loop (a complaint that refuses the file).
+    """
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        len(tif.pages)  # walks the directory chain: a loop or a bad offset is logged
+        return tif.pages[0].asarray()
+
+
 def read_image16(path, exposure_time: float) -> RawFrame:
     """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time.
 
@@ -500,9 +590,7 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     with _tiff_complaints() as complaints:
         try:
             if suffix in (".tif", ".tiff"):
-                import tifffile
-
-                data = tifffile.imread(path)
+                data = _first_tiff_page(path)
             else:
                 from PIL import Image
 

@@ -304,7 +304,7 @@ def read_irradiance_map(path: str | Path) -> np.ndarray:
             data = np.asarray(img.channels[name], dtype=np.float64)
             break
     else:
-        raise InputError(f"{path}: no irradiance, Y, R or G channel (has {', '.join(img.channels)})")
+        raise InputError(f"{path}: no irradiance, Y, R or G channel (has {', '.join(map(repr, img.channels))})")
     if not np.all(np.isfinite(data)):
         raise InputError(f"{path}: the irradiance map holds NaN or infinite values")
     return data

@@ -15,9 +15,11 @@ runs one target (or all) for a time budget and prints one JSON line per target::
 
     .venv/bin/python tests/fuzzing.py --minutes 30 [--target dng] [--corpus DIR]
 
-Every failure it finds is printed with the smallest input hypothesis reduced it to; store it
-under ``tests/data/fuzz/<target>/`` and it becomes a regression test (``test_fuzz.py`` replays
-every file there).
+A failure does not end a target's budget: its input is shrunk and stored, and fuzzing goes on
+with a fresh random seed; the JSON line lists every distinct failure (exception type, first line,
+location) with its count and the smallest input found, stored under ``tests/data/fuzz/<target>/``
+(``--save DIR``). Give a stored input a name that says what it was and it is a regression test
+(``test_fuzz.py`` replays every file there).
 """
 
 from __future__ import annotations
@@ -26,8 +28,10 @@ import contextlib
 import io
 import json
 import os
+import random
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -421,12 +425,12 @@ def check_outcome(outcome: Outcome, what: str) -> None:
     assert "Traceback" not in outcome.stderr, f"{what}: traceback\n{outcome.stderr}"
     assert "internal error" not in outcome.stderr, f"{what}: {outcome.stderr.strip()}"
     if outcome.rc == 0:
-        assert not lines, f"{what}: a success that printed more than warnings on stderr:\n{outcome.stderr}"
+        assert not lines, f"{what}: a success that printed more than warnings on stderr: {lines[0]}\n{outcome.stderr}"
         assert outcome.output_finite, f"{what}: a success whose output holds NaN or infinite values"
         return
     assert outcome.rc == 2, f"{what}: exit status {outcome.rc}: {outcome.stderr.strip()}"
     assert len(lines) == 1 and lines[0].startswith("hdrcap: error: "), (
-        f"{what}: expected one 'hdrcap: error:' line, got:\n{outcome.stderr}"
+        f"{what}: expected one 'hdrcap: error:' line, got: {(lines + [''])[0]}\n{outcome.stderr}"
     )
 
 
@@ -583,96 +587,295 @@ TARGETS: dict[str, Target] = {
 
 # --------------------------------------------------------------------------- nightly command
 
+#: The repository root: a failure's location is its innermost frame in hdrcap's own code.
+REPO = Path(__file__).resolve().parent.parent
 
-def fuzz_target(name: str, corpus: Corpus, work: Path, minutes: float, save: Path | None = None) -> dict:
-    """Run one target for ``minutes`` of mutated inputs (hypothesis, random seed).
+
+@dataclass(frozen=True)
+class FailureKey:
+    """What makes two failures the same bug: exception type, first line of its message (numbers of
+    three or more digits and hex addresses replaced by ``N``), and location (``file:line``)."""
+
+    error: str
+    message: str
+    location: str
+
+
+def _location(err: BaseException) -> str:
+    """Innermost frame of ``err`` in hdrcap's code (else the innermost of all); for a broken
+    contract the innermost frame of the traceback it printed, else the rule that failed."""
+    import re
+    import traceback
+
+    if isinstance(err, Hang):  # where the alarm struck says nothing
+        return ""
+    printed = re.findall(r'File "([^"]+)", line (\d+)', str(err))
+    if printed:
+        return f"{_relative(printed[-1][0])}:{printed[-1][1]}"
+    frames = traceback.extract_tb(err.__traceback__)
+    ours = [f for f in frames if _is_ours(f.filename)]
+    frame = (ours or frames or [None])[-1]
+    return f"{_relative(frame.filename)}:{frame.lineno}" if frame else ""
+
+
+def _is_ours(filename: str) -> bool:
+    path = Path(filename).resolve()
+    return path.is_relative_to(REPO) and not path.is_relative_to(REPO / ".venv")
+
+
+def _relative(filename: str) -> str:
+    path = Path(filename).resolve()
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else path.name
+
+
+def failure_key(err: BaseException) -> FailureKey:
+    """The :class:`FailureKey` of an exception raised by a target call or its contract check."""
+    import re
+
+    text = str(err).strip()
+    first = text.splitlines()[0] if text else ""
+    first = re.sub(r"0x[0-9a-fA-F]+|\d{3,}", "N", first)[:300]
+    return FailureKey(type(err).__name__, first, _location(err))
+
+
+@dataclass
+class Failure:
+    """One distinct failure: how often it occurred and the smallest input (shortlex, the order
+    hypothesis shrinks in) that gave it."""
+
+    key: FailureKey
+    count: int = 0
+    data: bytes = b""
+    saved: Path | None = None
+
+    def seen(self, data: bytes) -> None:
+        self.count += 1
+        if self.count == 1 or (len(data), data) < (len(self.data), self.data):
+            self.data = data
+
+    def save(self, folder: Path) -> None:
+        """Write the smallest input to ``folder/<sha256 prefix>.bin`` (replacing a larger one)."""
+        import hashlib
+
+        path = folder / (hashlib.sha256(self.data).hexdigest()[:16] + ".bin")
+        if path == self.saved:
+            return
+        folder.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(self.data)
+        if self.saved is not None:
+            self.saved.unlink(missing_ok=True)
+        self.saved = path
+
+    def report(self) -> dict:
+        return {
+            "error": self.key.error,
+            "message": self.key.message,
+            "location": self.key.location,
+            "count": self.count,
+            "size": len(self.data),
+            "saved": str(self.saved) if self.saved else None,
+        }
+
+
+#: Seconds one call may run before the watchdog gives it up as stuck: the alarm of
+#: ``CALL_TIMEOUT_S`` cannot stop a hang in a worker thread (the main thread then waits for it).
+STUCK_S = 3 * CALL_TIMEOUT_S
+
+
+class _Watchdog:
+    """A daemon thread that calls ``on_stuck(data)`` once a call has run for ``seconds``."""
+
+    def __init__(self, seconds: float, on_stuck: Callable[[bytes], None]):
+        self.seconds, self.on_stuck = seconds, on_stuck
+        self.since: float | None = None
+        self.data = b""
+        self.stop = threading.Event()
+        threading.Thread(target=self._watch, daemon=True, name="fuzz-watchdog").start()
+
+    @contextlib.contextmanager
+    def call(self, data: bytes):
+        self.data, self.since = data, time.monotonic()
+        try:
+            yield
+        finally:
+            self.since = None
+
+    def _watch(self) -> None:
+        while not self.stop.wait(min(1.0, self.seconds / 4)):
+            since = self.since
+            if since is not None and time.monotonic() - since > self.seconds:
+                self.since = None
+                self.on_stuck(self.data)
+
+
+def fuzz(
+    strategy: st.SearchStrategy[bytes],
+    call: Callable[[bytes], object],
+    seconds: float,
+    save: Path | None = None,
+    shrink_s: float = SHRINK_S,
+    rng: random.Random | None = None,
+    stuck_s: float | None = None,
+    on_stuck: Callable[[dict], None] | None = None,
+) -> dict:
+    """Feed inputs drawn from ``strategy`` to ``call`` for ``seconds``, going on after failures.
+
+    Each round is a hypothesis run with a fresh random seed. An exception of ``call`` with a new
+    :class:`FailureKey` ends the round after hypothesis has shrunk it (for at most ``shrink_s``
+    past the budget); its smallest input is stored under ``save`` and the next round starts.
+    Inputs that fail in a known way are counted, not shrunk again. ``rng`` draws the rounds'
+    seeds (default: the system's entropy). A call still running after ``stuck_s`` (default
+    ``STUCK_S``) is a ``Hang`` failure, stored at once (it cannot be shrunk); then ``on_stuck``
+    receives the report so far (the call may never return).
 
     Returns
     -------
     dict
-        ``target``, ``executions``, ``seconds``, ``exit_status`` (count of each), the slowest
-        call (s) and the largest peak memory of a call (MiB), the ``failure`` (None if the
-        contract held) and where the input it was reduced to was ``saved``.
+        ``executions``, ``seconds``, ``rounds`` (the hypothesis seeds), the slowest call (s) and
+        ``failures``: one entry per distinct failure (error, message, location, count, size of
+        the smallest input in bytes, where it was saved), the most frequent first.
     """
-    from hypothesis import HealthCheck, Verbosity, given, settings
+    from hypothesis import HealthCheck, Phase, Verbosity, given, settings
+    from hypothesis import seed as hypothesis_seed
 
-    seed = TARGETS[name].seed(corpus)
-    stats = {"n": 0, "slowest": 0.0, "peak": 0.0, "rc": {}}
-    failing: dict[str, bytes] = {}
-    deadline = time.monotonic() + minutes * 60
+    stuck_s = STUCK_S if stuck_s is None else stuck_s
+    t0 = time.monotonic()
+    deadline = t0 + seconds
+    failures: dict[FailureKey, Failure] = {}
+    known: set[FailureKey] = set()
+    stats = {"n": 0, "slowest": 0.0}
+    seeds = []
 
-    @settings(
-        max_examples=10**9,
-        deadline=None,
-        database=None,
-        derandomize=False,
-        suppress_health_check=list(HealthCheck),
-        verbosity=Verbosity.quiet,
-    )
-    @given(TARGETS[name].strategy(seed))
+    def report() -> dict:
+        return {
+            "executions": stats["n"],
+            "seconds": round(time.monotonic() - t0, 1),
+            "rounds": seeds,
+            "slowest_call_s": round(stats["slowest"], 2),
+            "failures": [f.report() for f in sorted(failures.values(), key=lambda f: -f.count)],
+        }
+
+    def stuck(data: bytes) -> None:
+        key = FailureKey("Hang", f"no answer within {stuck_s:g} s (a thread the time limit cannot stop)", "")
+        known.add(key)
+        failures.setdefault(key, Failure(key)).seen(data)
+        if save is not None:
+            failures[key].save(save)
+        if on_stuck is not None:
+            on_stuck(report())
+
     def one(data: bytes) -> None:
         now = time.monotonic()
-        if (now > deadline and not failing) or now > deadline + SHRINK_S:  # shrinking gets SHRINK_S more
+        if now > deadline and (known.issuperset(failures) or now > deadline + shrink_s):
             raise _Done
         stats["n"] += 1
-        t0 = time.monotonic()
+        try:
+            with watchdog.call(data):
+                call(data)
+        except Exception as err:
+            key = failure_key(err)
+            failures.setdefault(key, Failure(key)).seen(data)
+            if key not in known:
+                raise  # hypothesis shrinks it
+        finally:
+            stats["slowest"] = max(stats["slowest"], time.monotonic() - now)
+
+    watchdog = _Watchdog(stuck_s, stuck)
+    try:
+        while time.monotonic() < deadline:
+            seeds.append((rng or random.SystemRandom()).getrandbits(64))
+            run = settings(
+                max_examples=10**9,
+                deadline=None,
+                database=None,
+                phases=[Phase.generate, Phase.shrink],
+                suppress_health_check=list(HealthCheck),
+                verbosity=Verbosity.quiet,
+            )(hypothesis_seed(seeds[-1])(given(strategy)(one)))
+            with contextlib.suppress(_Done, Exception):  # what failed is in ``failures``
+                run()
+            known.update(failures)
+            if save is not None:
+                for failure in failures.values():
+                    failure.save(save)
+    finally:
+        watchdog.stop.set()
+    return report()
+
+
+def fuzz_target(
+    name: str,
+    corpus: Corpus,
+    work: Path,
+    minutes: float,
+    save: Path | None = None,
+    on_stuck: Callable[[dict], None] | None = None,
+) -> dict:
+    """Run one target for ``minutes`` of mutated inputs (see :func:`fuzz`).
+
+    Returns
+    -------
+    dict
+        ``target``, the entries of :func:`fuzz`, ``exit_status`` (count of each) and the
+        largest peak memory of a call (MiB).
+    """
+    rcs: dict[int, int] = {}
+    peak = [0.0]
+
+    def call(data: bytes) -> None:
         try:
             outcome = run_target(name, corpus, data, work / name)
-            check_outcome(outcome, name)
-        except Exception:
-            failing["data"] = data  # the last failing call replays the shrunk example
-            raise
         finally:
-            stats["slowest"] = max(stats["slowest"], time.monotonic() - t0)
-            stats["peak"] = max(stats["peak"], _peak_mib())
-        stats["rc"][outcome.rc] = stats["rc"].get(outcome.rc, 0) + 1
+            peak[0] = max(peak[0], _peak_mib())
+        rcs[outcome.rc] = rcs.get(outcome.rc, 0) + 1
+        check_outcome(outcome, name)
 
-    t0 = time.monotonic()
-    error = saved = None
+    def report(result: dict) -> dict:
+        return {"target": name, **result, "exit_status": rcs, "peak_mib": round(peak[0])}
+
+    old = os.environ.get("HDRCAP_DEBUG")
+    os.environ["HDRCAP_DEBUG"] = "1"  # an internal error raises: its location tells bugs apart
     try:
-        one()
-    except _Done:
-        if failing:  # shrinking ran out of time: the last failing input, not the smallest
-            error = "contract broken; shrinking stopped after SHRINK_S s: replay the saved input"
-    except Exception as err:  # a contract violation, reduced by hypothesis
-        error = _describe(err)
-    if error and "data" in failing and save is not None:
-        import hashlib
-
-        (save / name).mkdir(parents=True, exist_ok=True)
-        saved = save / name / (hashlib.sha256(failing["data"]).hexdigest()[:16] + ".bin")
-        saved.write_bytes(failing["data"])
-    return {
-        "target": name,
-        "executions": stats["n"],
-        "seconds": round(time.monotonic() - t0, 1),
-        "exit_status": stats["rc"],
-        "slowest_call_s": round(stats["slowest"], 2),
-        "peak_mib": round(stats["peak"]),
-        "failure": error,
-        "saved": str(saved) if saved else None,
-    }
+        strategy = TARGETS[name].strategy(TARGETS[name].seed(corpus))
+        stuck = (lambda result: on_stuck(report(result))) if on_stuck else None
+        result = fuzz(strategy, call, minutes * 60, save / name if save else None, on_stuck=stuck)
+    finally:
+        if old is None:
+            del os.environ["HDRCAP_DEBUG"]
+        else:
+            os.environ["HDRCAP_DEBUG"] = old
+    return report(result)
 
 
-def nightly(minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None) -> int:
-    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure."""
+def nightly(
+    minutes: float, targets: list[str], corpus_dir: Path, work: Path, save: Path | None = None, failed: bool = False
+) -> int:
+    """Run each target for ``minutes``; print one JSON line per target; exit 1 on a failure.
+
+    A stuck call (see :func:`fuzz`) ends the target: its line is printed with the stacks of all
+    threads on stderr, and the process replaces itself with a new one for the remaining targets.
+    """
     corpus = build_corpus(corpus_dir)
-    failed = 0
-    for name in targets:
-        result = fuzz_target(name, corpus, work, minutes, save)
-        failed += result["failure"] is not None
+    for k, name in enumerate(targets):
+
+        def give_up(result: dict, rest: list[str] = targets[k + 1 :]) -> None:
+            import faulthandler
+
+            # the stuck call may have redirected sys.stdout and sys.stderr: the process's own
+            print(json.dumps({**result, "stuck": True}), file=sys.__stdout__, flush=True)
+            sys.__stderr__.flush()
+            faulthandler.dump_traceback(sys.__stderr__, all_threads=True)
+            if not rest:
+                os._exit(1)
+            args = [f"--minutes={minutes}", f"--corpus={corpus_dir}", "--failed-before"]
+            args += [f"--target={t}" for t in rest] + ([f"--save={save}"] if save else ["--no-save"])
+            env = {k: v for k, v in os.environ.items() if k != "HDRCAP_DEBUG"}
+            os.execve(sys.executable, [sys.executable, str(Path(__file__).resolve()), *args], env)
+
+        result = fuzz_target(name, corpus, work, minutes, save, on_stuck=give_up)
+        failed |= bool(result["failures"])
         print(json.dumps(result), flush=True)
     return 1 if failed else 0
-
-
-def _describe(err: BaseException) -> str:
-    """The violated rule(s) of a failure, without hypothesis's repr of the (large) input."""
-    parts = list(getattr(err, "exceptions", None) or [err])
-    return " | ".join(
-        f"{type(e).__name__}: {str(e).splitlines()[0][:500] if str(e) else ''}"
-        + (f" ({_describe(e)})" if getattr(e, "exceptions", None) else "")
-        for e in parts
-    )
 
 
 class _Done(BaseException):
@@ -690,10 +893,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--save", type=Path, default=DATA, help="where to store shrunk failing inputs (default: tests/data/fuzz)"
     )
+    ap.add_argument("--no-save", dest="save", action="store_const", const=None, help="store no failing inputs")
+    ap.add_argument("--failed-before", action="store_true", help=argparse.SUPPRESS)  # after a stuck call
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="hdrcap-fuzz-") as tmp:
         corpus_dir = args.corpus or Path(tmp) / "corpus"
-        return nightly(args.minutes, args.target or sorted(TARGETS), corpus_dir, Path(tmp) / "work", args.save)
+        targets = args.target or sorted(TARGETS)
+        return nightly(args.minutes, targets, corpus_dir, Path(tmp) / "work", args.save, args.failed_before)
 
 
 if __name__ == "__main__":

@@ -7,9 +7,14 @@ Every input must end in a result or a one-line ``hdrcap: error:`` with exit stat
 
 from __future__ import annotations
 
+import random
+import threading
+from pathlib import Path
+
 import pytest
-from fuzzing import DATA, TARGETS, build_corpus, check_outcome, run_target
+from fuzzing import DATA, TARGETS, build_corpus, check_outcome, failure_key, fuzz, run_target
 from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 EXAMPLES = 30
 
@@ -49,3 +54,98 @@ REGRESSIONS = sorted(p for p in DATA.glob("*/*") if p.is_file()) if DATA.is_dir(
 @pytest.mark.parametrize("path", REGRESSIONS, ids=[f"{p.parent.name}/{p.name}" for p in REGRESSIONS])
 def test_stored_crash_inputs(path, corpus, tmp_path):
     check_outcome(run_target(path.parent.name, corpus, path.read_bytes(), tmp_path), path.name)
+
+
+def test_fuzzing_goes_on_after_a_failure(tmp_path):
+    """The nightly loop stores each distinct failure's smallest input and keeps fuzzing."""
+
+    def call(data: bytes) -> None:
+        if data[:1] and data[0] % 2:
+            raise ValueError("starts with an odd byte")
+        if len(data) > 4:
+            raise KeyError("long")
+
+    result = fuzz(st.binary(max_size=8), call, seconds=4, save=tmp_path, shrink_s=10, rng=random.Random(1))
+    found = {f["error"]: f for f in result["failures"]}
+    assert set(found) == {"ValueError", "KeyError"}, result["failures"]
+    assert Path(found["ValueError"]["saved"]).read_bytes() == b"\x01"
+    assert Path(found["KeyError"]["saved"]).read_bytes() == bytes(5)
+    assert len(result["rounds"]) >= 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(Path(f["saved"]).name for f in found.values())
+    assert result["executions"] > sum(f["count"] for f in found.values())
+
+
+def test_failure_key_ignores_numbers_and_tells_locations_apart():
+    def fail(n):
+        if n % 2:
+            raise ValueError(f"index {n} out of range")
+        raise ValueError(f"index {n} out of range")
+
+    keys = []
+    for n in (1001, 2003, 4000):
+        try:
+            fail(n)
+        except ValueError as err:
+            keys.append(failure_key(err))
+    assert keys[0] == keys[1] != keys[2]
+    assert keys[0].message == "index N out of range" and keys[0].location.startswith("tests/test_fuzz.py:")
+
+
+def test_a_stuck_call_is_stored_and_reported(tmp_path):
+    """A call the time limit cannot stop (a hang in another thread) is a stored ``Hang`` failure."""
+    release = threading.Event()
+    reports = []
+
+    def call(data: bytes) -> None:
+        if data[:1] == b"\x05":
+            release.wait()
+
+    def on_stuck(report: dict) -> None:
+        reports.append(report)
+        release.set()
+
+    result = fuzz(
+        st.binary(max_size=8), call, seconds=4, save=tmp_path, rng=random.Random(2), stuck_s=1, on_stuck=on_stuck
+    )
+    assert len(reports) == 1 and [f["error"] for f in reports[0]["failures"]] == ["Hang"]
+    (hang,) = result["failures"]
+    assert Path(hang["saved"]).read_bytes()[:1] == b"\x05"
+
+
+#: Decodes one file three times in a fresh interpreter: first thing, after another file, again.
+_DECODE_IN_ORDER = """
+import json, sys
+from hdrcap.pipeline.io import read_raw
+
+def outcome(path):
+    try:
+        frame = read_raw(path, mmap=False)
+    except Exception as err:
+        return f"{type(err).__name__}: {err}"
+    return [frame.cfa_pattern, int(frame.data.sum())]
+
+first = outcome(sys.argv[1])
+outcome(sys.argv[2])
+print(json.dumps([first, outcome(sys.argv[1]), outcome(sys.argv[1])]))
+"""
+
+
+@pytest.mark.parametrize("name", ["cfa-pattern-without-entries.bin", "first-directory-unreadable.bin"])
+def test_libraw_nondeterminism_is_refused_before_decoding(name, corpus, tmp_path):
+    """LibRaw decodes these bytes to a different colour layout depending on what it decoded
+    before (an uninitialised CFA buffer); hdrcap refuses them, the same way every time."""
+    import json
+    import subprocess
+    import sys
+
+    path = tmp_path / "input.dng"
+    path.write_bytes((DATA / "dng-libraw" / name).read_bytes())
+    run = subprocess.run(
+        [sys.executable, "-c", _DECODE_IN_ORDER, str(path), str(corpus.libraw_dng)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    outcomes = json.loads(run.stdout)
+    assert outcomes[0] == outcomes[1] == outcomes[2], outcomes
+    assert outcomes[0].startswith("InputError: ") and ("colour filter" in outcomes[0] or "directory" in outcomes[0])
