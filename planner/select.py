@@ -266,7 +266,7 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     sample contributes its survival probability), and its predicted gain uses the same
     likelihood's expected information (:func:`planner.predict.censored_information_fraction`).
     Its estimate is not yet unbiased enough near each exposure's clip level to be chosen
-    unasked: z mean up to +0.11 for k = (E v - v_sat)/sigma_v in 0..+2.5 (the finite-sample
+    unasked: z mean up to +0.13 for k = (E v - v_sat)/sigma_v in 0..+2.5 (the finite-sample
     bias of the maximum-likelihood estimate of a censored sample; tests/test_tobit.py), against
     the target |z mean| < 0.05 (the threshold rule's own bias lies in -3..-1, about -0.2). A
     user asks for it with ``--saturation probabilistic``.
@@ -310,7 +310,7 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
         why = (
             f"threshold rule (Eq. 11): the probabilistic model (Eq. 8-10) would add up to {g:.3f} dB "
             f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB; censored likelihood) "
-            "but its estimate is biased near each exposure's clip level (up to +0.11 sigma); not chosen "
+            "but its estimate is biased near each exposure's clip level (up to +0.13 sigma); not chosen "
             "automatically"
         )
     else:
