@@ -657,8 +657,9 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
     1/sum w (Eq. 12) until |change| <= tol * max(|mu|, sigma) or ``max_iter`` steps. From the
     second step on, a sample whose raw value predicted from the current estimate lies within
     ``sat_sigmas`` of its own standard deviation of ``v_sat`` is dropped for good (saturated
-    samples that slip under v_sat on read noise). With ``probabilistic``, Newton steps on the
-    blended likelihood of Eq. 8-10 follow (damped to one sigma), started from that estimate.
+    samples that slip under v_sat on read noise). With ``probabilistic``, the censored (Tobit)
+    likelihood of Eq. 8-10 is maximised from that estimate (:func:`_tobit`: saturated samples
+    contribute their survival probability; sigma from the observed information).
     Photosites with no usable sample get ``nexp = 0``, ``sigma = 0`` and a lower bound of the
     irradiance. The rows are split into ``len(stats)`` chunks (run in parallel); each chunk's
     row of ``stats`` receives its number of photosites with nexp = 0, the sum and the maximum

@@ -12,7 +12,8 @@ For every photosite, from N exposures (v_i, b_i, t_i):
   mu = sum w x / sum w and sigma^2 = 1/sum w (Eq. 12), iterated from the non-saturated
   average until the change is below ``tolerance`` times max(|mu|, sigma) (Fig. 3). The estimate
   is never clipped (dark photosites may be negative);
-* optionally the full saturation model (Eq. 8-10), maximised by Newton steps;
+* optionally the full saturation model (Eq. 8-10) as a censored (Tobit) likelihood: saturated
+  samples contribute their survival probability; maximised by safeguarded Newton steps;
 * photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound;
 * defective photosites (the calibration's ``defect_map``): ``nexp = 0``, ``sigma = 0``, and
   the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value.
@@ -123,7 +124,7 @@ class MergeOptions:
     tolerance : float
         Stop when |mu_new - mu| <= tolerance * max(|mu_new|, sigma). Relative, >= 0.
     saturation : {"threshold", "probabilistic"}
-        Eq. 11 (plus the near-saturation rule) or the blended likelihood of Eq. 8-10.
+        Eq. 11 (plus the near-saturation rule) or the censored (Tobit) likelihood of Eq. 8-10.
     saturation_sigmas : float
         Margin of the near-saturation rule, in standard deviations of the raw value (0 turns
         the rule off).
