@@ -7,7 +7,8 @@ dark strategy (matched, master per time, one master dark at t_ref, model) and sa
 
 * per irradiance decade (photosites away from every clip level, |k| > 3 for every exposure), and
 * per band of k = (E[v] - v_sat) / sigma_v around each exposure's clip level (the exposure whose
-  clip level is nearest, bands of one sigma from -3 to +3).
+  clip level is nearest, bands of one sigma from -3 to +3), leaving out the shortest exposure's
+  clip level (above it there is only a lower bound; see :func:`z_table`).
 
 The calibration: 2 bias frames, 1 saturation frame, 16 flat fields, a dark series at 6 exposure
 times (2 frames each), through :func:`hdrcap.pipeline.calibration.calibrate`. The scene: half the
@@ -114,17 +115,21 @@ def clip_scene(spec, shape, times, rng) -> np.ndarray:
     return X.reshape(shape)
 
 
-def k_of_nearest_clip(sensor, X, times, v_sat) -> np.ndarray:
+def k_of_nearest_clip(sensor, X, times, v_sat) -> tuple[np.ndarray, np.ndarray]:
     """Per photosite, k = (E[v] - v_sat)/sigma_v of the exposure whose clip level is nearest,
-    from the simulator's truth (PRNU, dark-current map, effective times)."""
+    from the simulator's truth (PRNU, dark-current map, effective times), and that exposure's
+    index in ``times``."""
     spec = sensor.spec
     u = sensor.prnu * X + sensor.dark_current_map()
     best = np.full(X.shape, np.inf)
-    for t in times:
+    which = np.zeros(X.shape, np.int64)
+    for j, t in enumerate(times):
         e = t * sensor.shutter_factor(t) * u
         k = (spec.mu_R + spec.g * e - v_sat) / np.sqrt(spec.g**2 * e + spec.sigma2_R)
-        best = np.where(np.abs(k) < np.abs(best), k, best)
-    return best
+        nearer = np.abs(k) < np.abs(best)
+        best = np.where(nearer, k, best)
+        which = np.where(nearer, j, which)
+    return best, which
 
 
 def _stats(z: np.ndarray, zg: np.ndarray) -> dict[str, Any]:
@@ -138,10 +143,16 @@ def _stats(z: np.ndarray, zg: np.ndarray) -> dict[str, Any]:
     }
 
 
-def z_table(z, zg, X, k, ok) -> dict[str, Any]:
+def z_table(z, zg, X, k, ok, shortest) -> dict[str, Any]:
     """z mean and spread per irradiance decade (|k| > 3) and per band of k; ``zg`` is z against
     the truth scaled by the estimated gain's error (common to every photosite, reported in the
-    merge's header rather than in sigma)."""
+    merge's header rather than in sigma).
+
+    The bands of k leave out the photosites whose nearest clip level is the shortest
+    exposure's (``shortest``): above it no sample measures the irradiance (the merge reports a
+    lower bound, nexp = 0), so the photosites that keep an estimate there are a selection by
+    their own noise (the unsaturated draws), biased whatever the estimator; their share with an
+    estimate is ``shortest_clip_measured``."""
     lx = np.log10(X)
     far = np.abs(k) > 3
     out: dict[str, Any] = {"decades": {}, "k_bands": {}}
@@ -149,8 +160,10 @@ def z_table(z, zg, X, k, ok) -> dict[str, Any]:
         m = ok & far & (lx >= lo) & (lx < hi)
         out["decades"][f"1e{lo}-1e{hi}"] = _stats(z[m], zg[m])
     for lo, hi in zip(K_EDGES[:-1], K_EDGES[1:]):
-        m = ok & (k >= lo) & (k < hi)
+        m = ok & ~shortest & (k >= lo) & (k < hi)
         out["k_bands"][f"{lo:+d}..{hi:+d}"] = _stats(z[m], zg[m])
+    near = shortest & (np.abs(k) < 3)
+    out["shortest_clip_measured"] = round(float(ok[near].mean()), 3) if near.any() else None
     return out
 
 
@@ -179,7 +192,8 @@ def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, 
     rng = np.random.default_rng([seed, 31])
     cal = estimated_calibration(sensor, rng)
     X = clip_scene(spec, shape, TIMES, rng)
-    k = k_of_nearest_clip(sensor, X, TIMES, spec.nominal_params().v_sat)
+    k, which = k_of_nearest_clip(sensor, X, TIMES, spec.nominal_params().v_sat)
+    shortest = which == int(np.argmin(TIMES))
     defect = np.zeros(shape, bool)
     for m in sensor.defects.values():
         defect |= m
@@ -193,7 +207,7 @@ def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, 
             sig = np.where(ok, res.sigma, 1.0)
             z = np.where(ok, (res.irradiance.astype(np.float64) - X) / sig, 0.0)
             zg = np.where(ok, (res.irradiance.astype(np.float64) - X * spec.g / cal.params.g) / sig, 0.0)
-            out[(name, sat)] = (z, zg, X, k, ok)
+            out[(name, sat)] = (z, zg, X, k, ok, shortest)
     return out
 
 
@@ -216,7 +230,7 @@ def honesty(size: int = 192, seeds=(1,), oracle_times: bool = False, cameras=CAM
             for key, arrays in run_camera(cam, size, seed, oracle_times).items():
                 pooled.setdefault(key, []).append(arrays)
         result[cam] = {
-            f"{s} {sat}": z_table(*(np.concatenate([r[i].ravel() for r in rows]) for i in range(5)))
+            f"{s} {sat}": z_table(*(np.concatenate([r[i].ravel() for r in rows]) for i in range(6)))
             for (s, sat), rows in pooled.items()
         }
     return result
@@ -234,18 +248,24 @@ def markdown(result: dict[str, Any]) -> str:
     for part, title in (("decades", "irradiance decade, e-/s (|k| > 3)"), ("k_bands", "band of k")):
         first = next(iter(result[c] for c in result if c != "settings"))
         cols = list(next(iter(first.values()))[part])
+        extra = part == "k_bands"  # the share of photosites measured at the shortest exposure's clip
         lines += [
             f"z mean / z spread (z mean with the estimated gain's common error removed) per {title}:",
             "",
-            "| camera | darks | saturation | " + " | ".join(cols) + " |",
-            "|---|---|---|" + "---|" * len(cols),
+            "| camera | darks | saturation | "
+            + " | ".join(cols)
+            + (" | measured at t_min's clip |" if extra else " |"),
+            "|---|---|---|" + "---|" * (len(cols) + extra),
         ]
         for cam, rows in result.items():
             if cam == "settings":
                 continue
             for key, tab in rows.items():
                 strat, sat = key.split(" ")
-                lines.append(f"| {cam} | {strat} | {sat} | " + " | ".join(_cell(tab[part][c]) for c in cols) + " |")
+                cells = [_cell(tab[part][c]) for c in cols]
+                if extra:
+                    cells.append(f"{tab['shortest_clip_measured']:.3f}")
+                lines.append(f"| {cam} | {strat} | {sat} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
 

@@ -4,7 +4,7 @@ The whole estimator of :mod:`pipeline.merge` runs here: one pass over the input 
 full-size per-frame temporaries (only buffers of one row per frame and thread), float32
 outputs. The variance is :func:`pipeline.noise.variance_of_rate`, the one place the formula is
 written, compiled into the kernels (numba inlines it: :func:`_weigh` calls it with per-frame
-constants, :func:`_probabilistic` at each sample).
+constants, :func:`_tobit_terms` at each sample).
 
 The work on a row is split into small loops over blocks of columns (load one frame's samples,
 weigh three frames' samples, update the estimates), each a separate compiled function over
@@ -441,86 +441,170 @@ def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_
     return n0, isum, imax
 
 
+@numba.njit(inline="always", cache=True)
+def _survival(z):
+    """1 - Phi(z) of the standard normal distribution."""
+    return 0.5 * math.erfc(z / _SQRT2)
+
+
+@numba.njit(inline="always", cache=True)
+def _mills(z):
+    """The inverse Mills ratio lambda(z) = phi(z) / (1 - Phi(z)) of the standard normal: the
+    score of a censored sample in units of its standard deviation. Direct up to z = 30, then
+    its continued fraction z + 1/(z + 2/(z + 3/(z + 4/z))) (the survival underflows near 38;
+    relative error < 1e-9 there)."""
+    if z > 30.0:
+        return z + 1.0 / (z + 2.0 / (z + 3.0 / (z + 4.0 / z)))
+    return _INV_SQRT_2PI * math.exp(-0.5 * z * z) / _survival(z)
+
+
+@numba.njit(inline="always", cache=True)
+def _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D):
+    """The dark level b_i of frame i at photosite (r, c), DN (see the module docstring)."""
+    kind = kinds[i]
+    if kind == 0:
+        return float(darks[i][r, c])
+    if kind == 1:
+        return bl + coefs[i] * D
+    return master_c + coefs[i] * D
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _probabilistic(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, max_iter, tol):
-    """Eq. 8-10: blend of the unclipped Gaussian and a uniform density by P_nsat; Newton
-    steps on the log-likelihood (EM step where not concave), damped to one sigma, from ``mu``.
-    Samples at or above v_sat are saturated (Eq. 11); below, P_nsat is the probability that the
-    observed value is not saturated given the current estimate (see the comment in the loop).
-    ``bl`` is the photosite's bias level and ``master_c`` its master dark, DN. Returns (mu,
-    sigma, n used, steps, flagged)."""
+def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
+    """The censored log-likelihood's derivatives at ``mu`` for one photosite (Eq. 8-10 as a
+    censored Gaussian model, the variances held at the estimate as in Eq. 13).
+
+    A sample with v < v_sat contributes the Gaussian density of v - b_i (mean t g a mu,
+    variance :func:`pipeline.noise.variance_of_rate` at max(mu, 0): photon, read, dark frame);
+    where the full well clips before the ADC, mixed with the clipped values' density: a
+    Gaussian of sd sigma_R around v_clip = v_sat + 3 sigma_R (Sec. 6) weighted by the
+    probability Q = 1 - Phi((v_clip - E v)/sd) that the sample is clipped. A sample with
+    v >= v_sat contributes its survival probability P = 1 - Phi(z), z = (v_sat - E v)/sd.
+
+    Returns
+    -------
+    tuple of float
+        The score dL/dmu ((e-/s)^-1), the observed information -d2L/dmu2 and the complete-data
+        information (the unsaturated part's share; positive whenever a sample is), both
+        (e-/s)^-2, the expected number of unclipped samples among those below v_sat, and the
+        number of those more likely unclipped than clipped.
+    """
     kinds, coefs, ks, times = frames
     g, sigma2_R, v_sat, white = camera
     sigma_R = math.sqrt(sigma2_R)
     full_well = white - v_sat > 3.0 * sigma_R
     v_clip = v_sat + 3.0 * sigma_R
-    nu = 0.0
-    steps = 0
     Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
-    for _ in range(max_iter):
-        m = mu if mu > 0.0 else 0.0
-        L1 = 0.0
-        L2 = 0.0
-        swr = 0.0
-        nr = 0
-        for i in range(len(values)):
-            v = float(values[i][r, c])
-            if not (v < v_sat):  # Eq. 11: values at or above the limit are saturated
-                continue
-            t = times[i]
-            tga = t * g * a
-            kind = kinds[i]
-            if kind == 0:
-                b = float(darks[i][r, c])
-            elif kind == 1:
-                b = bl + coefs[i] * D
-            else:
-                b = master_c + coefs[i] * D
-            x = (v - b) / tga
-            if not math.isfinite(x):
-                continue
-            # P_nsat (Eq. 8), the probability that the observed v < v_sat is not saturated,
-            # given the current estimate. Where the ADC clips (v_sat at the white level) a
-            # saturated value never lies below v_sat: P_nsat = 1. Where the full well clips
-            # first, saturated values scatter around v_clip = v_sat + 3 sigma_R (Sec. 6: v_sat
-            # is the saturation level minus three sigma) and may slip under v_sat: P_nsat is
-            # the posterior of "unclipped" (prior: the value predicted from the estimate stays
-            # below v_clip; likelihoods: Gaussians around E(v) and around v_clip).
-            p = 1.0
-            if full_well:
-                ev = bl + g * t * D + tga * m  # E(v_i) without clipping, DN
-                sv = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, 0.0))
-                pu = 1.0 - 0.5 * math.erfc((v_clip - ev) / (_SQRT2 * sv))
-                zu = (v - ev) / sv
-                zc = (v - v_clip) / sigma_R
-                la = math.log(max(pu, 1e-300)) - 0.5 * zu * zu - math.log(sv)
-                lb = math.log(max(1.0 - pu, 1e-300)) - 0.5 * zc * zc - math.log(sigma_R)
-                p = 1.0 / (1.0 + math.exp(min(lb - la, 700.0)))
-            if p <= 0.0:
-                continue
-            w = (tga * tga) / _var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i])
-            d = x - mu
-            num = p * math.sqrt(w) * _INV_SQRT_2PI * math.exp(-0.5 * w * d * d)
-            den = (1.0 - p) * tga / max(white - bl, 1.0) + num
-            rr = num / den if den > 0.0 else 0.0
-            L1 += rr * w * d
-            L2 += w * (rr * (1.0 - rr) * w * d * d - rr)
-            swr += rr * w
-            if rr > 0.5:
-                nr += 1
-        steps += 1
-        if swr <= 0.0 or nr == 0:
-            return mu, sig, nu, steps, True
-        sig = math.sqrt(1.0 / swr)
-        # Newton step, damped to one standard deviation (the blended likelihood has flat
-        # stretches where the bare Newton step overshoots).
-        step = -L1 / L2 if L2 < 0.0 else L1 / swr
-        step = min(max(step, -sig), sig)
-        mu += step
-        nu = float(nr)
-        if abs(step) <= tol * max(abs(mu), sig):
+    m = mu if mu > 0.0 else 0.0
+    score = 0.0
+    info = 0.0
+    info_c = 0.0
+    nu = 0.0
+    nr = 0
+    for i in range(len(values)):
+        v = float(values[i][r, c])
+        b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
+        if not (math.isfinite(v) and math.isfinite(b) and b < v_sat):
+            continue  # an unusable sample (Eq. 11: a saturated dark frame) carries nothing
+        t = times[i]
+        tga = t * g * a
+        sd = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i]))  # sd(v - b), DN
+        kap = tga / sd  # d/dmu of the standardised value, (e-/s)^-1
+        ev = b + tga * mu  # E(v | mu, b) without clipping, DN
+        if v < v_sat:
+            y = (v - ev) / sd
+            d1 = y * kap
+            d2 = -kap * kap
+            rr = 1.0
+            e = (v - v_clip) / sigma_R
+            if full_well and e > -38.0:  # else the clipped density is below 1e-300 of the peak
+                zc = (v_clip - ev) / sd
+                la = -0.5 * y * y - math.log(sd)
+                lb = math.log(max(_survival(zc), 1e-300)) - 0.5 * e * e - math.log(sigma_R)
+                rr = 1.0 / (1.0 + math.exp(min(lb - la, 700.0)))  # P(unclipped | v, mu)
+                lam = _mills(zc)
+                d1 = rr * y * kap + (1.0 - rr) * lam * kap
+                d2 = (rr * (y * y - 1.0) + (1.0 - rr) * zc * lam) * kap * kap - d1 * d1
+            score += d1
+            info -= d2
+            info_c += rr * kap * kap
+            nu += rr
+            nr += 1 if rr > 0.5 else 0
+        else:
+            z = (v_sat - ev) / sd
+            lam = _mills(z)
+            h = lam * (lam - z) * kap * kap  # >= 0: the survival function is log-concave
+            score += lam * kap
+            info += h
+            info_c += h
+    return score, info, info_c, nu, nr
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol):
+    """The censored (Tobit) maximum-likelihood estimate of one photosite (Eq. 8-10 with the
+    saturated samples' survival probability, :func:`_tobit_terms`), from the threshold
+    model's estimate ``mu`` (standard deviation ``sig``, e-/s).
+
+    The score's root is bracketed by steps of ``sig`` doubling away from ``mu``, then found by
+    Newton steps on the observed information, a bisection wherever a step would leave the
+    bracket (the mixture of a full well clipping first is not log-concave), until the step is
+    within ``tol`` max(|mu|, sigma). sigma = 1/sqrt(observed information) at the estimate (the
+    complete-data information where the observed one is not positive): the information the
+    saturated samples carry is in it.
+
+    Returns
+    -------
+    tuple
+        (mu, sigma (e-/s), number of samples used, score evaluations, flagged): flagged when no
+        sample below v_sat is more likely unclipped than clipped (only a lower bound is known).
+    """
+    f, h, hc, nu, nr = _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c)
+    steps = 1
+    if nr == 0:
+        return mu, sig, 0.0, steps, True
+    scale = sig if (sig > 0.0 and math.isfinite(sig)) else 1.0 / math.sqrt(hc)
+    lo = mu
+    hi = mu
+    direction = 1.0 if f > 0.0 else -1.0
+    far = mu
+    found = f == 0.0
+    for _ in range(64):  # bracket the root: lo with a positive score, hi with a negative one
+        if found:
             break
-    return mu, sig, nu, steps, False
+        far = far + direction * scale
+        fn = _tobit_terms(values, darks, frames, camera, r, c, far, a, D, bl, master_c)[0]
+        steps += 1
+        found = (fn > 0.0) != (direction > 0.0) or fn == 0.0
+        if direction > 0.0:
+            lo = far if not found else lo
+            hi = far if found else hi
+        else:
+            hi = far if not found else hi
+            lo = far if found else lo
+        scale *= 2.0
+    if not found:  # the likelihood keeps growing: no finite estimate, a bound at most
+        return mu, sig, 0.0, steps, True
+    x = mu
+    for _ in range(100):
+        hh = h if h > 0.0 else hc
+        xn = x + f / hh
+        if not (lo < xn < hi):
+            xn = 0.5 * (lo + hi)
+        done = abs(xn - x) <= tol * max(abs(xn), 1.0 / math.sqrt(hh)) or f == 0.0
+        x = xn
+        f, h, hc, nu, nr = _tobit_terms(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
+        steps += 1
+        if done:
+            break
+        if f > 0.0:
+            lo = x
+        else:
+            hi = x
+    if nr == 0:
+        return x, sig, 0.0, steps, True
+    hh = h if h > 0.0 else hc
+    return x, 1.0 / math.sqrt(hh), float(nr), steps, False
 
 
 # ------------------------------------------------------------------------------- kernels
@@ -573,8 +657,9 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
     1/sum w (Eq. 12) until |change| <= tol * max(|mu|, sigma) or ``max_iter`` steps. From the
     second step on, a sample whose raw value predicted from the current estimate lies within
     ``sat_sigmas`` of its own standard deviation of ``v_sat`` is dropped for good (saturated
-    samples that slip under v_sat on read noise). With ``probabilistic``, Newton steps on the
-    blended likelihood of Eq. 8-10 follow (damped to one sigma), started from that estimate.
+    samples that slip under v_sat on read noise). With ``probabilistic``, the censored (Tobit)
+    likelihood of Eq. 8-10 is maximised from that estimate (:func:`_tobit`: saturated samples
+    contribute their survival probability; sigma from the observed information).
     Photosites with no usable sample get ``nexp = 0``, ``sigma = 0`` and a lower bound of the
     irradiance. The rows are split into ``len(stats)`` chunks (run in parallel); each chunk's
     row of ``stats`` receives its number of photosites with nexp = 0, the sum and the maximum
@@ -769,11 +854,15 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                     if active == 0:
                         break
                 _row_usable(X, n, NU, c0, cp)
-                if probabilistic:
+                if probabilistic:  # the censored likelihood, from the threshold model's estimate
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
                         if FLAG[c] != 0.0:
+                            # no sample kept by Eq. 11 and the near-saturation rule: saturated in
+                            # every exposure, or only values that slipped under v_sat (full well)
+                            # or lie within the rule's margin of the shortest exposure's clip; a
+                            # lower bound only (nexp = 0)
                             continue
-                        mu, sg, nu, steps, flagged = _probabilistic(
+                        mu, sg, nu, steps, flagged = _tobit(
                             values,
                             darks,
                             frames,
@@ -786,15 +875,14 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
                             DD[c],
                             BL[c],
                             MB[c],
-                            max_iter,
                             tol,
                         )
-                        MU[c] = mu
-                        SIG[c] = sg * sg
                         ITER[c] += steps
                         if flagged:
                             FLAG[c] = 1.0
                         else:
+                            MU[c] = mu
+                            SIG[c] = sg * sg
                             NU[c] = nu
                 b0, bsum, bmax = _row_output(
                     r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter, c0, c1

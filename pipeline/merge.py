@@ -12,7 +12,8 @@ For every photosite, from N exposures (v_i, b_i, t_i):
   mu = sum w x / sum w and sigma^2 = 1/sum w (Eq. 12), iterated from the non-saturated
   average until the change is below ``tolerance`` times max(|mu|, sigma) (Fig. 3). The estimate
   is never clipped (dark photosites may be negative);
-* optionally the full saturation model (Eq. 8-10), maximised by Newton steps;
+* optionally the full saturation model (Eq. 8-10) as a censored (Tobit) likelihood: saturated
+  samples contribute their survival probability; maximised by safeguarded Newton steps;
 * photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound;
 * defective photosites (the calibration's ``defect_map``): ``nexp = 0``, ``sigma = 0``, and
   the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value.
@@ -123,7 +124,7 @@ class MergeOptions:
     tolerance : float
         Stop when |mu_new - mu| <= tolerance * max(|mu_new|, sigma). Relative, >= 0.
     saturation : {"threshold", "probabilistic"}
-        Eq. 11 (plus the near-saturation rule) or the blended likelihood of Eq. 8-10.
+        Eq. 11 (plus the near-saturation rule) or the censored (Tobit) likelihood of Eq. 8-10.
     saturation_sigmas : float
         Margin of the near-saturation rule, in standard deviations of the raw value (0 turns
         the rule off).
@@ -751,7 +752,9 @@ class MergeAccumulator:
     ) -> tuple[np.ndarray, np.ndarray | None, dict]:
         """The errors common to all exposures of a photosite, propagated to X at the estimate
         with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
-        rule, evaluated at the final estimate), in blocks of ``rows``:
+        rule, evaluated at the final estimate; with the censored likelihood of
+        ``saturation="probabilistic"`` every sample with its information,
+        :func:`_censored_sample_information`), in blocks of ``rows``:
 
         * sigma_calibration: :func:`pipeline.noise.calibration_variance` of the calibration's
           bias, dark-current and PRNU maps;
@@ -781,6 +784,7 @@ class MergeAccumulator:
         bias_used = (kinds == 1).astype(np.float64)
         coefs = np.where(kinds == 0, 0.0, np.asarray(self._coefs, np.float64))
         t_ref, n_master = self.options.master_dark_time, float(self.options.n_dark)
+        censored = self.options.saturation == "probabilistic"
 
         def block(arg, sl):
             arr, is_map, scalar = arg
@@ -810,11 +814,15 @@ class MergeAccumulator:
                 else:
                     b = self.master_dark[sl].astype(np.float64) + coef * D
                 vv = v[sl].astype(np.float64)
+                var_x = variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i])
+                if censored:
+                    w[i] = _censored_sample_information(vv, b, mu, var_x, t * g * a, v_sat)
+                    continue
                 ok = (vv < v_sat) & (b < v_sat) & np.isfinite(vv - b)
                 if sat2 > 0:
                     gap = v_sat - bias - t * g * u
                     ok &= (gap > 0) & (gap * gap > sat2 * (g * g * t * u + s2))
-                w[i] = np.where(ok, 1.0 / variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i]), 0.0)
+                w[i] = np.where(ok, 1.0 / var_x, 0.0)
             used = nexp[sl] > 0
             if desc["included"]:
                 var = calibration_variance(
@@ -866,6 +874,44 @@ def warm_up_kernels() -> None:
 
     with numba.core.compiler_lock.global_compiler_lock:  # as numba's own loading does
         numba.core.registry.cpu_target.target_context.refresh()
+
+
+def _censored_sample_information(v, b, mu, var_x, tga, v_sat):
+    """Each sample's share of the censored (Tobit) likelihood's information at the estimate
+    ``mu`` (e-/s), (e-/s)^-2: 1/Var(x_i) below v_sat, lambda(z) (lambda(z) - z)/Var(x_i) at or
+    above it (z = (v_sat - b - t g a mu)/sd(v - b), lambda the inverse Mills ratio), 0 where the
+    sample is unusable (a saturated or non-finite dark level, a non-finite value). The censored
+    estimate moves with a shift of the dark level of sample i by -(this)/(t g a) over the sum,
+    as the threshold model's does with its weights (Eq. 12), so that these replace the weights
+    in :func:`pipeline.noise.calibration_variance`. The full well's clipped values that slip
+    under v_sat count as unsaturated here (a fraction Phi(-3) of them).
+
+    Parameters
+    ----------
+    v, b : numpy.ndarray
+        Raw values and dark levels, DN.
+    mu : numpy.ndarray
+        The estimate, e-/s.
+    var_x : numpy.ndarray
+        Var(x_i) at the estimate, (e-/s)^2.
+    tga : numpy.ndarray or float
+        t g a, DN per e-/s.
+    v_sat : float
+        Saturation limit, DN.
+
+    Returns
+    -------
+    numpy.ndarray
+        Information, (e-/s)^-2.
+    """
+    from scipy.special import log_ndtr
+
+    ok = (b < v_sat) & np.isfinite(v) & np.isfinite(b)
+    with np.errstate(invalid="ignore", over="ignore"):
+        z = np.where(ok, (v_sat - b - tga * mu) / (np.sqrt(var_x) * tga), 0.0)
+        lam = np.exp(-0.5 * z * z - 0.5 * math.log(2.0 * math.pi) - log_ndtr(-z))
+    info = np.where(v < v_sat, 1.0, lam * (lam - z)) / var_x
+    return np.where(ok, info, 0.0)
 
 
 def merge_arrays(

@@ -7,7 +7,8 @@ planner needs on top:
 * which samples the merge will use: the threshold rule of Eq. 11 extended by the merge's
   near-saturation rule (a sample is dropped when its value predicted from the irradiance lies within ``k_sigma``
   of its own standard deviation of ``v_sat``), or, for the probabilistic saturation model
-  (Eq. 8-10), the probability that the sample is not saturated;
+  (Eq. 8-10, a censored likelihood), the share of a sample's information the censored
+  (Tobit) likelihood keeps;
 * the *systematic* per-photosite errors a simpler model leaves in the estimate (dark current
   and bias not measured by a dark frame, PRNU ignored by a scalar gain). They do not average
   out over exposures, so the predicted SNR is X / sqrt(Var + bias^2) ("total-error SNR");
@@ -22,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
+from scipy.special import log_ndtr, ndtr
 
 from hdrcap.pipeline.noise import dark_factor, exposure_variance, exposure_weight, variance_core
 from hdrcap.pipeline.params import Calibration
@@ -34,6 +35,7 @@ __all__ = [
     "systematic_errors_from_calibration",
     "mean_dark_current",
     "predicted_value",
+    "censored_information_fraction",
     "usable_fraction",
     "ExposureTerms",
     "exposure_terms",
@@ -202,15 +204,45 @@ def _value_sigma(X, t, calibration: Calibration):
     return np.sqrt(var_x) * t * p.g
 
 
+def censored_information_fraction(z):
+    """Expected Fisher information about the mean of one Gaussian sample censored from above
+    (Tobit), in units of the uncensored sample's 1/s^2:
+
+    Phi(z) - z phi(z) + phi(z)^2 / (1 - Phi(z)),  z = (c - E x)/s,
+
+    the unsaturated part Phi(z) plus the censored part (1 - Phi(z)) lambda(z) (lambda(z) - z),
+    lambda = phi/(1 - Phi) the inverse Mills ratio (the survival function's log-derivatives;
+    the merge's variances are held at the estimate, Eq. 13, so only the mean depends on X).
+
+    Parameters
+    ----------
+    z : array_like
+        Distance of the censoring point above the mean, in standard deviations.
+
+    Returns
+    -------
+    numpy.ndarray
+        Information fraction in [0, 1]: 1 far below the censoring point, 0 far above.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    log_phi = -0.5 * z * z - 0.5 * np.log(2.0 * np.pi)
+    phi = np.exp(log_phi)
+    phi_lam = np.exp(2.0 * log_phi - log_ndtr(-z))  # phi^2 / (1 - Phi), finite for every z
+    return np.clip(ndtr(z) - z * phi + phi_lam, 0.0, 1.0)
+
+
 def usable_fraction(X, t, calibration: Calibration, saturation: str = "threshold", k_sigma: float = K_SIGMA):
     """Fraction of a sample's information the merge keeps, in [0, 1].
 
     ``"threshold"``: 1 where the predicted value plus ``k_sigma`` of its standard deviation is
     below v_sat, else 0 (Eq. 11 with the merge's near-saturation rule: predicted within k sigma of
     v_sat counts as saturated).
-    ``"probabilistic"``: the probability that the sample is not saturated, Phi((v_sat - v)/s)
-    (the non-saturated part of the mixture of Eq. 8-10; an approximation of the information a
-    censored sample carries).
+    ``"probabilistic"``: the expected Fisher information of the merge's censored (Tobit)
+    likelihood (Eq. 8-10, a saturated sample contributes its survival probability) relative to
+    an unsaturated sample's, :func:`censored_information_fraction` at z = (v_sat - v)/s: the
+    unsaturated part Phi(z) plus what the censored samples carry. Where the full well clips
+    first, the values that slip under v_sat (a fraction Phi(-3) of the clipped ones) are left
+    out, as is the dark level's share of s (about 1 % of the variance at a clip level).
 
     Parameters
     ----------
@@ -236,7 +268,7 @@ def usable_fraction(X, t, calibration: Calibration, saturation: str = "threshold
     if saturation == "threshold":
         return (v + k_sigma * s < vsat).astype(np.float64)
     if saturation == "probabilistic":
-        return ndtr((vsat - v) / s)
+        return censored_information_fraction((vsat - v) / s)
     raise ValueError(f"saturation must be 'threshold' or 'probabilistic', got {saturation!r}")
 
 

@@ -14,8 +14,10 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
   cheaper than more exposures;
 * PRNU: a scalar gain leaves a relative error p (the PRNU spread) in every photosite: cost
   10 log10(1 + T^2 p^2) dB;
-* saturation: the probabilistic model (Eq. 8-10) keeps part of the information of samples
-  within k sigma of v_sat that the threshold rule drops; gain = predicted SNR difference;
+* saturation: the probabilistic model (Eq. 8-10, a censored likelihood) keeps the information
+  of samples within k sigma of v_sat that the threshold rule drops, and of the saturated ones;
+  gain = predicted SNR difference (reported; not chosen automatically, see
+  :func:`saturation_decision`);
 * iterations: weights evaluated at the previous estimate instead of the truth; the start is
   the non-saturated (uniform) average; the number of re-weighting steps after which the
   predicted SNR is within the tolerance of the converged merge.
@@ -260,12 +262,14 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     """The saturation model: the threshold rule; the probabilistic model's predicted SNR gain
     is reported but it is not chosen automatically.
 
-    The merge's probabilistic model (Eq. 8-10) treats the kept samples near v_sat as unbiased
-    (a truncated, not a censored, likelihood): its estimate is biased near each exposure's clip
-    level (z mean -0.26 to -0.32 for k = (E v - v_sat)/sigma_v in -1..+1 on camera-A and camera-B,
-    against -0.05..+0.01 for the threshold rule, gain error removed; ``benchmarks/bench_honesty.py``;
-    the threshold rule's own bias is in -3..-1, -0.25 to -0.10). Until the censored (Tobit)
-    likelihood is in the merge, a user asks for it with ``--saturation probabilistic``.
+    The merge's probabilistic model is the censored (Tobit) likelihood of Eq. 8-10 (a saturated
+    sample contributes its survival probability), and its predicted gain uses the same
+    likelihood's expected information (:func:`planner.predict.censored_information_fraction`).
+    Its estimate is not yet unbiased enough near each exposure's clip level to be chosen
+    unasked: z mean up to +0.13 for k = (E v - v_sat)/sigma_v in 0..+2.5 (the finite-sample
+    bias of the maximum-likelihood estimate of a censored sample; tests/test_tobit.py), against
+    the target |z mean| < 0.05 (the threshold rule's own bias lies in -3..-1, about -0.2). A
+    user asks for it with ``--saturation probabilistic``.
 
     Parameters
     ----------
@@ -305,8 +309,9 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
         choice = "threshold"
         why = (
             f"threshold rule (Eq. 11): the probabilistic model (Eq. 8-10) would add up to {g:.3f} dB "
-            f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB) but is biased near "
-            "each exposure's clip level; not chosen automatically"
+            f"({100 * frac:.3g} % of irradiance bins gain more than {tolerance_db:g} dB; censored likelihood) "
+            "but its estimate is biased near each exposure's clip level (up to +0.13 sigma); not chosen "
+            "automatically"
         )
     else:
         choice = "threshold"

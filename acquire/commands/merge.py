@@ -88,7 +88,7 @@ from hdrcap.pipeline.errors import InputError
     type=click.Choice(["threshold", "probabilistic"]),
     default="threshold",
     show_default=True,
-    help="Saturation model: Eq. 11 plus the near-saturation rule, or the blended likelihood of Eq. 8-10.",
+    help="Saturation model: Eq. 11 plus the near-saturation rule, or the censored likelihood of Eq. 8-10.",
 )
 @click.option(
     "--saturation-sigmas",
