@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io import RawFrame, release_pages
 
 __all__ = [
     "RowFile",
@@ -55,19 +55,21 @@ __all__ = [
     "tiling_rows",
     "TiledMerge",
     "merge_tiled",
+    "write_exr_rows",
 ]
 
 #: Resident memory of the process before any pixel is held (interpreter, numpy, numba's
-#: compiled kernels, dask, OpenEXR), bytes; measured about 300 MB, rounded up.
-BASELINE_BYTES = 400 * 2**20
+#: compiled kernels, dask, OpenEXR), bytes; measured 150-180 MB, rounded up.
+BASELINE_BYTES = 256 * 2**20
 
 #: Bytes per photosite a tile needs besides its inputs (merge outputs, the float64 temporaries
-#: of the total sigma and the calibration terms, the EXR channels and the dask block).
-TILE_BYTES_PER_PHOTOSITE = 160
+#: of the total sigma and the calibration terms, the stacked channels of the dask block);
+#: measured about 80 on 2.5-Mpixel tiles (benchmarks/bench_chunks.py), rounded up.
+TILE_BYTES_PER_PHOTOSITE = 100
 
-#: Bytes per photosite of the in-memory merge besides its inputs (the same, plus the EXR
-#: conversions of every channel at once).
-MERGE_BYTES_PER_PHOTOSITE = 180
+#: Bytes per photosite of the in-memory merge besides its inputs (which it holds whole: the
+#: mapped frames and calibration maps); measured about 25 on 25 Mpixels, rounded up.
+MERGE_BYTES_PER_PHOTOSITE = 40
 
 _UNITS = {"": 1, "B": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
@@ -370,6 +372,7 @@ def _calibration_sources(calib, inputs: _Inputs, shape) -> dict[str, int]:
             if arr.shape != tuple(shape):
                 raise InputError(f"calibration {f.name} has shape {arr.shape}, the frames {tuple(shape)}")
             out[f.name] = inputs.add(arr, f"calibration {f.name}")
+            release_pages(arr)
     return out
 
 
@@ -665,6 +668,12 @@ def _resolve_darks(plan: _Plan, strategy_for, library, warn) -> list[str]:
     return used
 
 
+def _no_pixels(frames: list[RawFrame]) -> list[RawFrame]:
+    """The frames with their pixels replaced by a zero-stride placeholder of the same shape (the
+    checks are done; the pixels are read per tile from the row sources; no mapping stays)."""
+    return [dataclasses.replace(fr, data=np.broadcast_to(np.zeros((), fr.data.dtype), fr.shape)) for fr in frames]
+
+
 def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths) -> _Plan:
     """Open the bracket and its dark frames (metadata, row sources), checked as the in-memory
     merge checks them; the calibration's maps as row sources."""
@@ -676,9 +685,9 @@ def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths) -> _Plan:
     else:
         times = [None] * len(frame_paths)
     dk = [inputs.open(p) for p in dark_paths]
-    dark_meta = check_frames([d for d, _k in dk], "dark frame") if dk else []
+    dark_meta = _no_pixels(check_frames([d for d, _k in dk], "dark frame")) if dk else []
     opened = [inputs.open(p, t) for p, t in zip(frame_paths, times)]
-    frames = check_frames([fr for fr, _k in opened])
+    frames = _no_pixels(check_frames([fr for fr, _k in opened]))
     shape = frames[0].shape
     if dark_meta and dark_meta[0].shape != shape:
         raise InputError(f"{dark_meta[0].path}: dark frame size differs from the bracket's")
@@ -833,6 +842,7 @@ def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression
         new_axis=0,
         chunks=((len(_CHANNELS),), arrays[0].chunks[0], (w,)),
         meta=np.empty((0, 0, 0), np.float32),
+        name=f"hdrcap-tiles-{token}",  # named: dask would otherwise hash the function, pickling the plan's inputs
     )
     # One tile at a time: the merge kernel is itself parallel over the rows of a tile.
     with dask.config.set(scheduler="synchronous"):
@@ -843,13 +853,15 @@ def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression
                 da.store(merged, Writer(), lock=False)
         else:
             da.store(merged, Writer(), lock=False)
+    if len(p.tiles) != len(arrays[0].chunks[0]):
+        raise RuntimeError(f"{len(p.tiles)} of {len(arrays[0].chunks[0])} tiles were merged")
     single = _global_single(p, _combine([t["extrema"] for t in p.tiles.values()]))
     again = [r0 for r0, t in p.tiles.items() if t["single"] != single]
     for r0 in again:
         Writer()[(slice(None), slice(r0, r0 + rows))] = p.merge_block(p.read(r0, r0 + rows), r0, forced=single)
     tiles = [p.tiles[r0] for r0 in sorted(p.tiles)]
     attrs = dict(tiles[0]["attrs"], merge=_whole_info(tiles, p.shape, single))
-    _write_exr_rows(output, outs, attrs, exr_precision(outs, sigma_precision), compression, force, rows)
+    write_exr_rows(output, outs, attrs, exr_precision(outs, sigma_precision), compression, force, rows)
     spilled = sum(1 for s in p.inputs.sources if s.path.startswith(spill))
     summ = _whole_summary([t["summary"] for t in tiles], p.shape)
     return TiledMerge(attrs, summ, rows, len(tiles), len(again), len(p.frames), len(p.dark_meta), spilled)
@@ -872,9 +884,32 @@ def _decide_precision(name: str, src: RowFile, want: str, rows: int) -> str:
     return "half" if _exr_channel(name, probe, want).dtype == np.float16 else "float"
 
 
-def _write_exr_rows(path: Path, outs: dict[str, RowFile], attrs, precision, compression, force, rows) -> Path:
+def write_exr_rows(path: Path, outs: dict[str, Any], attrs, precision, compression, force, rows) -> Path:
     """:func:`pipeline.io.write_exr` of channels held in files, block of rows by block of rows:
-    the same precisions, header and pixels (OpenEXR's scanline writer)."""
+    the same precisions, header and pixels (OpenEXR's scanline writer).
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The EXR.
+    outs : dict of str to RowFile (or any object with ``shape`` and ``rows(r0, r1)``)
+        The channels.
+    attrs : dict
+        Header attributes (JSON-ready), as :attr:`pipeline.io.HdrImage.attrs`.
+    precision : dict of str to str
+        Channel precisions as for :func:`pipeline.io.write_exr` (missing: float).
+    compression : str
+        One of :data:`pipeline.io.EXR_COMPRESSIONS`.
+    force : bool
+        Replace an existing file.
+    rows : int
+        Rows per block read and written.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     import json
 
     import Imath

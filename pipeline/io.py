@@ -14,8 +14,10 @@ import hashlib
 import json
 import logging
 import math
+import mmap
 import os
 import re
+import sys
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
@@ -48,6 +50,7 @@ __all__ = [
     "read_frame",
     "read_image16",
     "read_raw",
+    "release_pages",
     "sha256_file",
     "write_exr",
     "as_stored",
@@ -1073,3 +1076,43 @@ def read_exr(path) -> HdrImage:
         except (TypeError, ValueError):
             raise InputError(f"{path}: corrupt hdrcap metadata in the EXR header") from None
     return HdrImage(channels=channels, attrs=attrs)
+
+
+#: Linux's MADV_PAGEOUT (5.4 and later), which Python's mmap module names from 3.13 only.
+_MADV_PAGEOUT_LINUX = 21
+
+
+def release_pages(arr: np.ndarray, *, unmodified: bool = False) -> bool:
+    """Take the pages of the file mapping under ``arr`` out of this process's resident memory;
+    they are read again (from the page cache or the file) if touched.
+
+    Parameters
+    ----------
+    arr : numpy.ndarray
+        An array; anything but a view of a :class:`numpy.memmap` is left alone.
+    unmodified : bool
+        The caller knows the mapping was never written: its pages are dropped from this
+        process only (``MADV_DONTNEED``; they stay in the page cache, a touch is a minor
+        fault). Otherwise ``MADV_PAGEOUT`` reclaims them, which never loses a copy-on-write
+        page but evicts clean ones from the cache too (Linux 5.4 and later).
+
+    Returns
+    -------
+    bool
+        Whether the advice was given.
+    """
+    m = arr
+    while m is not None and not isinstance(m, np.memmap):
+        m = getattr(m, "base", None)
+    mm = getattr(m, "_mmap", None)
+    if unmodified or getattr(m, "mode", None) == "r":
+        advice = mmap.MADV_DONTNEED
+    else:
+        advice = getattr(mmap, "MADV_PAGEOUT", _MADV_PAGEOUT_LINUX if sys.platform.startswith("linux") else None)
+    if mm is None or advice is None or not hasattr(mm, "madvise"):
+        return False
+    try:
+        mm.madvise(advice)
+    except OSError:  # a kernel without it
+        return False
+    return True
