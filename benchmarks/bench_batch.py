@@ -104,6 +104,10 @@ def main(argv=None) -> dict:
                 "committed": len(report.committed),
                 "failed": len(report.failed),
                 "merge_s_summed": round(report.merge_seconds, 2),
+                "merge_cpu_s_summed": round(report.merge_cpu_seconds, 2),
+                "merge_cpu_s_per_run": round(report.merge_cpu_seconds / max(len(report.committed), 1), 3),
+                "client_cpu_s": round(report.client_cpu_seconds, 2),
+                "startup_s": round(report.startup_seconds, 2),
                 "commit_s": round(report.commit_seconds, 2),
                 "bit_identical": bool(identical),
             }
