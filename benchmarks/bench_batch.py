@@ -132,10 +132,17 @@ def main(argv=None) -> dict:
                 "merge_cpu_s_per_run": round(report.merge_cpu_seconds / max(len(report.committed), 1), 3),
                 "client_cpu_s": round(report.client_cpu_seconds, 2),
                 "startup_s": round(report.startup_seconds, 2),
+                "seconds_after_startup": round(wall - report.startup_seconds, 2),
                 "commit_s": round(report.commit_seconds, 2),
                 "bit_identical": bool(identical),
             }
     sec = {k: v["seconds"] for k, v in out["configs"].items()}
+    run_sec = {k: v["seconds_after_startup"] for k, v in out["configs"].items()}
+    if {"1x1", "2x1"} <= set(sec):  # the same without the local cluster's start-up
+        out["speedup_2x1_over_1x1_after_startup"] = round(run_sec["1x1"] / run_sec["2x1"], 3)
+    cpu = {k: v["merge_cpu_s_summed"] + v["client_cpu_s"] for k, v in out["configs"].items()}
+    if {"1x1", "2x1"} <= set(cpu):  # CPU seconds of 2 workers against 1 (1.0: no overhead of a second worker)
+        out["cpu_ratio_2x1_over_1x1"] = round(cpu["2x1"] / cpu["1x1"], 3)
     if {"2x1", "2x1s"} <= set(sec):
         out["speedup_commit_together_2x1"] = round(sec["2x1s"] / sec["2x1"], 3)
     if {"1x1", "2x1"} <= set(sec):  # scaling: one run per core at a time, 1 worker vs 2
