@@ -310,27 +310,42 @@ def tiling_rows(
 ) -> int | None:
     """Rows per tile of a merge, or None to merge in memory.
 
-    ``chunks`` given: that. Else tiles when :func:`in_memory_bytes` of the bracket (its size read
-    from the first file's header, or its file size for formats without a TIFF header) exceeds
-    ``budget``, with :func:`chunk_rows_for` rows.
+    Parameters
+    ----------
+    frames : sequence of Path
+        The bracket.
+    n_darks : int
+        Dark frames.
+    calibration : Calibration
+        Its maps count.
+    chunks : int or None
+        Rows asked for (``--chunks``): returned as they are (even, >= 2).
+    budget : int
+        Memory budget, bytes: without ``chunks``, tiles when :func:`in_memory_bytes` of the
+        bracket exceeds it. Photosites per frame: the larger of the largest image in the first
+        file's TIFF header and its size in bytes / 2 (an uncompressed 16-bit raw).
+
+    Returns
+    -------
+    int or None
+        Rows per tile (:func:`chunk_rows_for`), or None.
     """
     if chunks is not None:
         if chunks < 2 or chunks % 2:
             raise InputError(f"--chunks {chunks}: give an even number of rows (whole CFA periods), >= 2")
         return int(chunks)
     first = Path(frames[0])
-    dims = _raw_dimensions(first) if first.exists() else None
-    if dims is None:
-        try:
-            n = first.stat().st_size // 2
-        except OSError:
-            return None  # the merge reports the missing file
-        dims = (max(int(math.sqrt(n)), 1), max(int(math.sqrt(n)), 1))
+    try:
+        by_size = first.stat().st_size // 2
+    except OSError:
+        return None  # the merge reports the missing file
+    dims = _raw_dimensions(first) or (1, 1)
+    photosites = max(dims[0] * dims[1], by_size)
+    width = dims[1] if dims[0] * dims[1] >= by_size else max(int(math.sqrt(photosites)), 1)
     n_maps = sum(isinstance(getattr(calibration, f.name), np.ndarray) for f in dataclasses.fields(calibration))
-    need = in_memory_bytes(dims[0] * dims[1], len(frames) + n_darks, n_maps)
-    if need <= budget:
+    if in_memory_bytes(photosites, len(frames) + n_darks, n_maps) <= budget:
         return None
-    return chunk_rows_for(budget, dims[1], len(frames) + n_darks, n_maps)
+    return chunk_rows_for(budget, width, len(frames) + n_darks, n_maps)
 
 
 # ------------------------------------------------------------------------------ opening inputs

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -10,6 +11,16 @@ import click
 from hdrcap.acquire.cliutil import echo_json, many_values, resolve_merge_calibration
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
+
+
+def _memory_here() -> str:
+    """The default memory budget on this machine, for the help text (the budget itself is
+    :func:`acquire.tiledmerge.default_memory_budget`)."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return ""
+    return f" (here {total / 2**31:.1f} GiB)"
 
 
 @many_values("--darks", "--times")
@@ -158,7 +169,7 @@ from hdrcap.pipeline.noise import DarkStrategy
     default=None,
     metavar="SIZE",
     help="Tile automatically (as --chunks, rows chosen to fit) when the in-memory merge would need more than SIZE "
-    "(e.g. 2GB; K/M/G/T are powers of 1024). Default: half of this machine's physical memory.",
+    f"(e.g. 2GB; K/M/G/T are powers of 1024). Default: half of this machine's physical memory{_memory_here()}.",
 )
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
