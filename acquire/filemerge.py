@@ -11,10 +11,11 @@ one-line figures.
 from __future__ import annotations
 
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -22,7 +23,9 @@ from hdrcap.pipeline.darks import DarkResolver, default_strategy
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import RawFrame
 from hdrcap.pipeline.noise import DarkStrategy
-from hdrcap.planner.planfile import PlanFile, apply_plan_options, planner_attribute
+
+if TYPE_CHECKING:  # the planner (and scipy under it) is imported only for a merge with a plan
+    from hdrcap.planner.planfile import PlanFile
 
 __all__ = [
     "FileMerge",
@@ -38,6 +41,24 @@ __all__ = [
 
 def _warn(message: str) -> None:
     print(f"hdrcap: warning: {message}", file=sys.stderr)
+
+
+def _warm_up() -> None:
+    """:func:`pipeline.merge.warm_up_kernels`, in a background thread; a failure is left to the
+    merge itself to report."""
+    from hdrcap.pipeline.merge import warm_up_kernels
+
+    try:
+        warm_up_kernels()
+    except Exception:  # noqa: BLE001, S110  (the merge reports its own errors)
+        pass
+
+
+def start_warm_up() -> threading.Thread:
+    """Start :func:`_warm_up` in a thread (numba's set-up overlaps reading the frames)."""
+    thread = threading.Thread(target=_warm_up, name="hdrcap-kernel-warm-up")
+    thread.start()
+    return thread
 
 
 def read_frames(paths, times=None, what="frame", progress=False) -> list[RawFrame]:
@@ -65,6 +86,22 @@ def _read_parallel(paths, times, what, progress) -> Iterator[RawFrame]:
             yield fut.result()
 
 
+def _camera_colour(frames) -> dict | None:
+    """The first frame's colour metadata (colour matrices, white balance) for the header, so
+    that ``hdrcap develop`` works from the EXR alone; None without a file or a matrix."""
+    from hdrcap.pipeline.dngwrite import camera_colour
+
+    path = frames[0].path if frames else None
+    if not path:
+        return None
+    try:
+        found = camera_colour(path)
+    except InputError as err:
+        _warn(f"no colour matrix recorded: {err}")
+        return None
+    return None if found is None else found.to_attrs()
+
+
 def build_hdr_image(result, frames, calibration, extra=None):
     """The EXR content of a merge: channels and header attributes."""
     from hdrcap import __version__
@@ -79,11 +116,19 @@ def build_hdr_image(result, frames, calibration, extra=None):
         "cfa_pattern": frames[0].cfa_pattern or "none",
         "exposure_times": [fr.exposure_time for fr in frames],
         "exposure_times_effective": result.info.get("exposure_times", [fr.exposure_time for fr in frames]),
+        # after the calibration's shutter table alone (before the bracket's own estimate)
+        "exposure_times_calibrated": result.info.get(
+            "exposure_times_calibrated", result.info.get("exposure_times", [fr.exposure_time for fr in frames])
+        ),
+        "shutter_corrections": _shutter_header(calibration, result.info),
         "source_files": [fr.path for fr in frames],
         "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
         "hdrcap_version": __version__,
         "merge": result.info,
     }
+    colour = _camera_colour(frames)
+    if colour is not None:
+        attrs["camera_colour"] = colour
     if extra:
         attrs.update(extra)
     channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
@@ -98,6 +143,17 @@ def build_hdr_image(result, frames, calibration, extra=None):
             f"{bit} {name}" for name, bit in QUALITY_BITS.items()
         )
     return HdrImage(channels, attrs)
+
+
+def _shutter_header(calibration, info) -> dict[str, Any] | None:
+    """The calibration's shutter table as the EXR header records it (None without one): the
+    table (times s, factors, relative standard errors, reference s) and, per frame, whether it
+    applied (``--exposure-times nominal`` or a time not in the table: not applied)."""
+    table = getattr(calibration, "shutter", None)
+    if table is None:
+        return None
+    applied = (info.get("shutter_table") or {}).get("applied")
+    return {**table.to_dict(), "applied": applied}
 
 
 def exr_precision(channels, sigma: str = "auto") -> dict[str, str]:
@@ -234,7 +290,7 @@ def streamed_merge(
     master dark); default: the one of ``options``) and the dark level ``resolver`` serves it
     (default: ``dark_paths`` matched by exposure time). With a ``plan``, every plan exposure
     time must be among the frames. Returns (result, frames, darks, per-frame dark sources)."""
-    from hdrcap.pipeline.io import check_frames
+    from hdrcap.pipeline.io import check_frames, release_mapped_pages
     from hdrcap.pipeline.merge import MergeAccumulator
 
     darks = list(_read_parallel(dark_paths, None, "dark frame", progress)) if dark_paths else []
@@ -292,7 +348,10 @@ def streamed_merge(
     check_frames(frames)
     if plan is not None:
         _check_plan_covered(plan, frames, warn)
-    return acc.result(), frames, darks, used
+    result = acc.result()
+    # The pixels are merged: memory-mapped frames stop counting in memory (still readable).
+    release_mapped_pages([fr.data for fr in (*frames, *darks)])
+    return result, frames, darks, used
 
 
 def _read_master_dark(path: Path | None, options: dict) -> RawFrame | None:
@@ -375,10 +434,13 @@ def merge_files(
             method=weighting,
         )
         return FileMerge(result, fr, dk, extra)
+    start_warm_up()
     dark_strategy = None if dark_strategy is None else DarkStrategy(dark_strategy)
     md = _read_master_dark(master_dark, options)
     strategy_for = taken = overridden = ignored = None
     if plan is not None:
+        from hdrcap.planner.planfile import apply_plan_options
+
         options, taken, overridden, ignored = apply_plan_options(plan, options, given)
         for name in ignored:
             warn(f"{plan.path}: merge option {name!r} is not one hdrcap merge knows; ignored")
@@ -408,6 +470,8 @@ def merge_files(
     if master_dark:
         extra["master_dark_file"] = str(master_dark)
     if plan is not None:
+        from hdrcap.planner.planfile import planner_attribute
+
         extra["planner"] = planner_attribute(
             plan.data, plan_file, plan.sha256, taken, overridden, options_ignored=ignored
         )

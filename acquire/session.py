@@ -182,6 +182,10 @@ def _strategy(value) -> DarkStrategy:
         raise InputError(f"dark strategy must be matched, master or model, got {value!r}") from None
 
 
+#: Camera events (``camera.events`` kinds) that are not copied into ``events.jsonl``: every
+#: capture has them.
+ROUTINE_CAMERA_EVENTS = frozenset({"file_added", "capture_complete", "folder_added", "other"})
+
 #: Dark frames captured per exposure time for each dark strategy (master: ``n_dark``).
 _DARK_FRAMES = {DarkStrategy.MATCHED: 1, DarkStrategy.MODEL: 0}
 
@@ -662,6 +666,7 @@ class CaptureSession:
         self.retries: dict[str, int] = {}
         self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
         self._frame_bytes = 0
+        self._camera_events_seen = len(getattr(camera, "events", None) or [])  # earlier runs' events: not ours
 
     # ------------------------------------------------------------------ public
     def run(self) -> SessionResult:
@@ -957,10 +962,25 @@ class CaptureSession:
                     self.sleep(wait)
                 if kind == "reconnect":
                     self._reconnect(log)
+            finally:
+                self._forward_camera_events(log)
         raise SessionError(
             f"frame {spec.key}: gave up after {self.retry.max_attempts} attempts "
             f"(last: {last}); run again with --resume"
         )
+
+    def _forward_camera_events(self, log: EventLog) -> None:
+        """Copy the camera's new events (``camera.events``: (kind, detail) pairs, e.g. a frame it
+        could not delete from the card, a stale file, a changed port) into ``events.jsonl`` as
+        ``camera`` events; the routine ones (file added, capture complete) stay out."""
+        events = getattr(self.camera, "events", None)
+        if not isinstance(events, list):
+            return
+        self._camera_events_seen = min(self._camera_events_seen, len(events))  # a camera that cleared its list
+        for kind, detail in events[self._camera_events_seen :]:
+            if kind not in ROUTINE_CAMERA_EVENTS:
+                log.emit("camera", kind=str(kind), detail=str(detail))
+        self._camera_events_seen = len(events)
 
     def _reconnect(self, log: EventLog) -> None:
         try:

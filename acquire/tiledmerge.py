@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame, release_pages
+from hdrcap.pipeline.io import RawFrame
 
 __all__ = [
     "RowFile",
@@ -387,7 +387,6 @@ def _calibration_sources(calib, inputs: _Inputs, shape) -> dict[str, int]:
             if arr.shape != tuple(shape):
                 raise InputError(f"calibration {f.name} has shape {arr.shape}, the frames {tuple(shape)}")
             out[f.name] = inputs.add(arr, f"calibration {f.name}")
-            release_pages(arr)
     return out
 
 
@@ -488,7 +487,7 @@ class _Plan:
     library: list[tuple[float, float, str, int]] = field(default_factory=list)  # (t, N, name, source)
     strategies: list[Any] = field(default_factory=list)
     times: list[float] = field(default_factory=list)
-    ratios: Any = None
+    exposure_info: dict[str, Any] = field(default_factory=dict)
     resolver_args: dict[str, Any] = field(default_factory=dict)
     selfcal: Any = None
     selfcal_times: bool = True
@@ -532,9 +531,7 @@ class _Plan:
         acc = self.accumulate(tile_cls, blocks, self.times, opts)
         acc.forced_single = forced
         result = acc.result()
-        if self.ratios is not None:  # the header of the in-memory merge's estimate
-            result.info["exposure_times_nominal"] = list(self.ratios.nominal)
-            result.info["exposure_time_ratios"] = self.ratios.to_dict()
+        result.info.update(self.exposure_info)  # the in-memory merge's (nominal, shutter table, estimate)
         image = build_hdr_image(result, self.frames, self.calib, self.extra)
         if self.selfcal is not None:
             from hdrcap.pipeline.selfcal import apply_self_calibration
@@ -633,18 +630,24 @@ def _global_single(plan: _Plan, extrema: dict[str, tuple[float, float]]) -> bool
     return bool(probe._single_precision_safe(list(probe._values), darks, m))
 
 
-def _effective_times(plan: _Plan):
-    """The effective exposure times of the whole frame, estimated once as the in-memory merge
-    estimates them (the same subsample of rows and columns, read row by row; the same dark
-    levels), or None (nominal times, or one frame)."""
+def _effective_times(plan: _Plan) -> tuple[list[float], dict[str, Any]]:
+    """The exposure times every tile merges with and their header entries, decided once for the
+    whole frame as the in-memory merge decides them: the calibration's shutter table, then the
+    bracket's own estimate (:meth:`pipeline.merge.MergeAccumulator.apply_exposure_times`) on the
+    same subsample of rows and columns (read row by row) with the same dark levels.
+
+    Returns
+    -------
+    (list of float, dict)
+        Times, s, per frame; the merge's header entries of the exposure times.
+    """
     full_cls, sample_cls, _ = _accumulator_classes()
-    if plan.options.get("exposure_times", "nominal") != "effective" or len(plan.frames) < 2:
-        return None
     win_r, win_c = full_cls(_strip_maps(plan.calib), plan.shape, stream=False)._subsample()
     index = np.arange(plan.shape[0])[win_r]
     blocks = [src.take(index)[:, win_c] for src in plan.inputs.sources]
     acc = plan.accumulate(sample_cls, blocks, [fr.exposure_time for fr in plan.frames], plan.options)
-    return acc.apply_exposure_times()
+    acc.apply_exposure_times()
+    return list(acc._times), acc._exposure_info()
 
 
 def _resolve_darks(plan: _Plan, strategy_for, library, warn) -> list[str]:
@@ -815,8 +818,7 @@ def merge_tiled(
                 plan.data, plan_file, plan.sha256, taken, overridden, options_ignored=ignored
             )
         p.extra, p.selfcal, p.selfcal_times = extra, selfcal, selfcal_times
-        p.ratios = _effective_times(p)
-        p.times = list(p.ratios.effective) if p.ratios is not None else [fr.exposure_time for fr in p.frames]
+        p.times, p.exposure_info = _effective_times(p)
         return _run_tiles(p, rows, output, spill, force, compression, sigma_precision, progress)
 
 

@@ -8,7 +8,9 @@ Both tools run as commands from the DNG files to their output file, alternating,
   with a calibration file that has the sensor's PRNU and dark-current maps, default options
   and default EXR settings.
 
-Peak memory is each process's maximum resident set (``os.wait4``). The same run also times,
+Peak memory is each process's maximum resident set and CPU time its user + system time
+(``os.wait4``; on a shared machine the CPU-time ratio is the steadier figure, the wall-time
+ratio the one that counts on an idle one). The same run also times,
 in this process, the parts of hdrcap's command: reading the 12 files (direct DNG decoding,
 and LibRaw for comparison), ``check_frames``, the merge kernel on the frames in memory, and
 the EXR write; ``--exr-table`` adds the size and write time of every EXR compression and
@@ -57,6 +59,7 @@ proc = subprocess.Popen(cmd, env=env)
 _, status, usage = os.wait4(proc.pid, 0)
 wall = time.perf_counter() - t0
 print(json.dumps({"returncode": os.waitstatus_to_exitcode(status), "wall_seconds": wall,
+                  "cpu_seconds": usage.ru_utime + usage.ru_stime,
                   "peak_rss_mb": usage.ru_maxrss / 1024.0}), file=open(sys.argv[3], "w"))
 """
 
@@ -85,7 +88,7 @@ def run_measured(cmd, env=None, cwd=None) -> dict:
         res = (
             json.loads(report.read_text())
             if report.exists()
-            else {"returncode": -1, "wall_seconds": None, "peak_rss_mb": None}
+            else {"returncode": -1, "wall_seconds": None, "cpu_seconds": None, "peak_rss_mb": None}
         )
     return res | {"stdout": stdout.splitlines()[-1] if stdout else "", "stderr": stderr[-400:]}
 
@@ -164,11 +167,13 @@ def compare_commands(sim: dict, work: Path, repeats: int, with_hdrmerge: bool) -
             "best_seconds": best["wall_seconds"] if ok else None,
             "all_seconds": [round(r["wall_seconds"], 3) for r in runs[tool]],
             "peak_rss_mb": max(r["peak_rss_mb"] for r in runs[tool]),
+            "best_cpu_seconds": min(r["cpu_seconds"] for r in runs[tool]) if ok else None,
             "returncode": best["returncode"],
             "stderr": best["stderr"] if not ok else "",
         }
     if out.get("hdrmerge", {}).get("best_seconds") and out["hdrcap"]["best_seconds"]:
         out["ratio_hdrcap_to_hdrmerge"] = out["hdrcap"]["best_seconds"] / out["hdrmerge"]["best_seconds"]
+        out["cpu_ratio_hdrcap_to_hdrmerge"] = out["hdrcap"]["best_cpu_seconds"] / out["hdrmerge"]["best_cpu_seconds"]
     return out
 
 

@@ -25,7 +25,7 @@ from .params import Calibration
 __all__ = [
     "LibraryEntry",
     "library_dir",
-    "normalise_model",
+    "model_slug",
     "entry_name",
     "store_calibration",
     "library_entries",
@@ -50,7 +50,7 @@ def library_dir() -> Path:
     return Path(xdg) / "hdrcap" / "calibrations"
 
 
-def normalise_model(name: str | None) -> str:
+def model_slug(name: str | None) -> str:
     """A camera model as a file-name key: lower case, runs of anything but letters and digits as
     one ``-`` (``"Canon EOS 5D Mark II"`` -> ``"canon-eos-5d-mark-ii"``). Entries are matched to
     frames by :func:`pipeline.camera_types.same_model`, the one model rule (libgphoto2's and
@@ -85,10 +85,10 @@ def entry_name(camera: str, serial: str | None, iso: float) -> str:
     str
         ``<model>__<serial|any>__iso<ISO>.cal``.
     """
-    model = normalise_model(camera)
+    model = model_slug(camera)
     if not model:
         raise InputError("a library calibration needs the camera model (--camera-name, or from the files)")
-    ser = normalise_model(serial) or "any"
+    ser = model_slug(serial) or "any"
     return f"{model}__{ser}__iso{float(iso):g}{_SUFFIX}"
 
 
@@ -211,10 +211,10 @@ def find_calibration(
     """
     from .calibration import load_calibration
 
-    model = normalise_model(camera)
+    model = model_slug(camera)
     if not model or iso is None:
         return None
-    ser = normalise_model(serial) or None
+    ser = model_slug(serial) or None
     cands = [
         e
         for e in library_entries()

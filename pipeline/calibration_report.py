@@ -1,5 +1,5 @@
 """PNG plots of a calibration: photon-transfer curve, PRNU histogram and map, dark-current fit,
-defect map.
+defect map, shutter corrections.
 
 Figures come from :mod:`hdrcap.pipeline.plotting` (no display, no global backend). Every file
 is written atomically and never overwritten without ``force``.
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .params import DEFECT_BITS, Calibration
+from .params import DEFECT_BITS, Calibration, ShutterTable
 from .plotting import new_figure, save_figure
 
 __all__ = ["write_report"]
@@ -104,6 +104,24 @@ def _defect_plot(defects: np.ndarray, path: Path, force: bool) -> Path:
     return save_figure(fig, path, force=force, dpi=_DPI)
 
 
+def _shutter_plot(table: ShutterTable, path: Path, force: bool) -> Path:
+    """Shutter corrections: (t_eff/t_nom - 1) in % against the nominal time, with 1-sigma bars."""
+    t = np.asarray(table.times)
+    f = 100.0 * (np.asarray(table.factors) - 1.0)
+    e = 100.0 * np.asarray(table.stderr)
+    fig, ax = new_figure(figsize=(6.4, 4.0))
+    ax.errorbar(t, f, yerr=e, fmt="o", color="C0", capsize=3, label="t_eff / t_nom − 1 (± 1 σ)")
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("nominal exposure time (s)")
+    ax.set_ylabel(f"correction relative to {table.reference:g} s (%)")
+    ax.set_title("Shutter corrections")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    return save_figure(fig, path, force=force, dpi=_DPI)
+
+
 def write_report(calib: Calibration, out_dir: str | os.PathLike[str], force: bool = False) -> list[Path]:
     """Write the plots of a calibration into ``out_dir`` (created when missing).
 
@@ -121,7 +139,7 @@ def write_report(calib: Calibration, out_dir: str | os.PathLike[str], force: boo
     -------
     list of Path
         The files written: ``ptc.png``, ``prnu_hist.png``, ``prnu_map.png``,
-        ``dark_current.png`` and ``defects.png``, each when its data exist.
+        ``dark_current.png``, ``defects.png`` and ``shutter.png``, each when its data exist.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -137,4 +155,6 @@ def write_report(calib: Calibration, out_dir: str | os.PathLike[str], force: boo
         written.append(_dark_plot(calib, ds, info.get("dark_fit") or {}, out / "dark_current.png", force))
     if calib.defect_map is not None:
         written.append(_defect_plot(calib.defect_map, out / "defects.png", force))
+    if calib.shutter is not None:
+        written.append(_shutter_plot(calib.shutter, out / "shutter.png", force))
     return written

@@ -39,6 +39,7 @@ import numpy as np
 
 from .calibration.dark import fit_dark_current
 from .calibration.gain import PhotonTransferFit, photon_transfer_gain
+from .calibration.readout import QUANTISATION_LIMIT, QUANTISATION_VARIANCE
 from .calibration.stats import PairStats, pair_statistics
 from .errors import InputError
 from .io import EmvaDataset, read_emva_descriptor, read_image16
@@ -56,13 +57,6 @@ __all__ = [
     "QUANTISATION_LIMIT",
     "MIN_DARK_TIMES",
 ]
-
-#: Variance of a uniform quantiser with a 1 DN step, DN^2.
-QUANTISATION_VARIANCE = 1.0 / 12.0
-
-#: EMVA 1288: a dark variance below this is dominated by the quantisation noise, DN^2; the
-#: dark noise is then reported as sigma_y.dark = sqrt(0.24) = 0.49 DN, an upper limit.
-QUANTISATION_LIMIT = 0.24
 
 #: A PGM header token (magic, width, height, maxval), after whitespace and comments.
 _PGM_TOKEN = re.compile(rb"(?:\s|#[^\n]*\n)*(\S+)")

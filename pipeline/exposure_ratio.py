@@ -31,13 +31,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["RatioOptions", "ExposureRatios", "estimate_exposure_ratios", "EXPOSURE_TIME_MODES"]
+__all__ = [
+    "RatioOptions",
+    "ExposureRatios",
+    "estimate_exposure_ratios",
+    "subsample_window",
+    "EXPOSURE_TIME_MODES",
+]
 
 #: Values of the merge option ``exposure_times``: estimated effective times, or the nominal ones.
 EXPOSURE_TIME_MODES = ("effective", "nominal")
@@ -86,6 +92,13 @@ class ExposureRatios:
         Whether the frame shared well-exposed photosites with another frame.
     pairs : int
         Frame pairs used.
+    covariance : numpy.ndarray or None
+        Covariance of the log corrections log(factor) (n x n, dimensionless; rows and columns
+        of frames not estimated are 0), under the constraint that each connected set of frames
+        averages to 0; ``stderr`` is the square root of its diagonal.
+    linked_set : tuple of int
+        Per frame, the index of its connected set of frames (linked by pairs, each set's
+        corrections averaging to 0), -1 for a frame not estimated; empty when not computed.
     """
 
     nominal: tuple[float, ...]
@@ -94,6 +107,8 @@ class ExposureRatios:
     stderr: tuple[float, ...]
     estimated: tuple[bool, ...]
     pairs: int
+    covariance: np.ndarray | None = field(default=None, repr=False, compare=False)
+    linked_set: tuple[int, ...] = ()
 
     def to_dict(self) -> dict:
         """JSON-ready fields."""
@@ -105,6 +120,29 @@ class ExposureRatios:
             "estimated": list(self.estimated),
             "pairs": self.pairs,
         }
+
+
+def subsample_window(shape: tuple[int, int], max_photosites: int = 250_000) -> tuple[slice, slice]:
+    """A regular grid of at most about ``max_photosites`` photosites of a mosaic of ``shape``
+    (rows, columns), both CFA phases of each axis kept (an odd step): what the ratio estimate
+    needs, at a fraction of the cost on large frames.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        Mosaic size, photosites.
+    max_photosites : int
+        Target number of photosites.
+
+    Returns
+    -------
+    (slice, slice)
+        Row and column slices.
+    """
+    h, w = shape
+    step = max(1, int(math.ceil(math.sqrt(h * w / max_photosites))))
+    step += 1 - step % 2
+    return slice(0, h, step), slice(0, w, step)
 
 
 def _pair_rate(si, vi, ti, sj, vj, tj):
@@ -248,7 +286,9 @@ def estimate_exposure_ratios(
             edges.append((i, j))
     logs = np.zeros(n)
     errs = np.zeros(n)
+    cov = np.zeros((n, n))
     estimated = [False] * n
+    linked = [-1] * n
     if rows:
         A = np.zeros((len(rows), n))
         for r, (i, j) in enumerate(rows):
@@ -261,6 +301,7 @@ def estimate_exposure_ratios(
             C[r, c] = 1.0 / len(c)  # the corrections of each connected set average to 0
             for i in c:
                 estimated[i] = True
+                linked[i] = r
         # weighted least squares with the constraints (KKT system), unused frames pinned at 0
         free = np.asarray(estimated)
         N = A.T @ (W[:, None] * A) + np.diag(~free * 1.0)
@@ -269,7 +310,8 @@ def estimate_exposure_ratios(
         Kinv = np.linalg.pinv(K)
         sol = Kinv @ rhs
         logs = np.where(free, sol[:n], 0.0)
-        errs = np.where(free, np.sqrt(np.maximum(np.diag(Kinv)[:n], 0.0)), 0.0)
+        cov = np.where(free[:, None] & free[None, :], Kinv[:n, :n], 0.0)
+        errs = np.sqrt(np.maximum(np.diag(cov), 0.0))
     factors = np.exp(logs)
     return ExposureRatios(
         nominal=tuple(times),
@@ -278,4 +320,6 @@ def estimate_exposure_ratios(
         stderr=tuple(float(e) for e in errs),
         estimated=tuple(estimated),
         pairs=len(rows),
+        covariance=cov,
+        linked_set=tuple(linked),
     )

@@ -14,10 +14,8 @@ import hashlib
 import json
 import logging
 import math
-import mmap
 import os
 import re
-import sys
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
@@ -50,7 +48,7 @@ __all__ = [
     "read_frame",
     "read_image16",
     "read_raw",
-    "release_pages",
+    "release_mapped_pages",
     "sha256_file",
     "write_exr",
     "as_stored",
@@ -548,6 +546,41 @@ def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True) -
     return read_raw(path, exposure_time, mmap=mmap)
 
 
+def release_mapped_pages(arrays: Iterable[np.ndarray]) -> int:
+    """Drop the resident pages of memory-mapped arrays (``madvise(MADV_DONTNEED)``): a frame
+    read with ``mmap=True`` stops counting in the process's memory once it has been consumed.
+
+    The arrays stay valid: a later access reads the pages from the file again. Only for
+    mappings never written to since they were read: a copy-on-write mapping (the readers'
+    ``mmap=True``) would lose what was written. Arrays that are not memory-mapped are left
+    alone.
+
+    Parameters
+    ----------
+    arrays : iterable of numpy.ndarray
+        Arrays (or views of them) returned by :func:`read_frame` and the like.
+
+    Returns
+    -------
+    int
+        Bytes of mappings released (resident or not).
+    """
+    import mmap
+
+    done, released = set(), 0
+    for arr in arrays:
+        base = arr
+        while base is not None and not isinstance(base, mmap.mmap):
+            base = getattr(base, "base", None)
+        if base is None or id(base) in done or not hasattr(base, "madvise") or base.closed:
+            continue
+        done.add(id(base))
+        with contextlib.suppress(OSError, ValueError):
+            base.madvise(mmap.MADV_DONTNEED)
+            released += len(base)
+    return released
+
+
 def sha256_file(path, chunk: int = 1 << 20) -> str:
     """Hex sha256 of a file, read in chunks.
 
@@ -910,20 +943,58 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
         raise ValueError("the irradiance channel is always stored as float (32 bits)")
     arr = np.asarray(arr)
     if precision in ("half", "auto"):
-        mag = np.abs(arr[np.isfinite(arr) & (arr != 0)])
-        fits = not mag.size or (mag.min() >= HALF_RANGE[0] and mag.max() <= HALF_RANGE[1])
+        lo, hi = _magnitude_range(arr)
+        fits = lo is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
         if precision == "auto":
             precision = "half" if fits else "float"
         elif not fits:
             raise ValueError(
-                f"channel {name!r}: values {mag.min():.3g}..{mag.max():.3g} are outside the half range "
+                f"channel {name!r}: values {lo:.3g}..{hi:.3g} are outside the half range "
                 f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float"
             )
-    elif precision == "uint":
-        whole = np.isfinite(arr).all() and (arr >= 0).all() and (arr <= 2**32 - 1).all()
-        if not (whole and (arr == np.round(arr)).all()):
-            raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
+    elif precision == "uint" and not _whole_uint32(arr):
+        raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
     return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
+
+
+#: Elements of a channel checked at a time by :func:`_magnitude_range` and :func:`_whole_uint32`
+#: (small temporaries that stay in the CPU cache, instead of full-size masks and copies).
+_CHECK_BLOCK = 1 << 16
+
+
+def _blocks(arr: np.ndarray) -> Iterator[np.ndarray]:
+    """``arr`` flattened, in pieces of at most :data:`_CHECK_BLOCK` elements (views where
+    ``arr`` is contiguous)."""
+    flat = arr.reshape(-1)
+    for i in range(0, flat.size, _CHECK_BLOCK):
+        yield flat[i : i + _CHECK_BLOCK]
+
+
+def _magnitude_range(arr: np.ndarray) -> tuple[float | None, float | None]:
+    """(min, max) of |value| over the finite non-zero values of ``arr`` (same unit); (None,
+    None) when there are none."""
+    lo, hi = math.inf, -math.inf
+    for blk in _blocks(arr):
+        mag = np.abs(blk, dtype=np.float64) if blk.dtype.kind in "iub" else np.abs(blk)
+        ok = np.isfinite(mag) & (mag != 0)
+        if ok.any():
+            lo = min(lo, float(mag.min(where=ok, initial=math.inf)))
+            hi = max(hi, float(mag.max(where=ok, initial=-math.inf)))
+    return (None, None) if hi < 0 else (lo, hi)
+
+
+def _whole_uint32(arr: np.ndarray) -> bool:
+    """Whether every value of ``arr`` is a whole number in 0..2**32-1 (what EXR UINT stores)."""
+    if arr.dtype.kind == "b":
+        return True
+    if arr.dtype.kind in "iu":
+        return arr.size == 0 or (int(arr.min()) >= 0 and int(arr.max()) <= 2**32 - 1)
+    if arr.dtype.kind != "f":
+        return False
+    for blk in _blocks(arr):
+        if not ((blk >= 0) & (blk <= 2**32 - 1) & (blk == np.floor(blk))).all():
+            return False  # NaN fails every comparison, inf the range
+    return True
 
 
 def as_stored(channels, precision: dict[str, str] | None = None) -> dict[str, np.ndarray]:
@@ -1076,43 +1147,3 @@ def read_exr(path) -> HdrImage:
         except (TypeError, ValueError):
             raise InputError(f"{path}: corrupt hdrcap metadata in the EXR header") from None
     return HdrImage(channels=channels, attrs=attrs)
-
-
-#: Linux's MADV_PAGEOUT (5.4 and later), which Python's mmap module names from 3.13 only.
-_MADV_PAGEOUT_LINUX = 21
-
-
-def release_pages(arr: np.ndarray, *, unmodified: bool = False) -> bool:
-    """Take the pages of the file mapping under ``arr`` out of this process's resident memory;
-    they are read again (from the page cache or the file) if touched.
-
-    Parameters
-    ----------
-    arr : numpy.ndarray
-        An array; anything but a view of a :class:`numpy.memmap` is left alone.
-    unmodified : bool
-        The caller knows the mapping was never written: its pages are dropped from this
-        process only (``MADV_DONTNEED``; they stay in the page cache, a touch is a minor
-        fault). Otherwise ``MADV_PAGEOUT`` reclaims them, which never loses a copy-on-write
-        page but evicts clean ones from the cache too (Linux 5.4 and later).
-
-    Returns
-    -------
-    bool
-        Whether the advice was given.
-    """
-    m = arr
-    while m is not None and not isinstance(m, np.memmap):
-        m = getattr(m, "base", None)
-    mm = getattr(m, "_mmap", None)
-    if unmodified or getattr(m, "mode", None) == "r":
-        advice = mmap.MADV_DONTNEED
-    else:
-        advice = getattr(mmap, "MADV_PAGEOUT", _MADV_PAGEOUT_LINUX if sys.platform.startswith("linux") else None)
-    if mm is None or advice is None or not hasattr(mm, "madvise"):
-        return False
-    try:
-        mm.madvise(advice)
-    except OSError:  # a kernel without it
-        return False
-    return True

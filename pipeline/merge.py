@@ -39,7 +39,7 @@ import numpy as np
 
 from .darks import DarkResolver, default_strategy
 from .errors import InputError
-from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios
+from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios, subsample_window
 from .io import RawFrame, check_exposure_time, check_frames
 from .noise import DarkStrategy, calibration_variance, dark_factor, variance_core
 from .params import DEFECT_BITS, Calibration
@@ -138,10 +138,13 @@ class MergeOptions:
         Exposure time (s) of a single master dark; the dark current over the difference to
         each exposure time is added from the calibration. None: the master dark is used as is.
     exposure_times : {"nominal", "effective"}
-        ``effective``: each frame's actual exposure time, estimated from the bracket itself
-        (:mod:`pipeline.exposure_ratio`, Sec. 7), replaces the nominal one before the
+        ``effective``: each frame's actual exposure time replaces the nominal one: first the
+        calibration's shutter table (``Calibration.shutter``, per nominal time, as each frame
+        is added), then the bracket's own estimate (:mod:`pipeline.exposure_ratio`, Sec. 7)
+        refines the ratios of the frames that share well-exposed photosites, before the
         iterations (:func:`merge_frames`, the file merge and the capture session default to
-        it); ``nominal``: the times as given (the default of the array-level API).
+        it); ``nominal``: the times as given, neither correction (the default of the
+        array-level API).
     """
 
     iterations: int = 20
@@ -212,6 +215,8 @@ def _flag_defects(irr: np.ndarray, sig: np.ndarray, nexp: np.ndarray, defect_map
     irradiance keeps the kernel's value, which must not be used); returns the quality channel
     (:func:`quality_channel`, from ``nexp`` before the change) and the number of defects."""
     quality = quality_channel(nexp, defect_map)
+    if defect_map is None:  # no defect bits in the quality channel
+        return quality, 0
     bad = (quality & np.uint8(sum(DEFECT_BITS.values()))) != 0
     nexp[bad] = 0
     sig[bad] = 0
@@ -311,6 +316,8 @@ class MergeAccumulator:
         self._values: list[np.ndarray] = []
         self._darks: list[np.ndarray | None] = []
         self._times: list[float] = []
+        self._nominal: list[float] = []  # the times as given, s
+        self._table: list[bool] = []  # whether the calibration's shutter table corrected the frame
         self._kinds: list[int] = []
         self._coefs: list[float] = []
         self._ks: list[float] = []
@@ -352,6 +359,7 @@ class MergeAccumulator:
         """
         t = check_exposure_time(t)
         what = f"frame {len(self._values) + 1} (t={t:g} s)"
+        nominal, t, from_table = t, *self._shutter_corrected(t)
         v = _as_frame(values, self.shape, what)
         s = self._frame_strategy(strategy, dark)
         p = self.calibration.params
@@ -362,7 +370,7 @@ class MergeAccumulator:
             kind, coef, d = 1, p.g * t, None
         elif dark is not None:
             kind, coef = 0, 0.0
-            d = _as_frame(dark, self.shape, f"dark frame for t={t:g} s")
+            d = _as_frame(dark, self.shape, f"dark frame for t={nominal:g} s")
         elif s is DarkStrategy.MASTER and self.master_dark is not None:
             t_ref = self.options.master_dark_time
             kind, coef, d = 2, (0.0 if t_ref is None else p.g * (t - t_ref)), None
@@ -400,6 +408,8 @@ class MergeAccumulator:
         self._values.append(v)
         self._darks.append(d)
         self._times.append(t)
+        self._nominal.append(nominal)
+        self._table.append(from_table)
         self._kinds.append(kind)
         self._coefs.append(coef)
         self._ks.append(k)
@@ -411,6 +421,16 @@ class MergeAccumulator:
 
     def __len__(self) -> int:
         return len(self._values)
+
+    def _shutter_corrected(self, t: float) -> tuple[float, bool]:
+        """The exposure time (s) a frame of nominal time ``t`` starts from: ``t`` times the
+        calibration's shutter-table factor for ``t`` with ``exposure_times="effective"`` (when
+        the table has ``t``), else ``t``; and whether the table applied."""
+        table = self.calibration.shutter
+        if self.options.exposure_times != "effective" or table is None:
+            return t, False
+        hit = table.lookup(t)
+        return (t, False) if hit is None else (t * hit[0], True)
 
     def _dark_groups(self) -> list[int]:
         """Per frame, the number of frames in its shared-dark group: the frames of the same
@@ -424,11 +444,11 @@ class MergeAccumulator:
             Group size n per frame (>= 1).
         """
         sizes = []
-        for src, t in zip(self._shares, self._times):
+        for src, t in zip(self._shares, self._nominal):
             if src is None:
                 sizes.append(1)
                 continue
-            sizes.append(sum(1 for o, u in zip(self._shares, self._times) if o is src and same_exposure(u, t)))
+            sizes.append(sum(1 for o, u in zip(self._shares, self._nominal) if o is src and same_exposure(u, t)))
         return sizes
 
     def _shared_dark_factors(self) -> np.ndarray:
@@ -523,10 +543,7 @@ class MergeAccumulator:
     def _subsample(self, max_photosites: int = 250_000) -> tuple[slice, slice]:
         """A regular grid of at most about ``max_photosites`` photosites (both CFA phases of
         each axis kept: an odd step)."""
-        h, w = self.shape
-        step = max(1, int(math.ceil(math.sqrt(h * w / max_photosites))))
-        step += 1 - step % 2
-        return slice(0, h, step), slice(0, w, step)
+        return subsample_window(self.shape, max_photosites)
 
     def _dark_level(self, i: int, window) -> np.ndarray:
         """Frame ``i``'s dark level b_i on the photosites ``window``, DN (float64)."""
@@ -579,11 +596,23 @@ class MergeAccumulator:
         return ratios
 
     def _exposure_info(self) -> dict[str, Any]:
-        """The header entries of the exposure times: nominal, effective and the estimate."""
+        """The header entries of the exposure times: nominal, after the calibration's shutter
+        table (``exposure_times_calibrated``, with which frames it corrected), and the bracket's
+        estimate on top of that (``exposure_time_ratios``: factors relative to the calibrated
+        times)."""
         ratios = self._ratios
-        if ratios is None:
-            return {"exposure_times_nominal": list(self._times), "exposure_time_ratios": None}
-        return {"exposure_times_nominal": list(ratios.nominal), "exposure_time_ratios": ratios.to_dict()}
+        table = self.calibration.shutter
+        applied = any(self._table)
+        return {
+            "exposure_times_nominal": list(self._nominal),
+            "exposure_times_calibrated": list(ratios.nominal) if ratios is not None else list(self._times),
+            "shutter_table": {
+                "applied": list(self._table),
+                "reference": None if table is None else table.reference,
+                "source": "calibration" if applied else None,
+            },
+            "exposure_time_ratios": None if ratios is None else ratios.to_dict(),
+        }
 
     def result(self) -> MergeResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
@@ -644,13 +673,7 @@ class MergeAccumulator:
                 np.zeros(1, np.float32 if single else np.float64),
             )
         sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp)
-        np.sqrt(
-            np.square(sig, dtype=np.float64)
-            + np.square(sig_cal, dtype=np.float64)
-            + np.square(sig_master, dtype=np.float64),
-            out=sig,
-            casting="unsafe",
-        )
+        _add_in_quadrature(sig, sig_cal if cal_info["included"] else None, sig_master)
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         info = {
@@ -723,7 +746,9 @@ class MergeAccumulator:
         }
         return s_b, s_d, s_a, desc
 
-    def _shared_terms(self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64) -> tuple[np.ndarray, np.ndarray, dict]:
+    def _shared_terms(
+        self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64
+    ) -> tuple[np.ndarray, np.ndarray | None, dict]:
         """The errors common to all exposures of a photosite, propagated to X at the estimate
         with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
         rule, evaluated at the final estimate), in blocks of ``rows``:
@@ -736,15 +761,16 @@ class MergeAccumulator:
 
         Returns
         -------
-        (numpy.ndarray, numpy.ndarray, dict)
-            sigma_calibration and the master dark's term, e-/s, float32; the description of the
-            calibration's errors.
+        (numpy.ndarray, numpy.ndarray or None, dict)
+            sigma_calibration (zeros when ``desc["included"]`` is empty) and the master dark's
+            term (None when no frame shares a timed master dark), e-/s, float32; the
+            description of the calibration's errors.
         """
         s_b, s_d, s_a, desc = self._calibration_errors()
         out = np.zeros(self.shape, np.float32)
-        out_m = np.zeros(self.shape, np.float32)
         master_used = self._shares_timed_master().astype(np.float64)
-        if not desc["included"] and not master_used.any():
+        out_m = np.zeros(self.shape, np.float32) if master_used.any() else None
+        if not desc["included"] and out_m is None:
             return out, out_m, desc
         p = self.calibration.params
         g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
@@ -800,6 +826,46 @@ class MergeAccumulator:
                 var = calibration_variance(mu, w, times, g, master_used, 0.0 * coefs, sd_m, 0.0, 0.0, a)
                 out_m[sl] = np.where(used, np.sqrt(var), 0.0)
         return out, out_m, desc
+
+
+def _add_in_quadrature(sigma: np.ndarray, *terms: np.ndarray | None, rows: int = 256) -> None:
+    """sigma = sqrt(sigma^2 + sum of terms^2), in place, in float64 (the total uncertainty of
+    independent error sources), a block of ``rows`` rows at a time (no full-size float64
+    temporaries). Without terms it is |sigma| (sqrt of an exact float64 square: the same
+    bits).
+
+    Parameters
+    ----------
+    sigma : numpy.ndarray
+        float32 standard uncertainties (any unit), 2-D; overwritten.
+    *terms : numpy.ndarray or None
+        Further standard uncertainties of the same shape and unit; None entries are skipped.
+    rows : int
+        Rows per block.
+    """
+    terms = [t for t in terms if t is not None]
+    if not terms:
+        np.abs(sigma, out=sigma)
+        return
+    for r0 in range(0, sigma.shape[0], rows):
+        sl = slice(r0, r0 + rows)
+        total = np.square(sigma[sl], dtype=np.float64)
+        for t in terms:
+            total += np.square(t[sl], dtype=np.float64)
+        np.sqrt(total, out=sigma[sl], casting="unsafe")
+
+
+def warm_up_kernels() -> None:
+    """Import the merge kernels and initialise numba's CPU target (its registries of numpy
+    implementations, which numba builds once per process before it compiles or loads any
+    function: a third of a second or more), so that the first merge only loads its compiled
+    code. For a background thread started while the frames are read (:mod:`acquire.filemerge`);
+    it changes no result."""
+    from . import kernels  # noqa: F401  (first: it configures numba's compile target)
+    from ._numba_target import numba
+
+    with numba.core.compiler_lock.global_compiler_lock:  # as numba's own loading does
+        numba.core.registry.cpu_target.target_context.refresh()
 
 
 def merge_arrays(

@@ -17,9 +17,9 @@ Dark strategies (how the dark level b_i of exposure i is obtained):
 
 from __future__ import annotations
 
-from enum import Enum
-
 import numpy as np
+
+from .dark_strategy import DarkStrategy
 
 __all__ = [
     "DarkStrategy",
@@ -36,22 +36,6 @@ __all__ = [
     "fisher_information",
     "cramer_rao_bound",
 ]
-
-
-class DarkStrategy(str, Enum):
-    """How the dark level is obtained for an exposure (see module docstring). A str enum: its
-    members equal, print and serialise (JSON) as their values ``"matched"``, ``"master"`` and
-    ``"model"``."""
-
-    MATCHED = "matched"
-    MASTER = "master"
-    MODEL = "model"
-
-    def __str__(self) -> str:
-        return self.value
-
-    def __format__(self, spec: str) -> str:
-        return format(self.value, spec)
 
 
 def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:

@@ -15,7 +15,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SensorParams", "Calibration", "THIRD_STOP_TIMES", "DEFECT_BITS"]
+from .times import find_exposure, same_exposure
+
+__all__ = ["SensorParams", "Calibration", "ShutterTable", "THIRD_STOP_TIMES", "DEFECT_BITS"]
 
 _FAST = (
     8000,
@@ -130,6 +132,93 @@ class SensorParams:
 
 
 @dataclass(frozen=True)
+class ShutterTable:
+    """Per-time shutter corrections of a camera: t_eff = factor * t_nom (``hdrcap calibrate
+    --shutter``, :func:`hdrcap.pipeline.calibration.shutter.estimate_shutter_table`).
+
+    The absolute scale is the reference time's: its factor is 1 by definition, and every other
+    factor is the ratio of effective times measured against it (the paper's Sec. 7
+    normalisation, made once per camera).
+
+    Attributes
+    ----------
+    times : tuple of float
+        Nominal exposure times, s, ascending, distinct (:func:`pipeline.times.same_exposure`).
+    factors : tuple of float
+        t_eff / t_nom of each time relative to the reference time (dimensionless, > 0).
+    stderr : tuple of float
+        Standard error of each factor, relative (dimensionless, >= 0; 0 at the reference).
+    reference : float
+        The reference time, s (one of ``times``).
+    frames : tuple of int
+        Frames measured at each time (>= 1).
+    jitter : float or None
+        Relative standard deviation of one frame's effective time about its time's factor
+        (frame-to-frame shutter jitter, and bias drift seen as such), measured from the scatter
+        of repeated frames; None when no time had two frames.
+    """
+
+    times: tuple[float, ...]
+    factors: tuple[float, ...]
+    stderr: tuple[float, ...]
+    reference: float
+    frames: tuple[int, ...]
+    jitter: float | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.times)
+        if n == 0 or not (len(self.factors) == len(self.stderr) == len(self.frames) == n):
+            raise ValueError("shutter table: times, factors, stderr and frames must have one entry per time")
+        for name, lo in (("times", 0.0), ("factors", 0.0)):
+            vals = getattr(self, name)
+            if not all(isinstance(v, (int, float)) and np.isfinite(v) and v > lo for v in vals):
+                raise ValueError(f"shutter table: {name} must be finite numbers > 0")
+        if not all(isinstance(v, (int, float)) and np.isfinite(v) and v >= 0 for v in self.stderr):
+            raise ValueError("shutter table: standard errors must be finite numbers >= 0")
+        if not all(isinstance(k, int) and k >= 1 for k in self.frames):
+            raise ValueError("shutter table: frame counts must be integers >= 1")
+        if any(b <= a or same_exposure(a, b) for a, b in zip(self.times, self.times[1:])):
+            raise ValueError("shutter table: times must be ascending and distinct")
+        if find_exposure(self.reference, self.times) is None:
+            raise ValueError(f"shutter table: reference time {self.reference!r} s is not one of its times")
+        if self.jitter is not None and not (np.isfinite(self.jitter) and self.jitter >= 0):
+            raise ValueError("shutter table: jitter must be a finite number >= 0 or null")
+
+    def lookup(self, t: float) -> tuple[float, float] | None:
+        """The correction of nominal time ``t`` (s): (factor, relative standard error), or None
+        when ``t`` is not one of the table's times (:func:`pipeline.times.find_exposure`)."""
+        i = find_exposure(t, self.times)
+        return None if i is None else (self.factors[i], self.stderr[i])
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready fields (units as the attributes)."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, raw: Any) -> ShutterTable:
+        """The table from :meth:`to_dict`'s form.
+
+        Raises
+        ------
+        ValueError
+            Not a table of that form, or values :meth:`__post_init__` refuses.
+        """
+        if not isinstance(raw, dict) or set(raw) - {f.name for f in dataclasses.fields(cls)}:
+            raise ValueError("shutter table: not a table of times, factors, stderr, reference, frames, jitter")
+        try:
+            return cls(
+                times=tuple(raw["times"]),
+                factors=tuple(raw["factors"]),
+                stderr=tuple(raw["stderr"]),
+                reference=raw["reference"],
+                frames=tuple(raw["frames"]),
+                jitter=raw.get("jitter"),
+            )
+        except (KeyError, TypeError) as err:
+            raise ValueError(f"shutter table: missing or malformed entry ({err})") from None
+
+
+@dataclass(frozen=True)
 class Calibration:
     """Everything the merge needs to know about a camera: scalars, maps and provenance.
 
@@ -166,6 +255,9 @@ class Calibration:
     defect_map : numpy.ndarray or None
         Defective photosites, uint8 bit field (:data:`DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
         8 stuck; 0 a normal photosite); ``None`` if not measured.
+    shutter : ShutterTable or None
+        Per-time shutter corrections (``hdrcap calibrate --shutter``); ``None`` if not measured
+        (the merge then starts from the nominal times).
     """
 
     params: SensorParams
@@ -180,6 +272,7 @@ class Calibration:
     bias_map_stderr: np.ndarray | None = None
     dark_current_map_stderr: np.ndarray | None = None
     defect_map: np.ndarray | None = None
+    shutter: ShutterTable | None = None
 
     def replace(self, **changes: Any) -> Calibration:
         """A copy with some fields changed.

@@ -8,7 +8,7 @@ import numpy as np
 
 from .io import atomic_output
 
-__all__ = ["mosaic_to_rgb", "tonemap_log", "write_preview_png"]
+__all__ = ["mosaic_to_rgb", "tonemap_log", "tonemap_log_colour", "write_preview_png"]
 
 
 def mosaic_to_rgb(mosaic: np.ndarray, cfa: str | None) -> np.ndarray:
@@ -57,14 +57,53 @@ def tonemap_log(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> n
     numpy.ndarray
         uint8 image of ``rgb``'s shape (log scale, gamma 1/1.2); all black without positive values.
     """
-    lum = rgb.mean(axis=-1)
-    pos = lum[lum > 0]
-    if pos.size == 0:
+    levels = _log_levels(rgb.mean(axis=-1), lo_pct, hi_pct)
+    if levels is None:
         return np.zeros(rgb.shape, dtype=np.uint8)
+    return np.round(255 * _log_map(rgb, *levels)).astype(np.uint8)
+
+
+def _log_levels(ref: np.ndarray, lo_pct: float, hi_pct: float) -> tuple[float, float] | None:
+    """The values mapped to black and white: two percentiles of the positive ``ref`` (None if none)."""
+    pos = ref[ref > 0]
+    if pos.size == 0:
+        return None
     lo, hi = np.percentile(pos, [lo_pct, hi_pct])
-    lo = max(lo, hi * 1e-8)
-    val = (np.log10(np.clip(rgb, lo, hi)) - np.log10(lo)) / max(np.log10(hi) - np.log10(lo), 1e-12)
-    return np.round(255 * np.clip(val, 0, 1) ** (1 / 1.2)).astype(np.uint8)
+    return max(lo, hi * 1e-8), hi
+
+
+def _log_map(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``x`` on a log scale from ``lo`` (0) to ``hi`` (1), clipped, gamma 1/1.2."""
+    val = (np.log10(np.clip(x, lo, hi)) - np.log10(lo)) / max(np.log10(hi) - np.log10(lo), 1e-12)
+    return np.clip(val, 0, 1) ** (1 / 1.2)
+
+
+def tonemap_log_colour(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.9) -> np.ndarray:
+    """Logarithmic tone map of each pixel's largest channel, keeping its hue and saturation.
+
+    The largest channel goes through the log map of :func:`tonemap_log` (same percentiles, of
+    the largest channels); the others keep their ratio to it (negative values become 0).
+
+    Parameters
+    ----------
+    rgb : numpy.ndarray
+        (..., 3) linear RGB, any unit.
+    lo_pct, hi_pct : float
+        Percentiles of the positive largest channels mapped to black and white, %.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 image of ``rgb``'s shape; all black without positive values.
+    """
+    rgb = np.clip(np.asarray(rgb, dtype=np.float64), 0, None)
+    top = rgb.max(axis=-1)
+    levels = _log_levels(top, lo_pct, hi_pct)
+    if levels is None:
+        return np.zeros(rgb.shape, dtype=np.uint8)
+    val = _log_map(top, *levels)
+    ratio = np.divide(rgb, top[..., None], out=np.zeros_like(rgb), where=top[..., None] > 0)
+    return np.round(255 * ratio * val[..., None]).astype(np.uint8)
 
 
 def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None, force: bool = False) -> Path:
@@ -75,9 +114,10 @@ def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None,
     path : str or Path
         Output PNG.
     irradiance : numpy.ndarray
-        (H, W) irradiance mosaic, e-/s.
+        (H, W) irradiance mosaic, e-/s, or (H, W, 3) RGB (a developed image: its hues kept,
+        :func:`tonemap_log_colour`).
     cfa : str or None
-        2x2 CFA pattern of the mosaic (None: grey).
+        2x2 CFA pattern of the mosaic (None: grey; ignored for RGB).
     force : bool
         Replace an existing file.
 
@@ -88,7 +128,10 @@ def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None,
     """
     from PIL import Image
 
-    img = tonemap_log(mosaic_to_rgb(irradiance, cfa))
+    if np.ndim(irradiance) == 3:
+        img = tonemap_log_colour(irradiance)
+    else:
+        img = tonemap_log(mosaic_to_rgb(irradiance, cfa))
     with atomic_output(path, force=force, suffix=".png") as tmp:
         Image.fromarray(img, "RGB").save(tmp, format="PNG")
     return Path(path)

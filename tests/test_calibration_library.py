@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.pipeline.calibration_library import entry_name, library_dir, normalise_model
+from hdrcap.pipeline.calibration_library import entry_name, library_dir, model_slug
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_exr
 
 
 def test_keys_and_folder(monkeypatch, tmp_path):
-    assert normalise_model("Canon EOS 5D  Mark II") == "canon-eos-5d-mark-ii"
+    assert model_slug("Canon EOS 5D  Mark II") == "canon-eos-5d-mark-ii"
     assert entry_name("Canon EOS 5D", None, 400) == "canon-eos-5d__any__iso400.cal"
     assert entry_name("Canon EOS 5D", "SN 12", 100.0) == "canon-eos-5d__sn-12__iso100.cal"
     with pytest.raises(InputError, match="camera model"):

@@ -423,3 +423,30 @@ def test_a_light_leak_at_a_short_exposure_is_caught_with_a_calibration(tmp_path)
     CaptureSession(
         warm, tmp_path / "ok", CapturePlan.bracket(times, None, "matched"), calibration=cal, retry=FAST, progress=False
     ).run()
+
+
+class _CardCamera(MockCamera):
+    """A camera that reports what libgphoto2's worker reports: a delete that failed on the card
+    after every second download, and the routine file-added event of every capture."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.events = [("delete_failed", "from an earlier run")]  # before the session: not its event
+        self.n = 0
+
+    def capture(self, *a, **k):
+        res = super().capture(*a, **k)
+        self.n += 1
+        self.events.append(("file_added", f"/DCIM/{self.n}.dng"))
+        if self.n % 2 == 0:
+            self.events.append(("delete_failed", f"/DCIM/{self.n}.dng: read-only card"))
+        return res
+
+
+def test_camera_events_reach_the_event_log(tmp_path):
+    plan = CapturePlan.bracket(TIMES[:2], _camera().allowed_exposure_times(), "matched")
+    cam = _CardCamera("camera-B", _scene(), seed=0)
+    CaptureSession(cam, tmp_path / "run", plan, retry=FAST, progress=False).run()
+    lines = [json.loads(x) for x in (tmp_path / "run" / "events.jsonl").read_text().splitlines()]
+    got = [(e["kind"], e["detail"]) for e in lines if e["event"] == "camera"]
+    assert got == [("delete_failed", f"/DCIM/{n}.dng: read-only card") for n in (2, 4)]

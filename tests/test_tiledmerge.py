@@ -19,6 +19,7 @@ from hdrcap.mock_camera.sensor import preset
 from hdrcap.pipeline.calibration import save_calibration
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_exr
+from hdrcap.pipeline.params import ShutterTable
 from tests.simcal import calibrated_sensor
 
 SHAPE = (98, 128)  # 98 rows: the last tile of 20 rows is short
@@ -34,6 +35,8 @@ def bracket(tmp_path_factory):
     spec = preset("camera-A", realistic=True)
     sensor, cal = calibrated_sensor(spec, 11, SHAPE)
     save_calibration(root / "cal.npz", cal)
+    table = ShutterTable(TIMES, (1.03, 1.0, 0.99, 1.0), (0.002, 0.0, 0.001, 0.001), 0.004, (3, 3, 3, 3))
+    save_calibration(root / "cal_shutter.npz", cal.replace(shutter=table))
     X = make_scene("hdr", SHAPE, 4.0, 1e5)
     rng = np.random.default_rng(7)
     paths = {"frames": [], "darks": [], "png": []}
@@ -67,7 +70,7 @@ def bracket(tmp_path_factory):
         p = root / f"png_{i}.png"
         Image.fromarray(sensor.expose(X, t, rng=rng).astype(np.uint16)).save(p)
         paths["png"].append(p)
-    return {"root": root, "cal": root / "cal.npz", "master": master, **paths}
+    return {"root": root, "cal": root / "cal.npz", "cal_shutter": root / "cal_shutter.npz", "master": master, **paths}
 
 
 def _merge(tmp, name, args, capsys):
@@ -103,6 +106,7 @@ CASES = {
     "single-master": lambda b: [*b["frames"], "--master-dark", b["master"], "--calibration", b["cal"]],
     "model-nominal": lambda b: [*b["frames"], "--calibration", b["cal"], "--exposure-times", "nominal"],
     "self-calibrated": lambda b: [*b["frames"], "--darks", *b["darks"]],
+    "shutter-table": lambda b: [*b["frames"], "--darks", *b["darks"], "--calibration", b["cal_shutter"]],
     "png-spilled": lambda b: [*b["png"], "--times", *TIMES, "--calibration", b["cal"], "--saturation", "probabilistic"],
 }
 
@@ -119,6 +123,7 @@ def test_tiled_merge_is_the_in_memory_merge(bracket, tmp_path, capsys, monkeypat
         k: v for k, v in ref_info.items() if k not in ("seconds", "output")
     }
     assert ("decodes each such file whole" in err) == (case == "png-spilled")
+    assert any(ref.attrs["merge"]["shutter_table"]["applied"]) == (case == "shutter-table")
 
 
 def test_memory_budget_tiles_automatically(bracket, tmp_path, capsys):

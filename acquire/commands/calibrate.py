@@ -16,7 +16,7 @@ _FOLDER = click.Path(file_okay=False, path_type=Path)
 _FRAMES = click.Path(path_type=Path)
 
 
-@many_values("--bias", "--saturation", "--flat", "--dark", "--times")
+@many_values("--bias", "--saturation", "--flat", "--dark", "--shutter", "--times")
 @click.command("calibrate", short_help="Calibrate the camera noise model from bias, saturation, flat and dark frames.")
 @click.option(
     "--bias",
@@ -39,10 +39,28 @@ _FRAMES = click.Path(path_type=Path)
     help="Dark frames at >= 6 exposure times (ordered by time) for the dark current.",
 )
 @click.option(
+    "--shutter",
+    multiple=True,
+    type=_FRAMES,
+    help="Frames of a static scene at the camera's exposure times (several per time allowed; adjacent "
+    "times must share well-exposed photosites): per-time shutter corrections stored in the calibration.",
+)
+@click.option(
+    "--shutter-reference",
+    type=float,
+    help="Reference time (s) of the shutter corrections, whose factor is 1 (default: the longest).",
+)
+@click.option(
+    "--calibration",
+    "base_calibration",
+    type=_FILE,
+    help="Existing calibration to add the --shutter corrections to (written to -o, a new file; never changed).",
+)
+@click.option(
     "--times",
     multiple=True,
     type=float,
-    help="Exposure times (s), one per frame in the order bias, saturation, flat, dark; "
+    help="Exposure times (s), one per frame in the order bias, saturation, flat, dark, shutter; "
     "needed for PNG/TIFF frames, override EXIF.",
 )
 @click.option(
@@ -99,6 +117,9 @@ def command(
     saturation,
     flat,
     dark,
+    shutter,
+    shutter_reference,
+    base_calibration,
     times,
     emva,
     output,
@@ -123,24 +144,46 @@ def command(
     saturation frame, the PRNU map a_j (Eq. 14) and the gain g from flat fields (pairs, Eq. 16,
     or the EMVA 1288 photon-transfer regression), the dark current from darks at >= 6 times.
     Or from an EMVA 1288 data set with --emva. Every estimate carries its standard error.
+    With --shutter, the per-time shutter corrections (t_eff/t_nom, relative to the reference
+    time) measured from frames of a static scene, added to this calibration or, with
+    --calibration FILE, to an existing one.
     """
     from hdrcap import __version__
-    from hdrcap.pipeline.calibration import calibrate_files, calibration_summary, format_summary, save_calibration
+    from hdrcap.pipeline.calibration import (
+        add_shutter_table,
+        calibrate_files,
+        calibration_summary,
+        format_summary,
+        load_calibration,
+        save_calibration,
+    )
 
     t0 = time.perf_counter()
     prov = {"hdrcap_version": __version__, "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     for key, val in (("camera", camera_name), ("serial", serial), ("iso", iso), ("temperature", temperature)):
         if val is not None:
             prov[key] = val
+    if base_calibration is not None and output.resolve() == base_calibration.resolve():
+        raise InputError(f"{output}: is the calibration given with --calibration; write the result to a new file")
     if output.exists() and not force:
         raise OutputExistsError(f"{output}: exists; use --force to overwrite")
     emva_res = None
-    if emva is not None:
+    if base_calibration is not None:
+        if bias or saturation or flat or dark or emva is not None:
+            raise InputError(
+                "give either --calibration FILE or calibration frames (--bias/--flat/... or --emva), not both"
+            )
+        if not shutter:
+            raise InputError("--calibration FILE needs --shutter frames to add to it")
+        calib = add_shutter_table(load_calibration(base_calibration), shutter, times, reference=shutter_reference)
+    elif emva is not None:
         if bias or saturation or flat or dark:
             raise InputError("give either --emva or frame lists (--bias/--saturation/--flat/--dark), not both")
         from hdrcap.pipeline.emva import calibrate_descriptor
 
         calib, emva_res = calibrate_descriptor(emva, saturation_criterion, prov)
+        if shutter:
+            calib = add_shutter_table(calib, shutter, times, reference=shutter_reference)
     else:
         calib = calibrate_files(
             bias,
@@ -148,6 +191,8 @@ def command(
             flat,
             dark,
             times,
+            shutter=shutter,
+            shutter_reference=shutter_reference,
             clip=None if no_clip else clip,
             gain_method=gain_method,
             white_level=white_level,

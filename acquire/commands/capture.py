@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from hdrcap.acquire.cliutil import echo_json, many_values
-from hdrcap.pipeline.noise import DarkStrategy
+from hdrcap.pipeline.dark_strategy import DarkStrategy
 
 
 @many_values("--times")

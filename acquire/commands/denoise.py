@@ -6,7 +6,6 @@ import time
 from pathlib import Path
 
 import click
-import numpy as np
 
 from hdrcap.acquire.cliutil import echo_json
 from hdrcap.pipeline.errors import InputError
@@ -15,6 +14,8 @@ __all__ = ["command"]
 
 
 def _median_rel(irr, sig, ok):
+    import numpy as np
+
     if not ok.any():
         return None
     return float(np.median(sig[ok] / np.maximum(np.abs(irr[ok]), 1e-30)))
@@ -81,6 +82,8 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
     noise propagated through the filter's weights (independent inputs); it does not include the
     bias the filter introduces. Photosites with nexp = 0 (saturated everywhere) are unchanged.
     """
+    import numpy as np
+
     from hdrcap import __version__
     from hdrcap.pipeline.denoise import (
         SIGMA_MEANING,

@@ -9,8 +9,8 @@ from pathlib import Path
 import click
 
 from hdrcap.acquire.cliutil import echo_json, many_values, resolve_merge_calibration
+from hdrcap.pipeline.dark_strategy import DarkStrategy
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.noise import DarkStrategy
 
 
 def _memory_here() -> str:
@@ -138,7 +138,9 @@ def _memory_here() -> str:
     type=click.Choice(["effective", "nominal"]),
     default="effective",
     show_default=True,
-    help="effective: each frame's actual exposure time, estimated from the bracket (photosites well exposed in two frames; nominal and effective times in the EXR header); nominal: the times as given.",
+    help="effective: each frame's actual exposure time, from the calibration's shutter table (calibrate --shutter) "
+    "refined by the bracket's own estimate (photosites well exposed in two frames; nominal, calibrated and effective "
+    "times in the EXR header); nominal: the times as given, neither correction.",
 )
 @click.option(
     "--exr-compression",
@@ -221,8 +223,6 @@ def command(
         summary,
     )
     from hdrcap.pipeline.io import write_exr
-    from hdrcap.pipeline.weighting import WEIGHTING_METHODS
-    from hdrcap.planner.planfile import read_plan
 
     def given(name):
         return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
@@ -230,7 +230,11 @@ def command(
     out_format = out_format or ("dng" if output.suffix.lower() == ".dng" else "exr")
     if output.exists() and not force:
         raise InputError(f"{output}: exists; use --force to overwrite")
-    plan = read_plan(plan_file) if plan_file else None
+    plan = None
+    if plan_file:
+        from hdrcap.planner.planfile import read_plan  # the planner only when a plan is given
+
+        plan = read_plan(plan_file)
     if plan is not None and weighting != "optimal":
         raise InputError(f"--plan works with --weighting optimal, not {weighting}")
     if dark_strategy == DarkStrategy.MATCHED and not darks:
@@ -262,8 +266,8 @@ def command(
             "--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
             "or a calibration with a dark library (--calibration)"
         )
-    if weighting != "optimal" and weighting not in WEIGHTING_METHODS:
-        raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(WEIGHTING_METHODS)}")
+    if weighting != "optimal" and weighting not in _weighting_methods():
+        raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(_weighting_methods())}")
     options = merge_options(
         iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, merge_times
     )
@@ -370,6 +374,13 @@ def _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_forma
     if out_format != "exr":
         raise InputError(f"{why}: tiled merges write EXR, not {out_format}")
     return rows
+
+
+def _weighting_methods():
+    """The baseline weightings by name (imported only when a baseline is asked for)."""
+    from hdrcap.pipeline.weighting import WEIGHTING_METHODS
+
+    return WEIGHTING_METHODS
 
 
 def _selfcal_summary(sc) -> str:

@@ -6,7 +6,6 @@ import dataclasses
 from pathlib import Path
 
 import click
-import numpy as np
 
 from hdrcap.acquire.cliutil import echo_json, many_values, preset_name, resolve_calibration
 from hdrcap.pipeline.errors import HdrcapError, InputError
@@ -14,6 +13,8 @@ from hdrcap.pipeline.errors import HdrcapError, InputError
 
 def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, allowed, meter_frames, meter_max_time):
     """The scene metered with quick frames of the simulated camera: (irradiance, MeterReport)."""
+    import numpy as np
+
     from hdrcap.mock_camera import PRESETS, SimulatedSensor
     from hdrcap.mock_camera.scenes import load_scene, parse_size
     from hdrcap.planner import meter
@@ -183,6 +184,8 @@ def command(
     merge iterations) with the figures that drove them. Infeasible requests are reported with
     the best achievable SNR (exit status 0; "feasible": false in the JSON).
     """
+    import numpy as np
+
     from hdrcap.planner import plan_exposures, systematic_errors_from_calibration
     from hdrcap.planner.ladder import parse_dark_library, parse_times
     from hdrcap.planner.meter import read_irradiance_map

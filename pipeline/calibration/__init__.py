@@ -27,7 +27,9 @@ Modules:
 * :mod:`.gain` -- g from pairs (Eq. 16, 17) and by the photon-transfer regression;
 * :mod:`.dark` -- master darks and the dark current;
 * :mod:`.workflow` -- :func:`calibrate`, the steps in order, and the summary;
-* :mod:`.files` -- :func:`calibrate_files`, the calibration of frame files (``hdrcap calibrate``);
+* :mod:`.shutter` -- per-time shutter corrections from frames of a static scene;
+* :mod:`.files` -- :func:`calibrate_files`, the calibration of frame files (``hdrcap calibrate``),
+  and :func:`add_shutter_table` (``--shutter``);
 * :mod:`.archive` -- the calibration file (:func:`save_calibration`, :func:`load_calibration`).
 """
 
@@ -35,7 +37,7 @@ from __future__ import annotations
 
 from .archive import FORMAT, FORMAT_VERSION, load_calibration, save_calibration
 from .dark import DarkFit, MasterDark, fit_dark_current
-from .files import calibrate_files
+from .files import add_shutter_table, calibrate_files
 from .flats import FlatResult, estimate_flats
 from .gain import (
     PhotonTransferFit,
@@ -46,6 +48,7 @@ from .gain import (
 )
 from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
+from .shutter import estimate_shutter_table
 from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
 from .workflow import GAIN_METHODS, calibrate, calibration_summary, format_summary, with_file_metadata
 
@@ -73,6 +76,8 @@ __all__ = [
     "estimate_flats",
     "calibrate",
     "calibrate_files",
+    "add_shutter_table",
+    "estimate_shutter_table",
     "with_file_metadata",
     "save_calibration",
     "load_calibration",

@@ -4,8 +4,9 @@ Format (docs/calibration.md): a ``.npz`` archive with the float32 maps ``prnu``,
 ``prnu_stderr``, ``bias_map``, ``bias_map_stderr``, ``dark_current_map``,
 ``dark_current_map_stderr``, ``saturation_map``, the uint8 ``defect_map`` (each optional) and a
 ``metadata`` entry holding UTF-8 JSON: ``format``, ``version``, ``shape``, ``params``,
-``stderr``, ``provenance``, ``maps``, ``dark_library``. Files written before the standard-error
-and defect maps existed load with those fields ``None``.
+``stderr``, ``provenance``, ``maps``, ``dark_library`` and ``shutter`` (the per-time shutter
+corrections, a table, or null). Files written before the standard-error and defect maps and
+the shutter table existed load with those fields ``None``.
 
 The maps are stored uncompressed (``np.savez``): per-photosite maps are noise-like and zlib
 saved only about 24 % of their size while costing 15 s to write and 1.3 s to read per 24 Mpixel
@@ -30,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..io import atomic_output, release_pages
-from ..params import Calibration, SensorParams
+from ..io import atomic_output, release_mapped_pages
+from ..params import Calibration, SensorParams, ShutterTable
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]
 
@@ -113,6 +114,7 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
         "provenance": prov,
         "maps": sorted(arrays),
         "dark_library": getattr(calibration, "dark_library", None),
+        "shutter": None if calibration.shutter is None else calibration.shutter.to_dict(),
     }
     text = json.dumps(meta, sort_keys=True, default=_jsonable, allow_nan=True)
     arrays["metadata"] = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
@@ -276,6 +278,16 @@ def _check_params(path: Path, raw: Any) -> SensorParams:
     return params
 
 
+def _check_shutter(path: Path, raw: Any) -> ShutterTable | None:
+    """The shutter table of the metadata (None when absent), refused when malformed."""
+    if raw is None:
+        return None
+    try:
+        return ShutterTable.from_dict(raw)
+    except ValueError as err:
+        raise InputError(f"{path}: bad {err}") from None
+
+
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read a calibration file written by :func:`save_calibration`.
 
@@ -319,7 +331,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             raise InputError(f"{path}: PRNU map has non-positive gains")
         if name in ("bias_map_stderr", "dark_current_map_stderr") and np.any(arr < 0):
             raise InputError(f"{path}: map {name} has negative values")
-        release_pages(arr, unmodified=True)  # checked: a mapped map need not stay resident (huge frames)
+        release_mapped_pages([arr])  # checked: a mapped map need not stay resident (huge frames)
     params = _check_params(path, meta.get("params"))
     if "defect_map" in maps and maps["defect_map"].dtype != np.uint8:
         raise InputError(f"{path}: defect map has type {maps['defect_map'].dtype}, expected uint8")
@@ -336,4 +348,5 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         bias_map_stderr=maps.get("bias_map_stderr"),
         dark_current_map_stderr=maps.get("dark_current_map_stderr"),
         defect_map=maps.get("defect_map"),
+        shutter=_check_shutter(path, meta.get("shutter")),
     )

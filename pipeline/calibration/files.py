@@ -2,7 +2,8 @@
 
 Frame files are read one at a time while the estimators stream them; the camera, ISO, white
 level and capture dates the files record go into the provenance, and master darks can be
-stored in a dark library as they are made.
+stored in a dark library as they are made. Frames of a static scene at the camera's exposure
+times add the per-time shutter corrections (:func:`add_shutter_table`, ``--shutter``).
 """
 
 from __future__ import annotations
@@ -17,15 +18,16 @@ from ..errors import InputError
 from ..io import RawFrame, read_frame
 from ..params import Calibration
 from .dark import MasterDark
+from .shutter import estimate_shutter_table
 from .stats import DEFAULT_CLIP
 from .workflow import calibrate, with_file_metadata
 
-__all__ = ["FileFrames", "calibrate_files"]
+__all__ = ["FileFrames", "calibrate_files", "add_shutter_table"]
 
 PathLike = str | os.PathLike[str]
 
 #: The kinds of calibration frames, in the order their exposure times are given.
-_KINDS = ("bias", "saturation", "flat", "dark")
+_KINDS = ("bias", "saturation", "flat", "dark", "shutter")
 
 
 class FileFrames:
@@ -73,12 +75,13 @@ def _check_paths(paths: Sequence[PathLike], what: str) -> None:
 
 
 def _split_times(groups: Mapping[str, list], times: Sequence[float] | None) -> dict[str, list | None]:
-    """One exposure time per frame, in the order bias, saturation, flat, dark, split by kind."""
+    """One exposure time per frame, in the order bias, saturation, flat, dark, shutter, split by
+    kind."""
     total = sum(len(v) for v in groups.values())
     if times and len(times) != total:
         raise InputError(
             f"--times gives {len(times)} exposure times for {total} frames "
-            "(one per frame, in the order bias, saturation, flat, dark)"
+            f"(one per frame, in the order {', '.join(k for k in _KINDS if k in groups)})"
         )
     tl = list(times) if times else None
     split, i = {}, 0
@@ -109,6 +112,58 @@ def _dark_library_sink(folder: PathLike, meta: Mapping[str, Any], provenance: Ma
     return sink
 
 
+def add_shutter_table(
+    calibration: Calibration,
+    paths: Sequence[PathLike],
+    times: Sequence[float] | None = None,
+    *,
+    reference: float | None = None,
+) -> Calibration:
+    """The calibration with the per-time shutter corrections measured from frame files
+    (:func:`~hdrcap.pipeline.calibration.shutter.estimate_shutter_table`).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The camera's calibration (g, sigma2_R, v_sat, offset and dark-current maps, defects).
+    paths : sequence of path
+        Frames of a static scene at the camera's exposure times (several per time allowed).
+    times : sequence of float, optional
+        Exposure times, s, one per file (override EXIF).
+    reference : float, optional
+        Reference time, s, whose factor is 1 (default: the longest).
+
+    Returns
+    -------
+    Calibration
+        With ``shutter`` set, the files in ``provenance["files"]["shutter"]`` and the method in
+        ``provenance["calibration"]["shutter"]``.
+
+    Raises
+    ------
+    InputError
+        A file missing or given twice, a wrong number of times, or the estimator's complaint.
+    """
+    paths = list(paths)
+    if not paths:
+        raise InputError("no shutter frames given (--shutter)")
+    _check_paths(paths, "shutter")
+    split = _split_times({"shutter": paths}, times)
+    table = estimate_shutter_table(FileFrames(paths, split["shutter"], {}), calibration, reference=reference)
+    prov = dict(calibration.provenance)
+    prov["files"] = {**(prov.get("files") or {}), "shutter": [str(p) for p in paths]}
+    prov["calibration"] = {
+        **(prov.get("calibration") or {}),
+        "shutter": {
+            "method": "exposure-ratio pairs of a static scene (pipeline.exposure_ratio), per-time mean, "
+            "anchored at the reference time",
+            "reference": table.reference,
+            "frames": len(paths),
+        },
+    }
+    return calibration.replace(shutter=table, provenance=prov)
+
+
 def calibrate_files(
     bias: Sequence[PathLike],
     saturation: Sequence[PathLike] = (),
@@ -116,6 +171,8 @@ def calibrate_files(
     darks: Sequence[PathLike] = (),
     times: Sequence[float] | None = None,
     *,
+    shutter: Sequence[PathLike] = (),
+    shutter_reference: float | None = None,
     clip: float | None = DEFAULT_CLIP,
     gain_method: str = "auto",
     white_level: float | None = None,
@@ -131,8 +188,13 @@ def calibrate_files(
         Frame files of each kind (raw, or 16-bit PNG/TIFF with ``times``); darks are sorted
         by exposure time when ``times`` are given.
     times : sequence of float, optional
-        Exposure times, s, one per file in the order bias, saturation, flats, darks; they
-        override the files' EXIF.
+        Exposure times, s, one per file in the order bias, saturation, flats, darks, shutter;
+        they override the files' EXIF.
+    shutter : sequence of path
+        Frames of a static scene at the camera's exposure times: the per-time shutter
+        corrections (:func:`add_shutter_table`), measured with the calibration just made.
+    shutter_reference : float, optional
+        Reference time of the shutter corrections, s (default: the longest).
     clip : float or None
         Sigma-clipping threshold, standard deviations; None disables outlier rejection.
     gain_method : {"auto", "pairs", "ptc"}
@@ -158,7 +220,13 @@ def calibrate_files(
         estimator's complaint about the frames.
     """
     provenance = dict(provenance or {})
-    groups = {"bias": list(bias), "saturation": list(saturation), "flat": list(flats), "dark": list(darks)}
+    groups = {
+        "bias": list(bias),
+        "saturation": list(saturation),
+        "flat": list(flats),
+        "dark": list(darks),
+        "shutter": list(shutter),
+    }
     for what, paths in groups.items():
         _check_paths(paths, what)
     split = _split_times(groups, times)
@@ -167,7 +235,7 @@ def calibrate_files(
         groups["dark"] = [groups["dark"][k] for k in order]
         split["dark"] = [split["dark"][k] for k in order]
     meta: dict[str, Any] = {}
-    lazy = {w: FileFrames(groups[w], split[w], meta) if groups[w] else None for w in _KINDS}
+    lazy = {w: FileFrames(groups[w], split[w], meta) if groups[w] else None for w in _KINDS if w != "shutter"}
     sink = None if dark_library is None else _dark_library_sink(dark_library, meta, provenance, force)
     if lazy["bias"] is None:
         raise InputError("no bias frames given (--bias)")
@@ -186,5 +254,8 @@ def calibrate_files(
         calib, meta, white_level, dark_library=None if dark_library is None else str(dark_library)
     )
     prov = dict(calib.provenance)
-    prov["files"] = {w: [str(p) for p in v] for w, v in groups.items() if v}
-    return calib.replace(provenance=prov)
+    prov["files"] = {w: [str(p) for p in v] for w, v in groups.items() if v and w != "shutter"}
+    calib = calib.replace(provenance=prov)
+    if groups["shutter"]:
+        calib = add_shutter_table(calib, groups["shutter"], split["shutter"], reference=shutter_reference)
+    return calib

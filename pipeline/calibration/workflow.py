@@ -35,6 +35,7 @@ from .gain import (
 )
 from .readout import ReadoutEstimate, estimate_readout
 from .saturation import estimate_saturation
+from .shutter import shutter_summary
 from .stats import DEFAULT_CLIP, PairTap
 
 __all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
@@ -61,8 +62,20 @@ def _readout_step(bias: Iterable, clip: float | None, white_level: float | None,
     rec.counts["bias"] = ro.n_frames
     rec.stderr.update(mu_R=ro.mu_R_stderr, sigma2_R=ro.sigma2_R_stderr)
     rec.info.update(
-        sigma2_R_method=ro.method, bias_exposure_time=ro.exposure_time, bias_dsnu_DN=ro.dsnu, clip_sigma=clip
+        sigma2_R_method=ro.method,
+        bias_exposure_time=ro.exposure_time,
+        bias_dsnu_DN=ro.dsnu,
+        clip_sigma=clip,
+        sigma2_R_quantisation_limited=ro.quantisation_limited,
+        sigma2_R_measured=ro.measured_sigma2,
+        bias_drift_DN=ro.drift,
     )
+    if ro.quantisation_limited:
+        rec.info.setdefault("warnings", []).append(
+            f"bias frames are quantisation-limited (pair variance {ro.measured_sigma2:.3g} DN^2 < 0.24 DN^2): "
+            f"sigma2_R set to 0.24 DN^2, an upper limit (EMVA 1288; the truth lies in 1/12..0.24 DN^2), and "
+            f"mu_R carries the quantiser's bias (standard error {ro.mu_R_stderr:.2g} DN)"
+        )
     return ro
 
 
@@ -474,8 +487,10 @@ def calibration_summary(
     dict
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), prnu_std (fraction), D (e-/s),
         each scalar's standard error, the frame count, the gain method, the defect counts
-        (``defects``: dead, weak, hot, stuck, total; None when not measured) and the warnings (e.g.
-        a non-linear photon transfer near saturation), then the entries above that are given.
+        (``defects``: dead, weak, hot, stuck, total; None when not measured), the shutter
+        corrections (``shutter``: :func:`~.shutter.shutter_summary`, None when not measured) and
+        the warnings (e.g. a non-linear photon transfer near saturation), then the entries above
+        that are given.
     """
     p = calib.params
     prov = calib.provenance
@@ -498,6 +513,7 @@ def calibration_summary(
         "n_frames": prov.get("n_frames"),
         "gain_method": prov.get("calibration", {}).get("gain_method"),
         "defects": prov.get("calibration", {}).get("defects", {}).get("counts"),
+        "shutter": None if calib.shutter is None else shutter_summary(calib.shutter),
         "warnings": list(prov.get("calibration", {}).get("warnings", [])),
     }
     if output is not None:
@@ -513,7 +529,7 @@ def calibration_summary(
 
 def format_summary(summary: Mapping[str, Any]) -> str:
     """The summary as text: g, mu_R, sigma2_R, v_sat, D, the PRNU and the defects on one line,
-    then one line per warning.
+    the shutter table (one line per time), then one line per warning.
 
     Parameters
     ----------
@@ -530,6 +546,7 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         f"sigma2_R = {s['sigma2_R']:.4g} DN^2  v_sat = {s['v_sat']:.5g} DN  "
         f"D = {s['dark_current']:.3g} e-/s  PRNU = {100 * (s['prnu_std'] or 0):.3g} %"
         + _defect_text(s)
+        + _shutter_text(s)
         + "".join(f"\nwarning: {w}" for w in s.get("warnings") or ())
     )
 
@@ -540,3 +557,15 @@ def _defect_text(summary: Mapping[str, Any]) -> str:
     if not c:
         return ""
     return f"  defects: {c['total']} ({', '.join(f'{k} {c[k]}' for k in DEFECT_BITS)})"
+
+
+def _shutter_text(summary: Mapping[str, Any]) -> str:
+    """The shutter table, a header line and one line per time, when the summary has one."""
+    sh = summary.get("shutter")
+    if not sh:
+        return ""
+    jitter = "not measured" if sh["jitter"] is None else f"{100 * sh['jitter']:.2g} %"
+    lines = [f"\nshutter: t_eff/t_nom relative to {sh['reference']:g} s (frame jitter {jitter})"]
+    for e in sh["times"]:
+        lines.append(f"\n  {e['t']:<10.4g} s  {e['factor']:.5f} ± {100 * e['stderr']:.2g} %  ({e['frames']} frames)")
+    return "".join(lines)
