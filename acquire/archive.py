@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -403,6 +403,61 @@ class Archive:
             Path(f).unlink(missing_ok=True)
         return i
 
+    def commit_many(self, runs: Sequence[ArchiveRun], replace: bool = False) -> list[int]:
+        """Commit several runs at once; returns their run numbers.
+
+        New runs whose chunks were staged are appended together: one append of their
+        coordinates, one resize of every array and one commit (consolidated metadata) for all
+        of them, which is what a commit costs on the client whatever the number of runs. Any
+        other case (a rewrite, arrays sent back, the first run) commits the runs one by one.
+        Either every run of the call is committed or, if an error is raised, none of the ones
+        appended together.
+
+        Parameters
+        ----------
+        runs : sequence of ArchiveRun
+            The merged runs (distinct folders).
+        replace : bool
+            Overwrite committed runs of the same folders.
+
+        Returns
+        -------
+        list of int
+            The run numbers, in the order of ``runs``.
+        """
+        import zarr
+
+        runs = list(runs)
+        with self._locked():
+            group = None
+            if self.exists():
+                self._repair()
+                group = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
+            together = (
+                len(runs) > 1
+                and group is not None
+                and "irradiance" in group
+                and len({r.folder for r in runs}) == len(runs)
+                and all(r.staged for r in runs)
+                and all(tuple(r.shape) == tuple(group["irradiance"].shape[1:]) for r in runs)
+                and not {r.folder for r in runs} & {str(f) for f in group["folder"][:]}
+                and self._chunks_compatible(group)
+            )
+            if together:
+                attrs = dict(group.attrs)
+                attrs.pop("coordinates", None)
+                failed = json.loads(attrs.get(_FAILED_ATTR, "{}"))
+                for r in runs:
+                    failed.pop(r.folder, None)
+                attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
+                numbers = self._append_staged_many(runs, group["run"].shape[0], attrs)
+            else:
+                numbers = [self._commit(r, replace) for r in runs]
+        for r in runs:
+            for f in r.staged.values():  # decoded rather than renamed (first run, rewrite): not needed any more
+                Path(f).unlink(missing_ok=True)
+        return numbers
+
     def _commit(self, run: ArchiveRun, replace: bool) -> int:
         """:meth:`commit` under the writer's lock."""
         import zarr
@@ -460,22 +515,30 @@ class Archive:
         return True
 
     def _append_staged(self, run: ArchiveRun, n: int, attrs: dict) -> int:
-        """Append a staged run: its coordinates (xarray), the per-photosite arrays grown by one
-        run and its chunk files renamed into place, then the commit (consolidated metadata)."""
+        """Append a staged run (:meth:`_append_staged_many` of one run)."""
+        return self._append_staged_many([run], n, attrs)[0]
+
+    def _append_staged_many(self, runs: list[ArchiveRun], n: int, attrs: dict) -> list[int]:
+        """Append staged runs as runs n, n+1, ...: their coordinates (xarray, one append), the
+        per-photosite arrays grown by that many runs and the chunk files renamed into place,
+        then the commit (consolidated metadata)."""
         import os
 
+        import xarray as xr
         import zarr
 
-        ds = _dataset_coords(run, n)
+        parts = [_dataset_coords(run, n + i) for i, run in enumerate(runs)]
+        ds = parts[0] if len(parts) == 1 else xr.concat(parts, dim="run")
         ds.attrs.update(attrs)
         ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=False, zarr_format=_FORMAT)
         group = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
         for name in CHANNELS:
             arr = group[name]
-            arr.resize((n + 1, *arr.shape[1:]))
-            os.replace(run.staged[name], self.path / name / arr.metadata.encode_chunk_key((n, 0, 0)))
+            arr.resize((n + len(runs), *arr.shape[1:]))
+            for i, run in enumerate(runs):
+                os.replace(run.staged[name], self.path / name / arr.metadata.encode_chunk_key((n + i, 0, 0)))
         zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)
-        return n
+        return list(range(n, n + len(runs)))
 
     # ------------------------------------------------------------------ staging
     def open_staging(self) -> tuple[str, str]:

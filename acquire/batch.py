@@ -5,7 +5,8 @@ run folders through their ``manifest.jsonl``, or folders of raw brackets); :func
 the task a worker runs for one run: it reads the frames itself and merges them with
 :func:`acquire.filemerge.merge_files`, exactly as ``hdrcap merge`` does; :func:`run_batch` sends
 one task per run to a local cluster or a scheduler, commits every merged run to the
-:class:`acquire.archive.Archive` as it arrives, records failures and skips runs already there.
+:class:`acquire.archive.Archive` as it arrives (the runs that finished while the previous ones
+were committed together, in one commit), records failures and skips runs already there.
 
 Over the network go the task (a run's file paths and the merge settings, a few kB) and a few
 kB of result: a worker that sees the archive's file system writes the run's encoded chunk files
@@ -16,6 +17,7 @@ raw frames are read on the worker and never leave it.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import functools
 import hashlib
@@ -111,19 +113,24 @@ class BatchSettings:
 @dataclass(frozen=True)
 class RunOutcome:
     """What a worker sends back for one run: the run to commit (None if it failed), warnings,
-    merge seconds, and the one-line error of a run that failed on bad input."""
+    merge seconds (wall clock), the one-line error of a run that failed on bad input, and the
+    worker process's CPU seconds during the task (all its threads: the merge kernel's too)."""
 
     run: Any
     warnings: tuple[str, ...]
     seconds: float
     error: str | None = None
+    cpu_seconds: float = 0.0
 
 
 @dataclass
 class BatchReport:
     """What a batch did: runs committed (folder -> run number), skipped (already in the
     archive), failed (folder -> error), warnings, wall-clock seconds, and the seconds spent
-    merging (summed over the workers) and committing (on the client)."""
+    merging (summed over the workers) and committing (on the client), the CPU seconds of the
+    workers' tasks (summed) and of the client process (commits, scheduling, communication): CPU
+    seconds do not depend on what else the machine runs), and the seconds until the cluster's
+    workers were ready."""
 
     archive: str
     committed: dict[str, int] = field(default_factory=dict)
@@ -133,6 +140,9 @@ class BatchReport:
     seconds: float = 0.0
     merge_seconds: float = 0.0
     commit_seconds: float = 0.0
+    merge_cpu_seconds: float = 0.0
+    client_cpu_seconds: float = 0.0
+    startup_seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return {
@@ -144,6 +154,9 @@ class BatchReport:
             "seconds": round(self.seconds, 3),
             "merge_seconds": round(self.merge_seconds, 3),
             "commit_seconds": round(self.commit_seconds, 3),
+            "merge_cpu_seconds": round(self.merge_cpu_seconds, 3),
+            "client_cpu_seconds": round(self.client_cpu_seconds, 3),
+            "startup_seconds": round(self.startup_seconds, 3),
         }
 
 
@@ -269,11 +282,12 @@ def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, st
     """
     from hdrcap.pipeline.errors import HdrcapError
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
-        return _merge_run(source, settings, staging, t0)
+        out = _merge_run(source, settings, staging, t0)
     except HdrcapError as err:  # bad input: a one-line error, no worker traceback in the log
-        return RunOutcome(None, (), time.perf_counter() - t0, _describe(err))
+        out = RunOutcome(None, (), time.perf_counter() - t0, _describe(err))
+    return dataclasses.replace(out, cpu_seconds=time.process_time() - c0)
 
 
 def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
@@ -406,7 +420,7 @@ def run_batch(
     """
     from hdrcap.acquire.archive import Archive
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     sources = find_runs(paths)
     store = Archive(archive)
     report = BatchReport(str(archive))
@@ -420,6 +434,7 @@ def run_batch(
         finally:
             store.close_staging(staging)
     report.seconds = time.perf_counter() - t0
+    report.client_cpu_seconds = time.process_time() - c0
     return report
 
 
@@ -428,32 +443,66 @@ def _run_tasks(todo, settings, staging, store, report, workers, scheduler, threa
     from distributed import as_completed
     from tqdm import tqdm
 
+    t0 = time.perf_counter()
     with _client(workers, scheduler, threads) as client:
+        report.startup_seconds = time.perf_counter() - t0
         futures = {client.submit(merge_run, s, settings, staging, key=_task_key(s), pure=False): s for s in todo}
         if on_submit is not None:
             on_submit(client)
         show = sys.stderr.isatty() if progress is None else progress
         with tqdm(total=len(todo), desc="batch", unit="run", disable=not show, dynamic_ncols=True) as bar:
-            for fut in as_completed(futures):
-                source = futures.pop(fut)
-                _land(fut, source, store, force, report)
-                fut.release()
-                bar.update(1)
+            # the runs finished while the previous ones were committed are committed together
+            for done in as_completed(futures).batches():
+                _land_many([(fut, futures.pop(fut)) for fut in done], store, force, report)
+                for fut in done:
+                    fut.release()
+                bar.update(len(done))
 
 
-def _land(fut, source: RunSource, store, force: bool, report: BatchReport) -> None:
+def _land_many(finished, store, force: bool, report: BatchReport) -> None:
+    """Commit finished tasks' runs to the archive (together when they can be, see
+    :meth:`acquire.archive.Archive.commit_many`), or record each failure."""
+    good = []
+    for fut, source in finished:
+        try:
+            out = fut.result()
+            report.merge_seconds += out.seconds
+            report.merge_cpu_seconds += out.cpu_seconds
+            if out.error is not None:
+                raise InputError(out.error)
+        except Exception as err:  # any failure of one run: recorded, the batch goes on
+            _record_failure(store, source, err, report)
+            continue
+        good.append((source, out))
+    if len(good) > 1:
+        t0 = time.perf_counter()
+        try:
+            numbers = store.commit_many([out.run for _s, out in good], replace=force)
+        except Exception:  # noqa: BLE001  (nothing of them committed: one by one, to record which run fails)
+            numbers = None
+        report.commit_seconds += time.perf_counter() - t0
+        if numbers is not None:
+            for (source, out), i in zip(good, numbers):
+                report.committed[source.folder] = i
+                report.warnings.extend(f"{source.folder}: {w}" for w in out.warnings)
+            return
+    for source, out in good:
+        _land(source, out, store, force, report)
+
+
+def _record_failure(store, source: RunSource, err: BaseException, report: BatchReport) -> None:
+    message = _describe(err)
+    store.record_failure(source.folder, message)
+    report.failed[source.folder] = message
+
+
+def _land(source: RunSource, out: RunOutcome, store, force: bool, report: BatchReport) -> None:
     """Commit one finished task's run to the archive, or record its failure."""
     try:
-        out = fut.result()
-        report.merge_seconds += out.seconds
-        if out.error is not None:
-            raise InputError(out.error)
         t0 = time.perf_counter()
         report.committed[source.folder] = store.commit(out.run, replace=force)
         report.commit_seconds += time.perf_counter() - t0
     except Exception as err:  # any failure of one run: recorded, the batch goes on
-        message = _describe(err)
-        store.record_failure(source.folder, message)
-        report.failed[source.folder] = message
+        _record_failure(store, source, err, report)
         return
     report.warnings.extend(f"{source.folder}: {w}" for w in out.warnings)

@@ -92,6 +92,7 @@ __all__ = [
     "DenoiseResult",
     "check_denoise_inputs",
     "spatial_kernel",
+    "support_depth",
     "bilateral_adaptive",
     "bilateral_constant",
     "denoise",
@@ -211,6 +212,23 @@ class DenoiseResult:
 
 
 # --------------------------------------------------------------------------- kernel
+
+
+def support_depth(settings: DenoiseSettings) -> int:
+    """How far the filter reaches, in photosites (rows or columns): ``radius`` same-colour steps
+    of 2 photosites (``cfa``) or 1 (``mono``). A photosite's result depends on no photosite
+    farther away, so tiles overlapping by this many rows filter exactly as the whole image.
+
+    Parameters
+    ----------
+    settings : DenoiseSettings
+
+    Returns
+    -------
+    int
+        Photosites, >= 0.
+    """
+    return int(settings.radius) * (2 if settings.layout == "cfa" else 1)
 
 
 def spatial_kernel(radius: int, spatial_sigma: float) -> np.ndarray:

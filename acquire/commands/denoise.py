@@ -62,9 +62,19 @@ def _median_rel(irr, sig, ok):
     help="cfa: filter each colour plane of the 2x2 mosaic; mono: one channel; "
     "auto: cfa when the header names a CFA pattern.",
 )
+@click.option(
+    "--chunks",
+    type=click.IntRange(min=2),
+    default=None,
+    metavar="ROWS",
+    help="Filter tile by tile, bands of ROWS rows (even) read from the EXR with the filter's reach of overlap "
+    "(dask.array map_overlap; at least the reach, 2 x radius rows for cfa): identical to the whole-image filter, "
+    "memory for a few bands only. The JSON's "
+    "median relative sigmas are then taken over a regular subsample (at most about 1e6 photosites).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, force, as_json):
+def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks, force, as_json):
     """Denoise a merged EXR (channels irradiance, sigma, optional nexp) with a bilateral filter
     whose range bandwidth follows each photosite's predicted sigma (Sec. 9).
 
@@ -93,6 +103,10 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
         raise InputError(f"{output}: exists; use --force to overwrite")
     if input_exr.exists() and output.exists() and input_exr.resolve() == output.resolve():
         raise InputError(f"{output}: is the input file; inputs are never modified, choose another output")
+    if chunks:  # tile by tile: the same result without holding the image
+        return _denoise_tiled(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks)(
+            force, as_json, t0
+        )
     image = read_exr(input_exr)
     missing = [c for c in ("irradiance", "sigma") if c not in image.channels]
     if missing:
@@ -142,3 +156,65 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
             f"{info['median_relative_sigma_after']:.3g}, "
             f"{info['seconds']:.2f} s"
         )
+
+
+def _denoise_tiled(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks):
+    """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0)."""
+    from types import SimpleNamespace
+
+    from hdrcap import __version__
+    from hdrcap.acquire.tileddenoise import denoise_tiled, exr_layout
+    from hdrcap.pipeline.denoise import denoise_header, layout_from_metadata, settings_from_options
+
+    attrs, names, shape = exr_layout(input_exr)
+    missing = [c for c in ("irradiance", "sigma") if c not in names]
+    if missing:
+        raise InputError(
+            f"{input_exr}: no {' or '.join(missing)} channel; denoise needs an EXR written by `hdrcap merge`"
+        )
+    chosen_layout = layout_from_metadata(attrs) if layout == "auto" else layout
+    settings = settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma, chosen_layout)
+
+    def entry(unchanged):
+        return denoise_header(
+            settings,
+            SimpleNamespace(info={"unchanged_nexp0": unchanged}),
+            "header cfa_pattern" if layout == "auto" else "--layout",
+            attrs.get("sigma", "standard deviation of irradiance"),
+            __version__,
+            source_file=str(input_exr),
+        )
+
+    def run(force, as_json, t0):
+        done = denoise_tiled(
+            input_exr,
+            output,
+            settings,
+            rows=chunks,
+            attrs=attrs,
+            names=names,
+            shape=shape,
+            header_entry=entry,
+            force=force,
+            progress=not as_json,
+        )
+        info = {
+            "output": str(output),
+            "shape": list(shape),
+            "settings": settings.to_dict(),
+            "median_relative_sigma_before": done.median_relative_sigma_before,
+            "median_relative_sigma_after": done.median_relative_sigma_after,
+            "unchanged_nexp0": done.unchanged_nexp0,
+            "seconds": round(time.perf_counter() - t0, 3),
+            "chunk_rows": done.rows,
+            "tiles": done.tiles,
+        }
+        if as_json:
+            echo_json(info)
+        else:
+            click.echo(
+                f"wrote {output}: {shape[1]}x{shape[0]}, {settings.method} bilateral ({chosen_layout}), "
+                f"{done.tiles} tiles of {done.rows} rows, {info['seconds']:.2f} s"
+            )
+
+    return run

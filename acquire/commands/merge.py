@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -10,6 +11,16 @@ import click
 from hdrcap.acquire.cliutil import echo_json, many_values, resolve_merge_calibration
 from hdrcap.pipeline.dark_strategy import DarkStrategy
 from hdrcap.pipeline.errors import InputError
+
+
+def _memory_here() -> str:
+    """The default memory budget on this machine, for the help text (the budget itself is
+    :func:`acquire.tiledmerge.default_memory_budget`)."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return ""
+    return f" (here {total / 2**31:.1f} GiB)"
 
 
 @many_values("--darks", "--times")
@@ -145,6 +156,23 @@ from hdrcap.pipeline.errors import InputError
     show_default=True,
     help="Storage of sigma (and sigma_calibration): half loses at most 0.05 %% of sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always float32; nexp and quality are stored as uint (lossless).",
 )
+@click.option(
+    "--chunks",
+    type=click.IntRange(min=2),
+    default=None,
+    metavar="ROWS",
+    help="Merge tile by tile, bands of ROWS rows (even: whole CFA periods) through dask.array, reading only each "
+    "tile's rows of every file and calibration map; identical to the in-memory merge (docs/batch.md, One huge "
+    "frame). Uncompressed DNGs are read row by row; other raw formats (LibRaw) are decoded whole once per file "
+    "into a temporary file beside the output (with a warning). EXR output and --weighting optimal only.",
+)
+@click.option(
+    "--memory-budget",
+    default=None,
+    metavar="SIZE",
+    help="Tile automatically (as --chunks, rows chosen to fit) when the in-memory merge would need more than SIZE "
+    f"(e.g. 2GB; K/M/G/T are powers of 1024). Default: half of this machine's physical memory{_memory_here()}.",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
@@ -169,6 +197,8 @@ def command(
     exposure_times,
     exr_compression,
     sigma_precision,
+    chunks,
+    memory_budget,
     force,
     as_json,
     out_format,
@@ -241,6 +271,36 @@ def command(
     options = merge_options(
         iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, merge_times
     )
+    rows = _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format)
+    if rows:  # one frame larger than the memory budget: tile by tile
+        from hdrcap.acquire.tiledmerge import merge_tiled
+
+        tiled = merge_tiled(
+            frames,
+            calib,
+            options,
+            output,
+            rows=rows,
+            dark_paths=darks,
+            times=times,
+            plan=plan,
+            plan_file=str(plan_file) if plan_file else None,
+            dark_strategy=dark_strategy,
+            master_dark=master_dark,
+            master_dark_frames=master_dark_frames,
+            library=lib_root,
+            given=given,
+            selfcal=selfcal,
+            selfcal_times=exposure_times == "effective",
+            force=force,
+            compression=exr_compression,
+            sigma_precision=sigma_precision,
+            progress=not as_json,
+            warn=warn,
+        )
+        info = tiled.summary | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3)}
+        info |= {"n_frames": tiled.n_frames, "n_darks": tiled.n_darks, "chunk_rows": rows, "tiles": tiled.tiles}
+        return _report(info, selfcal, as_json)
     done = merge_files(
         frames,
         calib,
@@ -281,6 +341,12 @@ def command(
         "n_frames": len(done.frames),
         "n_darks": len(done.darks),
     }
+    _report(info, selfcal, as_json)
+
+
+def _report(info: dict, selfcal, as_json: bool) -> None:
+    """Print the merge's summary: one JSON line, or one sentence."""
+    output = info["output"]
     if selfcal is not None:
         info["calibration"] = selfcal.calibration.provenance["source"]
         info["unit"] = selfcal.unit
@@ -292,6 +358,22 @@ def command(
             f"{info['irradiance_min']:.4g}..{info['irradiance_max']:.4g} e-/s, "
             f"{info['saturated_everywhere']} photosites saturated everywhere, {info['seconds']:.2f} s"
         )
+
+
+def _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format) -> int | None:
+    """Rows per tile (--chunks, or chosen when the merge would exceed --memory-budget), or None."""
+    from hdrcap.acquire.tiledmerge import default_memory_budget, parse_memory, tiling_rows
+
+    budget = parse_memory(memory_budget) if memory_budget is not None else default_memory_budget()
+    rows = tiling_rows(frames, len(darks), calib, chunks=chunks, budget=budget)
+    if rows is None:
+        return None
+    why = f"--chunks {chunks}" if chunks else f"the merge would need more than --memory-budget {budget / 2**30:.2f} GiB"
+    if weighting != "optimal":
+        raise InputError(f"{why}: tiled merges use --weighting optimal, not {weighting}")
+    if out_format != "exr":
+        raise InputError(f"{why}: tiled merges write EXR, not {out_format}")
+    return rows
 
 
 def _weighting_methods():

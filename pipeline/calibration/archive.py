@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..io import atomic_output
+from ..io import atomic_output, release_mapped_pages
 from ..params import Calibration, SensorParams, ShutterTable
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]
@@ -327,12 +327,12 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             raise InputError(f"{path}: map {name} has shape {arr.shape}, the file says {shape}")
         if not np.all(np.isfinite(arr)):
             raise InputError(f"{path}: map {name} holds NaN or infinite values")
-    params = _check_params(path, meta.get("params"))
-    if "prnu" in maps and not np.all(maps["prnu"] > 0):
-        raise InputError(f"{path}: PRNU map has non-positive gains")
-    for name in ("bias_map_stderr", "dark_current_map_stderr"):
-        if name in maps and np.any(maps[name] < 0):
+        if name == "prnu" and not np.all(arr > 0):
+            raise InputError(f"{path}: PRNU map has non-positive gains")
+        if name in ("bias_map_stderr", "dark_current_map_stderr") and np.any(arr < 0):
             raise InputError(f"{path}: map {name} has negative values")
+        release_mapped_pages([arr])  # checked: a mapped map need not stay resident (huge frames)
+    params = _check_params(path, meta.get("params"))
     if "defect_map" in maps and maps["defect_map"].dtype != np.uint8:
         raise InputError(f"{path}: defect map has type {maps['defect_map'].dtype}, expected uint8")
     return Calibration(

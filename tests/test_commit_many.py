@@ -1,0 +1,72 @@
+"""Several staged runs committed together (``Archive.commit_many``, what ``hdrcap batch`` does
+with the runs that finish while others are committed): the archive equals the one of commits
+made one by one; a crash before the commit leaves none of them; cases that cannot be appended
+together are committed one by one."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+
+from hdrcap.acquire.archive import CHANNELS, RUN_COORDS, Archive
+from tests.test_archive import _run, _staged
+
+
+def _archive(path, groups):
+    """An archive of runs 0..n committed in ``groups`` (lists of run indices) with commit_many."""
+    store = Archive(path)
+    staging = store.open_staging()
+    numbers = [store.commit_many([_staged(store, staging, _run(i)) for i in g]) for g in groups]
+    store.close_staging(staging)
+    return numbers
+
+
+def test_runs_committed_together_equal_runs_committed_one_by_one(tmp_path):
+    together = _archive(tmp_path / "t.zarr", [[0], [1, 2, 3], [4, 5]])
+    single = _archive(tmp_path / "s.zarr", [[i] for i in range(6)])
+    assert together == [[0], [1, 2, 3], [4, 5]] and [n[0] for n in single] == list(range(6))
+    a, b = xr.open_zarr(tmp_path / "t.zarr"), xr.open_zarr(tmp_path / "s.zarr")
+    for name in (*CHANNELS, *RUN_COORDS, "run"):
+        np.testing.assert_array_equal(a[name].values, b[name].values)
+    assert a.attrs == b.attrs
+    for i in range(6):
+        np.testing.assert_array_equal(a["irradiance"].isel(run=i).values, _run(i).channels["irradiance"])
+        assert json.loads(str(a["header"].values[i]))["i"] == i
+
+
+def test_a_crash_before_the_commit_leaves_none_of_the_runs(tmp_path, monkeypatch):
+    path = tmp_path / "a.zarr"
+    store = Archive(path)
+    staging = store.open_staging()
+    store.commit(_staged(store, staging, _run(0)))
+    real = zarr.consolidate_metadata
+
+    def die(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(zarr, "consolidate_metadata", die)
+    with pytest.raises(KeyboardInterrupt):
+        store.commit_many([_staged(store, staging, _run(i)) for i in (1, 2)])
+    monkeypatch.setattr(zarr, "consolidate_metadata", real)
+    assert xr.open_zarr(path).sizes["run"] == 1
+    assert store.commit_many([_staged(store, staging, _run(i)) for i in (3, 4)]) == [1, 2]
+    assert list(xr.open_zarr(path)["folder"].values) == ["/runs/000", "/runs/003", "/runs/004"]
+
+
+def test_runs_that_cannot_go_together_are_committed_one_by_one(tmp_path):
+    path = tmp_path / "a.zarr"
+    store = Archive(path)
+    # the first runs create the archive, arrays sent back (not staged): one by one
+    assert store.commit_many([_run(0), _run(1)]) == [0, 1]
+    staging = store.open_staging()
+    # a rewrite of a committed run among new ones: one by one
+    assert store.commit_many(
+        [_staged(store, staging, _run(1, seed=9)), _staged(store, staging, _run(2))], replace=True
+    ) == [1, 2]
+    ds = xr.open_zarr(path)
+    np.testing.assert_array_equal(ds["irradiance"].isel(run=1).values, _run(1, seed=9).channels["irradiance"])
+    assert list(ds["folder"].values) == ["/runs/000", "/runs/001", "/runs/002"]
