@@ -278,6 +278,24 @@ def _check_params(path: Path, raw: Any) -> SensorParams:
     return params
 
 
+#: Range of a PRNU gain that is a photosite's response: calibrate writes gains near 1 and sets
+#: dead and weak photosites to 1 in the defect map's place; anything outside is a damaged file.
+PRNU_RANGE = (1e-2, 1e2)
+
+
+def _check_map_range(path: Path, name: str, arr: np.ndarray, params: SensorParams) -> None:
+    """Refuse a map whose values no measurement gives: PRNU gains outside :data:`PRNU_RANGE`,
+    negative standard errors, bias levels outside 0..white level (DN). A negative dark-current map
+    is read as it is (files written before the map was clamped; the merge floors its variances)."""
+    if name == "prnu" and not (np.all(arr >= PRNU_RANGE[0]) and np.all(arr <= PRNU_RANGE[1])):
+        lo, hi = float(np.min(arr)), float(np.max(arr))
+        raise InputError(f"{path}: PRNU map has gains {lo:.3g}..{hi:.3g}, outside {PRNU_RANGE[0]:g}..{PRNU_RANGE[1]:g}")
+    if name in ("bias_map_stderr", "dark_current_map_stderr", "prnu_stderr") and np.any(arr < 0):
+        raise InputError(f"{path}: map {name} has negative values")
+    if name == "bias_map" and (np.any(arr < 0) or np.any(arr > params.white_level)):
+        raise InputError(f"{path}: bias map has levels outside 0..{params.white_level:g} DN (the white level)")
+
+
 def _check_shutter(path: Path, raw: Any) -> ShutterTable | None:
     """The shutter table of the metadata (None when absent), refused when malformed."""
     if raw is None:
@@ -322,17 +340,14 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     missing = sorted(set(meta.get("maps") or ()) - set(maps))
     if missing:
         raise InputError(f"{path}: map {missing[0]} is listed in the metadata but missing from the archive")
+    params = _check_params(path, meta.get("params"))
     for name, arr in maps.items():
         if arr.ndim != 2 or (shape is not None and arr.shape != shape):
             raise InputError(f"{path}: map {name} has shape {arr.shape}, the file says {shape}")
         if not np.all(np.isfinite(arr)):
             raise InputError(f"{path}: map {name} holds NaN or infinite values")
-        if name == "prnu" and not np.all(arr > 0):
-            raise InputError(f"{path}: PRNU map has non-positive gains")
-        if name in ("bias_map_stderr", "dark_current_map_stderr") and np.any(arr < 0):
-            raise InputError(f"{path}: map {name} has negative values")
+        _check_map_range(path, name, arr, params)
         release_mapped_pages([arr])  # checked: a mapped map need not stay resident (huge frames)
-    params = _check_params(path, meta.get("params"))
     if "defect_map" in maps and maps["defect_map"].dtype != np.uint8:
         raise InputError(f"{path}: defect map has type {maps['defect_map'].dtype}, expected uint8")
     return Calibration(
