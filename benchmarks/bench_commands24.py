@@ -19,6 +19,7 @@ time of reading its inputs once. The parts of denoise and plan (EXR read, filter
 map read, planning) are timed in this process.
 
     python benchmarks/bench_commands24.py [--mpix 24] [--repeats 3] [--only calibrate,denoise,plan] [--clean]
+        [--baseline /tmp/hdrcap-bench-speed2/main-src/pkg]   # before/after in one run
 """
 
 from __future__ import annotations
@@ -117,25 +118,56 @@ def summarise(runs: list[dict]) -> dict:
     }
 
 
-def bench_calibrate(desc: dict, work: Path, repeats: int, warmup: bool = True) -> dict:
-    """The calibrate command and the read-once reference, alternating (after a warm-up run of the
-    command when ``warmup``)."""
+def variants(baseline: Path | None) -> dict[str, dict | None]:
+    """The code versions to time: this environment's (``current``) and, with ``baseline``, the
+    hdrcap package found at that folder first on PYTHONPATH (``baseline``)."""
+    out: dict[str, dict | None] = {"current": None}
+    if baseline is not None:
+        out["baseline"] = dict(os.environ, PYTHONPATH=str(baseline))
+    return out
+
+
+def time_alternating(cmd, envs: dict, repeats: int, warmup_cmd=None, between=None) -> dict:
+    """Each variant's run of ``cmd`` alternating, after one warm-up run each (``warmup_cmd``, by
+    default ``cmd`` itself: page cache, numba cache); ``between()`` runs before each round."""
+    for env in envs.values():
+        run_measured(warmup_cmd or cmd, env=env)
+    runs: dict[str, list] = {name: [] for name in envs}
+    for _ in range(repeats):
+        if between is not None:
+            between()
+        for name, env in envs.items():
+            runs[name].append(run_measured(cmd, env=env))
+    out = {name: summarise(r) for name, r in runs.items()}
+    if all("best_seconds" in v for v in out.values()) and "baseline" in out:
+        out["speedup"] = round(out["baseline"]["best_seconds"] / out["current"]["best_seconds"], 2)
+    out["last_stdout"] = runs["current"][-1]["stdout"]
+    return out
+
+
+def bench_calibrate(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
+    """The calibrate command (each variant) and the read-once reference, alternating; the warm-up
+    runs calibrate a short set (bias, saturation, 6 flats, the darks) to load the numba caches."""
     files = desc["files"]
     paths = [p for k in ("bias", "saturation", "flat", "dark") for p in files.get(k, [])]
     cmd = [hdrcap_exe(), "calibrate", *calibrate_args(files), "-o", work / "cal_out.npz", "--force"]
-    if warmup:
-        run_measured(cmd)
-    runs, reads = [], []
-    for _ in range(repeats):
+    short = dict(files, flat=files["flat"][:6])
+    warm = [hdrcap_exe(), "calibrate", *calibrate_args(short), "-o", work / "cal_warm.npz", "--force"]
+    reads: list[float] = []
+
+    def read_once():
         t0 = time.perf_counter()
         read_all(paths)
         reads.append(time.perf_counter() - t0)
-        runs.append(run_measured(cmd))
-    out = {"n_frames": len(paths), "n_flats": len(files["flat"]), "command": summarise(runs)}
+
+    out = {"n_frames": len(paths), "n_flats": len(files["flat"])}
+    out["command"] = time_alternating(cmd, envs, repeats, warm, read_once)
+    out["command"].pop("last_stdout")
     out["read_once_best_seconds"] = round(min(reads), 3)
     out["read_once_all_seconds"] = [round(s, 3) for s in reads]
-    if "best_seconds" in out["command"]:
-        out["calibrate_to_read"] = round(out["command"]["best_seconds"] / min(reads), 2)
+    for name in envs:
+        if "best_seconds" in out["command"][name]:
+            out[f"{name}_to_read"] = round(out["command"][name]["best_seconds"] / min(reads), 2)
     return out
 
 
@@ -149,14 +181,14 @@ def _best(fn, repeats: int):
     return best, res
 
 
-def bench_denoise(desc: dict, work: Path, repeats: int) -> dict:
-    """The denoise command, then its parts in this process (EXR read, filter, EXR write)."""
+def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
+    """The denoise command (each variant), then its parts in this process (EXR read, filter, EXR write)."""
     from hdrcap.pipeline.denoise import DenoiseSettings, denoise
     from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
     cmd = [hdrcap_exe(), "denoise", desc["merged"], "-o", work / "denoised.exr", "--force"]
-    run_measured(cmd)  # warm-up
-    out = {"command": summarise([run_measured(cmd) for _ in range(repeats)])}
+    out = {"command": time_alternating(cmd, envs, repeats)}
+    out["command"].pop("last_stdout")
     read_s, image = _best(lambda: read_exr(desc["merged"]), repeats)
     ch = image.channels
     settings = DenoiseSettings(layout="cfa")
@@ -171,9 +203,9 @@ def bench_denoise(desc: dict, work: Path, repeats: int) -> dict:
     return out
 
 
-def bench_plan(desc: dict, repeats: int) -> dict:
-    """The plan command on the merged map for each of PLAN_CASES, then its parts in this process
-    (map read, planning)."""
+def bench_plan(desc: dict, repeats: int, envs: dict) -> dict:
+    """The plan command on the merged map for each of PLAN_CASES (each variant), then its parts
+    in this process (map read, planning)."""
     from hdrcap.pipeline.calibration import load_calibration
     from hdrcap.planner import plan_exposures
     from hdrcap.planner.ladder import parse_times
@@ -186,11 +218,9 @@ def bench_plan(desc: dict, repeats: int) -> dict:
     for name, (snr_db, quantile) in PLAN_CASES.items():
         args = ["--calibration", desc["calibration"], "--irradiance", desc["merged"], "--target-snr-db", snr_db]
         cmd = [hdrcap_exe(), "plan", *args, "--json"] + ([] if quantile is None else ["--quantile", quantile])
-        run_measured(cmd)  # warm-up
-        runs = [run_measured(cmd) for _ in range(repeats)]
-        case = {"command": summarise(runs)}
+        case = {"command": time_alternating(cmd, envs, repeats)}
         try:
-            plan = json.loads(runs[-1]["stdout"])
+            plan = json.loads(case["command"].pop("last_stdout"))
             case["plan"] = {k: plan.get(k) for k in ("exposures", "feasible", "predicted_min_snr_db")}
         except (ValueError, KeyError):
             pass
@@ -208,7 +238,12 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed runs of each command (best is reported)")
     ap.add_argument("--only", default="calibrate,denoise,plan", help="commands to time, comma-separated")
     ap.add_argument("--work", type=Path, default=WORK, help=f"folder of the simulated inputs (default {WORK})")
-    ap.add_argument("--no-warmup", action="store_true", help="no warm-up run of calibrate (the slowest command)")
+    ap.add_argument(
+        "--baseline",
+        type=Path,
+        help="also time the hdrcap package found in this folder (e.g. an export of main with the package "
+        "folders linked under hdrcap/), alternating with this environment's",
+    )
     ap.add_argument("--clean", action="store_true", help="delete the simulated inputs at the end")
     args = ap.parse_args(argv)
     shape = shape_for(args.mpix)
@@ -224,13 +259,14 @@ def main(argv=None) -> int:
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=Path(__file__).parent
         ).stdout.strip(),
     }
+    envs = variants(args.baseline)
     only = set(args.only.split(","))
     if "calibrate" in only:
-        report["calibrate"] = bench_calibrate(desc, args.work, args.repeats, not args.no_warmup)
+        report["calibrate"] = bench_calibrate(desc, args.work, args.repeats, envs)
     if "denoise" in only:
-        report["denoise"] = bench_denoise(desc, args.work, args.repeats)
+        report["denoise"] = bench_denoise(desc, args.work, args.repeats, envs)
     if "plan" in only:
-        report["plan"] = bench_plan(desc, args.repeats)
+        report["plan"] = bench_plan(desc, args.repeats, envs)
     report["load_average_1min_end"] = round(os.getloadavg()[0], 2)
     print(json.dumps(report, indent=1))
     if args.clean:
