@@ -35,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import TIMES, run_measured, shape_for  # noqa: E402
+from bench_command import TIMES, _best, run_measured, shape_for  # noqa: E402
 
 CAMERA = "camera-A"
 WORK = Path("/tmp/hdrcap-bench-speed2")
@@ -169,16 +169,6 @@ def bench_calibrate(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
         if "best_seconds" in out["command"][name]:
             out[f"{name}_to_read"] = round(out["command"][name]["best_seconds"] / min(reads), 2)
     return out
-
-
-def _best(fn, repeats: int):
-    """(best wall time in s, last result) of ``repeats`` calls of ``fn``."""
-    best, res = float("inf"), None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, res
 
 
 def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:

@@ -123,7 +123,9 @@ def pair_moments(a, b, keep):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def stack_add_censored(values, ref, w, censor, s, q, sw, cnt, mx, mn, wmx, wmn):  # pragma: no cover - compiled
     """:func:`stack_add` skipping the ``censor`` photosites, also summing per-photosite weights
-    (``sw``) and sample counts (``cnt``)."""
+    (``sw``) and sample counts (``cnt``). The update is written out, not shared with
+    :func:`stack_add` through a helper: a helper function (plain or ``inline="always"``) made
+    the loop 35 times slower (24 Mpixel: 2.5 s instead of 0.07 s)."""
     v = values.ravel()
     r = ref.ravel()
     c = censor.ravel()
