@@ -281,17 +281,24 @@ def _check_params(path: Path, raw: Any) -> SensorParams:
 #: Range of a PRNU gain that is a photosite's response: calibrate writes gains near 1 and sets
 #: dead and weak photosites to 1 in the defect map's place; anything outside is a damaged file.
 PRNU_RANGE = (1e-2, 1e2)
+#: Largest dark current (or its standard error) a map may hold, e-/s: a full well of 1e6 e- filled
+#: in a microsecond; the other maps have their own bounds (gains, white level).
+DARK_CURRENT_MAX = 1e12
 
 
 def _check_map_range(path: Path, name: str, arr: np.ndarray, params: SensorParams) -> None:
     """Refuse a map whose values no measurement gives: PRNU gains outside :data:`PRNU_RANGE`,
-    negative standard errors, bias levels outside 0..white level (DN). A negative dark-current map
+    negative standard errors, standard errors of a gain above 100 or of a bias above the white
+    level, dark currents beyond :data:`DARK_CURRENT_MAX`, bias levels outside 0..white level (DN). A negative dark-current map
     is read as it is (files written before the map was clamped; the merge floors its variances)."""
     if name == "prnu" and not (np.all(arr >= PRNU_RANGE[0]) and np.all(arr <= PRNU_RANGE[1])):
         lo, hi = float(np.min(arr)), float(np.max(arr))
         raise InputError(f"{path}: PRNU map has gains {lo:.3g}..{hi:.3g}, outside {PRNU_RANGE[0]:g}..{PRNU_RANGE[1]:g}")
     if name in ("bias_map_stderr", "dark_current_map_stderr", "prnu_stderr") and np.any(arr < 0):
         raise InputError(f"{path}: map {name} has negative values")
+    limit = {"prnu_stderr": PRNU_RANGE[1], "bias_map_stderr": params.white_level}.get(name, DARK_CURRENT_MAX)
+    if name != "defect_map" and np.any(np.abs(arr) > limit):
+        raise InputError(f"{path}: map {name} has values beyond {limit:g}, which no measurement gives")
     if name == "bias_map" and (np.any(arr < 0) or np.any(arr > params.white_level)):
         raise InputError(f"{path}: bias map has levels outside 0..{params.white_level:g} DN (the white level)")
 
