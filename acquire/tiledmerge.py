@@ -286,18 +286,10 @@ def chunk_rows_for(budget: int, width: int, n_inputs: int, n_maps: int) -> int:
 
 def _raw_dimensions(path: Path) -> tuple[int, int] | None:
     """(rows, columns) of the largest image in a TIFF-based raw file, without decoding; None
-    for other formats."""
-    import tifffile
+    for other formats (:func:`pipeline.io.tiff_dimensions`)."""
+    from hdrcap.pipeline.io import tiff_dimensions
 
-    try:
-        with tifffile.TiffFile(path) as tif:
-            pages = list(tif.pages)
-            for page in list(pages):
-                pages.extend(getattr(page, "pages", None) or [])
-            dims = [(int(p.imagelength), int(p.imagewidth)) for p in pages if hasattr(p, "imagelength")]
-    except Exception:  # noqa: BLE001  (not a TIFF: the caller estimates from the file size)
-        return None
-    return max(dims, key=lambda d: d[0] * d[1]) if dims else None
+    return tiff_dimensions(path)
 
 
 def tiling_rows(

@@ -41,6 +41,7 @@ __all__ = [
     "RawFrame",
     "adc_maximum",
     "atomic_output",
+    "tiff_dimensions",
     "check_exposure_time",
     "check_frames",
     "read_emva_descriptor",
@@ -245,18 +246,54 @@ def _refuse_impossible_size(path: Path, tif) -> None:
 
     try:
         page = raw_page(tif)
-        if page is None:
-            return
+    except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
+        return
+    if page is not None:
+        _refuse_oversized_page(path, page)
+
+
+def _refuse_oversized_page(path: Path, page) -> None:
+    """Refuse a TIFF page whose stated dimensions need more than :data:`MAX_RAW_COMPRESSION`
+    times its stored bytes (a corrupt size tag would make the decoder allocate gigabytes)."""
+    try:
         stored = sum(page.databytecounts)
         bits = page.bitspersample if isinstance(page.bitspersample, int) else max(page.bitspersample)
-        need = page.imagewidth * page.imagelength * bits / 8
-    except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: LibRaw decides)
+        need = page.imagewidth * page.imagelength * max(int(page.samplesperpixel), 1) * bits / 8
+    except Exception:  # noqa: BLE001  (tags tifffile cannot interpret: the decoder decides)
         return
     if need > MAX_RAW_COMPRESSION * max(stored, 1):
         raise InputError(
-            f"{path}: impossible raw image dimensions {page.imagewidth}x{page.imagelength} "
+            f"{path}: impossible image dimensions {page.imagewidth}x{page.imagelength} "
             f"({bits}-bit) for {stored} bytes of image data (corrupt file)"
         )
+
+
+def tiff_dimensions(path) -> tuple[int, int] | None:
+    """(rows, columns) of the largest image of a TIFF-based file (DNG, TIFF), from its tags
+    without decoding; None for other formats or a file tifffile cannot parse. What tifffile
+    logs about a damaged file is kept off the terminal (the reader refuses such a file later).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+
+    Returns
+    -------
+    tuple of int or None
+        (rows, columns) of the image with the most photosites, or None.
+    """
+    import tifffile
+
+    try:
+        with _tiff_complaints(), tifffile.TiffFile(path) as tif:
+            pages = list(tif.pages)
+            for page in list(pages):
+                pages.extend(getattr(page, "pages", None) or [])
+            dims = [(int(p.imagelength), int(p.imagewidth)) for p in pages if hasattr(p, "imagelength")]
+    except Exception:  # noqa: BLE001  (not a TIFF: the caller decides)
+        return None
+    return max(dims, key=lambda d: d[0] * d[1]) if dims else None
 
 
 def _refuse_unreadable_dng(path: Path, err: BaseException) -> None:
@@ -563,7 +600,9 @@ def _first_tiff_page(path: Path) -> np.ndarray:
 
     with tifffile.TiffFile(path) as tif:
         len(tif.pages)  # walks the directory chain: a loop or a bad offset is logged
-        return tif.pages[0].asarray()
+        page = tif.pages[0]
+        _refuse_oversized_page(path, page)
+        return page.asarray()
 
 
 def read_image16(path, exposure_time: float) -> RawFrame:
@@ -597,6 +636,8 @@ def read_image16(path, exposure_time: float) -> RawFrame:
                 with Image.open(path) as im:
                     im.load()
                     data = np.array(im)
+        except InputError:
+            raise
         except Exception as err:  # PIL/tifffile raise many types for bad files
             raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
     if complaints:  # a directory entry or page tifffile skipped: the pixels may be anything

@@ -390,8 +390,9 @@ class Outcome:
     output_finite: bool = True
 
 
-#: Peak resident memory (MiB) of the fuzzing process that counts as unbounded: the inputs are
-#: a few kB to a few hundred kB, their results a few MB.
+#: Resident memory (MiB) one call may add to what the fuzzing process held before it (its peak
+#: minus its resident set before the call) before it counts as unbounded: the inputs are a few kB
+#: to a few hundred kB, their results a few MB.
 MEMORY_LIMIT_MIB = 1024
 
 
@@ -401,13 +402,18 @@ def _reset_peak() -> None:
         Path("/proc/self/clear_refs").write_text("5")
 
 
-def _peak_mib() -> float:
-    """Peak resident memory since the last :func:`_reset_peak`, MiB (0 where unknown)."""
+def _status_mib(field: str) -> float:
+    """A memory field of /proc/self/status (``VmHWM``, ``VmRSS``), MiB (0 where unknown)."""
     try:
         status = Path("/proc/self/status").read_text()
     except OSError:
         return 0.0
-    return next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmHWM:")), 0.0)
+    return next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith(field + ":")), 0.0)
+
+
+def _peak_mib() -> float:
+    """Peak resident memory since the last :func:`_reset_peak`, MiB (0 where unknown)."""
+    return _status_mib("VmHWM")
 
 
 def _exr_is_finite(path: Path) -> bool:
@@ -444,12 +450,14 @@ def run_target(target: str, corpus: Corpus, data: bytes, work: Path) -> Outcome:
     path.write_bytes(data)
     args = f.args(corpus, path, out)
     _reset_peak()
+    before = _status_mib("VmRSS")  # what the process held already (libraries, caches, freed-but-kept heap)
     with _time_limit(CALL_TIMEOUT_S):
         if callable(args):
             outcome = args()
         else:
             outcome = Outcome(*_cli(*args))
-    assert _peak_mib() < MEMORY_LIMIT_MIB, f"{target}: peak memory {_peak_mib():.0f} MiB"
+    grew = _peak_mib() - before
+    assert grew < MEMORY_LIMIT_MIB, f"{target}: the call took {grew:.0f} MiB above the {before:.0f} MiB held before it"
     if outcome.rc == 0 and out.exists():
         outcome = Outcome(outcome.rc, outcome.stdout, outcome.stderr, _exr_is_finite(out))
     return outcome
