@@ -485,7 +485,23 @@ BAD_VALUES = ("refuse", "mask")
 
 
 def check_bad_values(bad_values: str) -> str:
-    """``bad_values`` when it is one of :data:`BAD_VALUES`, else :class:`InputError`."""
+    """Check a ``bad_values`` option.
+
+    Parameters
+    ----------
+    bad_values : str
+        What to do with impossible raw values: one of :data:`BAD_VALUES` (``refuse``, ``mask``).
+
+    Returns
+    -------
+    str
+        ``bad_values`` unchanged.
+
+    Raises
+    ------
+    InputError
+        Any other value.
+    """
     if bad_values not in BAD_VALUES:
         raise InputError(f"bad values must be refused or masked (refuse, mask), got {bad_values!r}")
     return bad_values
