@@ -192,21 +192,24 @@ def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
 def summary(result) -> dict:
     """Figures of a merge: shape, irradiance range (e-/s), median relative sigma, photosites
     saturated everywhere (defects and photosites masked in every frame not counted), defective
-    photosites flagged, photosites with a masked value, whether everything is finite."""
+    photosites flagged, whether everything is finite, and (when there are some) the photosites
+    with a masked value."""
     irr, sig, nexp = result.irradiance, result.sigma, result.nexp
     ok = nexp > 0
     n_defects = int(result.info.get("defects_flagged", 0))  # nexp = 0 too, saturated or not
     n_void = int(result.info.get("masked_everywhere", 0))  # nexp = 0, no information at all
-    return {
+    out = {
         "shape": list(irr.shape),
         "irradiance_min": float(irr.min()),
         "irradiance_max": float(irr.max()),
         "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
         "saturated_everywhere": int((~ok).sum()) - n_defects - n_void,
         "defects_flagged": n_defects,
-        "masked_photosites": int(result.info.get("masked_photosites", 0)),
         "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
     }
+    if result.info.get("masked_photosites"):  # only where a frame had masked values
+        out["masked_photosites"] = int(result.info["masked_photosites"])
+    return out
 
 
 def merge_options(

@@ -6,6 +6,7 @@ never called saturated. Photosites masked in every frame carry no information (n
 
 from __future__ import annotations
 
+import json
 import shutil
 import struct
 
@@ -106,8 +107,8 @@ def test_masked_merge_against_the_clean_one_and_the_truth(bracket, tmp_path, cap
     sim, clean, frames, (rows, cols) = bracket
     common = ("--camera", "camera-B", "--exposure-times", times)
     assert _run(capsys, "merge", *clean, *common, "-o", tmp_path / "clean.exr")[0] == 0
-    rc, _out, err = _run(capsys, "merge", *frames, *common, "--bad-values", "mask", "-o", tmp_path / "m.exr")
-    assert rc == 0
+    rc, out, err = _run(capsys, "merge", *frames, *common, "--bad-values", "mask", "-o", tmp_path / "m.exr", "--json")
+    assert rc == 0 and json.loads(out)["masked_photosites"] == N_BAD
     warned = [line for line in err if "masked" in line]
     assert len(warned) == 1 and str(frames[BAD]) in warned[0] and f" {N_BAD} photosites" in warned[0], err
     ref, img = read_exr(tmp_path / "clean.exr").channels, read_exr(tmp_path / "m.exr")
