@@ -61,12 +61,13 @@ def start_warm_up() -> threading.Thread:
     return thread
 
 
-def read_frames(paths, times=None, what="frame", progress=False) -> list[RawFrame]:
-    """Read raw files / 16-bit images; ``times`` (seconds, one per path) override EXIF."""
-    return list(_read_parallel(paths, times, what, progress))
+def read_frames(paths, times=None, what="frame", progress=False, bad_values="refuse") -> list[RawFrame]:
+    """Read raw files / 16-bit images; ``times`` (seconds, one per path) override EXIF;
+    ``bad_values`` as :func:`pipeline.io.read_raw`."""
+    return list(_read_parallel(paths, times, what, progress, bad_values))
 
 
-def _read_parallel(paths, times, what, progress) -> Iterator[RawFrame]:
+def _read_parallel(paths, times, what, progress, bad_values="refuse") -> Iterator[RawFrame]:
     """Decode raw files in a thread pool (LibRaw releases the GIL), yielding frames in order."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -81,7 +82,7 @@ def _read_parallel(paths, times, what, progress) -> Iterator[RawFrame]:
     else:
         times = [None] * len(paths)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        futures = [pool.submit(read_frame, p, t) for p, t in zip(paths, times)]
+        futures = [pool.submit(read_frame, p, t, bad_values=bad_values) for p, t in zip(paths, times)]
         for fut in tqdm(futures, desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False):
             yield fut.result()
 
@@ -139,9 +140,10 @@ def build_hdr_image(result, frames, calibration, extra=None):
         from hdrcap.pipeline.merge import QUALITY_BITS
 
         channels["quality"] = quality.astype(np.float32)
-        attrs["quality"] = "bit field, 0 a trusted measurement; any bit: nexp = 0, not a measurement: " + ", ".join(
-            f"{bit} {name}" for name, bit in QUALITY_BITS.items()
-        )
+        attrs["quality"] = (
+            "bit field, 0 a trusted measurement; any bit but masked: nexp = 0, not a measurement; masked (a frame's "
+            "impossible raw value left out) with nexp > 0: estimated from the other frames: "
+        ) + ", ".join(f"{bit} {name}" for name, bit in QUALITY_BITS.items())
     return HdrImage(channels, attrs)
 
 
@@ -189,20 +191,25 @@ def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
 
 def summary(result) -> dict:
     """Figures of a merge: shape, irradiance range (e-/s), median relative sigma, photosites
-    saturated everywhere (defects not counted), defective photosites flagged, whether everything
-    is finite."""
+    saturated everywhere (defects and photosites masked in every frame not counted), defective
+    photosites flagged, whether everything is finite, and (when there are some) the photosites
+    with a masked value."""
     irr, sig, nexp = result.irradiance, result.sigma, result.nexp
     ok = nexp > 0
     n_defects = int(result.info.get("defects_flagged", 0))  # nexp = 0 too, saturated or not
-    return {
+    n_void = int(result.info.get("masked_everywhere", 0))  # nexp = 0, no information at all
+    out = {
         "shape": list(irr.shape),
         "irradiance_min": float(irr.min()),
         "irradiance_max": float(irr.max()),
         "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
-        "saturated_everywhere": int((~ok).sum()) - n_defects,
+        "saturated_everywhere": int((~ok).sum()) - n_defects - n_void,
         "defects_flagged": n_defects,
         "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
     }
+    if result.info.get("masked_photosites"):  # only where a frame had masked values
+        out["masked_photosites"] = int(result.info["masked_photosites"])
+    return out
 
 
 def merge_options(
@@ -283,13 +290,17 @@ def streamed_merge(
     resolver: DarkResolver | None = None,
     plan: PlanFile | None = None,
     warn: Callable[[str], None] = _warn,
+    bad_values: str = "refuse",
 ):
     """Read the bracket (in parallel threads) and feed each frame to a
     :class:`pipeline.merge.MergeAccumulator` as soon as it is decoded, with the dark strategy
     ``strategy_for(frame)`` gives it (a strategy, or (strategy, planned frame count of its
     master dark); default: the one of ``options``) and the dark level ``resolver`` serves it
     (default: ``dark_paths`` matched by exposure time). With a ``plan``, every plan exposure
-    time must be among the frames. Returns (result, frames, darks, per-frame dark sources)."""
+    time must be among the frames. ``bad_values="mask"``: a frame's impossible raw values are
+    masked (:func:`pipeline.io.read_raw`), left out of that frame, and each file with some is
+    warned about in one line (dark frames are always refused). Returns (result, frames, darks,
+    per-frame dark sources)."""
     from hdrcap.pipeline.io import check_frames, release_mapped_pages
     from hdrcap.pipeline.merge import MergeAccumulator
 
@@ -314,7 +325,12 @@ def streamed_merge(
         opts.setdefault("master_dark_time", master_dark.exposure_time)
     acc = None
     frames, used, warned = [], [], set()
-    for fr in _read_parallel(frame_paths, times, "frame", progress):
+    for fr in _read_parallel(frame_paths, times, "frame", progress, bad_values):
+        if fr.n_masked:
+            warn(
+                f"{fr.path}: {fr.n_masked} photosites with impossible raw values (above the white level's ADC range) "
+                "masked: merged from the other frames there"
+            )
         if acc is None:
             # stream=False: the frames are all read here anyway, so the merge does its single
             # pass at the end (less memory than the first-pass sums of a live capture).
@@ -342,6 +358,7 @@ def streamed_merge(
             src.data,
             strategy=strategy,
             n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None,
+            mask=fr.masked,
         )
         frames.append(fr)
         used.append(f"{strategy}: {src.source}" if strategy is not DarkStrategy.MODEL else "model")
@@ -411,6 +428,7 @@ def merge_files(
     given: Callable[[str], bool] = lambda _name: False,
     progress: bool = False,
     warn: Callable[[str], None] = _warn,
+    bad_values: str = "refuse",
 ) -> FileMerge:
     """Merge raw files: the work of ``hdrcap merge`` between its options and the EXR.
 
@@ -418,9 +436,13 @@ def merge_files(
     the user set (they win over a plan's). ``weighting`` other than ``optimal`` runs a baseline
     of :mod:`pipeline.weighting`. Master darks come from ``dark_paths`` of the exposure time
     (``master_dark_frames`` frames each), else ``master_dark``, else the dark library at
-    ``library``.
+    ``library``. ``bad_values="mask"`` masks impossible raw values of the frames instead of
+    refusing the files (:func:`streamed_merge`; the optimal weighting only) and records the
+    count per file in ``masked_values``.
     """
     extra: dict[str, Any] = {"weighting": weighting}
+    if bad_values == "mask" and weighting != "optimal":
+        raise InputError(f"bad values are masked by the optimal merge only, not --weighting {weighting}")
     if weighting != "optimal":
         from hdrcap.pipeline.weighting import merge_weighted
 
@@ -465,8 +487,11 @@ def merge_files(
         resolver=resolver,
         plan=plan,
         warn=warn,
+        bad_values=bad_values,
     )
     extra["dark_sources"] = used
+    if bad_values == "mask":
+        extra["masked_values"] = {str(f.path): f.n_masked for f in fr}
     if master_dark:
         extra["master_dark_file"] = str(master_dark)
     if plan is not None:

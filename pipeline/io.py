@@ -29,6 +29,7 @@ import numpy as np
 from .errors import InputError, OutputExistsError
 
 __all__ = [
+    "BAD_VALUES",
     "EXR_COMPRESSIONS",
     "EXR_PRECISIONS",
     "HALF_RANGE",
@@ -42,6 +43,7 @@ __all__ = [
     "adc_maximum",
     "atomic_output",
     "tiff_dimensions",
+    "check_bad_values",
     "check_exposure_time",
     "check_frames",
     "read_emva_descriptor",
@@ -83,6 +85,11 @@ class RawFrame:
         Make and model.
     timestamp : str or None
         Capture time (EXIF DateTimeOriginal or LibRaw's timestamp, ISO 8601).
+    masked : numpy.ndarray or None
+        bool map, shape of ``data``: photosites whose decoded value was impossible (above the
+        white level's ADC range) and that the reader masked instead of refusing the file
+        (``bad_values="mask"``); their ``data`` values are left as decoded and must not be used.
+        None: nothing masked.
     """
 
     data: np.ndarray
@@ -94,6 +101,12 @@ class RawFrame:
     path: str | None = None
     camera: str | None = None
     timestamp: str | None = None
+    masked: np.ndarray | None = None
+
+    @property
+    def n_masked(self) -> int:
+        """Number of masked photosites (see ``masked``)."""
+        return 0 if self.masked is None else int(np.count_nonzero(self.masked))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -503,13 +516,48 @@ def adc_maximum(white_level: float) -> int:
 _CFA_COLOURS = ({"R", "G", "B"}, {"C", "M", "Y", "G"})
 
 
-def _check_decoded(path: Path, dec: _Decoded) -> None:
+#: What :func:`read_raw` does with decoded values no sensor writes (above the white level's ADC
+#: range): ``refuse`` the file (InputError), or ``mask`` them (:attr:`RawFrame.masked`).
+BAD_VALUES = ("refuse", "mask")
+
+
+def check_bad_values(bad_values: str) -> str:
+    """Check a ``bad_values`` option.
+
+    Parameters
+    ----------
+    bad_values : str
+        What to do with impossible raw values: one of :data:`BAD_VALUES` (``refuse``, ``mask``).
+
+    Returns
+    -------
+    str
+        ``bad_values`` unchanged.
+
+    Raises
+    ------
+    InputError
+        Any other value.
+    """
+    if bad_values not in BAD_VALUES:
+        raise InputError(f"bad values must be refused or masked (refuse, mask), got {bad_values!r}")
+    return bad_values
+
+
+def _check_decoded(path: Path, dec: _Decoded, bad_values: str = "refuse") -> np.ndarray | None:
     """Refuse decoded raw data that cannot be what a sensor wrote.
 
     Impossible dimensions, levels that contradict each other (black level not below the white
     level, negative or non-finite), a 2x2 CFA tile that is no colour mosaic, and pixel values
     above the ADC range the white level implies (:func:`adc_maximum`): all signs of a corrupt
-    file or a wrong decode, never merged silently.
+    file or a wrong decode, never merged silently. With ``bad_values="mask"`` the impossible
+    pixel values (a per-photosite problem) are returned as a mask instead of refused; every
+    other problem is still refused.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        bool map of the impossible values (``mask`` only), None when there are none.
     """
     data = dec.data
     if data.ndim != 2 or min(data.shape) < 2:
@@ -525,12 +573,16 @@ def _check_decoded(path: Path, dec: _Decoded) -> None:
         raise InputError(f"{path}: CFA pattern {dec.cfa!r} is not a colour filter mosaic (corrupt metadata)")
     top = adc_maximum(white)
     high = int(data.max())
-    if high > top:
-        n = int(np.count_nonzero(data > top))
-        raise InputError(
-            f"{path}: {n} photosites above the white level ({high} DN > {top} DN, "
-            f"the {top.bit_length()}-bit range of white level {white:g} DN): corrupt raw data"
-        )
+    if high <= top:
+        return None
+    bad = data > top
+    if bad_values == "mask":
+        return bad
+    raise InputError(
+        f"{path}: {int(np.count_nonzero(bad))} photosites above the white level ({high} DN > {top} DN, "
+        f"the {top.bit_length()}-bit range of white level {white:g} DN): corrupt raw data "
+        "(--bad-values mask merges the file without them)"
+    )
 
 
 def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bool:
@@ -539,7 +591,7 @@ def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bo
     return has_time and bool(exif.get("ISOSpeedRatings")) and bool(exif.get("DateTimeOriginal"))
 
 
-def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> RawFrame:
+def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse") -> RawFrame:
     """Read a camera raw file (DNG, NEF, CR2, ...).
 
     An uncompressed DNG (8/16-bit strips or tiles, Bayer CFA, single black and white level) is
@@ -557,13 +609,19 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
         Map the pixels of a contiguous little-endian 16-bit DNG from the file (copy-on-write;
         the file must not be truncated or rewritten in place while the frame is in use), instead
         of reading them into memory.
+    bad_values : {"refuse", "mask"}
+        Pixel values above the white level's ADC range (:func:`adc_maximum`): refuse the file
+        (default), or mask them (:attr:`RawFrame.masked`; the pixels keep their decoded values).
+        Problems that are not per photosite (dimensions, levels, exposure time) are always
+        refused.
 
     Returns
     -------
     RawFrame
         uint16 mosaic (DN), exposure time (s), ISO, black and white levels (DN), CFA pattern,
-        camera and capture time.
+        camera, capture time and the masked photosites.
     """
+    check_bad_values(bad_values)
     path = Path(path)
     _check_readable(path)
     exif, direct = _tiff_raw(path, mmap)
@@ -571,7 +629,7 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
         dec = _Decoded(data=direct.data, cfa=direct.cfa_pattern, black=direct.black_level, white=direct.white_level)
     else:
         dec = _libraw_decode(path)
-    _check_decoded(path, dec)
+    masked = _check_decoded(path, dec, bad_values)
     t = exposure_time if exposure_time is not None else exif.get("ExposureTime")
     t = t if t is not None else dec.shutter
     if t is None:
@@ -586,6 +644,7 @@ def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True) -> 
         path=str(path),
         camera=exif.get("camera"),
         timestamp=exif.get("DateTimeOriginal") or dec.timestamp,
+        masked=masked,
     )
 
 
@@ -652,7 +711,7 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     return RawFrame(data=data.astype(np.uint16, copy=False), exposure_time=t, path=str(path))
 
 
-def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True) -> RawFrame:
+def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse") -> RawFrame:
     """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type.
 
     Parameters
@@ -663,16 +722,19 @@ def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True) -
         Seconds; required for PNG/TIFF, overrides EXIF for raw files.
     mmap : bool
         See :func:`read_raw`.
+    bad_values : {"refuse", "mask"}
+        See :func:`read_raw` (a PNG/TIFF frame has no white level: nothing to refuse or mask).
 
     Returns
     -------
     RawFrame
     """
+    check_bad_values(bad_values)
     path = Path(path)
     _check_readable(path)
     if path.suffix.lower() in IMAGE_EXTENSIONS:
         return read_image16(path, exposure_time)
-    return read_raw(path, exposure_time, mmap=mmap)
+    return read_raw(path, exposure_time, mmap=mmap, bad_values=bad_values)
 
 
 def release_mapped_pages(arrays: Iterable[np.ndarray]) -> int:

@@ -16,7 +16,11 @@ For every photosite, from N exposures (v_i, b_i, t_i):
   samples contribute their survival probability; maximised by safeguarded Newton steps;
 * photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound;
 * defective photosites (the calibration's ``defect_map``): ``nexp = 0``, ``sigma = 0``, and
-  the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value.
+  the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value;
+* masked samples (a per-frame mask: impossible raw values the reader masked): no sample of
+  that frame, like a saturated one, but never called saturated; the photosite is estimated
+  from the other frames and carries the ``masked`` quality bit (masked in every frame:
+  ``nexp = 0``, irradiance and sigma 0).
 
 Dark strategies (each with its own variance term, see :mod:`pipeline.noise`): ``matched``
 (one dark frame per exposure), ``master`` (per-exposure master darks, or one master dark,
@@ -60,8 +64,12 @@ __all__ = [
 #: Bits of the per-photosite ``quality`` channel (uint8; 0 a trusted measurement): the
 #: calibration's defect bits (:data:`pipeline.params.DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
 #: 8 stuck) and the merge's own flags (16: saturated in every exposure, the irradiance is a
-#: lower bound). Any bit set means ``nexp = 0`` and ``sigma = 0``: not a measurement.
-QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16}
+#: lower bound; 32: masked, a frame's value at the photosite was masked, e.g. an impossible raw
+#: value read with ``bad_values="mask"``, and the estimate comes from the other frames). Any bit
+#: but ``masked`` means ``nexp = 0`` and ``sigma = 0``: not a measurement; ``masked`` alone with
+#: ``nexp > 0`` is a measurement from fewer frames, with ``nexp = 0`` (masked in every frame, or
+#: saturated in every frame not masked: then with bit 16 and a lower bound) none.
+QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16, "masked": 32}
 
 _SATURATION_MODELS = ("threshold", "probabilistic")
 _PRNU_MODES = ("map", "scalar")
@@ -238,6 +246,55 @@ def _as_frame(arr, shape, what) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.float32)
 
 
+def _as_mask(mask, shape, what) -> np.ndarray | None:
+    """A frame's mask as a bool array of ``shape``, or None when nothing is masked."""
+    if mask is None:
+        return None
+    m = np.asarray(mask)
+    if m.shape != tuple(shape):
+        raise InputError(f"{what}: mask has shape {m.shape}, the frames {tuple(shape)}")
+    if m.dtype != np.bool_:
+        raise InputError(f"{what}: mask must be boolean, got {m.dtype}")
+    return m if m.any() else None
+
+
+def _drop_masked(v: np.ndarray, mask: np.ndarray, v_sat: float, threshold: bool) -> np.ndarray:
+    """The frame with its masked samples made no sample for the kernels (Eq. 11 drops them).
+
+    With the threshold model a uint16 frame keeps its type: masked values at or above v_sat
+    stay as they are (no copy), others become 65535 (the kernels drop values >= v_sat). The
+    censored likelihood (Eq. 8-10) would read such a value as saturated, i.e. information: for
+    it, and for float frames, a float32 copy with NaN (dropped by both models). The flags of the
+    photosites this leaves without a sample are fixed after the kernels
+    (:meth:`MergeAccumulator._flag_masked`).
+
+    Parameters
+    ----------
+    v : numpy.ndarray
+        uint16 or float32 mosaic, DN.
+    mask : numpy.ndarray
+        bool, True where the sample is masked.
+    v_sat : float
+        Saturation level, DN.
+    threshold : bool
+        The threshold saturation model (Eq. 11) is used.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``v`` itself, or a copy with the masked samples replaced.
+    """
+    if threshold and v.dtype == np.uint16 and v_sat <= 65535:
+        if np.all(v[mask] >= v_sat):
+            return v
+        out = v.copy()
+        out[mask] = 65535
+        return out
+    out = v.astype(np.float32, copy=True)
+    out[mask] = np.nan
+    return out
+
+
 def _map_arg(arr, shape, scalar, what):
     """(float32 map, is_map, float scalar) for the kernels."""
     if arr is None:
@@ -251,6 +308,12 @@ def _map_arg(arr, shape, scalar, what):
 # The weights of the iterations in float32 where that is provably safe (see
 # MergeAccumulator._single_precision_safe); False forces float64 (tests compare the two).
 SINGLE_PRECISION_WEIGHTS = True
+
+
+def _at(map_arg, rows, cols) -> np.ndarray | float:
+    """A kernel map argument (array, is_map, scalar) at the photosites (rows, cols), float64."""
+    arr, is_map, scalar = map_arg
+    return np.asarray(arr[rows, cols], np.float64) if is_map else float(scalar)
 
 
 def _extrema(map_arg) -> tuple[float, float]:
@@ -315,6 +378,7 @@ class MergeAccumulator:
         self._bias = _map_arg(calibration.bias_map, self.shape, p.mu_R, "bias")
         self.prnu_used = "map" if use_map else "scalar"
         self._values: list[np.ndarray] = []
+        self._masks: list[np.ndarray | None] = []  # per frame, the masked samples (None: none)
         self._darks: list[np.ndarray | None] = []
         self._times: list[float] = []
         self._nominal: list[float] = []  # the times as given, s
@@ -347,9 +411,11 @@ class MergeAccumulator:
             return self._strategy
         return as_strategy(strategy)
 
-    def add(self, values, t, dark=None, *, strategy=None, n_dark=None) -> None:
+    def add(self, values, t, dark=None, *, strategy=None, n_dark=None, mask=None) -> None:
         """Add one exposure: raw mosaic ``values`` (DN), exposure time ``t`` (s) and its dark
-        level.
+        level; ``mask`` (bool, the mosaic's shape) marks samples of this frame that are no
+        sample at all (impossible raw values): they are left out of this frame only, and the
+        photosites get the ``masked`` quality bit, never the ``saturated`` one.
 
         ``strategy`` (None: the accumulator's ``dark_strategy``, else ``matched`` when ``dark``
         is given and ``model`` otherwise) may differ from frame to frame: ``matched`` needs
@@ -364,6 +430,9 @@ class MergeAccumulator:
         v = _as_frame(values, self.shape, what)
         s = self._frame_strategy(strategy, dark)
         p = self.calibration.params
+        m = _as_mask(mask, self.shape, what)
+        if m is not None:
+            v = _drop_masked(v, m, float(p.v_sat), self.options.saturation == "threshold")
         n = self.options.n_dark if n_dark is None else n_dark
         if s is DarkStrategy.MODEL:
             if dark is not None:
@@ -407,6 +476,7 @@ class MergeAccumulator:
                 self._cnt,
             )
         self._values.append(v)
+        self._masks.append(m)
         self._darks.append(d)
         self._times.append(t)
         self._nominal.append(nominal)
@@ -677,6 +747,7 @@ class MergeAccumulator:
         _add_in_quadrature(sig, sig_cal if cal_info["included"] else None, sig_master)
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
+        masked = self._flag_masked(irr, sig, nexp, quality)
         info = {
             "method": "optimal ML merge (Eq. 6, 8-13, Fig. 3)",
             **opts.to_dict(),
@@ -691,16 +762,56 @@ class MergeAccumulator:
             **self._exposure_info(),
             "n_frames": len(self._values),
             "n_darks": len(own) + (1 if has_master and 2 in self._kinds else 0),
-            "saturated_everywhere": sat,
+            "saturated_everywhere": sat - masked["masked_everywhere"],
             "defects_flagged": n_defects,
+            **masked,
             "iterations_used_mean": float(stats[:, 1].sum() / max(irr.size, 1)),
             "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
             "weights_precision": "float32" if single else "float64",
             "calibration_error": cal_info,
         }
-        sig_cal[quality != 0] = 0.0  # not a measurement (as sigma)
+        sig_cal[((quality & ~np.uint8(QUALITY_BITS["masked"])) != 0) | (nexp == 0)] = 0.0  # not a measurement
         return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality, sigma_calibration=sig_cal)
+
+    def _flag_masked(self, irr, sig, nexp, quality) -> dict[str, Any]:
+        """The masked samples' fix-up after the kernels, in place: the ``masked`` bit where a
+        frame was masked; where that left no usable sample (``nexp = 0``, no defect), the lower
+        bound of the shortest exposure not masked (as the kernel's, Eq. 11 at v_sat), or, masked
+        in every frame, no information: irradiance and sigma 0 and no ``saturated`` bit.
+
+        Returns
+        -------
+        dict
+            ``masked_per_frame`` (masked samples per frame), ``masked_photosites`` (photosites
+            masked in at least one frame), ``masked_everywhere`` (in every frame).
+        """
+        counts = [0 if m is None else int(np.count_nonzero(m)) for m in self._masks]
+        out = {"masked_per_frame": counts, "masked_photosites": 0, "masked_everywhere": 0}
+        if not any(counts):
+            return out
+        hit = np.zeros(self.shape, bool)
+        for m in self._masks:
+            if m is not None:
+                hit |= m
+        quality[hit] |= np.uint8(QUALITY_BITS["masked"])
+        defect = np.uint8(sum(DEFECT_BITS.values()))
+        rows, cols = np.nonzero(hit & (nexp == 0) & ((quality & defect) == 0))
+        t_min = np.full(rows.size, np.inf)
+        for m, t in zip(self._masks, self._times):
+            keep = slice(None) if m is None else ~m[rows, cols]
+            t_min[keep] = np.minimum(t_min[keep], t)
+        p = self.calibration.params
+        bias, dark, prnu = (_at(arg, rows, cols) for arg in (self._bias, self._D, self._a))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            bound = ((float(p.v_sat) - bias) / (float(p.g) * t_min) - dark) / prnu
+        none = ~np.isfinite(t_min)
+        irr[rows, cols] = np.where(none, 0.0, bound)
+        sig[rows[none], cols[none]] = 0.0
+        quality[rows[none], cols[none]] &= ~np.uint8(QUALITY_BITS["saturated"])
+        out["masked_photosites"] = int(np.count_nonzero(hit))
+        out["masked_everywhere"] = int(np.count_nonzero(none))
+        return out
 
     def _calibration_errors(self) -> tuple[Any, Any, Any, dict[str, Any]]:
         """The standard errors of the bias level (DN), the dark current (e-/s) and the PRNU gain
@@ -915,7 +1026,7 @@ def _censored_sample_information(v, b, mu, var_x, tga, v_sat):
 
 
 def merge_arrays(
-    values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None, **options
+    values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None, masks=None, **options
 ) -> MergeResult:
     """Merge raw mosaics into irradiance and uncertainty (Eq. 6, 8-13, Fig. 3).
 
@@ -937,6 +1048,9 @@ def merge_arrays(
         ``dark_strategy`` option): a plan may mix them.
     n_darks : sequence of float or None, optional
         Frames averaged into each mosaic's master dark (None entries: the ``n_dark`` option).
+    masks : sequence of 2-D bool arrays (or None entries), optional
+        Per mosaic, samples that are no sample (impossible raw values): left out of that mosaic
+        only, flagged ``masked`` in ``quality`` (:meth:`MergeAccumulator.add`).
     **options
         Fields of :class:`MergeOptions` (iterations, tolerance, saturation, saturation_sigmas,
         prnu, dark_strategy, n_dark, master_dark_time).
@@ -982,14 +1096,15 @@ def merge_arrays(
         strategies,
         _per_frame(n_darks, len(values), "master-dark frame counts"),
         options,
+        _per_frame(masks, len(values), "masks"),
     )
 
 
-def _accumulate(calibration, shape, master, values, times, darks, strategies, n_darks, options) -> MergeResult:
+def _accumulate(calibration, shape, master, values, times, darks, strategies, n_darks, options, masks) -> MergeResult:
     """The batch merge of aligned per-frame inputs (one pass, :class:`MergeAccumulator`)."""
     acc = MergeAccumulator(calibration, shape, master_dark=master, stream=False, **options)
-    for v, t, d, s, n in zip(values, times, darks, strategies, n_darks):
-        acc.add(v, t, d, strategy=s, n_dark=n)
+    for v, t, d, s, n, m in zip(values, times, darks, strategies, n_darks, masks):
+        acc.add(v, t, d, strategy=s, n_dark=n, mask=m)
     return acc.result()
 
 
@@ -1020,7 +1135,8 @@ def merge_frames(
     Parameters
     ----------
     frames : sequence of RawFrame
-        The bracket; any order.
+        The bracket; any order. Masked photosites of a frame (:attr:`pipeline.io.RawFrame.
+        masked`) are left out of that frame (see :meth:`MergeAccumulator.add`).
     calibration : Calibration
         Camera model (g, mu_R, sigma2_R, v_sat, D; optional PRNU and dark-current maps).
     darks : sequence of RawFrame, optional
@@ -1095,4 +1211,5 @@ def merge_frames(
         strategies,
         n_darks,
         options,
+        [f.masked for f in frames],
     )

@@ -143,6 +143,16 @@ def _memory_here() -> str:
     "times in the EXR header); nominal: the times as given, neither correction.",
 )
 @click.option(
+    "--bad-values",
+    type=click.Choice(["refuse", "mask"]),
+    default="refuse",
+    show_default=True,
+    help="Raw values no sensor writes (above the white level's ADC range): refuse the file, or mask them: left out "
+    "of that frame only, the photosite estimated from the other frames and flagged (quality bit 32), the count per "
+    "file warned and recorded in the EXR header (masked_values). Other problems are always refused. mask needs "
+    "--calibration or --camera and the in-memory merge (docs/testing.md).",
+)
+@click.option(
     "--exr-compression",
     type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]),
     default="zip",
@@ -195,6 +205,7 @@ def command(
     master_dark,
     master_dark_frames,
     exposure_times,
+    bad_values,
     exr_compression,
     sigma_precision,
     chunks,
@@ -243,6 +254,7 @@ def command(
         raise InputError("give either --darks or --master-dark, not both (both only with --plan)")
     if master_dark and dark_strategy not in (None, DarkStrategy.MASTER):
         raise InputError(f"--master-dark needs --dark-strategy master, not {dark_strategy}")
+    _check_bad_values(bad_values, calibration or camera, weighting)
     t0 = time.perf_counter()
     warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
     calib, times, selfcal = resolve_merge_calibration(
@@ -271,7 +283,7 @@ def command(
     options = merge_options(
         iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, merge_times
     )
-    rows = _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format)
+    rows = _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format, bad_values)
     if rows:  # one frame larger than the memory budget: tile by tile
         from hdrcap.acquire.tiledmerge import merge_tiled
 
@@ -317,6 +329,7 @@ def command(
         given=given,
         progress=not as_json,
         warn=warn,
+        bad_values=bad_values,
     )
     image = build_hdr_image(done.result, done.frames, calib, done.extra)
     if selfcal is not None:
@@ -360,7 +373,20 @@ def _report(info: dict, selfcal, as_json: bool) -> None:
         )
 
 
-def _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format) -> int | None:
+def _check_bad_values(bad_values: str, calibrated, weighting: str) -> None:
+    """``--bad-values mask`` needs a calibration given (a self-calibration or library look-up
+    reads the frames before any mask) and the optimal merge (the baselines take no mask)."""
+    if bad_values != "mask":
+        return
+    if not calibrated:
+        raise InputError(
+            "--bad-values mask needs --calibration or --camera (the self-calibration would read the masked values)"
+        )
+    if weighting != "optimal":
+        raise InputError(f"--bad-values mask works with --weighting optimal, not {weighting}")
+
+
+def _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format, bad_values) -> int | None:
     """Rows per tile (--chunks, or chosen when the merge would exceed --memory-budget), or None."""
     from hdrcap.acquire.tiledmerge import default_memory_budget, parse_memory, tiling_rows
 
@@ -373,6 +399,8 @@ def _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_forma
         raise InputError(f"{why}: tiled merges use --weighting optimal, not {weighting}")
     if out_format != "exr":
         raise InputError(f"{why}: tiled merges write EXR, not {out_format}")
+    if bad_values == "mask":
+        raise InputError(f"{why}: tiled merges refuse bad values; --bad-values mask needs the in-memory merge")
     return rows
 
 
