@@ -368,15 +368,17 @@ def camera_colour(path) -> CameraColour | None:
     """
     import tifffile
 
+    from .io import _tiff_complaints
+
     path = Path(path)
     try:
-        with tifffile.TiffFile(path) as tif:
+        with _tiff_complaints(), tifffile.TiffFile(path) as tif:  # what tifffile logs stays off the terminal
             tags = {code: tag.value for code, tag in tif.pages[0].tags.items() if code in COPIED_TAGS}
         found = colour_from_dng_tags(tags, source=f"{path.name}: DNG colour tags")
-    except (OSError, ValueError, tifffile.TiffFileError):
-        found = None
     except InputError as err:
         raise InputError(f"{path}: {err}") from None
+    except Exception:  # noqa: BLE001  (no page, unreadable tags: the file has no colour metadata we can use)
+        found = None
     if found is not None or path.suffix.lower() == ".dng" or path.suffix.lower() not in _LIBRAW_SUFFIXES:
         return found
     import rawpy
