@@ -276,7 +276,7 @@ def _refuse_oversized_page(path: Path, page) -> None:
         return
     if need > MAX_RAW_COMPRESSION * max(stored, 1):
         raise InputError(
-            f"{path}: impossible image dimensions {page.imagewidth}x{page.imagelength} "
+            f"{path}: impossible raw image dimensions {page.imagewidth}x{page.imagelength} "
             f"({bits}-bit) for {stored} bytes of image data (corrupt file)"
         )
 
