@@ -26,7 +26,7 @@ import numpy as np
 from hdrcap.acquire.tiledmerge import RowFile, write_exr_rows
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ExrRows", "exr_layout", "denoise_tiled", "TiledDenoise"]
+__all__ = ["ExrRows", "exr_layout", "exr_pixel_types", "output_precision", "denoise_tiled", "TiledDenoise"]
 
 
 @dataclass
@@ -103,6 +103,61 @@ def exr_layout(path: Path) -> tuple[dict[str, Any], list[str], tuple[int, int]]:
     return attrs, names, (int(y1 - y0 + 1), int(x1 - x0 + 1))
 
 
+#: EXR pixel types as the precision names of :func:`hdrcap.pipeline.io.write_exr`.
+_PRECISION_OF_TYPE = {"FLOAT": "float", "HALF": "half", "UINT": "uint"}
+
+
+def exr_pixel_types(path: Path) -> dict[str, str]:
+    """How each channel of an EXR is stored, from its header only (no pixels read).
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        A readable EXR (checked by :func:`exr_layout` or :func:`hdrcap.pipeline.io.read_exr`).
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> ``"float"``, ``"half"`` or ``"uint"``.
+    """
+    import OpenEXR
+
+    from hdrcap.pipeline.io import _quiet_stderr
+
+    with _quiet_stderr():
+        f = OpenEXR.InputFile(str(path))
+        try:
+            channels = f.header()["channels"]
+        finally:
+            f.close()
+    return {name: _PRECISION_OF_TYPE.get(str(ch.type), "float") for name, ch in channels.items()}
+
+
+def output_precision(stored: dict[str, str], sigma: str = "auto") -> dict[str, str]:
+    """Storage precision of each channel of a filtered EXR: ``irradiance`` float32, the filtered
+    ``sigma`` by the merge's rule (:func:`hdrcap.acquire.filemerge.exr_precision`: ``auto`` is
+    half where the channel fits half's range, at most 0.05 % lost), every other channel as the
+    input stored it (its values were read from that type: lossless).
+
+    Parameters
+    ----------
+    stored : dict of str to str
+        :func:`exr_pixel_types` of the input.
+    sigma : {"auto", "half", "float"}
+        Precision of the filtered sigma.
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> precision for :func:`hdrcap.pipeline.io.write_exr`.
+    """
+    from hdrcap.acquire.filemerge import exr_precision
+
+    out = dict(stored, irradiance="float")
+    out.update(exr_precision({"sigma": None}, sigma))
+    return {name: p for name, p in out.items() if name in stored}
+
+
 @dataclass
 class TiledDenoise:
     """What :func:`denoise_tiled` did: header, photosites left unchanged, the median relative
@@ -130,6 +185,7 @@ def denoise_tiled(
     settings,
     *,
     rows: int,
+    precision: dict[str, str] | None = None,
     attrs: dict[str, Any],
     names: list[str],
     shape: tuple[int, int],
@@ -147,6 +203,8 @@ def denoise_tiled(
     settings : pipeline.denoise.DenoiseSettings
     rows : int
         Rows per tile (even), before the overlap.
+    precision : dict, optional
+        Channel storage (:func:`output_precision`; default float for every channel).
     attrs, names, shape
         :func:`exr_layout` of ``input_exr``.
     header_entry : callable
@@ -244,7 +302,7 @@ def denoise_tiled(
         out_attrs["sigma"] = SIGMA_MEANING
         out_attrs["denoise"] = header_entry(unchanged)
         channels = {n: outs.get(n, src[n]) for n in names}
-        write_exr_rows(output, channels, out_attrs, {}, "zip", force, rows)
+        write_exr_rows(output, channels, out_attrs, precision or {}, "zip", force, rows)
     ordered = [samples[r0] for r0 in sorted(samples)]
     return TiledDenoise(
         out_attrs,
