@@ -26,7 +26,15 @@ import numpy as np
 from hdrcap.acquire.tiledmerge import RowFile, write_exr_rows
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ExrRows", "exr_layout", "exr_pixel_types", "output_precision", "denoise_tiled", "TiledDenoise"]
+__all__ = [
+    "ExrRows",
+    "exr_layout",
+    "exr_pixel_types",
+    "output_precision",
+    "median_relative_sigma",
+    "denoise_tiled",
+    "TiledDenoise",
+]
 
 
 @dataclass
@@ -135,9 +143,9 @@ def exr_pixel_types(path: Path) -> dict[str, str]:
 
 def output_precision(stored: dict[str, str], sigma: str = "auto") -> dict[str, str]:
     """Storage precision of each channel of a filtered EXR: ``irradiance`` float32, the filtered
-    ``sigma`` by the merge's rule (:func:`hdrcap.acquire.filemerge.exr_precision`: ``auto`` is
-    half where the channel fits half's range, at most 0.05 % lost), every other channel as the
-    input stored it (its values were read from that type: lossless).
+    ``sigma`` as ``hdrcap merge --sigma-precision`` stores it (:func:`hdrcap.pipeline.io.write_exr`'s
+    ``auto``: half where the channel fits half's range, at most 0.05 % lost), every other channel
+    as the input stored it (its values were read from that type: lossless).
 
     Parameters
     ----------
@@ -151,11 +159,10 @@ def output_precision(stored: dict[str, str], sigma: str = "auto") -> dict[str, s
     dict of str to str
         Channel name -> precision for :func:`hdrcap.pipeline.io.write_exr`.
     """
-    from hdrcap.acquire.filemerge import exr_precision
-
     out = dict(stored, irradiance="float")
-    out.update(exr_precision({"sigma": None}, sigma))
-    return {name: p for name, p in out.items() if name in stored}
+    if "sigma" in stored:
+        out["sigma"] = sigma  # write_exr's "auto": the rule behind `hdrcap merge --sigma-precision`
+    return out
 
 
 @dataclass
@@ -169,6 +176,37 @@ class TiledDenoise:
     median_relative_sigma_after: float | None
     rows: int
     tiles: int
+
+
+#: The JSON's median relative sigmas are taken over at most about this many photosites.
+MEDIAN_SAMPLES = 1_000_000
+
+
+def _sample_step(size: int) -> int:
+    """Step of the regular subsample (of the flattened image) the median relative sigmas use."""
+    return max(1, size // MEDIAN_SAMPLES)
+
+
+def median_relative_sigma(irr: np.ndarray, sig: np.ndarray, ok: np.ndarray) -> float | None:
+    """Median of sigma / |irradiance| over the photosites ``ok`` of a regular subsample (every
+    :func:`_sample_step`-th photosite of the flattened image: the tiles of :func:`denoise_tiled`
+    sample the same ones).
+
+    Parameters
+    ----------
+    irr, sig : numpy.ndarray
+        Irradiance and its sigma, e-/s, one shape.
+    ok : numpy.ndarray of bool
+        Photosites to count.
+
+    Returns
+    -------
+    float or None
+        Dimensionless; None when no photosite counts.
+    """
+    step = _sample_step(irr.size)
+    pick = ok.ravel()[::step]
+    return _median([(irr.ravel()[::step][pick], sig.ravel()[::step][pick])])
 
 
 def _median(pairs: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
@@ -235,7 +273,7 @@ def denoise_tiled(
         da.from_array(src[n], chunks=(rows, w), name=f"hdrcap-exr-{n}-{token}", meta=np.empty((0, 0), np.float32))
         for n in used
     ]
-    sample_step = max(1, h * w // 1_000_000)
+    sample_step = _sample_step(h * w)
     samples: dict[int, tuple] = {}
 
     def block(*blocks, block_info=None):

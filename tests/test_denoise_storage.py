@@ -28,6 +28,7 @@ def merged(tmp_path_factory):
     nexp[5:8, 4:9] = 0
     quality = np.zeros(SHAPE, np.float32)
     quality[20, 7] = 4
+    quality[0, 14] = 4  # a defect with nexp > 0 (a foreign file) where the median's subsample looks
     sig_cal = rng.uniform(1e-6, 1e-3, SHAPE).astype(np.float32)
     channels = {"irradiance": irr, "sigma": sigma, "sigma_calibration": sig_cal, "nexp": nexp, "quality": quality}
     path = tmp_path_factory.mktemp("dns") / "merged.exr"
@@ -94,3 +95,24 @@ def test_read_exr_float_channels_not_copied_and_exact(merged):
         assert arr.dtype == np.float32 and arr.flags["C_CONTIGUOUS"] and arr.flags["WRITEABLE"]
         np.testing.assert_array_equal(arr, raw[name].astype(np.float32))
         assert arr.flags["OWNDATA"] or name != "irradiance"
+
+
+def test_median_subsample_same_in_memory_and_tiled(merged, tmp_path, capsys, monkeypatch):
+    """Above the sample limit (lowered here to 100 photosites) both paths report the median over
+    the same regular subsample, and it is the subsample's median computed independently."""
+    import json
+
+    import hdrcap.acquire.tileddenoise as td
+
+    monkeypatch.setattr(td, "MEDIAN_SAMPLES", 100)
+    infos = []
+    for extra in ([], ["--chunks", 8]):
+        _cli(merged, tmp_path / f"o{len(infos)}.exr", *extra)
+        infos.append(json.loads(capsys.readouterr().out.strip().splitlines()[-1]))
+    ch = read_exr(merged).channels
+    step = ch["irradiance"].size // 100
+    ok = ((ch["nexp"] > 0) & (ch["quality"] == 0)).ravel()[::step]
+    expected = np.median(ch["sigma"].ravel()[::step][ok] / np.abs(ch["irradiance"].ravel()[::step][ok]))
+    for info in infos:
+        assert info["median_relative_sigma_before"] == pytest.approx(expected, rel=1e-6)
+    assert infos[0]["median_relative_sigma_after"] == infos[1]["median_relative_sigma_after"]

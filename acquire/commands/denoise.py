@@ -97,13 +97,12 @@ def command(
     noise propagated through the filter's weights (independent inputs); it does not include the
     bias the filter introduces. Photosites with nexp = 0 (saturated everywhere) are unchanged.
     The JSON's median relative sigmas are taken over a regular subsample (at most about 1e6
-    photosites), as `hdrcap merge` takes its own.
+    photosites, the same ones as with --chunks).
     """
     import numpy as np
 
     from hdrcap import __version__
-    from hdrcap.acquire.filemerge import _median_relative_sigma
-    from hdrcap.acquire.tileddenoise import exr_pixel_types, output_precision
+    from hdrcap.acquire.tileddenoise import exr_pixel_types, median_relative_sigma, output_precision
     from hdrcap.pipeline.denoise import (
         SIGMA_MEANING,
         denoise,
@@ -157,12 +156,14 @@ def command(
     precision = output_precision(exr_pixel_types(input_exr), sigma_precision)
     write_exr(output, HdrImage(channels, attrs), force=force, precision=precision)
     ok = np.asarray(ch["nexp"]) > 0 if "nexp" in ch else np.ones(result.irradiance.shape, bool)
+    if "quality" in ch:  # the photosites the filter changes, as with --chunks
+        ok &= np.asarray(ch["quality"]) == 0
     info = {
         "output": str(output),
         "shape": list(result.irradiance.shape),
         "settings": settings.to_dict(),
-        "median_relative_sigma_before": _median_relative_sigma(ch["irradiance"], ch["sigma"], ok),
-        "median_relative_sigma_after": _median_relative_sigma(result.irradiance, result.sigma, ok),
+        "median_relative_sigma_before": median_relative_sigma(ch["irradiance"], ch["sigma"], ok),
+        "median_relative_sigma_after": median_relative_sigma(result.irradiance, result.sigma, ok),
         "unchanged_nexp0": result.info["unchanged_nexp0"],
         "seconds": round(time.perf_counter() - t0, 3),
     }
