@@ -224,6 +224,7 @@ def denoise_tiled(
     *,
     rows: int,
     precision: dict[str, str] | None = None,
+    compression: str = "zip",
     attrs: dict[str, Any],
     names: list[str],
     shape: tuple[int, int],
@@ -243,6 +244,8 @@ def denoise_tiled(
         Rows per tile (even), before the overlap.
     precision : dict, optional
         Channel storage (:func:`output_precision`; default float for every channel).
+    compression : str
+        EXR compression, one of :data:`hdrcap.pipeline.io.EXR_COMPRESSIONS`.
     attrs, names, shape
         :func:`exr_layout` of ``input_exr``.
     header_entry : callable
@@ -340,7 +343,7 @@ def denoise_tiled(
         out_attrs["sigma"] = SIGMA_MEANING
         out_attrs["denoise"] = header_entry(unchanged)
         channels = {n: outs.get(n, src[n]) for n in names}
-        write_exr_rows(output, channels, out_attrs, precision or {}, "zip", force, rows)
+        write_exr_rows(output, channels, out_attrs, precision or {}, compression, force, rows)
     ordered = [samples[r0] for r0 in sorted(samples)]
     return TiledDenoise(
         out_attrs,

@@ -188,12 +188,19 @@ def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
     filt_s, res = _best(lambda: denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings), repeats)
     outimg = HdrImage(dict(ch, irradiance=res.irradiance, sigma=res.sigma), image.attrs)
     precision = output_precision(exr_pixel_types(Path(desc["merged"])))
-    write_s, _ = _best(lambda: write_exr(work / "parts.exr", outimg, force=True, precision=precision), repeats)
+    write_s = {}
+    for comp in ("zip", "zstd", "rle"):  # the default first; the others are --exr-compression
+        write_s[comp], _ = _best(
+            lambda: write_exr(work / "parts.exr", outimg, force=True, compression=comp, precision=precision),  # noqa: B023
+            repeats,
+        )
     (work / "parts.exr").unlink(missing_ok=True)
     out["parts_best_seconds"] = {
         "read_exr": round(read_s, 3),
         "denoise": round(filt_s, 3),
-        "write_exr": round(write_s, 3),
+        "write_exr": round(write_s["zip"], 3),
+        "write_exr_zstd": round(write_s["zstd"], 3),
+        "write_exr_rle": round(write_s["rle"], 3),
     }
     return out
 

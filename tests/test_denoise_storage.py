@@ -68,6 +68,12 @@ def test_stored_channels(merged, tmp_path, capsys, chunks):
     capsys.readouterr()
     assert exr_pixel_types(dst)["sigma"] == "float"
     assert read_exr(dst).channels["sigma"].tobytes() == ref.sigma.tobytes()
+    # another compression: the same pixels, the file says which
+    _cli(merged, dst, "--force", "--exr-compression", "rle", *chunks)
+    capsys.readouterr()
+    assert read_exr(dst).channels["irradiance"].tobytes() == ref.irradiance.tobytes()
+    with OpenEXR.File(str(dst), header_only=True) as f:
+        assert f.header()["compression"] == OpenEXR.RLE_COMPRESSION
 
 
 def test_float_input_stays_float(tmp_path, capsys):

@@ -74,6 +74,15 @@ __all__ = ["command"]
     "sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always "
     "float32; the other channels are stored as in the input (lossless).",
 )
+@click.option(
+    "--exr-compression",
+    "exr_compression",
+    type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]),
+    default="zip",
+    show_default=True,
+    help="EXR compression, as for `hdrcap merge` (none/rle write fastest; zstd is as small as zip and faster but "
+    "needs OpenEXR >= 3.4 to read; docs/evaluation.md has the 24 Mpixel figures).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 def command(
@@ -87,6 +96,7 @@ def command(
     layout,
     chunks,
     sigma_precision,
+    exr_compression,
     force,
     as_json,
 ):
@@ -122,7 +132,17 @@ def command(
     if input_exr.exists() and output.exists() and input_exr.resolve() == output.resolve():
         raise InputError(f"{output}: is the input file; inputs are never modified, choose another output")
     if chunks:  # tile by tile: the same result without holding the image
-        options = (method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks, sigma_precision)
+        options = (
+            method,
+            range_scale,
+            bandwidth,
+            radius,
+            spatial_sigma,
+            layout,
+            chunks,
+            sigma_precision,
+            exr_compression,
+        )
         return _denoise_tiled(input_exr, output, *options)(force, as_json, t0)
     image = read_exr(input_exr)
     missing = [c for c in ("irradiance", "sigma") if c not in image.channels]
@@ -154,7 +174,7 @@ def command(
         source_file=str(input_exr),
     )
     precision = output_precision(exr_pixel_types(input_exr), sigma_precision)
-    write_exr(output, HdrImage(channels, attrs), force=force, precision=precision)
+    write_exr(output, HdrImage(channels, attrs), force=force, compression=exr_compression, precision=precision)
     ok = np.asarray(ch["nexp"]) > 0 if "nexp" in ch else np.ones(result.irradiance.shape, bool)
     if "quality" in ch:  # the photosites the filter changes, as with --chunks
         ok &= np.asarray(ch["quality"]) == 0
@@ -179,7 +199,17 @@ def command(
 
 
 def _denoise_tiled(
-    input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks, sigma_precision
+    input_exr,
+    output,
+    method,
+    range_scale,
+    bandwidth,
+    radius,
+    spatial_sigma,
+    layout,
+    chunks,
+    sigma_precision,
+    compression,
 ):
     """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0)."""
     from types import SimpleNamespace
@@ -214,6 +244,7 @@ def _denoise_tiled(
             settings,
             rows=chunks,
             precision=output_precision(exr_pixel_types(input_exr), sigma_precision),
+            compression=compression,
             attrs=attrs,
             names=names,
             shape=shape,
