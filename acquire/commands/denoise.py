@@ -132,18 +132,10 @@ def command(
     if input_exr.exists() and output.exists() and input_exr.resolve() == output.resolve():
         raise InputError(f"{output}: is the input file; inputs are never modified, choose another output")
     if chunks:  # tile by tile: the same result without holding the image
-        options = (
-            method,
-            range_scale,
-            bandwidth,
-            radius,
-            spatial_sigma,
-            layout,
-            chunks,
-            sigma_precision,
-            exr_compression,
+        filter_options = (method, range_scale, bandwidth, radius, spatial_sigma, layout)
+        return _denoise_tiled(input_exr, output, filter_options, chunks, (sigma_precision, exr_compression))(
+            force, as_json, t0
         )
-        return _denoise_tiled(input_exr, output, *options)(force, as_json, t0)
     image = read_exr(input_exr)
     missing = [c for c in ("irradiance", "sigma") if c not in image.channels]
     if missing:
@@ -198,25 +190,18 @@ def command(
         )
 
 
-def _denoise_tiled(
-    input_exr,
-    output,
-    method,
-    range_scale,
-    bandwidth,
-    radius,
-    spatial_sigma,
-    layout,
-    chunks,
-    sigma_precision,
-    compression,
-):
-    """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0)."""
+def _denoise_tiled(input_exr, output, filter_options, chunks, storage):
+    """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0).
+    ``filter_options``: (method, range_scale, bandwidth, radius, spatial_sigma, layout) as given;
+    ``storage``: (sigma precision, EXR compression)."""
     from types import SimpleNamespace
 
     from hdrcap import __version__
     from hdrcap.acquire.tileddenoise import denoise_tiled, exr_layout, exr_pixel_types, output_precision
     from hdrcap.pipeline.denoise import denoise_header, layout_from_metadata, settings_from_options
+
+    method, range_scale, bandwidth, radius, spatial_sigma, layout = filter_options
+    sigma_precision, compression = storage
 
     attrs, names, shape = exr_layout(input_exr)
     missing = [c for c in ("irradiance", "sigma") if c not in names]
