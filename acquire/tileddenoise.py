@@ -26,7 +26,15 @@ import numpy as np
 from hdrcap.acquire.tiledmerge import RowFile, write_exr_rows
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["ExrRows", "exr_layout", "denoise_tiled", "TiledDenoise"]
+__all__ = [
+    "ExrRows",
+    "exr_layout",
+    "exr_pixel_types",
+    "output_precision",
+    "median_relative_sigma",
+    "denoise_tiled",
+    "TiledDenoise",
+]
 
 
 @dataclass
@@ -103,6 +111,60 @@ def exr_layout(path: Path) -> tuple[dict[str, Any], list[str], tuple[int, int]]:
     return attrs, names, (int(y1 - y0 + 1), int(x1 - x0 + 1))
 
 
+#: EXR pixel types as the precision names of :func:`hdrcap.pipeline.io.write_exr`.
+_PRECISION_OF_TYPE = {"FLOAT": "float", "HALF": "half", "UINT": "uint"}
+
+
+def exr_pixel_types(path: Path) -> dict[str, str]:
+    """How each channel of an EXR is stored, from its header only (no pixels read).
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        A readable EXR (checked by :func:`exr_layout` or :func:`hdrcap.pipeline.io.read_exr`).
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> ``"float"``, ``"half"`` or ``"uint"``.
+    """
+    import OpenEXR
+
+    from hdrcap.pipeline.io import _quiet_stderr
+
+    with _quiet_stderr():
+        f = OpenEXR.InputFile(str(path))
+        try:
+            channels = f.header()["channels"]
+        finally:
+            f.close()
+    return {name: _PRECISION_OF_TYPE.get(str(ch.type), "float") for name, ch in channels.items()}
+
+
+def output_precision(stored: dict[str, str], sigma: str = "auto") -> dict[str, str]:
+    """Storage precision of each channel of a filtered EXR: ``irradiance`` float32, the filtered
+    ``sigma`` as ``hdrcap merge --sigma-precision`` stores it (:func:`hdrcap.pipeline.io.write_exr`'s
+    ``auto``: half where the channel fits half's range, at most 0.05 % lost), every other channel
+    as the input stored it (its values were read from that type: lossless).
+
+    Parameters
+    ----------
+    stored : dict of str to str
+        :func:`exr_pixel_types` of the input.
+    sigma : {"auto", "half", "float"}
+        Precision of the filtered sigma.
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> precision for :func:`hdrcap.pipeline.io.write_exr`.
+    """
+    out = dict(stored, irradiance="float")
+    if "sigma" in stored:
+        out["sigma"] = sigma  # write_exr's "auto": the rule behind `hdrcap merge --sigma-precision`
+    return out
+
+
 @dataclass
 class TiledDenoise:
     """What :func:`denoise_tiled` did: header, photosites left unchanged, the median relative
@@ -114,6 +176,37 @@ class TiledDenoise:
     median_relative_sigma_after: float | None
     rows: int
     tiles: int
+
+
+#: The JSON's median relative sigmas are taken over at most about this many photosites.
+MEDIAN_SAMPLES = 1_000_000
+
+
+def _sample_step(size: int) -> int:
+    """Step of the regular subsample (of the flattened image) the median relative sigmas use."""
+    return max(1, size // MEDIAN_SAMPLES)
+
+
+def median_relative_sigma(irr: np.ndarray, sig: np.ndarray, ok: np.ndarray) -> float | None:
+    """Median of sigma / |irradiance| over the photosites ``ok`` of a regular subsample (every
+    :func:`_sample_step`-th photosite of the flattened image: the tiles of :func:`denoise_tiled`
+    sample the same ones).
+
+    Parameters
+    ----------
+    irr, sig : numpy.ndarray
+        Irradiance and its sigma, e-/s, one shape.
+    ok : numpy.ndarray of bool
+        Photosites to count.
+
+    Returns
+    -------
+    float or None
+        Dimensionless; None when no photosite counts.
+    """
+    step = _sample_step(irr.size)
+    pick = ok.ravel()[::step]
+    return _median([(irr.ravel()[::step][pick], sig.ravel()[::step][pick])])
 
 
 def _median(pairs: list[tuple[np.ndarray, np.ndarray]]) -> float | None:
@@ -130,6 +223,8 @@ def denoise_tiled(
     settings,
     *,
     rows: int,
+    precision: dict[str, str] | None = None,
+    compression: str = "zip",
     attrs: dict[str, Any],
     names: list[str],
     shape: tuple[int, int],
@@ -147,6 +242,10 @@ def denoise_tiled(
     settings : pipeline.denoise.DenoiseSettings
     rows : int
         Rows per tile (even), before the overlap.
+    precision : dict, optional
+        Channel storage (:func:`output_precision`; default float for every channel).
+    compression : str
+        EXR compression, one of :data:`hdrcap.pipeline.io.EXR_COMPRESSIONS`.
     attrs, names, shape
         :func:`exr_layout` of ``input_exr``.
     header_entry : callable
@@ -177,7 +276,7 @@ def denoise_tiled(
         da.from_array(src[n], chunks=(rows, w), name=f"hdrcap-exr-{n}-{token}", meta=np.empty((0, 0), np.float32))
         for n in used
     ]
-    sample_step = max(1, h * w // 1_000_000)
+    sample_step = _sample_step(h * w)
     samples: dict[int, tuple] = {}
 
     def block(*blocks, block_info=None):
@@ -244,7 +343,7 @@ def denoise_tiled(
         out_attrs["sigma"] = SIGMA_MEANING
         out_attrs["denoise"] = header_entry(unchanged)
         channels = {n: outs.get(n, src[n]) for n in names}
-        write_exr_rows(output, channels, out_attrs, {}, "zip", force, rows)
+        write_exr_rows(output, channels, out_attrs, precision or {}, compression, force, rows)
     ordered = [samples[r0] for r0 in sorted(samples)]
     return TiledDenoise(
         out_attrs,

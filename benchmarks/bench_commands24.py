@@ -114,6 +114,7 @@ def summarise(runs: list[dict]) -> dict:
     return {
         "best_seconds": round(min(r["wall_seconds"] for r in ok), 3),
         "all_seconds": [round(r["wall_seconds"], 3) for r in runs],
+        "best_cpu_seconds": round(min(r["cpu_seconds"] for r in ok), 3),
         "peak_rss_mb": round(max(r["peak_rss_mb"] for r in ok), 1),
     }
 
@@ -172,7 +173,9 @@ def bench_calibrate(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
 
 
 def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
-    """The denoise command (each variant), then its parts in this process (EXR read, filter, EXR write)."""
+    """The denoise command (each variant), then its parts in this process (EXR read, filter, EXR write
+    with the command's channel precisions)."""
+    from hdrcap.acquire.tileddenoise import exr_pixel_types, output_precision
     from hdrcap.pipeline.denoise import DenoiseSettings, denoise
     from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
@@ -184,11 +187,20 @@ def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
     settings = DenoiseSettings(layout="cfa")
     filt_s, res = _best(lambda: denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings), repeats)
     outimg = HdrImage(dict(ch, irradiance=res.irradiance, sigma=res.sigma), image.attrs)
-    write_s, _ = _best(lambda: write_exr(work / "parts.exr", outimg, force=True), repeats)
+    precision = output_precision(exr_pixel_types(Path(desc["merged"])))
+    write_s = {}
+    for comp in ("zip", "zstd", "rle"):  # the default first; the others are --exr-compression
+        write_s[comp], _ = _best(
+            lambda: write_exr(work / "parts.exr", outimg, force=True, compression=comp, precision=precision),  # noqa: B023
+            repeats,
+        )
+    (work / "parts.exr").unlink(missing_ok=True)
     out["parts_best_seconds"] = {
         "read_exr": round(read_s, 3),
         "denoise": round(filt_s, 3),
-        "write_exr": round(write_s, 3),
+        "write_exr": round(write_s["zip"], 3),
+        "write_exr_zstd": round(write_s["zstd"], 3),
+        "write_exr_rle": round(write_s["rle"], 3),
     }
     return out
 

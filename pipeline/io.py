@@ -1324,11 +1324,14 @@ def read_exr(path) -> HdrImage:
 
     path = Path(path)
     _check_readable(path)
+    _set_exr_threads(OpenEXR, None)  # decompression on the thread pool, as write_exr compresses
     try:
         with _quiet_stderr(), OpenEXR.File(str(path)) as exr:  # OpenEXR's own messages: ours says it
-            # read everything inside the context: the header is released when the file closes
+            # read everything inside the context: the header is released when the file closes;
+            # the pixel arrays own their memory: float channels are kept without a copy (half
+            # and uint ones converted exactly)
             meta = exr.header().get(_META_KEY)
-            channels = {name: np.array(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+            channels = {name: np.ascontiguousarray(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
     attrs: dict[str, Any] = {}

@@ -13,14 +13,6 @@ from hdrcap.pipeline.errors import InputError
 __all__ = ["command"]
 
 
-def _median_rel(irr, sig, ok):
-    import numpy as np
-
-    if not ok.any():
-        return None
-    return float(np.median(sig[ok] / np.maximum(np.abs(irr[ok]), 1e-30)))
-
-
 @click.command("denoise")
 @click.argument("input_exr", metavar="IN.exr", type=click.Path(path_type=Path))
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Output EXR file.")
@@ -72,19 +64,55 @@ def _median_rel(irr, sig, ok):
     "memory for a few bands only. The JSON's "
     "median relative sigmas are then taken over a regular subsample (at most about 1e6 photosites).",
 )
+@click.option(
+    "--sigma-precision",
+    "sigma_precision",
+    type=click.Choice(["auto", "half", "float"]),
+    default="auto",
+    show_default=True,
+    help="Storage of the filtered sigma, the rule of `hdrcap merge --sigma-precision`: half loses at most 0.05 %% of "
+    "sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always "
+    "float32; the other channels are stored as in the input (lossless).",
+)
+@click.option(
+    "--exr-compression",
+    "exr_compression",
+    type=click.Choice(["zip", "zips", "piz", "zstd", "rle", "none"]),
+    default="zip",
+    show_default=True,
+    help="EXR compression, as for `hdrcap merge` (none/rle write fastest; zstd is as small as zip and faster but "
+    "needs OpenEXR >= 3.4 to read; docs/evaluation.md has the 24 Mpixel figures).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks, force, as_json):
+def command(
+    input_exr,
+    output,
+    method,
+    range_scale,
+    bandwidth,
+    radius,
+    spatial_sigma,
+    layout,
+    chunks,
+    sigma_precision,
+    exr_compression,
+    force,
+    as_json,
+):
     """Denoise a merged EXR (channels irradiance, sigma, optional nexp) with a bilateral filter
     whose range bandwidth follows each photosite's predicted sigma (Sec. 9).
 
     The header is kept; the filter settings are added under "denoise". The output sigma is the
     noise propagated through the filter's weights (independent inputs); it does not include the
     bias the filter introduces. Photosites with nexp = 0 (saturated everywhere) are unchanged.
+    The JSON's median relative sigmas are taken over a regular subsample (at most about 1e6
+    photosites, the same ones as with --chunks).
     """
     import numpy as np
 
     from hdrcap import __version__
+    from hdrcap.acquire.tileddenoise import exr_pixel_types, median_relative_sigma, output_precision
     from hdrcap.pipeline.denoise import (
         SIGMA_MEANING,
         denoise,
@@ -104,7 +132,8 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
     if input_exr.exists() and output.exists() and input_exr.resolve() == output.resolve():
         raise InputError(f"{output}: is the input file; inputs are never modified, choose another output")
     if chunks:  # tile by tile: the same result without holding the image
-        return _denoise_tiled(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks)(
+        filter_options = (method, range_scale, bandwidth, radius, spatial_sigma, layout)
+        return _denoise_tiled(input_exr, output, filter_options, chunks, (sigma_precision, exr_compression))(
             force, as_json, t0
         )
     image = read_exr(input_exr)
@@ -136,14 +165,17 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
         __version__,
         source_file=str(input_exr),
     )
-    write_exr(output, HdrImage(channels, attrs), force=force)
+    precision = output_precision(exr_pixel_types(input_exr), sigma_precision)
+    write_exr(output, HdrImage(channels, attrs), force=force, compression=exr_compression, precision=precision)
     ok = np.asarray(ch["nexp"]) > 0 if "nexp" in ch else np.ones(result.irradiance.shape, bool)
+    if "quality" in ch:  # the photosites the filter changes, as with --chunks
+        ok &= np.asarray(ch["quality"]) == 0
     info = {
         "output": str(output),
         "shape": list(result.irradiance.shape),
         "settings": settings.to_dict(),
-        "median_relative_sigma_before": _median_rel(ch["irradiance"], ch["sigma"], ok),
-        "median_relative_sigma_after": _median_rel(result.irradiance, result.sigma, ok),
+        "median_relative_sigma_before": median_relative_sigma(ch["irradiance"], ch["sigma"], ok),
+        "median_relative_sigma_after": median_relative_sigma(result.irradiance, result.sigma, ok),
         "unchanged_nexp0": result.info["unchanged_nexp0"],
         "seconds": round(time.perf_counter() - t0, 3),
     }
@@ -158,13 +190,18 @@ def command(input_exr, output, method, range_scale, bandwidth, radius, spatial_s
         )
 
 
-def _denoise_tiled(input_exr, output, method, range_scale, bandwidth, radius, spatial_sigma, layout, chunks):
-    """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0)."""
+def _denoise_tiled(input_exr, output, filter_options, chunks, storage):
+    """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0).
+    ``filter_options``: (method, range_scale, bandwidth, radius, spatial_sigma, layout) as given;
+    ``storage``: (sigma precision, EXR compression)."""
     from types import SimpleNamespace
 
     from hdrcap import __version__
-    from hdrcap.acquire.tileddenoise import denoise_tiled, exr_layout
+    from hdrcap.acquire.tileddenoise import denoise_tiled, exr_layout, exr_pixel_types, output_precision
     from hdrcap.pipeline.denoise import denoise_header, layout_from_metadata, settings_from_options
+
+    method, range_scale, bandwidth, radius, spatial_sigma, layout = filter_options
+    sigma_precision, compression = storage
 
     attrs, names, shape = exr_layout(input_exr)
     missing = [c for c in ("irradiance", "sigma") if c not in names]
@@ -191,6 +228,8 @@ def _denoise_tiled(input_exr, output, method, range_scale, bandwidth, radius, sp
             output,
             settings,
             rows=chunks,
+            precision=output_precision(exr_pixel_types(input_exr), sigma_precision),
+            compression=compression,
             attrs=attrs,
             names=names,
             shape=shape,
