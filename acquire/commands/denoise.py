@@ -70,7 +70,7 @@ __all__ = ["command"]
     type=click.Choice(["auto", "half", "float"]),
     default="auto",
     show_default=True,
-    help="Storage of the filtered sigma, the rule of `hdrcap merge --sigma-precision`: half loses at most 0.05 %% of "
+    help="Storage of the filtered sigma, the rule of `hdrcap merge --sigma-precision`: half loses at most 0.05 % of "
     "sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always "
     "float32; the other channels are stored as in the input (lossless).",
 )

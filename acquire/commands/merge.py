@@ -164,7 +164,7 @@ def _memory_here() -> str:
     type=click.Choice(["auto", "half", "float"]),
     default="auto",
     show_default=True,
-    help="Storage of sigma (and sigma_calibration): half loses at most 0.05 %% of sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always float32; nexp and quality are stored as uint (lossless).",
+    help="Storage of sigma (and sigma_calibration): half loses at most 0.05 % of sigma, refused outside 6.1e-5..65504; auto is half where the channel fits, else float. irradiance is always float32; nexp and quality are stored as uint (lossless).",
 )
 @click.option(
     "--chunks",
