@@ -284,42 +284,9 @@ def command(
         iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, merge_times
     )
     rows = _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format, bad_values)
-    if rows:  # one frame larger than the memory budget: tile by tile
-        from hdrcap.acquire.tiledmerge import merge_tiled
-
-        tiled = merge_tiled(
-            frames,
-            calib,
-            options,
-            output,
-            rows=rows,
-            dark_paths=darks,
-            times=times,
-            plan=plan,
-            plan_file=str(plan_file) if plan_file else None,
-            dark_strategy=dark_strategy,
-            master_dark=master_dark,
-            master_dark_frames=master_dark_frames,
-            library=lib_root,
-            given=given,
-            selfcal=selfcal,
-            selfcal_times=exposure_times == "effective",
-            force=force,
-            compression=exr_compression,
-            sigma_precision=sigma_precision,
-            progress=not as_json,
-            warn=warn,
-        )
-        info = tiled.summary | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3)}
-        info |= {"n_frames": tiled.n_frames, "n_darks": tiled.n_darks, "chunk_rows": rows, "tiles": tiled.tiles}
-        return _report(info, selfcal, as_json)
-    done = merge_files(
-        frames,
-        calib,
-        options,
+    common = dict(  # what the tiled and the in-memory merge are both given
         dark_paths=darks,
         times=times,
-        weighting=weighting,
         plan=plan,
         plan_file=str(plan_file) if plan_file else None,
         dark_strategy=dark_strategy,
@@ -329,8 +296,27 @@ def command(
         given=given,
         progress=not as_json,
         warn=warn,
-        bad_values=bad_values,
     )
+    if rows:  # one frame larger than the memory budget: tile by tile
+        from hdrcap.acquire.tiledmerge import merge_tiled
+
+        tiled = merge_tiled(
+            frames,
+            calib,
+            options,
+            output,
+            rows=rows,
+            selfcal=selfcal,
+            selfcal_times=exposure_times == "effective",
+            force=force,
+            compression=exr_compression,
+            sigma_precision=sigma_precision,
+            **common,
+        )
+        info = tiled.summary | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3)}
+        info |= {"n_frames": tiled.n_frames, "n_darks": tiled.n_darks, "chunk_rows": rows, "tiles": tiled.tiles}
+        return _report(info, selfcal, as_json)
+    done = merge_files(frames, calib, options, weighting=weighting, bad_values=bad_values, **common)
     image = build_hdr_image(done.result, done.frames, calib, done.extra)
     if selfcal is not None:
         from hdrcap.pipeline.selfcal import apply_self_calibration
