@@ -256,6 +256,9 @@ def _check_values(job: Job) -> None:
             value = job["scene"][key]
             if not (value > 0 and math.isfinite(value)):
                 raise job.error("scene", key, f"must be a positive number, got {value!r}")
+        lowest = job["scene"]["x_max"] * 10.0 ** -min(job["scene"]["decades"], 400.0)
+        if not lowest > sys.float_info.min:  # the darkest irradiance must be a number, not 0
+            raise job.error("scene", "decades", "spans more decades below x_max than a float holds")
     elif "faults" in cam:
         raise job.error("camera", "faults", "fault injection is for the mock camera only")
     if exp["mode"] not in ("bracket", "snr"):

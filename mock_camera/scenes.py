@@ -66,7 +66,9 @@ def make_scene(name: str = "hdr", shape=(768, 1024), decades: float = 4.0, x_max
         raise ValueError(f"scene shape must be at least 2x2, got {shape!r}")
     if not decades > 0 or not x_max > 0:
         raise ValueError("decades and x_max must be > 0")
-    lo, hi = x_max * 10.0 ** (-decades), x_max
+    lo, hi = x_max * 10.0 ** (-min(decades, 400.0)), x_max
+    if not lo > np.finfo(float).tiny or not np.isfinite(hi):
+        raise ValueError(f"a scene of {decades:g} decades below {x_max:g} e-/s is outside float range")
     if name == "gradient":
         return _gradient(h, w, lo, hi)
     if name == "patches":

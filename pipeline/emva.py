@@ -467,9 +467,12 @@ def emva_results(data: EmvaData, fit_fraction: float = 0.7) -> EmvaResults:
     isat = int(np.argmax(data.s2_y))
     sat = float(x[isat])
     # include index 0 even if tiny: the fit range is 0 .. fit_fraction of saturation
-    ptc = photon_transfer_gain(
-        np.where(x > 0, x, 1e-12), y, sat, fit_fraction, np.hypot(data.s2_y_stderr, data.s2_ydark_stderr)
-    )
+    try:
+        ptc = photon_transfer_gain(
+            np.where(x > 0, x, 1e-12), y, sat, fit_fraction, np.hypot(data.s2_y_stderr, data.s2_ydark_stderr)
+        )
+    except ValueError as err:  # too few usable levels: a data set the standard's method cannot use
+        raise InputError(f"EMVA 1288 data: the photon-transfer fit cannot be made ({err})") from None
     K = ptc.g
     s2_dark0, notes = _dark_variance_at_zero(data), {}
     limited = s2_dark0 < QUANTISATION_LIMIT
