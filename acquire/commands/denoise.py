@@ -184,10 +184,15 @@ def command(
     else:
         click.echo(
             f"wrote {output}: {info['shape'][1]}x{info['shape'][0]}, {settings.method} bilateral ({chosen_layout}), "
-            f"median relative sigma {info['median_relative_sigma_before']:.3g} -> "
-            f"{info['median_relative_sigma_after']:.3g}, "
+            f"median relative sigma {_g(info['median_relative_sigma_before'])} -> "
+            f"{_g(info['median_relative_sigma_after'])}, "
             f"{info['seconds']:.2f} s"
         )
+
+
+def _g(value) -> str:
+    """A figure of the summary line: 3 significant digits, or "n/a" where no photosite had one."""
+    return "n/a" if value is None else f"{value:.3g}"
 
 
 def _denoise_tiled(input_exr, output, filter_options, chunks, storage):
