@@ -1119,8 +1119,14 @@ def _write_outputs(
         return out
     lights = sorted((r for r in result.frames.values() if r["kind"] == "light"), key=lambda r: r["index"])
     cfa = getattr(getattr(camera, "spec", None), "cfa", None)
-    frames = [RawFrame(data=None, exposure_time=r["file_exposure_s"], path=r["file"], cfa_pattern=cfa) for r in lights]
+    # the files by their path (the colour metadata is read from the first one); the header lists
+    # them relative to the run folder, as the manifest does
+    frames = [
+        RawFrame(data=None, exposure_time=r["file_exposure_s"], path=str(run_dir / r["file"]), cfa_pattern=cfa)
+        for r in lights
+    ]
     extra = {
+        "source_files": [r["file"] for r in lights],
         "run_dir": str(run_dir),
         "job": job.name,
         "camera": lights[0]["camera"] if lights else {},

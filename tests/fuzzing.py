@@ -546,6 +546,12 @@ TARGETS: dict[str, Target] = {
     "exr-denoise": Target(
         "input.exr", lambda c: c.merged.read_bytes(), mutated, lambda c, p, o: ["denoise", p, "-o", o, "--force"]
     ),
+    "exr-develop": Target(
+        "input.exr",
+        lambda c: c.merged.read_bytes(),
+        mutated,
+        lambda c, p, o: ["develop", p, "-o", o, "--space", "linear-srgb", "--force"],
+    ),
     "exr-plan": Target(
         "map.exr",
         lambda c: c.exr.read_bytes(),

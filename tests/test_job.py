@@ -113,6 +113,14 @@ def test_run_job_merge_within_stated_uncertainty(tmp_path, cli):
     recs = [json.loads(l) for l in manifest.read_text().splitlines()]
     assert recs[0]["type"] == "run" and recs[0]["job_name"] == "t"
     assert sum(r["type"] == "frame" for r in recs) == 12
+    # the header lists the frames relative to the run folder and carries the first frame's colour
+    # metadata, read from the file itself (the run is not started from its own folder)
+    sources = img.attrs["source_files"]
+    assert len(sources) == 6 and all((Path(res["run_dir"]) / f).is_file() for f in sources)
+    assert len(img.attrs["camera_colour"]["color_matrix_1"]) == 9, img.attrs.get("camera_colour")
+    developed = tmp_path / "rgb.exr"
+    proc = cli("develop", res["exr"], "-o", developed, "--space", "linear-srgb")
+    assert proc.returncode == 0 and developed.is_file(), proc.stderr
 
 
 def test_run_killed_then_resumed_completes(tmp_path, cli):
