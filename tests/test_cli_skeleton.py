@@ -152,3 +152,10 @@ def test_demo_reports_error_against_truth(cli, tmp_path):
     assert "error against the simulator's ground truth" in text
     assert res["median_abs_relative_error"] < 0.2 and res["n_used"] > 0.9 * 128 * 96
     assert 0.7 < res["z_std"] < 2.0
+
+
+def test_demo_text_output_has_no_progress_bar_off_a_terminal(cli, tmp_path):
+    """`make demo` piped into a log: the summary only, no progress bar redrawn into the file."""
+    proc = cli("demo", "--out", tmp_path / "d", "--size", "128x96", check=True)
+    assert "error against the simulator's ground truth" in proc.stdout
+    assert "frame/s" not in proc.stderr and "%|" not in proc.stderr, proc.stderr

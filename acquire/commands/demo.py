@@ -20,7 +20,7 @@ def run_demo(
     size: str,
     seed: int,
     force: bool,
-    progress: bool = True,
+    progress: bool | None = None,
     target_snr: float | None = None,
 ) -> dict:
     """Capture, merge and summarise the demo into ``out``; returns the summary text and paths."""
@@ -120,7 +120,8 @@ def command(out, camera, scene, size, seed, target_snr, force, as_json):
     """Capture a bracket with dark frames from the simulated camera through the capture session,
     merge it, write out/demo.exr, a tone-mapped out/demo.png and out/summary.txt with the error
     against the simulator's ground truth."""
-    res = run_demo(out, camera, scene, size, seed, force, progress=not as_json, target_snr=target_snr)
+    # the capture's progress bar on a terminal only (None), never with --json
+    res = run_demo(out, camera, scene, size, seed, force, progress=False if as_json else None, target_snr=target_snr)
     if as_json:
         echo_json({"exr": res["exr"], "png": res["png"], **res["error"]})
     else:
