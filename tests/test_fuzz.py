@@ -149,3 +149,28 @@ def test_libraw_nondeterminism_is_refused_before_decoding(name, corpus, tmp_path
     outcomes = json.loads(run.stdout)
     assert outcomes[0] == outcomes[1] == outcomes[2], outcomes
     assert outcomes[0].startswith("InputError: ") and ("colour filter" in outcomes[0] or "directory" in outcomes[0])
+
+
+def test_each_target_is_warmed_up_outside_the_time_limit(corpus, tmp_path, monkeypatch):
+    """The nightly run first runs a target's unmutated seed without a time limit (numba compiles
+    that path's kernels then; a cold cache on a busy machine was reported as a hang), and every
+    call it counts afterwards is timed."""
+    import fuzzing
+
+    limited, timeouts = [], []
+    real_limit, real_run = fuzzing._time_limit, fuzzing.run_target
+
+    def spy_limit(seconds):
+        limited.append(seconds)
+        return real_limit(seconds)
+
+    def spy_run(*args, **kwargs):
+        timeouts.append(kwargs.get("timeout"))
+        return real_run(*args, **kwargs)
+
+    monkeypatch.setattr(fuzzing, "_time_limit", spy_limit)
+    monkeypatch.setattr(fuzzing, "run_target", spy_run)
+    result = fuzzing.fuzz_target("events", corpus, tmp_path, minutes=0.02)
+    assert timeouts[0] == 0 and not result["failures"]
+    assert len(limited) == result["executions"] == len(timeouts) - 1 > 0
+    assert set(limited) == {fuzzing.CALL_TIMEOUT_S}
