@@ -7,6 +7,7 @@ Every input must end in a result or a one-line ``hdrcap: error:`` with exit stat
 
 from __future__ import annotations
 
+import itertools
 import random
 import threading
 from pathlib import Path
@@ -174,3 +175,14 @@ def test_each_target_is_warmed_up_outside_the_time_limit(corpus, tmp_path, monke
     assert timeouts[0] == 0 and not result["failures"]
     assert len(limited) == result["executions"] == len(timeouts) - 1 > 0
     assert set(limited) == {fuzzing.CALL_TIMEOUT_S}
+
+
+def test_a_call_over_the_time_limit_is_a_hang_whatever_it_printed(corpus, tmp_path, monkeypatch):
+    """The alarm can land in a finalizer, which prints 'Exception ignored ... Traceback' and lets
+    the call finish: a call that took longer than the limit is a hang, not a traceback."""
+    import fuzzing
+
+    ticks = itertools.count(0.0, 1e6)  # every reading a million seconds after the one before
+    monkeypatch.setattr(fuzzing.time, "monotonic", lambda: next(ticks))
+    with pytest.raises(fuzzing.Hang, match="no answer within"):
+        fuzzing.run_target("events", corpus, TARGETS["events"].seed(corpus), tmp_path)
