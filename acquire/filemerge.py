@@ -139,7 +139,7 @@ def build_hdr_image(result, frames, calibration, extra=None):
     if quality is not None:
         from hdrcap.pipeline.merge import QUALITY_BITS
 
-        channels["quality"] = quality.astype(np.float32)
+        channels["quality"] = quality  # uint8 bits: stored as uint (or float) without a float32 copy here
         attrs["quality"] = (
             "bit field, 0 a trusted measurement; any bit but masked: nexp = 0, not a measurement; masked (a frame's "
             "impossible raw value left out) with nexp > 0: estimated from the other frames: "
