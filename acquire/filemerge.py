@@ -139,7 +139,7 @@ def build_hdr_image(result, frames, calibration, extra=None):
     if quality is not None:
         from hdrcap.pipeline.merge import QUALITY_BITS
 
-        channels["quality"] = quality.astype(np.float32)
+        channels["quality"] = quality  # uint8 bits: stored as uint (or float) without a float32 copy here
         attrs["quality"] = (
             "bit field, 0 a trusted measurement; any bit but masked: nexp = 0, not a measurement; masked (a frame's "
             "impossible raw value left out) with nexp > 0: estimated from the other frames: "
@@ -198,14 +198,17 @@ def summary(result) -> dict:
     ok = nexp > 0
     n_defects = int(result.info.get("defects_flagged", 0))  # nexp = 0 too, saturated or not
     n_void = int(result.info.get("masked_everywhere", 0))  # nexp = 0, no information at all
+    # a float array is finite where its least and largest value are (a NaN makes both NaN):
+    # no full-size masks
+    extrema = (irr.min(), irr.max(), sig.min(), sig.max())
     out = {
         "shape": list(irr.shape),
-        "irradiance_min": float(irr.min()),
-        "irradiance_max": float(irr.max()),
+        "irradiance_min": float(extrema[0]),
+        "irradiance_max": float(extrema[1]),
         "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
-        "saturated_everywhere": int((~ok).sum()) - n_defects - n_void,
+        "saturated_everywhere": ok.size - int(np.count_nonzero(ok)) - n_defects - n_void,
         "defects_flagged": n_defects,
-        "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
+        "finite": bool(np.isfinite(extrema).all()),
     }
     if result.info.get("masked_photosites"):  # only where a frame had masked values
         out["masked_photosites"] = int(result.info["masked_photosites"])

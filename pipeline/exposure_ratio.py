@@ -251,32 +251,35 @@ def estimate_exposure_ratios(
         ok = (v < v_sat) & (s > 0) & np.isfinite(s)
         if exclude is not None:
             ok &= ~np.asarray(exclude, bool)
-        sig.append(s)
-        var.append(vs)
-        good.append(ok)
-        room.append(options.max_level * (v_sat - b))
+        sig.append(s.ravel())
+        var.append(vs.ravel())
+        good.append(ok.ravel())
+        room.append((options.max_level * (v_sat - b)).ravel())
     rows, ys, ws, edges = [], [], [], []
     for i in range(n):
         for j in range(i + 1, n):
-            both = good[i] & good[j]
-            if both.sum() < options.min_photosites:
+            # the pair's photosites usable in both frames, in their order: every value below is
+            # computed elementwise, so on these alone (a fraction of the subsample) it is the same
+            take = np.flatnonzero(good[i] & good[j])
+            if take.size < options.min_photosites:
                 continue
+            si, sj = sig[i][take], sig[j][take]
             # the pair's weighted rate (DN/s), its noise uncorrelated with that of log(s_j / s_i);
             # the variances at the signals it predicts (weights from the observed signals would
             # favour the photosites whose s_i fluctuated high: q biased low)
-            rate = _pair_rate(sig[i], var[i], times[i], sig[j], var[j], times[j])
+            rate = _pair_rate(si, var[i][take], times[i], sj, var[j][take], times[j])
             vi = g * np.maximum(rate * times[i], 0.0) + sigma2_R * (1.0 + ks[i])
             vj = g * np.maximum(rate * times[j], 0.0) + sigma2_R * (1.0 + ks[j])
-            rate = _pair_rate(sig[i], vi, times[i], sig[j], vj, times[j])
+            rate = _pair_rate(si, vi, times[i], sj, vj, times[j])
             pi, pj = rate * times[i], rate * times[j]
             vi = g * np.maximum(pi, 0.0) + sigma2_R * (1.0 + ks[i])
             vj = g * np.maximum(pj, 0.0) + sigma2_R * (1.0 + ks[j])
             lo, hi = (i, j) if times[i] <= times[j] else (j, i)
             p_lo, v_lo = (pi, vi) if lo == i else (pj, vj)
-            both &= ((pj if hi == j else pi) <= room[hi]) & (p_lo * p_lo >= options.min_snr**2 * v_lo) & (p_lo > 0)
+            both = ((pj if hi == j else pi) <= room[hi][take]) & (p_lo * p_lo >= options.min_snr**2 * v_lo) & (p_lo > 0)
             if both.sum() < options.min_photosites:
                 continue
-            est = _pair_log_ratio(sig[i], vi, pi, sig[j], vj, pj, both, options.clip_sigmas)
+            est = _pair_log_ratio(si, vi, pi, sj, vj, pj, both, options.clip_sigmas)
             if est is None or est[2] < options.min_photosites:
                 continue
             m, se, _ = est

@@ -1087,7 +1087,9 @@ def atomic_output(path, force: bool = False, suffix: str | None = None) -> Itera
 class HdrImage:
     """An HDR result as stored in EXR: float32 channels and metadata.
 
-    ``channels`` maps names (``irradiance``, ``sigma``, ``nexp``, ...) to 2-D float32 arrays;
+    ``channels`` maps names (``irradiance``, ``sigma``, ``nexp``, ...) to 2-D float32 arrays
+    (a channel of whole numbers, such as the merge's ``quality`` bits, may be an unsigned
+    integer array: :func:`write_exr` stores each as its precision says, whatever its dtype);
     ``attrs`` holds JSON-serialisable metadata (unit, CFA pattern, exposure times, calibration
     identity, hdrcap version, model and options).
     """

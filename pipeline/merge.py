@@ -210,7 +210,8 @@ def quality_channel(nexp: np.ndarray, defect_map: np.ndarray | None) -> np.ndarr
     numpy.ndarray
         uint8, the shape of ``nexp``: defect bits | 16 where ``nexp == 0``.
     """
-    q = np.where(nexp == 0, np.uint8(QUALITY_BITS["saturated"]), np.uint8(0)).astype(np.uint8)
+    q = (nexp == 0).view(np.uint8)  # a new array of 0/1: scaled in place, no further copies
+    q *= np.uint8(QUALITY_BITS["saturated"])
     if defect_map is not None:
         dm = np.asarray(defect_map)
         if dm.shape != q.shape:

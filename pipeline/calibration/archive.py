@@ -286,11 +286,24 @@ PRNU_RANGE = (1e-2, 1e2)
 DARK_CURRENT_MAX = 1e12
 
 
+def _extremes(arr: np.ndarray) -> np.ndarray:
+    """The values the checks of a map need to see: for a float map its least and largest value
+    (same dtype; a NaN anywhere makes both NaN), for which every test of
+    :func:`load_calibration` and :func:`_check_map_range` (finite; a bound on the value or on its
+    magnitude) gives the answer it gives on the whole map, in two passes without temporaries
+    (a 24 Mpixel map took 0.1 s of elementwise masks); an integer map (the defect map) or an
+    empty one as it is."""
+    if arr.dtype.kind != "f" or arr.size == 0:
+        return arr
+    return np.array([arr.min(), arr.max()], dtype=arr.dtype)
+
+
 def _check_map_range(path: Path, name: str, arr: np.ndarray, params: SensorParams) -> None:
     """Refuse a map whose values no measurement gives: PRNU gains outside :data:`PRNU_RANGE`,
     negative standard errors, standard errors of a gain above 100 or of a bias above the white
     level, dark currents beyond :data:`DARK_CURRENT_MAX`, bias levels outside 0..white level (DN). A negative dark-current map
-    is read as it is (files written before the map was clamped; the merge floors its variances)."""
+    is read as it is (files written before the map was clamped; the merge floors its variances).
+    ``arr`` is the map or its :func:`_extremes`."""
     if name == "prnu" and not (np.all(arr >= PRNU_RANGE[0]) and np.all(arr <= PRNU_RANGE[1])):
         lo, hi = float(np.min(arr)), float(np.max(arr))
         raise InputError(f"{path}: PRNU map has gains {lo:.3g}..{hi:.3g}, outside {PRNU_RANGE[0]:g}..{PRNU_RANGE[1]:g}")
@@ -351,9 +364,10 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     for name, arr in maps.items():
         if arr.ndim != 2 or (shape is not None and arr.shape != shape):
             raise InputError(f"{path}: map {name} has shape {arr.shape}, the file says {shape}")
-        if not np.all(np.isfinite(arr)):
+        values = _extremes(arr)
+        if not np.all(np.isfinite(values)):
             raise InputError(f"{path}: map {name} holds NaN or infinite values")
-        _check_map_range(path, name, arr, params)
+        _check_map_range(path, name, values, params)
         release_mapped_pages([arr])  # checked: a mapped map need not stay resident (huge frames)
     if "defect_map" in maps and maps["defect_map"].dtype != np.uint8:
         raise InputError(f"{path}: defect map has type {maps['defect_map'].dtype}, expected uint8")
