@@ -469,6 +469,23 @@ def _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D):
     return master_c + coefs[i] * D
 
 
+@numba.njit(inline="always", cache=True)
+def _censored_sample(values, darks, frames, camera, i, r, c, mu, a, D, bl, master_c):
+    """Sample i of photosite (r, c) in the censored model of :func:`_tobit_terms`: its raw
+    value v and dark level b (DN), sd(v - b) (DN; :func:`pipeline.noise.variance_of_rate` at
+    max(mu, 0) and the dark current floored at 0, Eq. 3, 5, 13), t g a (DN per e-/s), and
+    whether it is usable (finite, its dark level below v_sat: Eq. 11)."""
+    kinds, coefs, ks, times = frames
+    g, sigma2_R, v_sat, white = camera
+    v = float(values[i][r, c])
+    b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
+    Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
+    m = mu if mu > 0.0 else 0.0
+    t = times[i]
+    sd = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i]))
+    return v, b, sd, t * g * a, math.isfinite(v) and math.isfinite(b) and b < v_sat
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     """The censored log-likelihood's derivatives at ``mu`` for one photosite (Eq. 8-10 as a
@@ -489,26 +506,19 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
         (e-/s)^-2, the expected number of unclipped samples among those below v_sat, and the
         number of those more likely unclipped than clipped.
     """
-    kinds, coefs, ks, times = frames
     g, sigma2_R, v_sat, white = camera
     sigma_R = math.sqrt(sigma2_R)
     full_well = white - v_sat > 3.0 * sigma_R
     v_clip = v_sat + 3.0 * sigma_R
-    Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
-    m = mu if mu > 0.0 else 0.0
     score = 0.0
     info = 0.0
     info_c = 0.0
     nu = 0.0
     nr = 0
     for i in range(len(values)):
-        v = float(values[i][r, c])
-        b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
-        if not (math.isfinite(v) and math.isfinite(b) and b < v_sat):
+        v, b, sd, tga, ok = _censored_sample(values, darks, frames, camera, i, r, c, mu, a, D, bl, master_c)
+        if not ok:
             continue  # an unusable sample (Eq. 11: a saturated dark frame) carries nothing
-        t = times[i]
-        tga = t * g * a
-        sd = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i]))  # sd(v - b), DN
         kap = tga / sd  # d/dmu of the standardised value, (e-/s)^-1
         ev = b + tga * mu  # E(v | mu, b) without clipping, DN
         if v < v_sat:
@@ -541,6 +551,46 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
+    """Expectations, over the censored model at ``mu`` (not over what was observed), of the
+    log-likelihood's derivatives of one photosite: the terms of the first-order mean of the
+    Wald statistic (mu_hat - X)/sigma_hat.
+
+    Each usable sample i is a Gaussian of sd s_i censored at v_sat (the full-well mixture of
+    :func:`_tobit_terms` left out), u_i = (v_sat - E v_i)/s_i, kappa_i = t_i g a/s_i, phi the
+    standard normal density and lambda the inverse Mills ratio (:func:`_mills`). The first and
+    second derivatives of a sample's log-likelihood are kappa y and -kappa^2 when it is below
+    v_sat (y its standardised value), kappa lambda(u) and -kappa^2 lambda (lambda - u) when it
+    is censored, so that
+
+    * the expected information is I = sum kappa_i^2 [Phi(u_i) + phi(u_i) (lambda_i - u_i)];
+    * kappa_{11,1} = E[l'' l'] = sum kappa_i^3 phi(u_i) [1 - lambda_i (lambda_i - u_i)] > 0.
+
+    A sample far below v_sat (phi(u) = 0) adds kappa^2 to I and nothing to kappa_{11,1}.
+
+    Returns
+    -------
+    tuple of float
+        I ((e-/s)^-2) and kappa_{11,1} ((e-/s)^-3).
+    """
+    v_sat = camera.v_sat
+    info = 0.0
+    k11_1 = 0.0
+    for i in range(len(values)):
+        v, b, sd, tga, ok = _censored_sample(values, darks, frames, camera, i, r, c, mu, a, D, bl, master_c)
+        if not ok:
+            continue
+        kap = tga / sd
+        u = (v_sat - b - tga * mu) / sd
+        phi = _INV_SQRT_2PI * math.exp(-0.5 * u * u)
+        lam = _mills(u)
+        k2 = kap * kap
+        info += k2 * (1.0 - _survival(u) + phi * (lam - u))
+        k11_1 += k2 * kap * phi * (1.0 - lam * (lam - u))
+    return info, k11_1
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol):
     """The censored (Tobit) maximum-likelihood estimate of one photosite (Eq. 8-10 with the
     saturated samples' survival probability, :func:`_tobit_terms`), from the threshold
@@ -549,9 +599,18 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     The score's root is bracketed by steps of ``sig`` doubling away from ``mu``, then found by
     Newton steps on the observed information, a bisection wherever a step would leave the
     bracket (the mixture of a full well clipping first is not log-concave), until the step is
-    within ``tol`` max(|mu|, sigma). sigma = 1/sqrt(observed information) at the estimate (the
+    within ``tol`` max(|mu|, sigma). sigma = 1/sqrt(observed information) at the root (the
     complete-data information where the observed one is not positive): the information the
     saturated samples carry is in it.
+
+    The root is then moved by the first-order mean of the Wald statistic z = (mu_hat - X)/sigma:
+    mu = mu_hat - kappa_{11,1}/(2 I^2) (:func:`_tobit_moments`, at mu_hat). With the expansions
+    mu_hat - X = U/I + (U V/I^2 + kappa_111 U^2/(2 I^3)) (U the score, V = l'' + I) and
+    sigma^-1 = sqrt(I) (1 - (V + kappa_111 (mu_hat - X))/(2 I)), E z = kappa_{11,1}/(2 I^(3/2))
+    (the same with the expected information at mu_hat), so the shift is that mean times
+    1/sqrt(I). The Cox-Snell bias correction of mu_hat itself, (kappa_{11,1} + kappa_111/2)/I^2,
+    removes the estimate's bias but leaves z biased the other way (sigma_hat is correlated with
+    mu_hat): see docs/merge.md and ``benchmarks/tobit_bias_model.py``.
 
     Returns
     -------
@@ -604,6 +663,10 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     if nr == 0:
         return x, sig, 0.0, steps, True
     hh = h if h > 0.0 else hc
+    # Centre the Wald statistic: its first-order mean is kappa_{11,1}/(2 I^(3/2)) whether sigma
+    # comes from the observed or the expected information (docs/merge.md, item 5)
+    ie, k11_1 = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
+    x -= 0.5 * k11_1 / (ie * ie)
     return x, 1.0 / math.sqrt(hh), float(nr), steps, False
 
 
@@ -659,7 +722,8 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
     ``sat_sigmas`` of its own standard deviation of ``v_sat`` is dropped for good (saturated
     samples that slip under v_sat on read noise). With ``probabilistic``, the censored (Tobit)
     likelihood of Eq. 8-10 is maximised from that estimate (:func:`_tobit`: saturated samples
-    contribute their survival probability; sigma from the observed information).
+    contribute their survival probability; sigma from the observed information; the root
+    moved by the first-order mean of (mu - X)/sigma).
     Photosites with no usable sample get ``nexp = 0``, ``sigma = 0`` and a lower bound of the
     irradiance. The rows are split into ``len(stats)`` chunks (run in parallel); each chunk's
     row of ``stats`` receives its number of photosites with nexp = 0, the sum and the maximum
