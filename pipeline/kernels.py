@@ -566,7 +566,8 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     * the expected information is I = sum kappa_i^2 [Phi(u_i) + phi(u_i) (lambda_i - u_i)];
     * kappa_{11,1} = E[l'' l'] = sum kappa_i^3 phi(u_i) [1 - lambda_i (lambda_i - u_i)] > 0.
 
-    A sample far below v_sat (phi(u) = 0) adds kappa^2 to I and nothing to kappa_{11,1}.
+    A sample far below v_sat (u > 8, phi(u) < 1e-14) adds kappa^2 to I and nothing to
+    kappa_{11,1}; one far above it (u < -8) adds nothing to either.
 
     Returns
     -------
@@ -581,11 +582,17 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
         if not ok:
             continue
         kap = tga / sd
-        u = (v_sat - b - tga * mu) / sd
-        phi = _INV_SQRT_2PI * math.exp(-0.5 * u * u)
-        lam = _mills(u)
         k2 = kap * kap
-        info += k2 * (1.0 - _survival(u) + phi * (lam - u))
+        u = (v_sat - b - tga * mu) / sd
+        if u > 8.0:  # never censored (phi(u) < 1e-14): the Gaussian's information, no third-order term
+            info += k2
+            continue
+        if u < -8.0:  # always censored, and then it carries no information (below 1e-14 kappa^2)
+            continue
+        phi = _INV_SQRT_2PI * math.exp(-0.5 * u * u)
+        surv = _survival(u)  # >= 6e-16 here
+        lam = phi / surv
+        info += k2 * (1.0 - surv + phi * (lam - u))
         k11_1 += k2 * kap * phi * (1.0 - lam * (lam - u))
     return info, k11_1
 
