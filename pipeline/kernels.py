@@ -469,23 +469,6 @@ def _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D):
     return master_c + coefs[i] * D
 
 
-@numba.njit(inline="always", cache=True)
-def _censored_sample(values, darks, frames, camera, i, r, c, mu, a, D, bl, master_c):
-    """Sample i of photosite (r, c) in the censored model of :func:`_tobit_terms`: its raw
-    value v and dark level b (DN), sd(v - b) (DN; :func:`pipeline.noise.variance_of_rate` at
-    max(mu, 0) and the dark current floored at 0, Eq. 3, 5, 13), t g a (DN per e-/s), and
-    whether it is usable (finite, its dark level below v_sat: Eq. 11)."""
-    kinds, coefs, ks, times = frames
-    g, sigma2_R, v_sat, white = camera
-    v = float(values[i][r, c])
-    b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
-    Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
-    m = mu if mu > 0.0 else 0.0
-    t = times[i]
-    sd = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i]))
-    return v, b, sd, t * g * a, math.isfinite(v) and math.isfinite(b) and b < v_sat
-
-
 @numba.njit(cache=True, error_model="numpy")
 def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     """The censored log-likelihood's derivatives at ``mu`` for one photosite (Eq. 8-10 as a
@@ -506,19 +489,26 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
         (e-/s)^-2, the expected number of unclipped samples among those below v_sat, and the
         number of those more likely unclipped than clipped.
     """
+    kinds, coefs, ks, times = frames
     g, sigma2_R, v_sat, white = camera
     sigma_R = math.sqrt(sigma2_R)
     full_well = white - v_sat > 3.0 * sigma_R
     v_clip = v_sat + 3.0 * sigma_R
+    Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
+    m = mu if mu > 0.0 else 0.0
     score = 0.0
     info = 0.0
     info_c = 0.0
     nu = 0.0
     nr = 0
     for i in range(len(values)):
-        v, b, sd, tga, ok = _censored_sample(values, darks, frames, camera, i, r, c, mu, a, D, bl, master_c)
-        if not ok:
+        v = float(values[i][r, c])
+        b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
+        if not (math.isfinite(v) and math.isfinite(b) and b < v_sat):
             continue  # an unusable sample (Eq. 11: a saturated dark frame) carries nothing
+        t = times[i]
+        tga = t * g * a
+        sd = math.sqrt(_var(a * m + Dv, g * g * t, Dv, sigma2_R, ks[i]))  # sd(v - b), DN
         kap = tga / sd  # d/dmu of the standardised value, (e-/s)^-1
         ev = b + tga * mu  # E(v | mu, b) without clipping, DN
         if v < v_sat:
@@ -556,9 +546,10 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     log-likelihood's derivatives of one photosite: the terms of the first-order mean of the
     Wald statistic (mu_hat - X)/sigma_hat.
 
-    Each usable sample i is a Gaussian of sd s_i censored at v_sat (the full-well mixture of
-    :func:`_tobit_terms` left out), u_i = (v_sat - E v_i)/s_i, kappa_i = t_i g a/s_i, phi the
-    standard normal density and lambda the inverse Mills ratio (:func:`_mills`). The first and
+    Each usable sample i (as in :func:`_tobit_terms`) is a Gaussian of sd s_i censored at
+    v_sat (the full-well mixture of :func:`_tobit_terms` left out), u_i = (v_sat - E v_i)/s_i,
+    kappa_i = t_i g a/s_i, phi the standard normal density and lambda = phi/(1 - Phi) the
+    inverse Mills ratio (:func:`_mills`). The first and
     second derivatives of a sample's log-likelihood are kappa y and -kappa^2 when it is below
     v_sat (y its standardised value), kappa lambda(u) and -kappa^2 lambda (lambda - u) when it
     is censored, so that
@@ -574,13 +565,18 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     tuple of float
         I ((e-/s)^-2) and kappa_{11,1} ((e-/s)^-3).
     """
-    v_sat = camera.v_sat
+    kinds, coefs, ks, times = frames
+    g, sigma2_R, v_sat, white = camera
+    Dv = D if D > 0.0 else 0.0
+    m = mu if mu > 0.0 else 0.0
     info = 0.0
     k11_1 = 0.0
-    for i in range(len(values)):
-        v, b, sd, tga, ok = _censored_sample(values, darks, frames, camera, i, r, c, mu, a, D, bl, master_c)
-        if not ok:
+    for i in range(len(values)):  # the samples as in _tobit_terms
+        b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
+        if not (math.isfinite(float(values[i][r, c])) and math.isfinite(b) and b < v_sat):
             continue
+        tga = times[i] * g * a
+        sd = math.sqrt(_var(a * m + Dv, g * g * times[i], Dv, sigma2_R, ks[i]))
         kap = tga / sd
         k2 = kap * kap
         u = (v_sat - b - tga * mu) / sd
