@@ -13,13 +13,15 @@ dark strategy (matched, master per time, one master dark at t_ref, model) and sa
 The calibration: 2 bias frames, 1 saturation frame, 16 flat fields, a dark series at 6 exposure
 times (2 frames each), through :func:`hdrcap.pipeline.calibration.calibrate`. The scene: half the
 photosites log-uniform over 1-10^4 e-/s, half placed uniformly in k in [-4, 4] around the clip
-level of one of the exposures. Exposure times are the nominal ones unless ``--oracle-times``
-(camera-R's shutter errors of +-3 % then come from the simulator's truth: an upper bound of
-what estimated effective times can do).
+level of one of the exposures. Exposure times: the effective ones the merge estimates from the
+bracket, as ``hdrcap merge`` does by default (``exposure_times="effective"``); ``--times
+nominal`` merges with the nominal times, ``--times oracle`` with the simulator's true
+effective times (camera-R's shutter errors of +-3 %: an upper bound of what estimated
+effective times can do).
 
 Prints one JSON object (``--markdown``: the tables of docs/merge.md).
 
-Usage: python benchmarks/bench_honesty.py [--size 192] [--seeds 1] [--markdown] [--oracle-times]
+Usage: python benchmarks/bench_honesty.py [--size 192] [--seeds 1] [--markdown] [--times effective|nominal|oracle]
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from hdrcap.pipeline.merge import merge_arrays
 
 CAMERAS = ("camera-A", "camera-B", "camera-R")
 TIMES = (0.125, 0.5, 2.0, 8.0, 30.0)
+TIME_MODES = ("effective", "nominal", "oracle")
 N_MASTER = 8
 T_REF = 8.0
 DECADES = ((0, 1), (1, 2), (2, 3), (3, 4))
@@ -184,7 +187,7 @@ def _bracket(sensor, X, rng):
     }
 
 
-def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, Any]:
+def run_camera(cam: str, size: int, seed: int, times_mode: str) -> dict[str, Any]:
     """All strategies and saturation models of one camera and seed: z per merge, and the mask."""
     spec = PRESETS[cam]
     shape = (size, size)
@@ -197,12 +200,13 @@ def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, 
     defect = np.zeros(shape, bool)
     for m in sensor.defects.values():
         defect |= m
-    times = [t * sensor.shutter_factor(t) if oracle_times else t for t in TIMES]
+    times = [t * sensor.shutter_factor(t) if times_mode == "oracle" else t for t in TIMES]
+    estimate_times = "effective" if times_mode == "effective" else "nominal"
     lights, darks = _bracket(sensor, X, rng)
     out = {}
     for name, (d, opts) in darks.items():
         for sat in SATURATIONS:
-            res = merge_arrays(lights, times, cal, d, saturation=sat, **opts)
+            res = merge_arrays(lights, times, cal, d, saturation=sat, exposure_times=estimate_times, **opts)
             ok = (res.nexp > 0) & ~defect & (res.sigma > 0)
             sig = np.where(ok, res.sigma, 1.0)
             z = np.where(ok, (res.irradiance.astype(np.float64) - X) / sig, 0.0)
@@ -211,7 +215,7 @@ def run_camera(cam: str, size: int, seed: int, oracle_times: bool) -> dict[str, 
     return out
 
 
-def honesty(size: int = 192, seeds=(1,), oracle_times: bool = False, cameras=CAMERAS) -> dict[str, Any]:
+def honesty(size: int = 192, seeds=(1,), times_mode: str = "effective", cameras=CAMERAS) -> dict[str, Any]:
     """The honesty table (see the module docstring); seeds pooled."""
     result: dict[str, Any] = {
         "settings": {
@@ -220,14 +224,14 @@ def honesty(size: int = 192, seeds=(1,), oracle_times: bool = False, cameras=CAM
             "times_s": list(TIMES),
             "n_master": N_MASTER,
             "t_ref_s": T_REF,
-            "oracle_times": oracle_times,
+            "exposure_times": times_mode,
             "calibration": "estimated: 2 bias, 1 saturation, 16 flats, darks at 1-32 s x 2",
         }
     }
     for cam in cameras:
         pooled: dict[tuple, list] = {}
         for seed in seeds:
-            for key, arrays in run_camera(cam, size, seed, oracle_times).items():
+            for key, arrays in run_camera(cam, size, seed, times_mode).items():
                 pooled.setdefault(key, []).append(arrays)
         result[cam] = {
             f"{s} {sat}": z_table(*(np.concatenate([r[i].ravel() for r in rows]) for i in range(6)))
@@ -274,11 +278,13 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=192, help="mosaic side, photosites")
     ap.add_argument("--seeds", type=int, default=1)
-    ap.add_argument("--oracle-times", action="store_true", help="merge with the simulator's effective times")
+    ap.add_argument(
+        "--times", choices=TIME_MODES, default="effective", help="exposure times of the merge (default: estimated)"
+    )
     ap.add_argument("--camera", action="append", choices=CAMERAS)
     ap.add_argument("--markdown", action="store_true")
     args = ap.parse_args(argv)
-    result = honesty(args.size, tuple(range(1, 1 + args.seeds)), args.oracle_times, tuple(args.camera or CAMERAS))
+    result = honesty(args.size, tuple(range(1, 1 + args.seeds)), args.times, tuple(args.camera or CAMERAS))
     print(markdown(result) if args.markdown else json.dumps(result, indent=1))
 
 

@@ -23,7 +23,7 @@ of z = (estimate - X) / sigma (1 = honest sigma) and the capture time the dark s
 
 Usage::
 
-    python benchmarks/bench_trade.py [--size 1024x256] [--reps 3] [--markdown]
+    python benchmarks/bench_trade.py [--size 1024x256] [--reps 3] [--markdown] [--only SETTING...]
 
 Prints JSON (``--markdown``: also the README table) and writes ``trade.json`` to ``--out``.
 """
@@ -61,7 +61,7 @@ CONFIGS = {
 }
 
 
-def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bins: int) -> dict:
+def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bins: int, only=None) -> dict:
     from hdrcap.experiments import make_setup, simulate_bracket_arrays
     from hdrcap.mock_camera import PRESETS
     from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
@@ -103,6 +103,8 @@ def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bin
     mp = truth.size / 1e6
     ref = None
     for name, cfg in CONFIGS.items():
+        if only and name not in only:
+            continue
         run(cfg, *brackets[0])  # warm-up: compiles the kernels for this configuration's types
         secs = []
         for _ in range(timing_runs):
@@ -171,9 +173,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "_work" / "trade")
+    ap.add_argument("--only", nargs="+", choices=list(CONFIGS), help="run these settings only (default: all)")
     args = ap.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
-    results = [run_camera(c, (h, w), args.reps, args.seed, args.timing_runs, args.bins) for c in args.cameras]
+    results = [
+        run_camera(c, (h, w), args.reps, args.seed, args.timing_runs, args.bins, args.only) for c in args.cameras
+    ]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "trade.json").write_text(json.dumps(results, indent=1))
     print(json.dumps(results, indent=1))

@@ -541,6 +541,59 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
 
 
 @numba.njit(cache=True, error_model="numpy")
+def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
+    """Expectations, over the censored model at ``mu`` (not over what was observed), of the
+    log-likelihood's derivatives of one photosite: the terms of the first-order mean of the
+    Wald statistic (mu_hat - X)/sigma_hat.
+
+    Each usable sample i (as in :func:`_tobit_terms`) is a Gaussian of sd s_i censored at
+    v_sat (the full-well mixture of :func:`_tobit_terms` left out), u_i = (v_sat - E v_i)/s_i,
+    kappa_i = t_i g a/s_i, phi the standard normal density and lambda = phi/(1 - Phi) the
+    inverse Mills ratio (:func:`_mills`). The first and
+    second derivatives of a sample's log-likelihood are kappa y and -kappa^2 when it is below
+    v_sat (y its standardised value), kappa lambda(u) and -kappa^2 lambda (lambda - u) when it
+    is censored, so that
+
+    * the expected information is I = sum kappa_i^2 [Phi(u_i) + phi(u_i) (lambda_i - u_i)];
+    * kappa_{11,1} = E[l'' l'] = sum kappa_i^3 phi(u_i) [1 - lambda_i (lambda_i - u_i)] > 0.
+
+    A sample far below v_sat (u > 8, phi(u) < 1e-14) adds kappa^2 to I and nothing to
+    kappa_{11,1}; one far above it (u < -8) adds nothing to either.
+
+    Returns
+    -------
+    tuple of float
+        I ((e-/s)^-2) and kappa_{11,1} ((e-/s)^-3).
+    """
+    kinds, coefs, ks, times = frames
+    g, sigma2_R, v_sat, white = camera
+    Dv = D if D > 0.0 else 0.0
+    m = mu if mu > 0.0 else 0.0
+    info = 0.0
+    k11_1 = 0.0
+    for i in range(len(values)):  # the samples as in _tobit_terms
+        b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
+        if not (math.isfinite(float(values[i][r, c])) and math.isfinite(b) and b < v_sat):
+            continue
+        tga = times[i] * g * a
+        sd = math.sqrt(_var(a * m + Dv, g * g * times[i], Dv, sigma2_R, ks[i]))
+        kap = tga / sd
+        k2 = kap * kap
+        u = (v_sat - b - tga * mu) / sd
+        if u > 8.0:  # never censored (phi(u) < 1e-14): the Gaussian's information, no third-order term
+            info += k2
+            continue
+        if u < -8.0:  # always censored, and then it carries no information (below 1e-14 kappa^2)
+            continue
+        phi = _INV_SQRT_2PI * math.exp(-0.5 * u * u)
+        surv = _survival(u)  # >= 6e-16 here
+        lam = phi / surv
+        info += k2 * (1.0 - surv + phi * (lam - u))
+        k11_1 += k2 * kap * phi * (1.0 - lam * (lam - u))
+    return info, k11_1
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol):
     """The censored (Tobit) maximum-likelihood estimate of one photosite (Eq. 8-10 with the
     saturated samples' survival probability, :func:`_tobit_terms`), from the threshold
@@ -549,9 +602,18 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     The score's root is bracketed by steps of ``sig`` doubling away from ``mu``, then found by
     Newton steps on the observed information, a bisection wherever a step would leave the
     bracket (the mixture of a full well clipping first is not log-concave), until the step is
-    within ``tol`` max(|mu|, sigma). sigma = 1/sqrt(observed information) at the estimate (the
+    within ``tol`` max(|mu|, sigma). sigma = 1/sqrt(observed information) at the root (the
     complete-data information where the observed one is not positive): the information the
     saturated samples carry is in it.
+
+    The root is then moved by the first-order mean of the Wald statistic z = (mu_hat - X)/sigma:
+    mu = mu_hat - kappa_{11,1}/(2 I^2) (:func:`_tobit_moments`, at mu_hat). With the expansions
+    mu_hat - X = U/I + (U V/I^2 + kappa_111 U^2/(2 I^3)) (U the score, V = l'' + I) and
+    sigma^-1 = sqrt(I) (1 - (V + kappa_111 (mu_hat - X))/(2 I)), E z = kappa_{11,1}/(2 I^(3/2))
+    (the same with the expected information at mu_hat), so the shift is that mean times
+    1/sqrt(I). The Cox-Snell bias correction of mu_hat itself, (kappa_{11,1} + kappa_111/2)/I^2,
+    removes the estimate's bias but leaves z biased the other way (sigma_hat is correlated with
+    mu_hat): see docs/merge.md and ``benchmarks/tobit_bias_model.py``.
 
     Returns
     -------
@@ -604,6 +666,10 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     if nr == 0:
         return x, sig, 0.0, steps, True
     hh = h if h > 0.0 else hc
+    # Centre the Wald statistic: its first-order mean is kappa_{11,1}/(2 I^(3/2)) whether sigma
+    # comes from the observed or the expected information (docs/merge.md, item 5)
+    ie, k11_1 = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
+    x -= 0.5 * k11_1 / (ie * ie)
     return x, 1.0 / math.sqrt(hh), float(nr), steps, False
 
 
@@ -659,7 +725,8 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
     ``sat_sigmas`` of its own standard deviation of ``v_sat`` is dropped for good (saturated
     samples that slip under v_sat on read noise). With ``probabilistic``, the censored (Tobit)
     likelihood of Eq. 8-10 is maximised from that estimate (:func:`_tobit`: saturated samples
-    contribute their survival probability; sigma from the observed information).
+    contribute their survival probability; sigma from the observed information; the root
+    moved by the first-order mean of (mu - X)/sigma).
     Photosites with no usable sample get ``nexp = 0``, ``sigma = 0`` and a lower bound of the
     irradiance. The rows are split into ``len(stats)`` chunks (run in parallel); each chunk's
     row of ``stats`` receives its number of photosites with nexp = 0, the sum and the maximum

@@ -341,7 +341,8 @@ def test_full_models_selected_where_they_matter():
     d = plan.decisions
     assert plan.feasible
     assert "matched" in plan.darks and d["prnu"]["choice"] == "map"
-    # the probabilistic model would gain, but is biased near clip levels: not chosen automatically
+    # the probabilistic model would gain, but is less accurate near clip levels on a realistic sensor:
+    # not chosen automatically
     assert d["saturation"]["choice"] == "threshold" and d["saturation"]["figure"] > 0.2
     Xe = np.array(plan.curve["irradiance"])
     # each simpler model would cost more than 0.2 dB somewhere
@@ -513,8 +514,8 @@ def test_saturation_and_iteration_decisions_match_the_real_merge():
     )
     plan = plan_exposures(cal, X, 24.0)
     opts = plan.merge_options()
-    # the probabilistic model's gain is predicted (and checked below) but it is not chosen: it is
-    # biased near each exposure's clip level (benchmarks/bench_honesty.py)
+    # the probabilistic model's gain is predicted (and checked below) but it is not chosen: on a
+    # realistic sensor it is less accurate near each exposure's clip level (benchmarks/bench_honesty.py)
     assert opts["saturation"] == "threshold" and opts["iterations"] >= 2
     thr = _measured_db(sensor, X, plan.exposures, cal, saturation="threshold", iterations=20)
     prob = _measured_db(sensor, X, plan.exposures, cal, saturation="probabilistic", iterations=20)
