@@ -15,8 +15,11 @@ __all__ = [
     "stack_add_censored",
     "stack_result",
     "masked_moments",
-    "pair_keep",
-    "pair_moments",
+    "flat_moments",
+    "pair_fused",
+    "series_add",
+    "response_defect_bits",
+    "hot_mask",
 ]
 
 
@@ -72,52 +75,6 @@ def masked_moments(x, keep, shift):  # pragma: no cover - compiled
         return 0, 0.0, 0.0
     m = s1 / n
     return n, m + shift, s2 - n * m * m
-
-
-@numba.njit(cache=True, nogil=True)
-def pair_keep(a, b, lo_a, hi_a, lo_b, hi_b, lo_d, hi_d):  # pragma: no cover - compiled
-    """Photosites where a, b and a - b all lie within their clip intervals."""
-    av = a.ravel()
-    bv = b.ravel()
-    keep = np.empty(av.size, np.bool_)
-    for i in range(av.size):
-        x = np.float64(av[i])
-        y = np.float64(bv[i])
-        d = x - y
-        keep[i] = lo_a <= x <= hi_a and lo_b <= y <= hi_b and lo_d <= d <= hi_d
-    return keep.reshape(a.shape)
-
-
-@numba.njit(cache=True, nogil=True)
-def pair_moments(a, b, keep):  # pragma: no cover - compiled
-    """n, mean(a), mean(b), mean of c^2 and of c^4 with c = a - b - (mean a - mean b), over keep."""
-    av = a.ravel()
-    bv = b.ravel()
-    kv = keep.ravel()
-    n = 0
-    sa = 0.0
-    sb = 0.0
-    a0 = np.float64(av[0])
-    b0 = np.float64(bv[0])
-    for i in range(av.size):
-        if kv[i]:
-            n += 1
-            sa += np.float64(av[i]) - a0
-            sb += np.float64(bv[i]) - b0
-    if n == 0:
-        return 0, 0.0, 0.0, 0.0, 0.0
-    mu_a = sa / n + a0
-    mu_b = sb / n + b0
-    delta = mu_a - mu_b
-    s2 = 0.0
-    s4 = 0.0
-    for i in range(av.size):
-        if kv[i]:
-            c = np.float64(av[i]) - np.float64(bv[i]) - delta
-            c2 = c * c
-            s2 += c2
-            s4 += c2 * c2
-    return n, mu_a, mu_b, s2 / n, s4 / n
 
 
 @numba.njit(cache=True, nogil=True)
@@ -211,3 +168,158 @@ def stack_result(
             err[i, j] = np.sqrt(_nanmax(var1, floors[2]) / swi)
         nrej += k
     return nrej
+
+
+# --------------------------------------------------------------------------- fused flat-field passes
+# A flat's dark-corrected value is computed on the fly, as numpy computed the float32 image
+# before (``c = data.astype(float32); c -= bias; c -= rate * t``): each step rounded to float32,
+# in the type numpy chose (float32 for float32 maps and scalars). ``bias`` and ``rate`` are maps
+# of the frame's shape, or (1, 1) arrays (a scalar bias; no rate); ``tr`` is t in rate's type.
+
+
+# The reductions of the fused passes may be reordered (fastmath "reassoc" only: no FMA
+# contraction, no assumptions on NaN or infinity), so that they vectorise; their sums then differ
+# from a sequential loop's in the last bits. Integer sums (counts, raw values) stay exact.
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
+def flat_moments(data, bias, rate, tr, lo, hi, clip_on, upper):  # pragma: no cover - compiled
+    """One pass over a flat: the photosites at or above ``upper`` (raw values, compared in
+    float64) and the count, mean and sum of squared deviations of the dark-corrected values
+    within [``lo``, ``hi``] (float32 bounds; all with ``clip_on`` False), shifted by the first
+    corrected value (as :func:`masked_moments` on the float32 image)."""
+    v = data.ravel()
+    b = bias.ravel()
+    r = rate.ravel()
+    per_b = b.size == v.size
+    has_r = r.size == v.size
+    b0 = b[0]
+    c0 = np.float32(np.float32(v[0]) - b0)
+    if has_r:
+        c0 = np.float32(c0 - r[0] * tr)
+    shift = np.float64(c0)
+    n = 0
+    n_up = 0
+    s1 = 0.0
+    s2 = 0.0
+    for i in range(v.size):
+        n_up += np.float64(v[i]) >= upper
+        c = np.float32(np.float32(v[i]) - (b[i] if per_b else b0))
+        if has_r:
+            c = np.float32(c - r[i] * tr)
+        x = np.float64(c)
+        k = (x >= lo) & (x <= hi) if clip_on else True
+        d = x - shift if k else 0.0
+        n += k
+        s1 += d
+        s2 += d * d
+    if n == 0:
+        return 0, 0.0, 0.0, n_up
+    m = s1 / n
+    return n, m + shift, s2 - n * m * m, n_up
+
+
+@numba.njit(inline="always")
+def _pair_kept(av, bv, i, lo_a, hi_a, lo_b, hi_b, lo_d, hi_d, clip_on, limit, f32_total, upper_on):  # pragma: no cover
+    """Whether photosite ``i`` of a pair is kept (clip bounds) and whether it is censored."""
+    x = np.float64(av[i])
+    y = np.float64(bv[i])
+    d = x - y
+    k = (lo_a <= x) & (x <= hi_a) & (lo_b <= y) & (y <= hi_b) & (lo_d <= d) & (d <= hi_d) if clip_on else True
+    if f32_total:
+        tot = np.float32(av[i]) + np.float32(bv[i])
+    else:
+        tot = np.float32(np.float64(np.float32(av[i])) + y)
+    return k, upper_on & (tot >= limit)
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
+def pair_fused(a, b, lo_a, hi_a, lo_b, hi_b, lo_d, hi_d, clip_on, limit, f32_total, upper_on):  # pragma: no cover
+    """The clip of a pair (a, b and a - b within their bounds), the pair-mean censoring (float32
+    total a + b >= ``limit``, a float32 value; as numpy's ``total = a.astype(float32); total +=
+    b``, added in float32 when ``f32_total`` (b's type promotes to float32), else in float64 and
+    rounded) and the moments of c = a - b - (mean a - mean b) over the kept photosites, in two
+    passes without a mask: n, mean a, mean b, mean c^2, mean c^4 and the kept photosites
+    censored (``upper_on``). The sums of raw values are exact for integer frames (whatever their
+    order)."""
+    av = a.ravel()
+    bv = b.ravel()
+    n = 0
+    n_cens = 0
+    sa = 0.0
+    sb = 0.0
+    a0 = np.float64(av[0])
+    b0 = np.float64(bv[0])
+    for i in range(av.size):
+        k, cens = _pair_kept(av, bv, i, lo_a, hi_a, lo_b, hi_b, lo_d, hi_d, clip_on, limit, f32_total, upper_on)
+        n_cens += k & cens
+        k = k & ~cens
+        n += k
+        sa += np.float64(av[i]) - a0 if k else 0.0
+        sb += np.float64(bv[i]) - b0 if k else 0.0
+    if n == 0:
+        return 0, 0.0, 0.0, 0.0, 0.0, n_cens
+    mu_a = sa / n + a0
+    mu_b = sb / n + b0
+    delta = mu_a - mu_b
+    s2 = 0.0
+    s4 = 0.0
+    for i in range(av.size):
+        k, cens = _pair_kept(av, bv, i, lo_a, hi_a, lo_b, hi_b, lo_d, hi_d, clip_on, limit, f32_total, upper_on)
+        c = np.float64(av[i]) - np.float64(bv[i]) - delta if k & ~cens else 0.0
+        c2 = c * c
+        s2 += c2
+        s4 += c2 * c2
+    return n, mu_a, mu_b, s2 / n, s4 / n, n_cens
+
+
+@numba.njit(cache=True, nogil=True)
+def series_add(data, w32, wt32, w, sy, sty, syy):  # pragma: no cover - compiled
+    """The dark series' sums of one master dark, as numpy computed them (``sy += w * m``,
+    ``sty += (w t) * m`` with the products in float32 for a float32 master, ``syy += w m^2``
+    in float64), in one pass without temporaries."""
+    m_ = data.ravel()
+    y_, ty_, yy_ = sy.ravel(), sty.ravel(), syy.ravel()
+    for i in range(m_.size):
+        m = m_[i]
+        y_[i] += w32 * m
+        ty_[i] += wt32 * m
+        m64 = np.float64(m)
+        yy_[i] += w * (m64 * m64)
+
+
+@numba.njit(cache=True, nogil=True)
+def response_defect_bits(
+    prnu, prnu_stderr, has_err, prnu_std2, bias_map, has_bias, mu_R, bias_sd, limits, bits, out
+):  # pragma: no cover - compiled
+    """The dead, stuck and weak bits (``bits``) of :func:`~.defects.response_defects` into
+    ``out`` (uint8), per photosite in float64 as the numpy expressions there; ``limits``: the
+    dead response, weak deviation, weak sigma and stuck sigma thresholds."""
+    dead, weak_dev, weak_sigma, stuck_sigma = limits[0], limits[1], limits[2], limits[3]
+    a_, e_, b_, o_ = prnu.ravel(), prnu_stderr.ravel(), bias_map.ravel(), out.ravel()
+    for i in range(a_.size):
+        a = np.float64(a_[i])
+        spread2 = prnu_std2
+        if has_err:
+            e = np.float64(e_[i])
+            spread2 = prnu_std2 + e * e
+        weak_limit = 1.0 - _nanmax(weak_dev, weak_sigma * np.sqrt(spread2))
+        no_response = a < dead
+        stuck = has_bias and no_response and abs(np.float64(b_[i]) - mu_R) > stuck_sigma * bias_sd
+        f = 0
+        if no_response and not stuck:
+            f |= bits[0]
+        if stuck:
+            f |= bits[1]
+        if not no_response and a < weak_limit:
+            f |= bits[2]
+        o_[i] = f
+
+
+@numba.njit(cache=True, nogil=True)
+def hot_mask(raw, raw_stderr, D, dcnu2, hot_sigma, out):  # pragma: no cover - compiled
+    """``out`` = raw - D > hot_sigma sqrt(dcnu2 + raw_stderr^2), per photosite in float64."""
+    r_, e_, o_ = raw.ravel(), raw_stderr.ravel(), out.ravel()
+    for i in range(r_.size):
+        e = np.float64(e_[i])
+        o_[i] = np.float64(r_[i]) - D > hot_sigma * np.sqrt(dcnu2 + e * e)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..times import find_exposure, unique_exposures
+from . import _kernels as _k
 from .frames import check_shape, frame_data, frame_name, group_by_exposure
 from .stats import PixelStack, robust_mean_std
 
@@ -206,9 +207,11 @@ class DarkSeries:
             self._sty = np.zeros(master.data.shape, np.float64)
             self._syy = np.zeros(master.data.shape, np.float64)
         w = float(master.n_frames)
-        self._sy += w * master.data
-        self._sty += (w * master.exposure_time) * master.data
-        self._syy += w * np.square(master.data, dtype=np.float64)
+        data = np.ascontiguousarray(master.data)
+        # sy += w m, sty += (w t) m (products in the master's type, as numpy's), syy += w m^2
+        _k.series_add(
+            data, data.dtype.type(w), data.dtype.type(w * master.exposure_time), w, self._sy, self._sty, self._syy
+        )
         self._sn += w
         self._st += w * master.exposure_time
         self._stt += w * master.exposure_time**2
@@ -234,26 +237,43 @@ class DarkSeries:
         se = None if any(not np.isfinite(x) for x in self.level_stderr) else self.level_stderr
         return fit_dark_current(self.times, self.levels, se)
 
-    def slope_map(self) -> np.ndarray:
+    def slope_map(self, rows: slice = slice(None)) -> np.ndarray:
         """Per-photosite slope of the straight-line fit, DN/s (float32).
+
+        Parameters
+        ----------
+        rows : slice
+            Rows of the map to compute (default all; row blocks keep the float64 temporaries
+            small).
 
         Returns
         -------
         numpy.ndarray
         """
+        if rows == slice(None):  # row blocks: no full-size float64 temporaries
+            out = np.empty(self._sy.shape, np.float32)
+            for blk in _row_blocks(self._sy.shape):
+                out[blk] = self.slope_map(blk)
+            return out
         den = self._sn * self._stt - self._st * self._st
-        return ((self._sn * self._sty - self._st * self._sy) / den).astype(np.float32)
+        return ((self._sn * self._sty[rows] - self._st * self._sy[rows]) / den).astype(np.float32)
 
-    def residual_map(self) -> np.ndarray:
+    def residual_map(self, rows: slice = slice(None)) -> np.ndarray:
         """Per-photosite weighted residual sum of squares of the straight-line fit, DN^2
         (weights: the frame counts N_k), float64.
 
+        Parameters
+        ----------
+        rows : slice
+            Rows of the map to compute (default all).
+
         Returns
         -------
         numpy.ndarray
         """
-        syy_c = self._syy - self._sy**2 / self._sn
-        sty_c = self._sty - self._st * self._sy / self._sn
+        sy = self._sy[rows]
+        syy_c = self._syy[rows] - sy**2 / self._sn
+        sty_c = self._sty[rows] - self._st * sy / self._sn
         stt_c = self._stt - self._st**2 / self._sn
         return np.maximum(syy_c - sty_c**2 / stt_c, 0.0)
 
@@ -327,13 +347,27 @@ def _slope_variance_terms(times: np.ndarray, weights: np.ndarray) -> tuple[float
     return terms[0], terms[2], terms[1], terms[3]
 
 
-def _population(raw: np.ndarray, clip: float = 5.0) -> np.ndarray:
-    """Photosites within ``clip`` robust standard deviations (1.4826 MAD) of the median."""
-    med = float(np.median(raw))
-    mad = 1.4826 * float(np.median(np.abs(raw - med)))
-    if mad == 0:
-        return np.ones(raw.shape, bool)
-    return np.abs(raw - med) <= clip * mad
+#: Photosites per row block of the dark-current map's passes (float64 temporaries of ~4 MB).
+_BLOCK = 1 << 19
+
+
+def _row_blocks(shape: tuple[int, ...]) -> list[slice]:
+    """Row slices of about :data:`_BLOCK` photosites covering a map of ``shape``."""
+    rows = shape[0]
+    step = max(1, _BLOCK // max(1, int(np.prod(shape[1:]))))
+    return [slice(i, min(i + step, rows)) for i in range(0, rows, step)]
+
+
+def _population_limits(slope: np.ndarray, clip: float = 5.0) -> tuple[float, float]:
+    """The median of the raw map and ``clip`` robust standard deviations (1.4826 MAD; inf when
+    the MAD is 0): a photosite belongs to the population when |raw - median| <= the second.
+    ``slope`` is float32; the medians are those of its float64 values, with one float64 copy."""
+    tmp = slope.astype(np.float64)
+    med = float(np.median(tmp, overwrite_input=True))
+    np.subtract(slope, med, out=tmp, dtype=np.float64)
+    np.abs(tmp, out=tmp)
+    mad = 1.4826 * float(np.median(tmp, overwrite_input=True))
+    return med, (np.inf if mad == 0 else clip * mad)
 
 
 def shrink_dark_current_map(
@@ -350,6 +384,10 @@ def shrink_dark_current_map(
     probability pi, a flat component over the range of the map (hot photosites). The result
     is the posterior mean, floored at 0: a normal photosite moves toward D by the factor
     se^2 / (tau^2 + se^2), a hot one keeps its regression value.
+
+    The maps are computed in row blocks (passes for the population's sums, then the maps):
+    memory holds the float32 results and one float64 copy of the slope map for its medians,
+    not float64 maps of every intermediate.
 
     Parameters
     ----------
@@ -369,39 +407,74 @@ def shrink_dark_current_map(
     DarkCurrentMap
         Maps in e-/s (float32) and the prior's parameters.
     """
-    slope = series.slope_map().astype(np.float64)  # DN/s
+    slope32 = series.slope_map()  # DN/s
+    blocks = _row_blocks(slope32.shape)
     times, weights = series.design()
     A, B, a, b = _slope_variance_terms(times, weights)
-    s_pos = np.maximum(slope, 0.0)
-    rss = series.residual_map()
-    pop = _population(slope)
-    expected = a * sigma2_R + b * g * s_pos
-    chi2 = float(np.sum(rss[pop]) / np.sum(expected[pop]))
-    raw = slope / g
-    raw_se = np.sqrt(max(chi2, 1.0) * (A * sigma2_R + B * g * s_pos)) / g
-    se2 = raw_se**2
+    med, limit = _population_limits(slope32)
+
+    def block(rows):
+        slope = slope32[rows].astype(np.float64)
+        s_pos = np.maximum(slope, 0.0)
+        return slope, s_pos, np.abs(slope - med) <= limit
+
+    # pass 1: chi2 of the population's fits
+    rss_sum = exp_sum = 0.0
+    for rows in blocks:
+        slope, s_pos, pop = block(rows)
+        rss_sum += float(np.sum(series.residual_map(rows)[pop]))
+        exp_sum += float(np.sum((a * sigma2_R + b * g * s_pos)[pop]))
+    chi2 = rss_sum / exp_sum
+    inflate = max(chi2, 1.0)
+
+    def raw_se(s_pos):
+        return np.sqrt(inflate * (A * sigma2_R + B * g * s_pos)) / g
+
+    # pass 2: the population's size, mean raw value and mean squared error; the map's range
+    n_pop = 0
+    raw_pop_sum = se2_pop_sum = se2_sum = 0.0
+    raw_min, raw_max = np.inf, -np.inf
+    for rows in blocks:
+        slope, s_pos, pop = block(rows)
+        raw = slope / g
+        se2 = raw_se(s_pos) ** 2
+        n_pop += int(np.count_nonzero(pop))
+        raw_pop_sum += float(np.sum(raw[pop]))
+        se2_pop_sum += float(np.sum(se2[pop]))
+        se2_sum += float(np.sum(se2))
+        raw_min, raw_max = min(raw_min, float(raw.min())), max(raw_max, float(raw.max()))
+    raw_pop_mean = raw_pop_sum / max(n_pop, 1)
+    # pass 3: the population's variance about its mean (two passes, as numpy's var)
+    dev2 = 0.0
+    for rows in blocks:
+        slope, _s_pos, pop = block(rows)
+        dev2 += float(np.sum(np.square(slope[pop] / g - raw_pop_mean)))
+    size = slope32.size
     # tau^2 by the method of moments, floored at its own standard error so that an unresolved
     # DCNU is not taken as none (which would state the shrunk map too precise)
-    mean_var = float(np.mean(raw_se[pop] ** 2))
-    tau2 = max(float(np.var(raw[pop])) - mean_var, np.sqrt(2.0 / max(int(pop.sum()), 1)) * mean_var)
-    pi = max(1.0 - float(np.mean(pop)), min_outlier_fraction)
+    mean_var = se2_pop_sum / max(n_pop, 1)
+    tau2 = max(dev2 / max(n_pop, 1) - mean_var, np.sqrt(2.0 / max(n_pop, 1)) * mean_var)
+    pi = max(1.0 - n_pop / size, min_outlier_fraction)
     # posterior probability of the normal population (densities in 1/(e-/s))
-    span = max(float(raw.max() - raw.min()), 10.0 * float(np.sqrt(tau2 + np.mean(se2))))
-    var_pop = tau2 + se2
-    dens = np.exp(-0.5 * (raw - D) ** 2 / var_pop) / np.sqrt(2 * np.pi * var_pop)
-    p_pop = (1 - pi) * dens / ((1 - pi) * dens + pi / span)
-    shrink = se2 / var_pop  # B_j, the weight of the prior mean
-    m_pop = raw - shrink * (raw - D)
-    v_pop = tau2 * se2 / var_pop + (shrink * D_stderr) ** 2
-    rate = p_pop * m_pop + (1 - p_pop) * raw
-    var = p_pop * (v_pop + (m_pop - rate) ** 2) + (1 - p_pop) * (se2 + (raw - rate) ** 2)
+    span = max(raw_max - raw_min, 10.0 * float(np.sqrt(tau2 + se2_sum / size)))
+    out = {k: np.empty(slope32.shape, np.float32) for k in ("rate", "stderr", "raw", "raw_se")}
+    for rows in blocks:  # pass 4: the maps
+        slope, s_pos, _pop = block(rows)
+        raw = slope / g
+        se = raw_se(s_pos)
+        se2 = se**2
+        var_pop = tau2 + se2
+        dens = np.exp(-0.5 * (raw - D) ** 2 / var_pop) / np.sqrt(2 * np.pi * var_pop)
+        p_pop = (1 - pi) * dens / ((1 - pi) * dens + pi / span)
+        shrink = se2 / var_pop  # B_j, the weight of the prior mean
+        m_pop = raw - shrink * (raw - D)
+        v_pop = tau2 * se2 / var_pop + (shrink * D_stderr) ** 2
+        rate = p_pop * m_pop + (1 - p_pop) * raw
+        var = p_pop * (v_pop + (m_pop - rate) ** 2) + (1 - p_pop) * (se2 + (raw - rate) ** 2)
+        out["rate"][rows] = np.maximum(rate, 0.0)
+        out["stderr"][rows] = np.sqrt(var)
+        out["raw"][rows] = raw
+        out["raw_se"][rows] = se
     return DarkCurrentMap(
-        np.maximum(rate, 0.0).astype(np.float32),
-        np.sqrt(var).astype(np.float32),
-        raw.astype(np.float32),
-        raw_se.astype(np.float32),
-        float(D),
-        float(np.sqrt(tau2)),
-        float(pi),
-        chi2,
+        out["rate"], out["stderr"], out["raw"], out["raw_se"], float(D), float(np.sqrt(tau2)), float(pi), chi2
     )

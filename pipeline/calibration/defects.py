@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..params import DEFECT_BITS
+from . import _kernels as _k
 
 __all__ = ["DEFECT_BITS", "DefectThresholds", "response_defects", "hot_defects", "neutral_prnu", "defect_counts"]
 
@@ -95,19 +96,26 @@ def response_defects(
     numpy.ndarray (uint8)
         Bit field of :data:`DEFECT_BITS` (dead, weak, stuck set here).
     """
-    a = np.asarray(prnu, np.float64)
-    spread2 = prnu_std**2 + (0.0 if prnu_stderr is None else np.square(prnu_stderr, dtype=np.float64))
-    weak_limit = 1.0 - np.maximum(thresholds.weak_deviation, thresholds.weak_sigma * np.sqrt(spread2))
-    no_response = a < thresholds.dead_response
-    out = np.zeros(a.shape, np.uint8)
-    stuck = np.zeros(a.shape, bool)
-    if bias_map is not None:
-        d = 0.0 if not np.isfinite(dsnu) else float(dsnu)
-        sd = np.sqrt(d * d + sigma2_R / max(n_bias, 1))
-        stuck = no_response & (np.abs(np.asarray(bias_map, np.float64) - mu_R) > thresholds.stuck_sigma * sd)
-    out[no_response & ~stuck] |= DEFECT_BITS["dead"]
-    out[stuck] |= DEFECT_BITS["stuck"]
-    out[~no_response & (a < weak_limit)] |= DEFECT_BITS["weak"]
+    # one fused pass (float64 per photosite, no full-size temporaries)
+    prnu = np.ascontiguousarray(prnu)
+    out = np.zeros(prnu.shape, np.uint8)
+    d = 0.0 if not np.isfinite(dsnu) else float(dsnu)
+    bias_sd = float(np.sqrt(d * d + sigma2_R / max(n_bias, 1)))
+    none = np.zeros((1, 1), np.float32)
+    t = thresholds
+    _k.response_defect_bits(
+        prnu,
+        none if prnu_stderr is None else np.ascontiguousarray(prnu_stderr),
+        prnu_stderr is not None,
+        float(prnu_std) ** 2,
+        none if bias_map is None else np.ascontiguousarray(bias_map),
+        bias_map is not None,
+        float(mu_R),
+        bias_sd,
+        np.array([t.dead_response, t.weak_deviation, t.weak_sigma, t.stuck_sigma], np.float64),
+        np.array([DEFECT_BITS["dead"], DEFECT_BITS["stuck"], DEFECT_BITS["weak"]], np.uint8),
+        out,
+    )
     return out
 
 
@@ -130,8 +138,10 @@ def hot_defects(
     -------
     numpy.ndarray of bool
     """
-    sd = np.sqrt(dcnu_sd**2 + np.square(raw_stderr, dtype=np.float64))
-    return np.asarray(raw, np.float64) - D > thresholds.hot_sigma * sd
+    raw = np.ascontiguousarray(raw)
+    out = np.empty(raw.shape, bool)
+    _k.hot_mask(raw, np.ascontiguousarray(raw_stderr), float(D), float(dcnu_sd) ** 2, float(thresholds.hot_sigma), out)
+    return out
 
 
 def neutral_prnu(

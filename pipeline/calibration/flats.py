@@ -17,8 +17,17 @@ import numpy as np
 
 from ..errors import InputError
 from ..times import same_exposure
+from . import _kernels as _k
 from .frames import check_shape, frame_data, frame_name, frame_time
-from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
+from .stats import (
+    DEFAULT_CLIP,
+    PairStats,
+    PixelStack,
+    _clip_bounds,
+    _subsample,
+    as_correction_map,
+    pair_statistics,
+)
 
 __all__ = ["FlatResult", "estimate_flats"]
 
@@ -73,26 +82,35 @@ SATURATED_FRACTION = 0.5
 PRNU_CLIPPED_FRACTION = 0.01
 
 
-def _clipped(data: np.ndarray, v_sat: float, name: str) -> np.ndarray:
-    """The photosites at or above ``v_sat`` (DN); refuse a flat that is mostly clipped."""
-    clipped = data >= v_sat
-    frac = float(np.count_nonzero(clipped)) / data.size
+def _check_clipped(n_clipped: int, size: int, v_sat: float, name: str) -> None:
+    """Refuse a flat with most of its ``size`` photosites at or above ``v_sat`` (DN)."""
+    frac = float(n_clipped) / size
     if frac > SATURATED_FRACTION:
         raise InputError(
             f"{name}: flat field is saturated ({100 * frac:.1f} % of photosites at or above "
             f"v_sat = {v_sat:.1f} DN); lower the exposure"
         )
-    return clipped
 
 
-def _dark_corrected(data: np.ndarray, dark_reference, dark_rate_map: np.ndarray | None, t: float) -> np.ndarray:
-    """The flat minus its dark signal: the bias (map or level, DN) plus the dark rate (DN/s)
-    times ``t`` (s); float32 (an image; the stack accumulates in float64)."""
-    corr = data.astype(np.float32)
-    corr -= dark_reference
-    if dark_rate_map is not None and t > 0:
-        corr -= dark_rate_map * t
-    return corr
+def _flat_level(
+    data: np.ndarray, offset: np.ndarray, rate: np.ndarray, t: float, v_sat: float, clip: float | None, name: str
+) -> tuple[float, int]:
+    """The clipped spatial mean of the dark-corrected flat, (data - offset) - rate * t in
+    float32 (DN; :func:`~.stats.robust_mean_std` of that image), and the photosites at or above
+    ``v_sat``, in one pass without making the image; refuses a mostly clipped flat."""
+    tr = rate.dtype.type(t)
+    lo = hi = 0.0
+    if clip is not None:
+        sub = _subsample(data).astype(np.float32)
+        sub -= _subsample(offset) if offset.size == data.size else offset[0, 0]
+        if rate.size == data.size:
+            sub -= _subsample(rate) * tr
+        lo, hi = (float(np.float32(b)) for b in _clip_bounds(sub, clip))  # the float32 image's comparison
+    n, mean, _m2, n_clipped = _k.flat_moments(data, offset, rate, tr, lo, hi, clip is not None, float(v_sat))
+    _check_clipped(n_clipped, data.size, v_sat, name)
+    if n < 2:
+        raise ValueError("fewer than two photosites survive clipping")
+    return float(mean), int(n_clipped)
 
 
 def _prnu_weight(level: float) -> float:
@@ -177,18 +195,18 @@ def estimate_flats(
     notes: list[dict] = []
     skipped: list[dict] = []
     sat_span = v_sat - (mu_R if mu_R is not None else float(np.mean(dark_reference)))
+    no_rate = as_correction_map(None, ())
     for i, fr in enumerate(frames):
-        data = frame_data(fr)
+        data = np.ascontiguousarray(frame_data(fr))
         name = frame_name(fr, "flat", i)
         check_shape(data, shape, name, first)
         if stack is None:
             shape, first = data.shape, name
             stack = PixelStack(shape)
+            offset = as_correction_map(dark_reference, shape)
+            rate = as_correction_map(dark_rate_map, shape)
         t = frame_time(fr)
-        clipped = _clipped(data, v_sat, name)
-        n_clipped = int(np.count_nonzero(clipped))
-        corr = _dark_corrected(data, dark_reference, dark_rate_map, t)
-        level, _, _ = robust_mean_std(corr, clip)
+        level, n_clipped = _flat_level(data, offset, rate if t > 0 else no_rate, t, v_sat, clip, name)
         if level < 3.0 * np.sqrt(sigma2_R):
             raise InputError(
                 f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
@@ -198,10 +216,10 @@ def estimate_flats(
         in_prnu, note = _prnu_use(level, sat_span, prnu_max_fraction, n_clipped, data.size)
         if in_prnu:
             prnu_levels.append(level)
-            corr /= level
-            stack.add(corr, weight=_prnu_weight(level), censor=clipped if n_clipped else None)
+            stack.add_corrected(
+                data, offset, rate if t > 0 else no_rate, t, level, _prnu_weight(level), v_sat, n_clipped
+            )
         notes.append({"file": name, "t": t, "level": float(level), "clipped": n_clipped, "prnu": in_prnu, "note": note})
-        del corr, clipped
         if pending is not None and same_exposure(pending[1], t):
             try:
                 pairs.append(pair_statistics(pending[0], data, clip, t, upper=v_sat))

@@ -19,7 +19,15 @@ from ..times import same_exposure
 from . import _kernels as _k
 from .frames import frame_data, frame_time
 
-__all__ = ["DEFAULT_CLIP", "robust_mean_std", "PairStats", "pair_statistics", "PairTap", "PixelStack"]
+__all__ = [
+    "DEFAULT_CLIP",
+    "as_correction_map",
+    "robust_mean_std",
+    "PairStats",
+    "pair_statistics",
+    "PairTap",
+    "PixelStack",
+]
 
 #: Default clipping threshold, in standard deviations.
 DEFAULT_CLIP = 5.0
@@ -34,13 +42,44 @@ _MAD_TO_SIGMA = 1.4826
 # --------------------------------------------------------------------------- spatial statistics
 
 
-def _subsample(x: np.ndarray, n: int = 200_003) -> np.ndarray:
+#: Photosites in the regular subsample of the robust clip bounds and floors.
+_SUBSAMPLE = 200_003
+
+
+def _subsample(x: np.ndarray, n: int = _SUBSAMPLE) -> np.ndarray:
     """A regular subsample of at most about ``n`` values of ``x`` (flattened)."""
     flat = x.ravel()
     if flat.size <= n:
         return flat
     step = flat.size // n
     return flat[::step]
+
+
+def as_correction_map(x, shape: tuple[int, ...]) -> np.ndarray:
+    """An offset or rate for :meth:`PixelStack.add_corrected`: a map of ``shape`` as it is
+    (contiguous), a numpy scalar as a (1, 1) array of its type, a Python number (or None: 0) as
+    a (1, 1) float32 array (numpy's float32 arithmetic casts a Python number to float32).
+
+    Parameters
+    ----------
+    x : numpy.ndarray, float or None
+        The offset (DN) or rate (DN/s).
+    shape : tuple of int
+        Frame shape.
+
+    Returns
+    -------
+    numpy.ndarray
+    """
+    if x is None:
+        return np.zeros((1, 1), np.float32)
+    if isinstance(x, np.ndarray) and x.ndim:
+        if x.shape != tuple(shape):
+            raise ValueError(f"map of shape {x.shape} for frames of shape {tuple(shape)}")
+        return np.ascontiguousarray(x)
+    if isinstance(x, (np.ndarray, np.generic)):
+        return np.full((1, 1), x, dtype=x.dtype)
+    return np.full((1, 1), x, np.float32)
 
 
 def robust_mean_std(
@@ -83,13 +122,45 @@ def robust_mean_std(
 
 
 def _clip_bounds(sub: np.ndarray, clip: float) -> tuple[float, float]:
-    """median +- clip robust sigmas (1.4826 MAD; the standard deviation when the MAD is 0)."""
+    """median +- clip robust sigmas (1.4826 MAD; the standard deviation when the MAD is 0).
+    Integer values (raw frames and their differences) take :func:`_int_median_mad` (the same
+    values as numpy's medians, from counts instead of a sort)."""
+    med, mad = _int_median_mad(sub) if _countable(sub) else _float_median_mad(sub)
+    scale = _MAD_TO_SIGMA * mad
+    if scale == 0.0:
+        scale = float(np.std(sub.astype(np.float64)))
+    return med - clip * scale, med + clip * scale
+
+
+def _float_median_mad(sub: np.ndarray) -> tuple[float, float]:
+    """The median of ``sub`` and the median absolute deviation from it (float64)."""
     sub = sub.astype(np.float64)
     med = float(np.median(sub))
-    scale = _MAD_TO_SIGMA * float(np.median(np.abs(sub - med)))
-    if scale == 0.0:
-        scale = float(np.std(sub))
-    return med - clip * scale, med + clip * scale
+    return med, float(np.median(np.abs(sub - med)))
+
+
+def _countable(x: np.ndarray) -> bool:
+    """Integer values within a range that counting covers (at most 2^20 codes)."""
+    return x.size > 0 and np.issubdtype(x.dtype, np.integer) and int(x.max()) - int(x.min()) < 1 << 20
+
+
+def _median_of_counts(counts: np.ndarray, offset: int, n: int) -> float:
+    """The median of ``n`` integers given their counts (value = index + ``offset``), as
+    numpy's: the middle value, or the mean of the two middle ones."""
+    cum = np.cumsum(counts)
+    v1 = int(np.searchsorted(cum, (n - 1) // 2, side="right")) + offset
+    v2 = int(np.searchsorted(cum, n // 2, side="right")) + offset
+    return (float(v1) + float(v2)) / 2.0
+
+
+def _int_median_mad(x: np.ndarray) -> tuple[float, float]:
+    """:func:`_float_median_mad` of integer values, bit for bit, by counting: the median is an
+    integer or half an integer, so twice the absolute deviations are integers too."""
+    x = x.astype(np.int64)
+    lo = int(x.min())
+    med = _median_of_counts(np.bincount(x - lo), lo, x.size)
+    dev2 = np.abs(2 * x - int(2 * med))
+    return med, _median_of_counts(np.bincount(dev2), 0, x.size) / 2.0
 
 
 @dataclass(frozen=True)
@@ -176,37 +247,44 @@ def pair_statistics(
     b = np.asarray(b)
     if a.shape != b.shape:
         raise ValueError(f"pair of frames with different shapes {a.shape} and {b.shape}")
-    if clip is None:
-        keep = np.ones(a.shape, dtype=bool)
-    else:
-        sa, sb = _subsample(a).astype(np.float64), _subsample(b).astype(np.float64)
-        keep = _k.pair_keep(a, b, *_clip_bounds(sa, clip), *_clip_bounds(sb, clip), *_clip_bounds(sa - sb, clip))
-    n_censored = 0
-    if upper is not None:
-        censored = _censored_pair(a, b, float(upper))
-        n_censored = int(np.count_nonzero(censored & keep))
-        keep &= ~censored
+    bounds = (0.0,) * 6
+    if clip is not None:
+        sa, sb = _subsample(a), _subsample(b)
+        if np.issubdtype(sa.dtype, np.integer) and np.issubdtype(sb.dtype, np.integer):
+            diff = sa.astype(np.int64) - sb  # exact, as the float64 difference of integers
+        else:
+            diff = sa.astype(np.float64) - sb.astype(np.float64)
+        bounds = (*_clip_bounds(sa, clip), *_clip_bounds(sb, clip), *_clip_bounds(diff, clip))
+    limit = 0.0 if upper is None else _censor_limit(a, b, float(upper))
+    # one fused pass for the kept photosites and their means, one for the moments (no masks):
     # (1/2n) sum d^2 - 1/2 (mu_A - mu_B)^2 == 1/2 mean of (d - (mu_A - mu_B))^2 over the kept photosites
-    n, mu_a, mu_b, s2, m4 = _k.pair_moments(a, b, keep)
+    f32_total = np.result_type(np.float32, b.dtype) == np.float32
+    n, mu_a, mu_b, s2, m4, n_censored = _k.pair_fused(
+        np.ascontiguousarray(a), np.ascontiguousarray(b), *bounds, clip is not None, limit, f32_total, upper is not None
+    )
     if n < 16:
         raise ValueError("fewer than 16 photosites survive clipping")
     var = 0.5 * s2
     var_stderr = 0.5 * np.sqrt(max(m4 - s2 * s2, 0.0) / n)
     d = a.size
     return PairStats(
-        float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time), n_censored
+        float(mu_a), float(mu_b), var, float(var_stderr), int(n), int(d - n), float(exposure_time), int(n_censored)
     )
 
 
-def _censored_pair(a: np.ndarray, b: np.ndarray, upper: float) -> np.ndarray:
-    """Photosites whose pair mean lies within CENSOR_SIGMA robust sigmas of half the
-    difference below ``upper`` (DN): the censoring of :func:`pair_statistics`."""
-    sub = (_subsample(a).astype(np.float64) - _subsample(b)) / 2.0
-    scale = _MAD_TO_SIGMA * float(np.median(np.abs(sub - np.median(sub)))) or float(np.std(sub))
-    limit = 2.0 * (upper - CENSOR_SIGMA * scale)
-    total = a.astype(np.float32)
-    total += b
-    return total >= np.float32(limit)
+def _censor_limit(a: np.ndarray, b: np.ndarray, upper: float) -> float:
+    """The float32 limit of the pair total a + b of :func:`pair_statistics`' censoring: photosites
+    whose pair mean lies within CENSOR_SIGMA robust sigmas of half the difference below
+    ``upper`` (DN) are left out."""
+    sa, sb = _subsample(a), _subsample(b)
+    if np.issubdtype(sa.dtype, np.integer) and np.issubdtype(sb.dtype, np.integer):
+        diff = sa.astype(np.int64) - sb  # twice the half difference, exact
+    else:
+        diff = sa.astype(np.float64) - sb
+    _med, mad = _int_median_mad(diff) if _countable(diff) else _float_median_mad(diff)
+    # the half difference's MAD is half the difference's (exact: a power of two)
+    scale = _MAD_TO_SIGMA * (mad / 2.0) or float(np.std(diff / 2.0))
+    return float(np.float32(2.0 * (upper - CENSOR_SIGMA * scale)))
 
 
 @dataclass
@@ -280,6 +358,10 @@ class PixelStack:
         # per-photosite weight sums and sample counts: allocated at the first censored sample
         self._swm: np.ndarray | None = None
         self._cnt: np.ndarray | None = None
+        # the frame and censoring buffers of add_corrected
+        self._buf: np.ndarray | None = None
+        self._rate_t: np.ndarray | None = None
+        self._mask: np.ndarray | None = None
 
     def add(self, values: np.ndarray, weight: float = 1.0, censor: np.ndarray | None = None) -> None:
         """Add one frame.
@@ -316,6 +398,58 @@ class PixelStack:
             _k.stack_add(values, self._ref, w, self._s, self._q, self._max, self._min, self._wmax, self._wmin)
         self.n += 1
         self.sw += w
+
+    def add_corrected(
+        self,
+        data: np.ndarray,
+        offset: np.ndarray,
+        rate: np.ndarray,
+        t: float,
+        scale: float,
+        weight: float = 1.0,
+        upper: float | None = None,
+        n_upper: int = 0,
+    ) -> None:
+        """Add the frame ((data - offset) - rate * t) / scale, computed in float32 in buffers the
+        stack keeps (no new image per frame), by the same numpy operations as an image would be.
+
+        Parameters
+        ----------
+        data : numpy.ndarray
+            The raw frame, DN.
+        offset, rate : numpy.ndarray
+            Offset (DN) and dark rate (DN/s) maps of the frame's shape, or (1, 1) arrays for a
+            scalar offset and no rate (:func:`as_correction_map`).
+        t : float
+            Exposure time, s.
+        scale : float
+            Divisor of the corrected frame (rounded to float32).
+        weight : float
+            Scalar weight of the frame (inverse relative variance), dimensionless.
+        upper : float, optional
+            Raw values at or above it (DN) are censored (left out).
+        n_upper : int
+            Photosites of ``data`` at or above ``upper`` (0: nothing censored in this frame).
+        """
+        data = np.ascontiguousarray(data)
+        if data.shape != self.shape:
+            raise ValueError(f"frame shape {data.shape} differs from the stack's {self.shape}")
+        if self._buf is None:
+            self._buf = np.empty(self.shape, np.float32)
+        buf = self._buf  # corr = data.astype(float32); corr -= offset; corr -= rate * t; corr /= scale
+        np.copyto(buf, data, casting="unsafe")
+        np.subtract(buf, offset if offset.size == data.size else offset[0, 0], out=buf)
+        if rate.size == data.size:
+            if self._rate_t is None or self._rate_t.dtype != rate.dtype:
+                self._rate_t = np.empty(self.shape, rate.dtype)
+            np.subtract(buf, np.multiply(rate, rate.dtype.type(t), out=self._rate_t), out=buf)
+        np.divide(buf, np.float32(scale), out=buf)
+        censor = None
+        if upper is not None and n_upper > 0:
+            if self._mask is None:
+                self._mask = np.empty(self.shape, bool)
+            censor = np.greater_equal(data, upper, out=self._mask)
+        self.add(self._buf, weight, censor)
 
     def _add_censored(self, values: np.ndarray, w: float, censor: np.ndarray) -> None:
         """Add a frame with weight ``w`` skipping the ``censor`` photosites (one fused pass):
