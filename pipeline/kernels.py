@@ -669,7 +669,8 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     # Centre the Wald statistic: its first-order mean is kappa_{11,1}/(2 I^(3/2)) whether sigma
     # comes from the observed or the expected information (docs/merge.md, item 5)
     ie, k11_1 = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
-    x -= 0.5 * k11_1 / (ie * ie)
+    if ie > 0.0:  # else no sample informs at the root (every one far above v_sat): nothing to centre
+        x -= 0.5 * k11_1 / (ie * ie)
     return x, 1.0 / math.sqrt(hh), float(nr), steps, False
 
 
