@@ -147,6 +147,28 @@ class Job:
         return JobError(f"{self.where(section, key)}: {label}: {message}")
 
 
+#: The most frames one run may plan (light and dark frames, or a calibration series): a job
+#: beyond it is a typing error (a run of 100 000 frames already takes more than a day at one
+#: frame per second), refused when the job is read instead of planned frame by frame.
+MAX_FRAMES_PER_RUN = 100_000
+
+
+def _check_frame_counts(job, exp: dict, darks: dict) -> None:
+    """Refuse frame counts no run can take (see :data:`MAX_FRAMES_PER_RUN`), naming the key."""
+    limit = MAX_FRAMES_PER_RUN
+    for section, key, value in (
+        ("exposure", "repeats", exp["repeats"]),
+        ("exposure", "max_exposures", exp.get("max_exposures") or 1),
+        ("darks", "count", darks["count"]),
+    ):
+        if value > limit:
+            raise job.error(section, key, f"{value} is more frames than a run takes ({limit})")
+    per_repeat = len(exp["times"]) if exp["mode"] == "bracket" else (exp.get("max_exposures") or 1)
+    light = per_repeat * exp["repeats"]
+    if light > limit:
+        raise job.error("exposure", "repeats", f"{light} light frames per run, more than a run takes ({limit})")
+
+
 def _key_lines(text: str) -> dict[tuple[str, str], int]:
     """Line numbers of ``[section]`` headers and ``key =`` lines (first occurrence)."""
     out: dict[tuple[str, str], int] = {}
@@ -276,6 +298,7 @@ def _check_values(job: Job) -> None:
         raise job.error("darks", "strategy", f"must be matched, master or model, got {darks['strategy']!r}")
     if darks["count"] < 1:
         raise job.error("darks", "count", "must be >= 1")
+    _check_frame_counts(job, exp, darks)
     if darks["block_light"] not in ("mock", "prompt", "command", "none"):
         raise job.error("darks", "block_light", f"must be mock, prompt, command or none, got {darks['block_light']!r}")
     if darks["block_light"] == "mock" and cam["backend"] != "mock" and darks["strategy"] != DarkStrategy.MODEL:
@@ -303,6 +326,12 @@ def _check_values(job: Job) -> None:
     for i, s in enumerate(cal["series"]):
         if not isinstance(s, dict) or set(s) - {"kind", "times", "count"} or "kind" not in s or "times" not in s:
             raise job.error("calibration", "series", f"series {i + 1}: needs kind, times (and count), nothing else")
+        count, times = s.get("count", 1), s["times"]
+        n = count * len(times) if isinstance(count, int) and isinstance(times, list) else 0
+        if n > MAX_FRAMES_PER_RUN:
+            raise job.error(
+                "calibration", "series", f"series {i + 1}: {n} frames, more than a run takes ({MAX_FRAMES_PER_RUN})"
+            )
         if s["kind"] not in ("bias", "flat", "saturation", "darkseries"):
             raise job.error(
                 "calibration",

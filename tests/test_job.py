@@ -63,6 +63,16 @@ def test_good_job_loads_with_defaults(tmp_path):
         (("[output]", '[calibration]\nfile = "nope.json"\n\n[output]'), 24, "does not exist"),
         (('folder = "runs/{job}-{date}"', 'folder = "afile/runs"'), 24, "not a writable folder"),
         (('mode = "bracket"', 'mode = "snr"'), 15, "target_snr_db"),
+        # frame counts no run takes: refused when read, never planned frame by frame (the fuzzer's
+        # repeats = 8.4e17 made `run --check` build the plan until it ran out of time and memory)
+        (('mode = "bracket"', 'mode = "bracket"\nrepeats = 841858151345640960'), 17, "more frames than a run takes"),
+        (('mode = "bracket"', 'mode = "bracket"\nrepeats = 20000'), 17, "120000 light frames per run"),
+        (('block_light = "mock"', 'block_light = "mock"\ncount = 200000'), 22, "more frames than a run takes"),
+        (
+            ("[output]", '[calibration]\nseries = [{kind = "bias", times = [0.001], count = 1000000}]\n\n[output]'),
+            0,
+            "1000000 frames, more than a run takes",
+        ),
     ],
 )
 def test_bad_jobs_name_the_line(tmp_path, change, line, words):
