@@ -1303,18 +1303,21 @@ def _json_default(obj):
     raise TypeError(f"cannot store {type(obj).__name__} in the EXR header")
 
 
-def read_exr(path) -> HdrImage:
+def read_exr(path, channels: Iterable[str] | None = None) -> HdrImage:
     """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`.
 
     Parameters
     ----------
     path : str or os.PathLike
         The EXR file.
+    channels : iterable of str, optional
+        Keep only these channels (those the file has; the others are decoded by OpenEXR but
+        neither converted nor kept). Default: every channel.
 
     Returns
     -------
     HdrImage
-        Every channel as a float32 array (irradiance and sigma in e-/s per photosite for
+        The channels as float32 arrays (irradiance and sigma in e-/s per photosite for
         hdrcap's files) and the metadata (the ``hdrcap`` JSON attribute, else the header).
 
     Raises
@@ -1333,7 +1336,12 @@ def read_exr(path) -> HdrImage:
             # the pixel arrays own their memory: float channels are kept without a copy (half
             # and uint ones converted exactly)
             meta = exr.header().get(_META_KEY)
-            channels = {name: np.ascontiguousarray(ch.pixels, dtype=np.float32) for name, ch in exr.channels().items()}
+            wanted = None if channels is None else set(channels)
+            data = {
+                name: np.ascontiguousarray(ch.pixels, dtype=np.float32)
+                for name, ch in exr.channels().items()
+                if wanted is None or name in wanted
+            }
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
     attrs: dict[str, Any] = {}
@@ -1342,4 +1350,4 @@ def read_exr(path) -> HdrImage:
             attrs = json.loads(meta)
         except (TypeError, ValueError):
             raise InputError(f"{path}: corrupt hdrcap metadata in the EXR header") from None
-    return HdrImage(channels=channels, attrs=attrs)
+    return HdrImage(channels=data, attrs=attrs)

@@ -298,8 +298,9 @@ def read_irradiance_map(path: str | Path) -> np.ndarray:
     """
     from hdrcap.pipeline.io import read_exr
 
-    img = read_exr(path)
-    for name in ("irradiance", "Y", "R", "G"):
+    names = ("irradiance", "Y", "R", "G")
+    img = read_exr(path, channels=names)  # the others (sigma, nexp, ...) are not converted
+    for name in names:
         if name in img.channels:
             data = np.asarray(img.channels[name], dtype=np.float64)
             break

@@ -117,22 +117,38 @@ def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
     x = np.asarray(irradiance, dtype=np.float64).ravel()
     if x.size == 0:
         raise InputError("the irradiance map is empty")
-    if not np.all(np.isfinite(x)):
-        raise InputError("the irradiance map holds NaN or infinite values")
-    pos = x[x > 0]
-    n_nosignal = int(x.size - pos.size)
-    if pos.size == 0:
+    # In blocks (cache-sized temporaries instead of a dozen full-size ones): first log10 of the
+    # positive values, stored in order, then the bins; the same numbers as on the whole array
+    lx = np.empty(x.size)
+    n_pos = 0
+    for xb in _blocks_of(x):
+        if not np.isfinite(xb).all():
+            raise InputError("the irradiance map holds NaN or infinite values")
+        pb = xb[xb > 0]
+        np.log10(pb, out=lx[n_pos : n_pos + pb.size])
+        n_pos += pb.size
+    n_nosignal = int(x.size - n_pos)
+    if n_pos == 0:
         return IrradianceHistogram(np.zeros(0), np.zeros(0), int(x.size), n_nosignal)
-    lx = np.log10(pos)
+    lx = lx[:n_pos]
     lo, hi = lx.min(), lx.max()
     if hi - lo < 1e-9:
-        return IrradianceHistogram(np.array([pos[0]]), np.array([float(pos.size)]), int(x.size), n_nosignal)
-    idx = np.minimum(((lx - lo) / (hi - lo) * bins).astype(np.int64), bins - 1)
-    count = np.bincount(idx, minlength=bins).astype(np.float64)
+        first = next(xb[xb > 0][0] for xb in _blocks_of(x) if (xb > 0).any())
+        return IrradianceHistogram(np.array([first]), np.array([float(n_pos)]), int(x.size), n_nosignal)
+    count = np.zeros(bins, dtype=np.int64)
     bmin = np.full(bins, np.inf)
     bmax = np.full(bins, -np.inf)
-    np.minimum.at(bmin, idx, pos)
-    np.maximum.at(bmax, idx, pos)
+    done = 0
+    for xb in _blocks_of(x):
+        pb = xb[xb > 0]
+        lb = lx[done : done + pb.size]
+        done += pb.size
+        idx = ((lb - lo) / (hi - lo) * bins).astype(np.int64)
+        np.minimum(idx, bins - 1, out=idx)
+        count += np.bincount(idx, minlength=bins)
+        np.minimum.at(bmin, idx, pb)
+        np.maximum.at(bmax, idx, pb)
+    count = count.astype(np.float64)
     keep = count > 0
     count, bmin, bmax = count[keep], bmin[keep], bmax[keep]
     single = bmin == bmax
@@ -140,6 +156,16 @@ def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
     w = np.concatenate([np.where(single, count, count / 2), count[~single] / 2])
     order = np.argsort(X, kind="stable")
     return IrradianceHistogram(X[order], w[order], int(x.size), n_nosignal)
+
+
+#: Elements per block of :func:`irradiance_histogram`'s passes.
+_HIST_BLOCK = 1 << 18
+
+
+def _blocks_of(x: np.ndarray):
+    """Consecutive views of the 1-D array ``x``, :data:`_HIST_BLOCK` elements each."""
+    for i in range(0, x.size, _HIST_BLOCK):
+        yield x[i : i + _HIST_BLOCK]
 
 
 @dataclass
@@ -413,7 +439,48 @@ def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_
         Boolean mask.
     """
     X = np.asarray(X, dtype=np.float64)
-    return (X > 0) & (usable_fraction(X, t_min, calibration, "threshold", k_sigma) > 0)
+
+    def usable(x):
+        return (x > 0) & (usable_fraction(x, t_min, calibration, "threshold", k_sigma) > 0)
+
+    if X.size < _ELIGIBLE_DIRECT:
+        return usable(X)
+    # The rule is monotone in X (the predicted value and its sigma both grow with X): find its
+    # limit by bisection, compare, and evaluate the rule itself only in a narrow band around the
+    # limit, where rounding could decide (the same mask, without full-size float64 temporaries)
+    lo, hi = _usable_limit(usable)
+    if lo is None:
+        return usable(X)
+    out = (X > 0) & (X < lo)
+    band = np.flatnonzero((X >= lo) & (X <= hi))
+    out.flat[band] = usable(X.flat[band])
+    return out
+
+
+#: Maps smaller than this (elements) take :func:`eligible_mask`'s rule directly.
+_ELIGIBLE_DIRECT = 1 << 16
+
+
+def _usable_limit(usable) -> tuple[float | None, float | None]:
+    """A band [lo, hi] of irradiance around the limit of the monotone rule ``usable`` (true
+    below, false above), 1e-9 relative wide on each side; (None, None) where it has no finite
+    positive limit to find this way (usable nowhere or everywhere up to 1e300)."""
+    below, above = 1e-300, 1.0
+    if not usable(np.array([below]))[0]:
+        return None, None
+    while usable(np.array([above]))[0]:
+        below, above = above, above * 1e3
+        if above > 1e300:
+            return None, None
+    for _ in range(200):  # geometric bisection: 1e-12 relative in well under 200 steps
+        if above <= below * (1.0 + 1e-12):
+            break
+        mid = np.sqrt(below * above)
+        if usable(np.array([mid]))[0]:
+            below = mid
+        else:
+            above = mid
+    return below * (1.0 - 1e-9), above * (1.0 + 1e-9)
 
 
 def bulk_irradiance(

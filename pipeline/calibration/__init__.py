@@ -35,22 +35,57 @@ Modules:
 
 from __future__ import annotations
 
-from .archive import FORMAT, FORMAT_VERSION, load_calibration, save_calibration
-from .dark import DarkFit, MasterDark, fit_dark_current
-from .files import add_shutter_table, calibrate_files
-from .flats import FlatResult, estimate_flats
-from .gain import (
-    PhotonTransferFit,
-    gain_from_pair,
-    gain_from_pairs,
-    photon_transfer_gain,
-    prnu_correction_factor,
-)
-from .readout import ReadoutEstimate, estimate_readout
-from .saturation import estimate_saturation
-from .shutter import estimate_shutter_table
-from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
-from .workflow import GAIN_METHODS, calibrate, calibration_summary, format_summary, with_file_metadata
+import importlib
+
+#: Where each public name lives. The submodules are imported on first use of a name (PEP 562),
+#: so that loading a calibration file (``archive``) does not import the estimators and their
+#: numba kernels (about 0.5 s).
+_HOME = {
+    "FORMAT": "archive",
+    "FORMAT_VERSION": "archive",
+    "load_calibration": "archive",
+    "save_calibration": "archive",
+    "DarkFit": "dark",
+    "MasterDark": "dark",
+    "fit_dark_current": "dark",
+    "add_shutter_table": "files",
+    "calibrate_files": "files",
+    "FlatResult": "flats",
+    "estimate_flats": "flats",
+    "PhotonTransferFit": "gain",
+    "gain_from_pair": "gain",
+    "gain_from_pairs": "gain",
+    "photon_transfer_gain": "gain",
+    "prnu_correction_factor": "gain",
+    "ReadoutEstimate": "readout",
+    "estimate_readout": "readout",
+    "estimate_saturation": "saturation",
+    "estimate_shutter_table": "shutter",
+    "DEFAULT_CLIP": "stats",
+    "PairStats": "stats",
+    "PixelStack": "stats",
+    "pair_statistics": "stats",
+    "robust_mean_std": "stats",
+    "GAIN_METHODS": "workflow",
+    "calibrate": "workflow",
+    "calibration_summary": "workflow",
+    "format_summary": "workflow",
+    "with_file_metadata": "workflow",
+}
+
+
+def __getattr__(name: str):
+    home = _HOME.get(name)
+    if home is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{home}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOME))
+
 
 __all__ = [
     "FORMAT",
