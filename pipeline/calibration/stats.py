@@ -328,6 +328,9 @@ class PairTap:
 #: arguments of :func:`~._kernels.stack_add_batch`.
 BATCH = 8
 
+#: The offset and rate of raw frames in the queue (:meth:`PixelStack.add`).
+_NO_MAP = np.zeros((1, 1), np.float32)
+
 
 class PixelStack:
     """Streaming, sigma-clipped per-photosite weighted mean of many frames.
@@ -365,12 +368,15 @@ class PixelStack:
         self._cnt: np.ndarray | None = None
         # the frames add_corrected queued (added in one pass, :data:`BATCH` at a time)
         self._queue: list[tuple] = []
-        self._queue_key: tuple = (None, None)
+        self._queue_key: tuple = (None, None, None)
+        self._spare_ref: np.ndarray | None = None
         self._queue_rate: np.ndarray | None = None
         self._set_ref = False
 
     def add(self, values: np.ndarray, weight: float = 1.0, censor: np.ndarray | None = None) -> None:
-        """Add one frame.
+        """Add one frame. Without ``censor``, a 2-D frame is queued and :data:`BATCH` queued
+        frames are added in one pass (the stack keeps ``values``, not a copy, until then: it
+        must not change).
 
         Parameters
         ----------
@@ -384,9 +390,13 @@ class PixelStack:
         values = np.asarray(values)
         if values.shape != self.shape:
             raise ValueError(f"frame shape {values.shape} differs from the stack's {self.shape}")
+        if censor is None and values.ndim == 2:  # queued: added in one pass with the next ones
+            self._enqueue(np.ascontiguousarray(values), False, _NO_MAP, _NO_MAP, 0.0, 1.0, weight, None, 0)
+            return
         self._flush()
         if self._ref is None:
-            self._ref = np.array(values, dtype=np.float32, copy=True)
+            self._ref = self._take_ref()
+            np.copyto(self._ref, values, casting="unsafe")
             self._w0 = float(weight)
         w = float(weight)
         values = np.ascontiguousarray(values)
@@ -444,19 +454,24 @@ class PixelStack:
         data = np.ascontiguousarray(data)
         if data.shape != self.shape:
             raise ValueError(f"frame shape {data.shape} differs from the stack's {self.shape}")
+        self._enqueue(data, True, offset, rate, t, scale, weight, upper, n_upper)
+
+    def _enqueue(self, data, corrected, offset, rate, t, scale, weight, upper, n_upper) -> None:
+        """Queue a frame for :meth:`_flush` (arguments of :meth:`add_corrected`; ``corrected``
+        False: the raw values, as :meth:`add`), making the choices :meth:`add` makes frame by
+        frame: the reference, then the weight sums and counts at the first censored sample (the
+        frames queued before it are in their fill), then the extremes' weights."""
         rate_on = rate.size == data.size
         other_rate = rate_on and self._queue_rate is not None and self._queue_rate is not rate
-        if self._queue and (data.dtype != self._queue_key[0] or offset is not self._queue_key[1] or other_rate):
+        key = self._queue_key
+        if self._queue and (corrected != key[0] or data.dtype != key[1] or offset is not key[2] or other_rate):
             self._flush()
-        self._queue_key = (data.dtype, offset)
+        self._queue_key = (corrected, data.dtype, offset)
         if rate_on:
             self._queue_rate = rate
         w = float(weight)
-        # the same choices as add(), frame by frame: the reference, then the weight sums and
-        # counts at the first censored sample (the frames queued before it are in their fill),
-        # then the extremes' weights
         if self._ref is None:
-            self._ref = np.empty(self.shape, np.float32)
+            self._ref = self._take_ref()
             self._w0 = w
             self._set_ref = True
         censor = upper is not None and n_upper > 0
@@ -474,13 +489,35 @@ class PixelStack:
         if len(self._queue) >= BATCH:
             self._flush()
 
+    def _take_ref(self) -> np.ndarray:
+        """The reference frame's buffer (the one :meth:`reset` kept, else a new one)."""
+        buf, self._spare_ref = self._spare_ref, None
+        return np.empty(self.shape, np.float32) if buf is None else buf
+
+    def reset(self) -> None:
+        """Empty the stack for a new series of frames of the same shape, keeping its maps'
+        memory (no new pages to fault in: a 24 Mpixel stack is ~0.6 GB)."""
+        self._queue = []
+        self._queue_rate = None
+        self._set_ref = False
+        self.n = 0
+        self.sw = 0.0
+        self._spare_ref = self._ref if self._ref is not None else self._spare_ref
+        self._ref = None
+        self._s.fill(0.0)
+        self._q.fill(0.0)
+        self._max.fill(-np.inf)
+        self._min.fill(np.inf)
+        self._w0 = None
+        self._wmax = self._wmin = self._swm = self._cnt = None
+
     def _flush(self) -> None:
-        """Add the queued frames of :meth:`add_corrected` in one pass (:func:`~._kernels.stack_add_batch`)."""
+        """Add the queued frames in one pass (:func:`~._kernels.stack_add_batch`)."""
         if not self._queue:
             return
         frames = [entry[0] for entry in self._queue]
         frames += [np.zeros((1, 1), frames[0].dtype)] * (BATCH - len(frames))
-        offset = self._queue_key[1]
+        corrected, _dtype, offset = self._queue_key
         none = np.zeros((1, 1))
         none32 = np.zeros((1, 1), np.float32)
         rate = none32 if self._queue_rate is None else self._queue_rate
@@ -488,7 +525,7 @@ class PixelStack:
         _k.stack_add_batch(
             *frames,
             len(self._queue),
-            True,
+            corrected,
             offset,
             rate,
             np.array(cols[1], bool),
