@@ -10,6 +10,7 @@ import pytest
 from hdrcap.pipeline.calibration import flats as fl
 from hdrcap.pipeline.calibration.stats import (
     _MAD_TO_SIGMA,
+    BATCH,
     CENSOR_SIGMA,
     PixelStack,
     _censor_limit,
@@ -69,8 +70,45 @@ def test_stack_of_corrected_flats_is_bit_identical():
         corr = _image(f, bias, rate, t)
         corr /= level
         clipped = f >= upper
-        a.add(corr, weight=w, censor=clipped if clipped.any() else None)
+        a.add(corr, weight=w, censor=clipped)  # with a mask: added at once, frame by frame
         b.add_corrected(f, off, rt, t, level, w, upper, int(clipped.sum()))
+    for x, y in zip(a.result(5.0), b.result(5.0)):
+        np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float64])
+def test_queued_raw_frames_and_reset_are_bit_identical(dtype):
+    """Raw frames queued by add() (one pass per batch) as added one by one, also after reset()."""
+    frames, _bias, _rate = _frames(5, n=BATCH + 3)
+    a, b = PixelStack(SHAPE), PixelStack(SHAPE)
+    for rnd in range(2):
+        for k, f in enumerate(frames[rnd:]):
+            f = (f * 1.001).astype(dtype) if dtype != np.uint16 else f
+            w = 1.0 if k < 4 else 2.0
+            a.add(f, weight=w, censor=np.zeros(SHAPE, bool))  # at once, the frame-by-frame kernels
+            b.add(f, weight=w)
+        for x, y in zip(a.result(5.0), b.result(5.0)):
+            np.testing.assert_array_equal(x, y)
+        a = PixelStack(SHAPE)
+        b.reset()
+
+
+def test_batched_stack_over_many_flats_is_bit_identical():
+    """More flats than one batch, a flat without dark rate (t = 0) and a censored one between
+    them, and a float32 frame (another batch): as the images added one by one."""
+    frames, bias, rate = _frames(4, n=2 * BATCH + 3)
+    frames[5] = frames[5].astype(np.float32)
+    upper = 4000.0
+    a, b = PixelStack(SHAPE), PixelStack(SHAPE)
+    off, rt, no_rate = as_correction_map(bias, SHAPE), as_correction_map(rate, SHAPE), as_correction_map(None, ())
+    for k, f in enumerate(frames):
+        level, t, w = 1900.0 + 10 * k, 0.0 if k == 3 else 0.1 * (k + 1), 1.0 + (k > 6)
+        corr = _image(f, bias, rate if t > 0 else 0.0, t)
+        corr /= np.float32(level)
+        clipped = f >= upper if k in (9, 12) else np.zeros(SHAPE, bool)
+        a.add(corr, weight=w, censor=clipped)  # with a mask: added at once, frame by frame
+        b.add_corrected(f, off, rt if t > 0 else no_rate, t, level, w, upper, int(clipped.sum()))
+    np.testing.assert_array_equal(a.n_uncensored(), b.n_uncensored())
     for x, y in zip(a.result(5.0), b.result(5.0)):
         np.testing.assert_array_equal(x, y)
 

@@ -13,6 +13,7 @@ __all__ = [
     "stack_add",
     "stack_add_equal",
     "stack_add_censored",
+    "stack_add_batch",
     "stack_result",
     "masked_moments",
     "flat_moments",
@@ -104,6 +105,183 @@ def stack_add_censored(values, ref, w, censor, s, q, sw, cnt, mx, mn, wmx, wmn):
             wn_[i] = w
 
 
+#: Photosites of a row tile of :func:`stack_add_batch`: the tile's maps (~40 bytes a photosite)
+#: stay in the core's cache while the frames are added.
+_TILE = 1024
+
+
+@numba.njit(parallel=True, cache=True)
+def stack_add_batch(
+    f0,
+    f1,
+    f2,
+    f3,
+    f4,
+    f5,
+    f6,
+    f7,
+    nk,
+    corrected,
+    bias,
+    rate,
+    rate_on,
+    trs,
+    scales,
+    ws,
+    uppers,
+    censor_on,
+    count_on,
+    set_ref,
+    ref,
+    s,
+    q,
+    mx,
+    mn,
+    wmx,
+    wmn,
+    sw,
+    cnt,
+):  # pragma: no cover - compiled
+    """Several frames into the stack's maps in one pass over each row (the row's maps stay in
+    cache while the frames are added one after the other, so every photosite sees its samples in
+    the frames' order: bit for bit :func:`stack_add`, :func:`stack_add_equal` and
+    :func:`stack_add_censored` frame by frame).
+
+    ``f0`` .. ``f7``: the frames (2-D, one type; the first ``nk`` are added, the others are
+    placeholders: a typed list would cost its compilation in every process). With ``corrected`` a sample is the
+    dark-corrected, scaled value ((float32(v) - bias) - rate * trs[k]) / scales[k], each step
+    rounded to float32 as numpy computed the image (``bias``/``rate``: maps of the frame's shape
+    or (1, 1) arrays; the rate only for the frames with ``rate_on[k]``); without, it is the raw
+    value v. Frame k has the weight ``ws[k]``; with ``censor_on[k]`` its photosites with raw
+    v >= ``uppers[k]`` are left out; with ``count_on[k]`` its samples are added to the
+    per-photosite weight sums and counts ``sw``/``cnt`` (maps of the frame's shape, else
+    ignored). ``wmx``/``wmn`` (the extremes' weights) are kept when they have the frame's size.
+    With ``set_ref`` the first frame's sample becomes the reference ``ref`` (float32).
+
+    Each row and frame runs two loops without branches on the common path (so that they
+    vectorise): the samples into a row buffer, then the update."""
+    rows, cols = s.shape
+    frames = (f0, f1, f2, f3, f4, f5, f6, f7)
+    per_b = bias.shape == s.shape
+    per_r = rate.shape == s.shape
+    track_w = wmx.shape == s.shape
+    counts = sw.shape == s.shape
+    n_tiles = (cols + _TILE - 1) // _TILE
+    for it in numba.prange(rows * n_tiles):
+        i = it // n_tiles
+        j0 = (it % n_tiles) * _TILE
+        j1 = min(j0 + _TILE, cols)
+        n = j1 - j0
+        s_, q_, mx_, mn_, ref_ = s[i, j0:j1], q[i, j0:j1], mx[i, j0:j1], mn[i, j0:j1], ref[i, j0:j1]
+        b_ = bias[i, j0:j1] if per_b else np.full(n, bias[0, 0])
+        r_ = rate[i, j0:j1] if per_r else rate[0]
+        wx_ = wmx[i, j0:j1] if track_w else wmx[0]
+        wn_ = wmn[i, j0:j1] if track_w else wmn[0]
+        x_ = np.empty(n, np.float64)
+        d_ = np.empty(n, np.float64)
+        for k in range(nk):
+            v = frames[k][i, j0:j1]
+            w = ws[k]
+            if corrected:
+                tr = trs[k]
+                sc = scales[k]
+                if per_r and rate_on[k]:
+                    for j in range(n):
+                        c = np.float32(np.float32(v[j]) - b_[j])
+                        x_[j] = np.float32(np.float32(c - r_[j] * tr) / sc)
+                else:
+                    for j in range(n):
+                        x_[j] = np.float32(np.float32(np.float32(v[j]) - b_[j]) / sc)
+            else:
+                for j in range(n):
+                    x_[j] = v[j]
+            if set_ref and k == 0:
+                for j in range(n):
+                    ref_[j] = np.float32(x_[j])
+            if censor_on[k] or (count_on[k] and counts):
+                _row_add_general(
+                    x_,
+                    v,
+                    ref_,
+                    w,
+                    censor_on[k],
+                    uppers[k],
+                    count_on[k] and counts,
+                    track_w,
+                    i,
+                    j0,
+                    s_,
+                    q_,
+                    mx_,
+                    mn_,
+                    wmx,
+                    wmn,
+                    sw,
+                    cnt,
+                )
+                continue
+            # the common path in short loops of few arrays (few aliasing checks), every value
+            # loaded before the selects: each loop vectorises
+            for j in range(n):
+                d_[j] = x_[j] - np.float64(ref_[j])
+            for j in range(n):
+                d = d_[j]
+                s_[j] += w * d
+                q_[j] += w * d * d
+            if track_w:
+                _row_extreme_w(d_, mx_, wx_, np.float32(w), 1.0)
+                _row_extreme_w(d_, mn_, wn_, np.float32(w), -1.0)
+            else:
+                _row_extreme(d_, mx_, 1.0)
+                _row_extreme(d_, mn_, -1.0)
+
+
+@numba.njit(inline="always")
+def _row_extreme_w(d_, m_, w_, w32, sign):  # pragma: no cover - compiled
+    """m_ = d_ where sign * d_ > sign * m_ (the largest or smallest sample), w_ = w32 there."""
+    for j in range(d_.size):
+        d = d_[j]
+        m = m_[j]
+        wo = w_[j]
+        new = sign * d > sign * np.float64(m)
+        m_[j] = np.float32(d) if new else m
+        w_[j] = w32 if new else wo
+
+
+@numba.njit(inline="always")
+def _row_extreme(d_, m_, sign):  # pragma: no cover - compiled
+    """m_ = d_ where sign * d_ > sign * m_ (the largest or smallest sample)."""
+    for j in range(d_.size):
+        d = d_[j]
+        m = m_[j]
+        m_[j] = np.float32(d) if sign * d > sign * np.float64(m) else m
+
+
+@numba.njit(cache=True)
+def _row_add_general(
+    x_, v, ref_, w, cens, up, cnt_on, track_w, i, j0, s_, q_, mx_, mn_, wmx, wmn, sw, cnt
+):  # pragma: no cover
+    """One row tile (row ``i`` from column ``j0``) of :func:`stack_add_batch` with censoring or
+    per-photosite counts."""
+    for j in range(x_.size):
+        if cens and np.float64(v[j]) >= up:
+            continue
+        d = x_[j] - np.float64(ref_[j])
+        s_[j] += w * d
+        q_[j] += w * d * d
+        if cnt_on:
+            sw[i, j0 + j] += w
+            cnt[i, j0 + j] += 1.0
+        if d > mx_[j]:
+            mx_[j] = d
+            if track_w:
+                wmx[i, j0 + j] = w
+        if d < mn_[j]:
+            mn_[j] = d
+            if track_w:
+                wmn[i, j0 + j] = w
+
+
 @numba.njit(inline="always")
 def _nanmax(a, b):  # pragma: no cover - compiled
     """numpy.maximum of two floats: NaN when either is NaN."""
@@ -115,18 +293,36 @@ def _nanmax(a, b):  # pragma: no cover - compiled
 @numba.njit(inline="always", error_model="numpy")
 def _reject(s, q, sw, cnt, v, w, sign, min_cnt, clip2, floor):  # pragma: no cover - compiled
     """Reject the extreme sample ``v`` (weight ``w``) when it lies more than sqrt(clip2)
-    standard deviations from the weighted mean of the others; the updated (s, q, sw, cnt, rejected)."""
-    if cnt < min_cnt:  # too few uncensored samples to reject one
-        v = 0.0
-        w = 0.0
+    standard deviations from the weighted mean of the others; the updated (s, q, sw, cnt, rejected).
+    Selects, not branches (the row loop vectorises)."""
+    few = cnt < min_cnt  # too few uncensored samples to reject one
+    v = 0.0 if few else v
+    w = 0.0 if few else w
     s_o = s - w * v
     sw_o = sw - w
     mean_o = s_o / sw_o
     var_o = _nanmax(q - w * v * v - sw_o * (mean_o * mean_o), 0.0) / max(cnt - 2.0, 1.0)
     dev = sign * (v - mean_o)
-    if dev * dev * w > clip2 * _nanmax(var_o, floor) * (1.0 + w / _nanmax(sw_o, 1e-300)):
-        return s - w * v, q - w * v * v, sw - w, cnt - 1.0, 1
-    return s, q, sw, cnt, 0
+    rej = dev * dev * w > clip2 * _nanmax(var_o, floor) * (1.0 + w / _nanmax(sw_o, 1e-300))
+    return (
+        s - w * v if rej else s,
+        q - w * v * v if rej else q,
+        sw - w if rej else sw,
+        cnt - 1.0 if rej else cnt,
+        1 if rej else 0,
+    )
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _result_px(si, qi, swi, ci, ref_ij, floor):  # pragma: no cover - compiled
+    """The weighted mean (+ ``ref_ij``) and its standard error of one photosite (float32); every
+    sample censored (``swi`` <= 0): the first (censored) value, 100 % error."""
+    none = swi <= 0.0
+    mean_rel = si / swi
+    var1 = _nanmax(qi - swi * (mean_rel * mean_rel), 0.0) / max(ci - 1.0, 1.0)
+    m = si + ref_ij if none else mean_rel + ref_ij
+    e = abs(ref_ij) if none else np.sqrt(_nanmax(var1, floor) / swi)
+    return np.float32(m), np.float32(e)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -137,35 +333,42 @@ def stack_result(
     ``clip2`` in variances), then the weighted mean (+ ``ref``) and its standard error into
     ``mean``/``err`` (float32). ``sw_map``/``cnt_map`` (weight sums, counts) and ``wmx``/``wmn``
     (the extremes' weights) are used when they have the frame's size, else the scalars ``sw0``,
-    ``cnt0``, ``w0``. ``floors``: the variance floors (max, min, final). Returns the rejections."""
+    ``cnt0``, ``w0``. ``floors``: the variance floors (max, min, final). Returns the rejections.
+    Rows in parallel; per row, the weights into float64 buffers, then one loop per case without
+    branches (it vectorises)."""
     rows, cols = s.shape
     per_px_sw = sw_map.shape == s.shape
     per_px_w = wmx.shape == s.shape
+    f_max, f_min, f_var = floors[0], floors[1], floors[2]
     nrej = 0
     for i in numba.prange(rows):
         k = 0
+        sw_r = sw_map[i] if per_px_sw else np.full(cols, sw0)
+        c_r = cnt_map[i] if per_px_sw else np.full(cols, cnt0)
+        wx_r = np.empty(cols)
+        wn_r = np.empty(cols)
         for j in range(cols):
-            si = s[i, j]
-            qi = q[i, j]
-            swi = sw_map[i, j] if per_px_sw else sw0
-            ci = cnt_map[i, j] if per_px_sw else cnt0
-            if do_max:
-                w = np.float64(wmx[i, j]) if per_px_w else w0
-                si, qi, swi, ci, r = _reject(si, qi, swi, ci, np.float64(mx[i, j]), w, 1.0, 3.0, clip2, floors[0])
-                k += r
-            if do_min:
-                w = np.float64(wmn[i, j]) if per_px_w else w0
-                si, qi, swi, ci, r = _reject(si, qi, swi, ci, np.float64(mn[i, j]), w, -1.0, 4.0, clip2, floors[1])
-                k += r
-            ref_ij = np.float64(ref[i, j])
-            if swi <= 0.0:  # every sample censored: the first (censored) value, 100 % error
-                mean[i, j] = si + ref_ij
-                err[i, j] = abs(ref_ij)
-                continue
-            mean_rel = si / swi
-            var1 = _nanmax(qi - swi * (mean_rel * mean_rel), 0.0) / max(ci - 1.0, 1.0)
-            mean[i, j] = mean_rel + ref_ij
-            err[i, j] = np.sqrt(_nanmax(var1, floors[2]) / swi)
+            wx_r[j] = np.float64(wmx[i, j]) if per_px_w else w0
+            wn_r[j] = np.float64(wmn[i, j]) if per_px_w else w0
+        s_r, q_r, mx_r, mn_r, ref_r, m_r, e_r = s[i], q[i], mx[i], mn[i], ref[i], mean[i], err[i]
+        if do_max and do_min:
+            for j in range(cols):
+                si, qi, swi, ci, r1 = _reject(
+                    s_r[j], q_r[j], sw_r[j], c_r[j], np.float64(mx_r[j]), wx_r[j], 1.0, 3.0, clip2, f_max
+                )
+                si, qi, swi, ci, r2 = _reject(si, qi, swi, ci, np.float64(mn_r[j]), wn_r[j], -1.0, 4.0, clip2, f_min)
+                k += r1 + r2
+                m_r[j], e_r[j] = _result_px(si, qi, swi, ci, np.float64(ref_r[j]), f_var)
+        elif do_max:
+            for j in range(cols):
+                si, qi, swi, ci, r1 = _reject(
+                    s_r[j], q_r[j], sw_r[j], c_r[j], np.float64(mx_r[j]), wx_r[j], 1.0, 3.0, clip2, f_max
+                )
+                k += r1
+                m_r[j], e_r[j] = _result_px(si, qi, swi, ci, np.float64(ref_r[j]), f_var)
+        else:
+            for j in range(cols):
+                m_r[j], e_r[j] = _result_px(s_r[j], q_r[j], sw_r[j], c_r[j], np.float64(ref_r[j]), f_var)
         nrej += k
     return nrej
 

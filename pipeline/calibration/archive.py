@@ -17,7 +17,6 @@ uses. Compressed files written by earlier versions still load (read into memory)
 
 from __future__ import annotations
 
-import io as _io
 import json
 import math
 import os
@@ -119,10 +118,8 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
     text = json.dumps(meta, sort_keys=True, default=_jsonable, allow_nan=True)
     arrays["metadata"] = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
     path = Path(path)
-    with atomic_output(path, force=force, suffix=".tmp") as tmp:
-        buf = _io.BytesIO()
-        np.savez(buf, **arrays)
-        tmp.write_bytes(buf.getvalue())
+    with atomic_output(path, force=force, suffix=".tmp") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)  # a file object: no ".npz" added to the name, no copy in memory
     return path
 
 

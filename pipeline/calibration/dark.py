@@ -124,10 +124,11 @@ def _master(stack: PixelStack, t: float, clip: float | None) -> MasterDark:
     mean_map, err_map, _ = stack.result(clip)
     level, _sd, keep = robust_mean_std(mean_map, clip)
     if err_map is not None:
-        level_se = float(np.sqrt(np.mean(err_map[keep] ** 2) / keep.sum()))
+        np.square(err_map, out=err_map)  # in place (the map is not kept): one temporary, the kept values
+        level_se = float(np.sqrt(np.mean(err_map[keep]) / keep.sum()))
     else:
         level_se = float("nan")
-    return MasterDark(mean_map.astype(np.float32), stack.n, float(t), float(level), level_se)
+    return MasterDark(mean_map.astype(np.float32, copy=False), stack.n, float(t), float(level), level_se)
 
 
 def stream_master_darks(darks: Iterable, clip: float | None, shape: tuple[int, ...] | None) -> Iterator[MasterDark]:
@@ -154,17 +155,20 @@ def stream_master_darks(darks: Iterable, clip: float | None, shape: tuple[int, .
     """
     seen: list[float] = []
     idx = 0
+    stack = None  # one stack for every exposure time (reset: its maps' memory is reused)
     for t, group in group_by_exposure(darks):
         if find_exposure(t, seen) is not None:
             name = frame_name(group[0], "dark", idx)
             raise InputError(f"{name}: dark frames at {t:g} s are not consecutive; order them by exposure time")
         seen.append(t)
-        stack = None
-        for fr in group:
+        for k, fr in enumerate(group):
             data = frame_data(fr)
             check_shape(data, shape, frame_name(fr, "dark", idx), "the bias frames")
-            if stack is None:
-                stack = PixelStack(data.shape)
+            if k == 0:
+                if stack is not None and stack.shape == data.shape:
+                    stack.reset()
+                else:
+                    stack = PixelStack(data.shape)
             stack.add(data)
             idx += 1
         yield _master(stack, t, clip)
