@@ -443,7 +443,7 @@ def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_
     def usable(x):
         return (x > 0) & (usable_fraction(x, t_min, calibration, "threshold", k_sigma) > 0)
 
-    if X.size < _ELIGIBLE_DIRECT:
+    if X.size < _ELIGIBLE_DIRECT or not k_sigma >= 0:  # a negative margin need not be monotone in X
         return usable(X)
     # The rule is monotone in X (the predicted value and its sigma both grow with X): find its
     # limit by bisection, compare, and evaluate the rule itself only in a narrow band around the

@@ -60,6 +60,13 @@ def test_eligible_mask_equals_the_rule_on_every_photosite(t_min, k_sigma):
     assert np.array_equal(eligible_mask(X.reshape(64, -1), t_min, cal, k_sigma), want.reshape(64, -1))
 
 
+def test_eligible_mask_with_a_negative_margin_takes_the_rule_itself():
+    """k < 0 (accepted by the planner's API, refused by the merge) need not be monotone in X."""
+    cal = _calibration(sigma2_R=400.0)
+    X = np.geomspace(1e-3, 1e7, 2 * _ELIGIBLE_DIRECT)
+    assert np.array_equal(eligible_mask(X, 1e-3, cal, -5.0), _rule(X, 1e-3, cal, -5.0))
+
+
 def test_eligible_mask_where_the_rule_has_no_limit():
     """v_sat below the bias: nothing is usable; a huge v_sat: everything with signal is."""
     X = np.geomspace(1e-3, 1e12, 2 * _ELIGIBLE_DIRECT)
