@@ -230,32 +230,39 @@ def stack_add_batch(
                 s_[j] += w * d
                 q_[j] += w * d * d
             if track_w:
-                _row_extreme_w(d_, mx_, wx_, np.float32(w), 1.0)
-                _row_extreme_w(d_, mn_, wn_, np.float32(w), -1.0)
+                _row_extreme_w(d_, mx_, wx_, np.float32(w), True)
+                _row_extreme_w(d_, mn_, wn_, np.float32(w), False)
             else:
-                _row_extreme(d_, mx_, 1.0)
-                _row_extreme(d_, mn_, -1.0)
+                _row_extreme(d_, mx_, True)
+                _row_extreme(d_, mn_, False)
 
 
 @numba.njit(inline="always")
-def _row_extreme_w(d_, m_, w_, w32, sign):  # pragma: no cover - compiled
-    """m_ = d_ where sign * d_ > sign * m_ (the largest or smallest sample), w_ = w32 there."""
+def _row_extreme_w(d_, m_, w_, w32, largest):  # pragma: no cover - compiled
+    """m_ = d_ where d_ > m_ (``largest``) or d_ < m_ (the largest or smallest sample), w_ = w32
+    there; compared in float64 (a sample that rounds to the float32 extreme but exceeds it takes
+    the weight)."""
     for j in range(d_.size):
         d = d_[j]
         m = m_[j]
         wo = w_[j]
-        new = sign * d > sign * np.float64(m)
+        new = d > np.float64(m) if largest else d < np.float64(m)
         m_[j] = np.float32(d) if new else m
         w_[j] = w32 if new else wo
 
 
 @numba.njit(inline="always")
-def _row_extreme(d_, m_, sign):  # pragma: no cover - compiled
-    """m_ = d_ where sign * d_ > sign * m_ (the largest or smallest sample)."""
+def _row_extreme(d_, m_, largest):  # pragma: no cover - compiled
+    """m_ = d_ where d_ > m_ (``largest``) or d_ < m_ (the largest or smallest sample). Compared
+    in float32: float32(d) > m exactly when d > float64(m) changes m's value (rounding is
+    monotone; where float32(d) == m the float64 compare stored the same value; NaN never
+    replaces), and the float32 compare and select run twice as many lanes (24 Mpixel: the
+    extremes ~45 -> ~25 ms a frame)."""
     for j in range(d_.size):
-        d = d_[j]
+        x = np.float32(d_[j])
         m = m_[j]
-        m_[j] = np.float32(d) if sign * d > sign * np.float64(m) else m
+        new = x > m if largest else x < m
+        m_[j] = x if new else m
 
 
 @numba.njit(cache=True)
