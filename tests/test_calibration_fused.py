@@ -159,14 +159,18 @@ def test_selected_medians_are_numpys(kind):
 
     rng = np.random.default_rng(7)
     n = 40_000
-    a = {
-        "normal": rng.normal(0.3, 0.05, n),
-        "ties": rng.integers(-3, 4, n).astype(float),
-        "hot": np.concatenate([rng.normal(0.0, 1e-3, n), rng.exponential(100.0, n // 50)]),
-        "cauchy": rng.standard_cauchy(n),
-        "zeros": np.where(np.arange(n) % 3 == 0, -0.0, np.where(np.arange(n) % 3 == 1, 0.0, 1e-40)),
-        "odd": rng.normal(-2.0, 1.0, n + 1),
-    }[kind].astype(np.float32).reshape(-1, 200 if kind != "odd" else 1)
+    a = (
+        {
+            "normal": rng.normal(0.3, 0.05, n),
+            "ties": rng.integers(-3, 4, n).astype(float),
+            "hot": np.concatenate([rng.normal(0.0, 1e-3, n), rng.exponential(100.0, n // 50)]),
+            "cauchy": rng.standard_cauchy(n),
+            "zeros": np.where(np.arange(n) % 3 == 0, -0.0, np.where(np.arange(n) % 3 == 1, 0.0, 1e-40)),
+            "odd": rng.normal(-2.0, 1.0, n + 1),
+        }[kind]
+        .astype(np.float32)
+        .reshape(-1, 200 if kind != "odd" else 1)
+    )
     med = float(np.median(a.astype(np.float64)))
     assert median_f32(a, 0.0, False) == med
     assert median_f32(a, med, True) == float(np.median(np.abs(a.astype(np.float64) - med)))
