@@ -149,3 +149,30 @@ def test_counted_medians_are_numpys():
         x = rng.integers(-40, 60 + k, int(rng.integers(1, 300)))
         assert _int_median_mad(x) == _float_median_mad(x)
         assert _int_median_mad(np.abs(x).astype(np.uint16)) == _float_median_mad(np.abs(x).astype(np.uint16))
+
+
+@pytest.mark.parametrize("kind", ["normal", "ties", "hot", "cauchy", "zeros", "odd"])
+def test_selected_medians_are_numpys(kind):
+    """The dark-current map's population limits: the medians of a float32 map's float64 values
+    and of their absolute deviations, selected without a copy, equal numpy.median of them."""
+    from hdrcap.pipeline.calibration._kernels import median_f32
+
+    rng = np.random.default_rng(7)
+    n = 40_000
+    a = (
+        {
+            "normal": rng.normal(0.3, 0.05, n),
+            "ties": rng.integers(-3, 4, n).astype(float),
+            "hot": np.concatenate([rng.normal(0.0, 1e-3, n), rng.exponential(100.0, n // 50)]),
+            "cauchy": rng.standard_cauchy(n),
+            "zeros": np.where(np.arange(n) % 3 == 0, -0.0, np.where(np.arange(n) % 3 == 1, 0.0, 1e-40)),
+            "odd": rng.normal(-2.0, 1.0, n + 1),
+        }[kind]
+        .astype(np.float32)
+        .reshape(-1, 200 if kind != "odd" else 1)
+    )
+    med = float(np.median(a.astype(np.float64)))
+    assert median_f32(a, 0.0, False) == med
+    assert median_f32(a, med, True) == float(np.median(np.abs(a.astype(np.float64) - med)))
+    a.flat[3] = np.nan
+    assert np.isnan(median_f32(a, 0.0, False))

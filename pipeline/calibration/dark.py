@@ -365,12 +365,12 @@ def _row_blocks(shape: tuple[int, ...]) -> list[slice]:
 def _population_limits(slope: np.ndarray, clip: float = 5.0) -> tuple[float, float]:
     """The median of the raw map and ``clip`` robust standard deviations (1.4826 MAD; inf when
     the MAD is 0): a photosite belongs to the population when |raw - median| <= the second.
-    ``slope`` is float32; the medians are those of its float64 values, with one float64 copy."""
-    tmp = slope.astype(np.float64)
-    med = float(np.median(tmp, overwrite_input=True))
-    np.subtract(slope, med, out=tmp, dtype=np.float64)
-    np.abs(tmp, out=tmp)
-    mad = 1.4826 * float(np.median(tmp, overwrite_input=True))
+    ``slope`` is float32; the medians are those of its float64 values and of their float64
+    absolute deviations, exactly as ``numpy.median`` of those values (selected in two passes
+    each by :func:`._kernels.median_f32`, without a float64 copy)."""
+    data = np.ascontiguousarray(slope)
+    med = float(_k.median_f32(data, 0.0, False))
+    mad = 1.4826 * float(_k.median_f32(data, med, True))
     return med, (np.inf if mad == 0 else clip * mad)
 
 
@@ -390,8 +390,8 @@ def shrink_dark_current_map(
     se^2 / (tau^2 + se^2), a hot one keeps its regression value.
 
     The maps are computed in row blocks (passes for the population's sums, then the maps):
-    memory holds the float32 results and one float64 copy of the slope map for its medians,
-    not float64 maps of every intermediate.
+    memory holds the float32 results (the medians are selected without a float64 copy of the
+    slope map), not float64 maps of every intermediate.
 
     Parameters
     ----------
