@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from .blocks import flat_blocks
 from .errors import InputError, OutputExistsError
 
 __all__ = [
@@ -1155,19 +1156,11 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
 _CHECK_BLOCK = 1 << 16
 
 
-def _blocks(arr: np.ndarray) -> Iterator[np.ndarray]:
-    """``arr`` flattened, in pieces of at most :data:`_CHECK_BLOCK` elements (views where
-    ``arr`` is contiguous)."""
-    flat = arr.reshape(-1)
-    for i in range(0, flat.size, _CHECK_BLOCK):
-        yield flat[i : i + _CHECK_BLOCK]
-
-
 def _magnitude_range(arr: np.ndarray) -> tuple[float | None, float | None]:
     """(min, max) of |value| over the finite non-zero values of ``arr`` (same unit); (None,
     None) when there are none."""
     lo, hi = math.inf, -math.inf
-    for blk in _blocks(arr):
+    for blk in flat_blocks(arr, _CHECK_BLOCK):
         mag = np.abs(blk, dtype=np.float64) if blk.dtype.kind in "iub" else np.abs(blk)
         ok = np.isfinite(mag) & (mag != 0)
         if ok.any():
@@ -1184,7 +1177,7 @@ def _whole_uint32(arr: np.ndarray) -> bool:
         return arr.size == 0 or (int(arr.min()) >= 0 and int(arr.max()) <= 2**32 - 1)
     if arr.dtype.kind != "f":
         return False
-    for blk in _blocks(arr):
+    for blk in flat_blocks(arr, _CHECK_BLOCK):
         if not ((blk >= 0) & (blk <= 2**32 - 1) & (blk == np.floor(blk))).all():
             return False  # NaN fails every comparison, inf the range
     return True

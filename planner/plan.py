@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from scipy.special import logsumexp
 
+from hdrcap.pipeline.blocks import flat_blocks
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.times import find_exposure, same_exposure, unique_exposures
@@ -121,7 +122,7 @@ def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
     # positive values, stored in order, then the bins; the same numbers as on the whole array
     lx = np.empty(x.size)
     n_pos = 0
-    for xb in _blocks_of(x):
+    for xb in flat_blocks(x, _HIST_BLOCK):
         if not np.isfinite(xb).all():
             raise InputError("the irradiance map holds NaN or infinite values")
         pb = xb[xb > 0]
@@ -133,13 +134,13 @@ def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
     lx = lx[:n_pos]
     lo, hi = lx.min(), lx.max()
     if hi - lo < 1e-9:
-        first = next(xb[xb > 0][0] for xb in _blocks_of(x) if (xb > 0).any())
+        first = next(xb[xb > 0][0] for xb in flat_blocks(x, _HIST_BLOCK) if (xb > 0).any())
         return IrradianceHistogram(np.array([first]), np.array([float(n_pos)]), int(x.size), n_nosignal)
     count = np.zeros(bins, dtype=np.int64)
     bmin = np.full(bins, np.inf)
     bmax = np.full(bins, -np.inf)
     done = 0
-    for xb in _blocks_of(x):
+    for xb in flat_blocks(x, _HIST_BLOCK):
         pb = xb[xb > 0]
         lb = lx[done : done + pb.size]
         done += pb.size
@@ -160,12 +161,6 @@ def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
 
 #: Elements per block of :func:`irradiance_histogram`'s passes.
 _HIST_BLOCK = 1 << 18
-
-
-def _blocks_of(x: np.ndarray):
-    """Consecutive views of the 1-D array ``x``, :data:`_HIST_BLOCK` elements each."""
-    for i in range(0, x.size, _HIST_BLOCK):
-        yield x[i : i + _HIST_BLOCK]
 
 
 @dataclass

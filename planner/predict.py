@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
+from hdrcap.pipeline.blocks import flat_blocks
 from hdrcap.pipeline.noise import dark_factor, exposure_variance, exposure_weight, variance_core
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.times import same_exposure
@@ -149,7 +150,7 @@ def _rms(arr, chunk: int = 1 << 20) -> float:
     a = np.asarray(arr).ravel()
     if not a.size:
         return 0.0
-    total = sum(float(np.sum(np.square(a[i : i + chunk], dtype=np.float64))) for i in range(0, a.size, chunk))
+    total = sum(float(np.sum(np.square(b, dtype=np.float64))) for b in flat_blocks(a, chunk))
     return float(np.sqrt(total / a.size))
 
 

@@ -73,6 +73,8 @@ _HOME = {
     "with_file_metadata": "workflow",
 }
 
+__all__ = list(_HOME)
+
 
 def __getattr__(name: str):
     home = _HOME.get(name)
@@ -85,37 +87,3 @@ def __getattr__(name: str):
 
 def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_HOME))
-
-
-__all__ = [
-    "FORMAT",
-    "FORMAT_VERSION",
-    "DEFAULT_CLIP",
-    "GAIN_METHODS",
-    "robust_mean_std",
-    "PairStats",
-    "pair_statistics",
-    "PixelStack",
-    "ReadoutEstimate",
-    "estimate_readout",
-    "estimate_saturation",
-    "gain_from_pair",
-    "gain_from_pairs",
-    "PhotonTransferFit",
-    "photon_transfer_gain",
-    "prnu_correction_factor",
-    "DarkFit",
-    "fit_dark_current",
-    "MasterDark",
-    "FlatResult",
-    "estimate_flats",
-    "calibrate",
-    "calibrate_files",
-    "add_shutter_table",
-    "estimate_shutter_table",
-    "with_file_metadata",
-    "save_calibration",
-    "load_calibration",
-    "calibration_summary",
-    "format_summary",
-]
