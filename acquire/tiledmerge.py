@@ -535,8 +535,15 @@ class _Plan:
             "extrema": acc.extrema,
             "single": acc.own_single if forced is None else forced,
             "summary": _tile_summary(result, r0, self.shape),
+            "channels": set(image.channels),
         }
-        return np.stack([np.asarray(image.channels[c], np.float32) for c in _CHANNELS])
+        # a channel the tile's image has not (sigma_calibration when no calibration error
+        # entered) is NaN here and left out of the EXR when no tile has it
+        out = np.full((len(_CHANNELS),) + result.irradiance.shape, np.nan, np.float32)
+        for k, c in enumerate(_CHANNELS):
+            if c in image.channels:
+                out[k] = image.channels[c]
+        return out
 
 
 def _tile_summary(result, r0: int, shape) -> dict[str, Any]:
@@ -870,6 +877,7 @@ def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression
         Writer()[(slice(None), slice(r0, r0 + rows))] = p.merge_block(p.read(r0, r0 + rows), r0, forced=single)
     tiles = [p.tiles[r0] for r0 in sorted(p.tiles)]
     attrs = dict(tiles[0]["attrs"], merge=_whole_info(tiles, p.shape, single))
+    outs = {name: out for name, out in outs.items() if any(name in t["channels"] for t in tiles)}
     write_exr_rows(output, outs, attrs, exr_precision(outs, sigma_precision), compression, force, rows)
     spilled = sum(1 for s in p.inputs.sources if s.path.startswith(spill))
     summ = _whole_summary([t["summary"] for t in tiles], p.shape)

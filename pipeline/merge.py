@@ -105,7 +105,8 @@ class MergeResult:
     """Irradiance (e-/s per photosite), its total standard uncertainty ``sigma`` (same unit:
     photon, read and dark-frame noise plus the calibration's per-photosite error), the
     calibration part alone ``sigma_calibration`` (e-/s; what averaging more frames cannot
-    reduce; zeros when the calibration has no standard errors) and the number of unsaturated
+    reduce; None when none of the calibration's standard errors entered: its part is then
+    unknown, not zero, and ``info["calibration_error"]["missing"]`` names what was missing) and the number of unsaturated
     exposures used per photosite (0: saturated everywhere, irradiance is a lower bound and
     both sigmas are 0; or a defective photosite). ``quality`` says why (uint8 bit field of
     :data:`QUALITY_BITS`, 0 a trusted measurement). ``info`` records the options and inputs
@@ -772,7 +773,10 @@ class MergeAccumulator:
             "weights_precision": "float32" if single else "float64",
             "calibration_error": cal_info,
         }
-        sig_cal[((quality & ~np.uint8(QUALITY_BITS["masked"])) != 0) | (nexp == 0)] = 0.0  # not a measurement
+        if cal_info["included"]:
+            sig_cal[((quality & ~np.uint8(QUALITY_BITS["masked"])) != 0) | (nexp == 0)] = 0.0  # not a measurement
+        else:  # no calibration error entered: the calibration's part is unknown, not zero
+            sig_cal = None
         return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality, sigma_calibration=sig_cal)
 
     def _flag_masked(self, irr, sig, nexp, quality) -> dict[str, Any]:

@@ -121,17 +121,26 @@ def test_sigma_calibration_equals_finite_difference_propagation(monkeypatch):
         assert np.median(got) > 0.05 * np.median(ref.sigma[ok])  # the check is not of a negligible term
 
 
-def test_calibration_without_standard_errors_contributes_nothing():
-    spec = PRESETS["camera-B"]
-    sensor = SimulatedSensor(spec, (32, 32), seed=4)
+def test_calibration_without_standard_errors_has_no_calibration_part(tmp_path):
+    """No standard error entered: the calibration's part is unknown, so there is no
+    sigma_calibration (not a channel of zeros), and the header says what was missing."""
+    from hdrcap.acquire.filemerge import build_hdr_image
+    from hdrcap.pipeline.io import RawFrame, read_exr, write_exr
     from hdrcap.pipeline.params import Calibration
 
+    spec = PRESETS["camera-B"]
+    sensor = SimulatedSensor(spec, (32, 32), seed=4)
     cal = Calibration(spec.nominal_params())
     values = [sensor.expose(50.0, t) for t in (0.1, 1.0)]
     res = merge_arrays(values, [0.1, 1.0], cal)
-    assert not res.sigma_calibration.any()
+    assert res.sigma_calibration is None
     assert res.info["calibration_error"]["included"] == []
     assert set(res.info["calibration_error"]["missing"]) == {"bias", "dark current", "PRNU spread (prnu scalar)"}
+    frames = [RawFrame(v, t, path=f"f{i}") for i, (v, t) in enumerate(zip(values, (0.1, 1.0)))]
+    path = write_exr(tmp_path / "m.exr", build_hdr_image(res, frames, cal))
+    back = read_exr(path)
+    assert "sigma_calibration" not in back.channels
+    assert back.attrs["merge"]["calibration_error"]["included"] == []
 
 
 def test_exr_carries_sigma_calibration(tmp_path):

@@ -81,8 +81,8 @@ def _merge(tmp, name, args, capsys):
     return read_exr(out), json.loads(captured.out.strip().splitlines()[-1]), captured.err
 
 
-def _assert_identical(a, b):
-    assert set(a.channels) == set(b.channels) == {"irradiance", "sigma", "nexp", "sigma_calibration", "quality"}
+def _assert_identical(a, b, channels=("irradiance", "sigma", "nexp", "sigma_calibration", "quality")):
+    assert set(a.channels) == set(b.channels) == set(channels)
     for name in a.channels:
         assert a.channels[name].tobytes() == b.channels[name].tobytes(), name
     assert a.attrs == b.attrs
@@ -107,6 +107,8 @@ CASES = {
     "model-nominal": lambda b: [*b["frames"], "--calibration", b["cal"], "--exposure-times", "nominal"],
     "self-calibrated": lambda b: [*b["frames"], "--darks", *b["darks"]],
     "shutter-table": lambda b: [*b["frames"], "--darks", *b["darks"], "--calibration", b["cal_shutter"]],
+    # a preset's nominal parameters carry no standard errors: no sigma_calibration channel
+    "preset-no-errors": lambda b: [*b["frames"], "--darks", *b["darks"], "--camera", "camera-A"],
     "png-spilled": lambda b: [*b["png"], "--times", *TIMES, "--calibration", b["cal"], "--saturation", "probabilistic"],
 }
 
@@ -117,7 +119,11 @@ def test_tiled_merge_is_the_in_memory_merge(bracket, tmp_path, capsys, monkeypat
     args = CASES[case](bracket)
     ref, ref_info, _ = _merge(tmp_path, "mem", args, capsys)
     tiled, info, err = _merge(tmp_path, "tiled", [*args, "--chunks", "20"], capsys)
-    _assert_identical(ref, tiled)
+    if case == "preset-no-errors":
+        _assert_identical(ref, tiled, ("irradiance", "sigma", "nexp", "quality"))
+        assert ref.attrs["merge"]["calibration_error"]["included"] == []
+    else:
+        _assert_identical(ref, tiled)
     assert info["tiles"] == 5 and info["chunk_rows"] == 20
     assert {k: v for k, v in info.items() if k not in ("seconds", "output", "tiles", "chunk_rows")} == {
         k: v for k, v in ref_info.items() if k not in ("seconds", "output")

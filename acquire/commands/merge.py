@@ -62,8 +62,8 @@ def _memory_here() -> str:
     "out_format",
     type=click.Choice(["exr", "dng"]),
     default=None,
-    help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, sigma_calibration, nexp, quality and the "
-    "header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour "
+    help="Output format. exr (default unless OUTPUT ends in .dng): irradiance, sigma, sigma_calibration (when the calibration has "
+    "standard errors), nexp, quality and the header. dng: a linear floating-point CFA DNG of the irradiance alone (first frame's colour "
     "matrices, white balance, orientation) that raw developers open like any raw; it cannot hold "
     "sigma or nexp (docs/merge.md, Float DNG).",
 )
