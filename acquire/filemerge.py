@@ -54,9 +54,16 @@ def _warm_up() -> None:
         pass
 
 
+_WARM_UP: list[threading.Thread] = []  # the process's warm-up thread, once started
+
+
 def start_warm_up() -> threading.Thread:
-    """Start :func:`_warm_up` in a thread (numba's set-up overlaps reading the frames)."""
+    """Start :func:`_warm_up` in a thread (numba's set-up overlaps loading the calibration and
+    reading the frames), once per process: later calls return the same thread."""
+    if _WARM_UP:
+        return _WARM_UP[0]
     thread = threading.Thread(target=_warm_up, name="hdrcap-kernel-warm-up")
+    _WARM_UP.append(thread)
     thread.start()
     return thread
 

@@ -112,6 +112,9 @@ def simulate(work: Path, shape) -> dict:
     from hdrcap.pipeline.params import Calibration
 
     spec = PRESETS[CAMERA]
+    for i in range(len(TIMES)):  # a --work folder of an earlier run: simulated afresh (same seed)
+        for name in (f"frame_{i}.dng", f"dark_{i}.dng"):
+            (work / name).unlink(missing_ok=True)
     cam = SimulatedCamera(spec, make_scene("hdr", shape, 4.0, 2e5), seed=1)
     frames = [cam.capture_to(work / f"frame_{i}.dng", t) for i, t in enumerate(TIMES)]
     darks = [cam.capture_to(work / f"dark_{i}.dng", t, dark=True) for i, t in enumerate(TIMES)]

@@ -318,6 +318,13 @@ def _at(map_arg, rows, cols) -> np.ndarray | float:
     return np.asarray(arr[rows, cols], np.float64) if is_map else float(scalar)
 
 
+def _finite_positive(arr: np.ndarray) -> bool:
+    """Whether every value of ``arr`` is finite and > 0, from its least and largest value (a NaN
+    makes the least NaN): two passes without the full-size masks (0.1 s at 24 Mpixel)."""
+    lo, hi = arr.min(), arr.max()
+    return bool(np.isfinite(lo) and np.isfinite(hi) and lo > 0)
+
+
 def _extrema(map_arg) -> tuple[float, float]:
     """(min, max) of a kernel map argument (array, is_map, scalar); non-finite values give
     (nan, nan). Maps are scanned on every call (about 3 % of a merge with two 4-megapixel
@@ -374,7 +381,7 @@ class MergeAccumulator:
             raise InputError(f"a master dark was given but the dark strategy is {strategy.value!r}")
         use_map = opts.prnu == "map" and calibration.prnu is not None
         self._a = _map_arg(calibration.prnu if use_map else None, self.shape, 1.0, "PRNU")
-        if use_map and not np.all(np.isfinite(self._a[0]) & (self._a[0] > 0)):
+        if use_map and not _finite_positive(self._a[0]):
             raise InputError("calibration PRNU map must be finite and > 0")
         self._D = _map_arg(calibration.dark_current_map, self.shape, p.dark_current, "dark-current")
         self._bias = _map_arg(calibration.bias_map, self.shape, p.mu_R, "bias")

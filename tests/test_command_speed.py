@@ -133,6 +133,7 @@ warm = sys.argv[1] == "warm"
 if warm:
     from hdrcap.acquire.filemerge import start_warm_up
     thread = start_warm_up()  # the merge below races it, as in hdrcap merge
+    assert start_warm_up() is thread  # once per process (the command and merge_files both ask)
 sim = simulate("camera-A", "hdr", [0.001, 0.01, 0.1], seed=5, shape=(24, 36), darks=True)
 res = merge_arrays(list(sim.frames), [0.001, 0.01, 0.1], sim.calibration, list(sim.darks))
 if warm:

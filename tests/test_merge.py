@@ -563,3 +563,16 @@ def test_weights_precision_follows_a_calibration_map_changed_in_place():
     cal.prnu[0, 0] = 1e-20  # in place: float32 bounds no longer hold
     second = merge_arrays(sim.frames, sim.times, cal, sim.darks)
     assert second.info["weights_precision"] == "float64"
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, 0.0, -0.5])
+def test_prnu_map_not_finite_and_positive_is_refused(bad):
+    """One photosite of the PRNU map NaN, infinite, zero or negative: refused, wherever it is."""
+    spec = PRESETS["camera-A"]
+    params = spec.nominal_params()
+    prnu = np.ones((8, 6), np.float32)
+    prnu[5, 3] = bad
+    with pytest.raises(InputError, match="PRNU map must be finite and > 0"):
+        MergeAccumulator(Calibration(params, prnu=prnu), (8, 6))
+    prnu[5, 3] = 1.0
+    MergeAccumulator(Calibration(params, prnu=prnu), (8, 6))  # the same map, valid, is accepted

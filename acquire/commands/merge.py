@@ -255,6 +255,10 @@ def command(
     if master_dark and dark_strategy not in (None, DarkStrategy.MASTER):
         raise InputError(f"--master-dark needs --dark-strategy master, not {dark_strategy}")
     _check_bad_values(bad_values, calibration or camera, weighting)
+    if weighting == "optimal":
+        from hdrcap.acquire.filemerge import start_warm_up
+
+        start_warm_up()  # numba's set-up while the calibration loads and the frames are read
     t0 = time.perf_counter()
     warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
     calib, times, selfcal = resolve_merge_calibration(
