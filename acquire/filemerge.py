@@ -375,9 +375,9 @@ def streamed_merge(
     check_frames(frames)
     if plan is not None:
         _check_plan_covered(plan, frames, warn)
-    result = acc.result()
-    # The pixels are merged: memory-mapped frames stop counting in memory (still readable).
-    release_mapped_pages([fr.data for fr in (*frames, *darks)])
+    # Once merged, memory-mapped frames stop counting in memory (still readable).
+    mapped = [fr.data for fr in (*frames, *darks)]
+    result = acc.result(release_frames=lambda: release_mapped_pages(mapped))
     return result, frames, darks, used
 
 

@@ -49,6 +49,9 @@ from .noise import variance_of_rate
 
 __all__ = [
     "merge_kernel",
+    "calibration_terms_kernel",
+    "ErrorMaps",
+    "SharedTerms",
     "first_pass_kernel",
     "FLOAT32_MAX",
     "MapArg",
@@ -649,11 +652,13 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
         return mu, sig, 0.0, steps, True
     x = mu
     for _ in range(100):
+        if f == 0.0:  # at the root (a Newton step of 0 would land on the bracket's end)
+            break
         hh = h if h > 0.0 else hc
         xn = x + f / hh
         if not (lo < xn < hi):
             xn = 0.5 * (lo + hi)
-        done = abs(xn - x) <= tol * max(abs(xn), 1.0 / math.sqrt(hh)) or f == 0.0
+        done = abs(xn - x) <= tol * max(abs(xn), 1.0 / math.sqrt(hh))
         x = xn
         f, h, hc, nu, nr = _tobit_terms(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
         steps += 1
@@ -661,7 +666,7 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
             break
         if f > 0.0:
             lo = x
-        else:
+        elif f < 0.0:
             hi = x
     if nr == 0:
         return x, sig, 0.0, steps, True
@@ -961,3 +966,172 @@ def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto
         stats[ch, 0] = n0
         stats[ch, 1] = isum
         stats[ch, 2] = imax
+
+
+class ErrorMaps(NamedTuple):
+    """Standard errors of the calibration, each a :class:`MapArg` (0 where unknown): ``bias``
+    (DN), ``dark_current`` (e-/s) and ``prnu`` (the gain a_j, dimensionless)."""
+
+    bias: MapArg
+    dark_current: MapArg
+    prnu: MapArg
+
+
+class SharedTerms(NamedTuple):
+    """What :func:`calibration_terms_kernel` computes and with which rules: per-frame ``use``
+    (float64, (n, 3): 1 where the dark level holds the bias map, the factor of D in the dark
+    level (0 for an own dark frame), 1 where it is the timed master dark); ``sat2`` (the
+    near-saturation margin squared, 0: no rule), ``censored`` (the samples' censored
+    information instead of 1/Var), ``weights`` (False: the PRNU term alone, no frame needed),
+    ``calibration`` and ``master`` (which outputs to fill), the master dark's time ``t_ref``
+    (s) and frame count ``n_master``."""
+
+    use: np.ndarray
+    sat2: float
+    censored: bool
+    weights: bool
+    calibration: bool
+    master: bool
+    t_ref: float
+    n_master: float
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _terms_dark_row(BROW, kind, coef, drow, mrow, BIAS, DR):  # pragma: no cover - compiled
+    """A frame's dark level b_i on one row (DN, float64): its own dark frame, bias plus
+    coef D, or the master dark plus coef D."""
+    if kind == 0:
+        for c in range(BROW.shape[0]):
+            BROW[c] = float(drow[c])
+    elif kind == 1:
+        for c in range(BROW.shape[0]):
+            BROW[c] = BIAS[c] + coef * DR[c]
+    else:
+        for c in range(BROW.shape[0]):
+            BROW[c] = float(mrow[c]) + coef * DR[c]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _terms_weights_row(
+    WROW, vrow, BROW, MU, MP, A, DR, BIAS, U, t, g, s2, k, v_sat, sat2, censored
+):  # pragma: no cover - compiled
+    """Each sample's weight on one row (see :func:`calibration_terms_kernel`); in the order of
+    the numpy formulas' operations."""
+    tg = t * g
+    g2t = g * g * t
+    for c in range(WROW.shape[0]):
+        v = float(vrow[c])
+        b = BROW[c]
+        tga = tg * A[c]
+        var_x = _var(A[c] * MP[c] + DR[c], g2t, DR[c], s2, k) / (tga * tga)
+        if censored:
+            if not ((b < v_sat) and math.isfinite(v) and math.isfinite(b)):
+                WROW[c] = 0.0
+            elif v < v_sat:
+                WROW[c] = 1.0 / var_x
+            else:
+                z = (v_sat - b - tga * MU[c]) / (math.sqrt(var_x) * tga)
+                lam = _mills(z)
+                WROW[c] = lam * (lam - z) / var_x
+        else:
+            ok = (v < v_sat) & (b < v_sat) & ((v - b) - (v - b) == 0.0)  # the last: finite
+            if sat2 > 0:
+                gap = v_sat - BIAS[c] - tg * U[c]
+                ok = ok & (gap > 0) & (gap * gap > sat2 * (g2t * U[c] + s2))
+            WROW[c] = 1.0 / var_x if ok else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _terms_sums_row(WROW, inv_tg, ub, ud, um, WS, NB, ND, NM):  # pragma: no cover - compiled
+    """W += w, and the numerators of d mu / d b, d mu / d D, d mu / d M (one frame, one row)."""
+    cb, cd, cm = ub * inv_tg, ud * inv_tg, um * inv_tg
+    for c in range(WROW.shape[0]):
+        w = WROW[c]
+        WS[c] += w
+        NB[c] += w * cb
+        ND[c] += w * cd
+        NM[c] += w * cm
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def calibration_terms_kernel(values, darks, frames, camera, maps, errors, terms, irr, nexp, out, out_m):
+    """The errors common to all exposures of a photosite (:meth:`pipeline.merge.
+    MergeAccumulator._shared_terms`), parallel over rows, a row of each frame at a time (row
+    buffers, no full-size temporaries).
+
+    The calibration's errors are systematic: the same bias map b_j, dark-current map D_j and
+    PRNU map a_j enter every exposure, so averaging exposures does not reduce them. With
+    x_i = (v_i - b_i)/(t_i g a) (Eq. 6) and b_i = bias_i b_j + coef_i D_j (the model strategy:
+    b_j + g t_i D_j; one master dark at t_ref: master + g (t_i - t_ref) D_j; a dark frame: no
+    calibration term), the estimate mu = sum w_i x_i / sum w_i (Eq. 12, weights held fixed)
+    moves by d mu/d b_j = -sum w_i bias_i/(t_i g a)/W, d mu/d D_j = -sum w_i coef_i/(t_i g a)/W
+    and d mu/d ln a_j = -mu (first order).
+
+    Per photosite at the estimate mu = ``irr`` (e-/s): each sample's weight w_i = 1/Var(x_i)
+    (Eq. 6, 13; the variance at max(mu, 0) with the map's D) where it is usable (Eq. 11 and the
+    near-saturation rule at mu), or with ``terms.censored`` its share of the censored
+    likelihood's information (1/Var(x_i) below v_sat, lambda(z) (lambda(z) - z)/Var(x_i) at
+    or above it); W = sum w_i; d mu/d b_j = -sum w_i bias_i/(t_i g)/W, d mu/d D_j =
+    -sum w_i coef_i/(t_i g)/W, d mu/d M = -sum w_i master_i/(t_i g)/W; then
+    ``out`` = sqrt((db sigma_b)^2 + (dD sigma_D)^2 + (mu sigma_a)^2)/a and ``out_m`` =
+    |dM| sqrt((g^2 t_ref D + sigma_R^2)/N)/a where nexp > 0, else 0 (float32). The operations
+    are those of the numpy formulas, in their order (no fast-math: the same bits)."""
+    kinds, coefs, ks, times = frames
+    g, s2, v_sat, _white = camera
+    bias_map, bias_is_map, bias_scalar = maps.bias
+    D_map, D_is_map, D_scalar = maps.dark_current
+    a_map, a_is_map, a_scalar = maps.prnu
+    master = maps.master.array
+    sb_map, sb_is_map, sb_scalar = errors.bias
+    sd_map, sd_is_map, sd_scalar = errors.dark_current
+    sa_map, sa_is_map, sa_scalar = errors.prnu
+    use, sat2, censored, weighted, want_cal, want_master, t_ref, n_master = terms
+    n = len(values)
+    H, Wd = irr.shape
+    for r in prange(H):
+        MU = np.empty(Wd)
+        A = np.empty(Wd)
+        SA = np.empty(Wd)
+        for c in range(Wd):
+            MU[c] = float(irr[r, c])
+            A[c] = _pick(a_map, a_is_map, a_scalar, r, c)
+            SA[c] = _pick(sa_map, sa_is_map, sa_scalar, r, c)
+        if not weighted:  # the PRNU term alone: (mu sigma_a / a)^2
+            for c in range(Wd):
+                out[r, c] = abs(MU[c]) * SA[c] / A[c] if nexp[r, c] > 0 else 0.0
+            continue
+        DR = np.empty(Wd)
+        BIAS = np.empty(Wd)
+        MP = np.empty(Wd)
+        U = np.empty(Wd)
+        for c in range(Wd):
+            DR[c] = _pick(D_map, D_is_map, D_scalar, r, c)
+            BIAS[c] = _pick(bias_map, bias_is_map, bias_scalar, r, c)
+            MP[c] = max(MU[c], 0.0)
+            U[c] = A[c] * MP[c] + DR[c]
+        WS = np.zeros(Wd)
+        NB = np.zeros(Wd)
+        ND = np.zeros(Wd)
+        NM = np.zeros(Wd)
+        BROW = np.empty(Wd)
+        WROW = np.empty(Wd)
+        mrow = master[r] if master.shape[0] == H else master[0]
+        for i in range(n):
+            drow = darks[i][r] if kinds[i] == 0 else darks[i][0]
+            _terms_dark_row(BROW, kinds[i], use[i, 1], drow, mrow, BIAS, DR)
+            _terms_weights_row(
+                WROW, values[i][r], BROW, MU, MP, A, DR, BIAS, U, times[i], g, s2, ks[i], v_sat, sat2, censored
+            )
+            _terms_sums_row(WROW, 1.0 / (times[i] * g), use[i, 0], use[i, 1], use[i, 2], WS, NB, ND, NM)
+        for c in range(Wd):
+            used = nexp[r, c] > 0
+            wd = WS[c] if WS[c] > 0 else math.inf
+            if want_cal:
+                db = (NB[c] / wd) * _pick(sb_map, sb_is_map, sb_scalar, r, c)
+                dd = (ND[c] / wd) * _pick(sd_map, sd_is_map, sd_scalar, r, c)
+                ma = MU[c] * SA[c]
+                out[r, c] = math.sqrt((db * db + dd * dd + ma * ma) / (A[c] * A[c])) if used else 0.0
+            if want_master:
+                sd_m = math.sqrt((g * g * t_ref * DR[c] + s2) / n_master)
+                dm = (NM[c] / wd) * sd_m
+                out_m[r, c] = math.sqrt(dm * dm / (A[c] * A[c])) if used else 0.0

@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,7 +46,7 @@ from .darks import DarkResolver, default_strategy
 from .errors import InputError
 from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios, subsample_window
 from .io import RawFrame, check_exposure_time, check_frames
-from .noise import DarkStrategy, calibration_variance, dark_factor, variance_core
+from .noise import DarkStrategy, dark_factor
 from .params import DEFECT_BITS, Calibration
 from .times import same_exposure
 
@@ -694,8 +694,14 @@ class MergeAccumulator:
             "exposure_time_ratios": None if ratios is None else ratios.to_dict(),
         }
 
-    def result(self) -> MergeResult:
-        """Run the iterations (Eq. 12-13, Fig. 3) and return the merge."""
+    def result(self, *, release_frames: Callable[[], Any] | None = None) -> MergeResult:
+        """Run the iterations (Eq. 12-13, Fig. 3) and return the merge.
+
+        ``release_frames`` is called when the frames have been read: after the iterations and
+        again after the calibration's error terms (which read them only for frames whose dark
+        level comes from the calibration's maps). The file layer drops the pages of its
+        memory-mapped frames there, so that the frames and every output are not all resident
+        at once."""
         import numba
 
         from .kernels import (
@@ -752,7 +758,10 @@ class MergeAccumulator:
                 MergeOutputs(irr, sig, nexp, iters, stats),
                 np.zeros(1, np.float32 if single else np.float64),
             )
-        sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp)
+        release = release_frames or (lambda: None)
+        release()
+        sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp, values, darks, master)
+        release()
         _add_in_quadrature(sig, sig_cal if cal_info["included"] else None, sig_master)
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
@@ -871,19 +880,26 @@ class MergeAccumulator:
         return s_b, s_d, s_a, desc
 
     def _shared_terms(
-        self, irr: np.ndarray, nexp: np.ndarray, rows: int = 64
+        self, irr: np.ndarray, nexp: np.ndarray, values: list, darks: list, master: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray | None, dict]:
         """The errors common to all exposures of a photosite, propagated to X at the estimate
         with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
         rule, evaluated at the final estimate; with the censored likelihood of
-        ``saturation="probabilistic"`` every sample with its information,
-        :func:`_censored_sample_information`), in blocks of ``rows``:
+        ``saturation="probabilistic"`` every sample with its share of the information,
+        1/Var(x_i) below v_sat and lambda(z) (lambda(z) - z)/Var(x_i) at or above it, z the
+        clip level's distance in standard deviations: the censored estimate moves with a shift
+        of the dark level of sample i by -(this)/(t g a) over the sum, as the threshold model's
+        does with its weights):
 
-        * sigma_calibration: :func:`pipeline.noise.calibration_variance` of the calibration's
-          bias, dark-current and PRNU maps;
+        * sigma_calibration: the first-order propagation of the standard errors of the
+          calibration's bias, dark-current and PRNU maps;
         * the noise of one master dark taken at t_ref and shared by every frame extrapolated
           from it: d mu / d M = -sum_i w_i / (t_i g a) / W over those frames, variance
           (g^2 t_ref D + sigma_R^2)/N.
+
+        Computed per photosite by :func:`pipeline.kernels.calibration_terms_kernel` (parallel
+        over rows; the frames as the merge kernel took them: ``values``, ``darks`` with their
+        placeholders, the ``master`` dark or its placeholder).
 
         Returns
         -------
@@ -898,64 +914,58 @@ class MergeAccumulator:
         out_m = np.zeros(self.shape, np.float32) if master_used.any() else None
         if not desc["included"] and out_m is None:
             return out, out_m, desc
+        from .kernels import (
+            CameraConstants,
+            ErrorMaps,
+            FrameTable,
+            MapArg,
+            MapSet,
+            SharedTerms,
+            calibration_terms_kernel,
+        )
+
         p = self.calibration.params
-        g, s2, v_sat = float(p.g), float(p.sigma2_R), float(p.v_sat)
-        sat2 = float(self.options.saturation_sigmas) ** 2
-        times = np.asarray(self._times, np.float64)
-        nk = self._dark_factors()
-        kinds = np.asarray(self._kinds)
+        kinds = np.asarray(self._kinds, np.int64)
         bias_used = (kinds == 1).astype(np.float64)
         coefs = np.where(kinds == 0, 0.0, np.asarray(self._coefs, np.float64))
-        t_ref, n_master = self.options.master_dark_time, float(self.options.n_dark)
-        censored = self.options.saturation == "probabilistic"
-
-        def block(arg, sl):
-            arr, is_map, scalar = arg
-            return arr[sl].astype(np.float64) if is_map else scalar
-
-        def err_block(e, sl):
-            return e[sl].astype(np.float64) if isinstance(e, np.ndarray) else e
-
         # Only frames whose dark level comes from the calibration's maps need their weights.
         needs_weights = bool(np.any(bias_used > 0) or np.any(coefs != 0) or master_used.any())
-        for r0 in range(0, self.shape[0], rows):
-            sl = slice(r0, r0 + rows)
-            mu = irr[sl].astype(np.float64)
-            a = block(self._a, sl)
-            if not needs_weights:  # the PRNU term alone: (mu sigma_a / a)^2
-                sa = np.asarray(err_block(s_a, sl), np.float64)
-                out[sl] = np.where(nexp[sl] > 0, np.abs(mu) * sa / a, 0.0)
-                continue
-            D, bias = block(self._D, sl), block(self._bias, sl)
-            u = a * np.maximum(mu, 0.0) + D
-            w = np.empty((len(times),) + mu.shape)
-            for i, (v, d, kind, coef, t) in enumerate(zip(self._values, self._darks, kinds, coefs, times)):
-                if kind == 0:
-                    b = d[sl].astype(np.float64)
-                elif kind == 1:
-                    b = bias + coef * D
-                else:
-                    b = self.master_dark[sl].astype(np.float64) + coef * D
-                vv = v[sl].astype(np.float64)
-                var_x = variance_core(np.maximum(mu, 0.0), t, g, s2, D, a, nk[i])
-                if censored:
-                    w[i] = _censored_sample_information(vv, b, mu, var_x, t * g * a, v_sat)
-                    continue
-                ok = (vv < v_sat) & (b < v_sat) & np.isfinite(vv - b)
-                if sat2 > 0:
-                    gap = v_sat - bias - t * g * u
-                    ok &= (gap > 0) & (gap * gap > sat2 * (g * g * t * u + s2))
-                w[i] = np.where(ok, 1.0 / var_x, 0.0)
-            used = nexp[sl] > 0
-            if desc["included"]:
-                var = calibration_variance(
-                    mu, w, times, g, bias_used, coefs, err_block(s_b, sl), err_block(s_d, sl), err_block(s_a, sl), a
-                )
-                out[sl] = np.where(used, np.sqrt(var), 0.0)
-            if master_used.any():
-                sd_m = np.sqrt((g * g * t_ref * D + s2) / n_master)
-                var = calibration_variance(mu, w, times, g, master_used, 0.0 * coefs, sd_m, 0.0, 0.0, a)
-                out_m[sl] = np.where(used, np.sqrt(var), 0.0)
+        t_ref = self.options.master_dark_time
+
+        def err_arg(e):
+            return MapArg(e, True, 0.0) if isinstance(e, np.ndarray) else MapArg(np.zeros((1, 1), np.float32), False, e)
+
+        import numba
+
+        with warnings.catch_warnings():  # reflected lists, as for the merge kernel
+            warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
+            calibration_terms_kernel(
+                values,
+                darks,
+                FrameTable(kinds, coefs, self._dark_factors(), np.asarray(self._times, np.float64)),
+                CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
+                MapSet(
+                    MapArg(*self._bias),
+                    MapArg(*self._D),
+                    MapArg(*self._a),
+                    MapArg(master, self.master_dark is not None, 0.0),
+                ),
+                ErrorMaps(err_arg(s_b), err_arg(s_d), err_arg(s_a)),
+                SharedTerms(
+                    np.ascontiguousarray(np.stack([bias_used, coefs, master_used], axis=1)),
+                    float(self.options.saturation_sigmas) ** 2,
+                    self.options.saturation == "probabilistic",
+                    needs_weights,
+                    bool(desc["included"]),
+                    out_m is not None,
+                    float(t_ref) if t_ref is not None else 0.0,
+                    float(self.options.n_dark),
+                ),
+                irr,
+                nexp,
+                out,
+                out if out_m is None else out_m,
+            )
         return out, out_m, desc
 
 
@@ -997,44 +1007,6 @@ def warm_up_kernels() -> None:
 
     with numba.core.compiler_lock.global_compiler_lock:  # as numba's own loading does
         numba.core.registry.cpu_target.target_context.refresh()
-
-
-def _censored_sample_information(v, b, mu, var_x, tga, v_sat):
-    """Each sample's share of the censored (Tobit) likelihood's information at the estimate
-    ``mu`` (e-/s), (e-/s)^-2: 1/Var(x_i) below v_sat, lambda(z) (lambda(z) - z)/Var(x_i) at or
-    above it (z = (v_sat - b - t g a mu)/sd(v - b), lambda the inverse Mills ratio), 0 where the
-    sample is unusable (a saturated or non-finite dark level, a non-finite value). The censored
-    estimate moves with a shift of the dark level of sample i by -(this)/(t g a) over the sum,
-    as the threshold model's does with its weights (Eq. 12), so that these replace the weights
-    in :func:`pipeline.noise.calibration_variance`. The full well's clipped values that slip
-    under v_sat count as unsaturated here (a fraction Phi(-3) of them).
-
-    Parameters
-    ----------
-    v, b : numpy.ndarray
-        Raw values and dark levels, DN.
-    mu : numpy.ndarray
-        The estimate, e-/s.
-    var_x : numpy.ndarray
-        Var(x_i) at the estimate, (e-/s)^2.
-    tga : numpy.ndarray or float
-        t g a, DN per e-/s.
-    v_sat : float
-        Saturation limit, DN.
-
-    Returns
-    -------
-    numpy.ndarray
-        Information, (e-/s)^-2.
-    """
-    from scipy.special import log_ndtr
-
-    ok = (b < v_sat) & np.isfinite(v) & np.isfinite(b)
-    with np.errstate(invalid="ignore", over="ignore"):
-        z = np.where(ok, (v_sat - b - tga * mu) / (np.sqrt(var_x) * tga), 0.0)
-        lam = np.exp(-0.5 * z * z - 0.5 * math.log(2.0 * math.pi) - log_ndtr(-z))
-    info = np.where(v < v_sat, 1.0, lam * (lam - z)) / var_x
-    return np.where(ok, info, 0.0)
 
 
 def merge_arrays(

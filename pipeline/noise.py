@@ -30,7 +30,6 @@ __all__ = [
     "exposure_variance",
     "exposure_weight",
     "merged_variance",
-    "calibration_variance",
     "snr",
     "snr_db",
     "fisher_information",
@@ -220,59 +219,6 @@ def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATC
     total = w.sum(axis=0)
     with np.errstate(divide="ignore"):
         return np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), np.inf)
-
-
-def calibration_variance(mu, weights, times, g, bias_used, dark_coefs, sigma_bias, sigma_dark, sigma_a, a=1.0):
-    """Variance of the ML estimate due to the calibration's own per-photosite error (first order).
-
-    The calibration's errors are systematic: the same bias map b_j, dark-current map D_j and
-    PRNU map a_j enter every exposure, so averaging exposures does not reduce them. With
-    x_i = (v_i - b_i)/(t_i g a) (Eq. 6) and b_i = bias_used_i b_j + dark_coefs_i D_j (the model
-    strategy: b_j + g t_i D_j; one master dark at t_ref: master + g (t_i - t_ref) D_j; a dark
-    frame: no calibration term), the estimate mu = sum w_i x_i / sum w_i (Eq. 12, weights held
-    fixed) moves by
-
-    d mu / d b_j = -sum_i w_i bias_used_i / (t_i g a) / W,
-    d mu / d D_j = -sum_i w_i dark_coefs_i / (t_i g a) / W,  d mu / d ln a_j = -mu,
-
-    and Var_cal(mu) = (d mu/d b_j sigma_b)^2 + (d mu/d D_j sigma_D)^2 + (mu sigma_a / a)^2.
-
-    Parameters
-    ----------
-    mu : array_like
-        The estimate, e-/s.
-    weights : array_like
-        Weights of the exposures at the estimate (0 where a sample is not used), (e-/s)^-2,
-        exposures along the first axis.
-    times : array_like
-        Exposure times, s, along the first axis (shape (n,) or broadcast like ``weights``).
-    g : float
-        Gain, DN/e-.
-    bias_used : array_like
-        Per exposure 1 where its dark level contains the calibration's bias map, else 0.
-    dark_coefs : array_like
-        Per exposure the coefficient of the dark-current map in its dark level, DN per e-/s.
-    sigma_bias, sigma_dark, sigma_a : array_like
-        Standard errors of the bias map (DN), the dark-current map (e-/s) and the PRNU map a_j
-        (dimensionless); 0 where unknown.
-    a : array_like
-        PRNU gain used by the merge (1 with ``prnu="scalar"``).
-
-    Returns
-    -------
-    numpy.ndarray
-        Variance, (e-/s)^2, float64.
-    """
-    w = np.asarray(weights, dtype=np.float64)
-    shape = (-1,) + (1,) * (w.ndim - 1)
-    inv_tg = 1.0 / (np.asarray(times, dtype=np.float64).reshape(shape) * g)
-    W = w.sum(axis=0)
-    W = np.where(W > 0, W, np.inf)
-    db = (w * (np.asarray(bias_used, dtype=np.float64).reshape(shape) * inv_tg)).sum(axis=0) / W
-    dD = (w * (np.asarray(dark_coefs, dtype=np.float64).reshape(shape) * inv_tg)).sum(axis=0) / W
-    a = np.asarray(a, dtype=np.float64)
-    mu = np.asarray(mu, dtype=np.float64)
-    return (np.square(db * sigma_bias) + np.square(dD * sigma_dark) + np.square(mu * sigma_a)) / np.square(a)
 
 
 def snr(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1, usable=None):

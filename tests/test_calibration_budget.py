@@ -121,6 +121,52 @@ def test_sigma_calibration_equals_finite_difference_propagation(monkeypatch):
         assert np.median(got) > 0.05 * np.median(ref.sigma[ok])  # the check is not of a negligible term
 
 
+def test_sigma_calibration_of_the_censored_likelihood_equals_finite_differences(monkeypatch):
+    """saturation="probabilistic": sigma_calibration^2 = sum over the maps of (d mu / d map)^2
+    stderr^2, with d mu / d map from re-merging with each map shifted, where the longest
+    exposure is censored (at or above v_sat) on about half of the photosites: there a sample
+    enters with its share of the censored likelihood's information, not 1/Var."""
+    monkeypatch.setattr(merge_mod, "SINGLE_PRECISION_WEIGHTS", False)
+    spec = PRESETS["camera-B"].replace(dark_current=40.0, dcnu=0.3)  # the ADC clips: no full-well mixture
+    sensor = SimulatedSensor(spec, (48, 64), seed=6)
+    rng = np.random.default_rng(6)
+    cal = estimated_calibration(sensor, rng)
+    p = cal.params
+    times = [0.5, 2.0, 8.0]
+    g, bias, D = p.g, cal.bias_map.astype(np.float64), cal.dark_current_map.astype(np.float64)
+    # the longest exposure's noise-free level from 0.5 to 2 times its clip level
+    X = ((p.v_sat - bias) * rng.uniform(0.5, 2.0, (48, 64)) / (g * times[-1]) - D) / cal.prnu
+    # noise-free frames of the calibrated model, clipped at v_sat as the ADC clips
+    values = [np.minimum(bias + g * t * (cal.prnu * X + D), p.v_sat).astype(np.float32) for t in times]
+    opts = dict(tolerance=1e-12, iterations=50, saturation="probabilistic", exposure_times="nominal")
+    ref = merge_arrays(values, times, cal, **opts)
+    censored = values[-1] >= p.v_sat
+    assert 0.3 < censored.mean() < 0.7
+    var = np.zeros(X.shape)
+    for name, err, delta in (
+        ("bias_map", cal.bias_map_stderr, 0.05),
+        ("dark_current_map", cal.dark_current_map_stderr, 0.05),
+        ("prnu", cal.prnu_stderr, 1e-3),
+    ):
+        moved = merge_arrays(values, times, _perturbed(cal, name, delta), **opts)
+        deriv = (moved.irradiance.astype(np.float64) - ref.irradiance) / delta
+        if name == "prnu":
+            deriv = deriv / cal.prnu
+        var += (deriv * err) ** 2
+    ok = ref.nexp > 0
+    got, want = ref.sigma_calibration.astype(np.float64), np.sqrt(var)
+    rel = np.abs(got / want - 1.0)
+    unc, cen = ok & ~censored, ok & censored
+    assert unc.sum() > 500 and cen.sum() > 500
+    np.testing.assert_allclose(got[unc], want[unc], rtol=5e-3)  # measured: at most 0.40 %
+    # Censored: the first-order terms hold the variances (and the centring) at the estimate;
+    # where the censored sample carries much of the information the re-merge moves them too.
+    # Measured: median 0.02 %, 90 % of the photosites within 0.4 %, the largest 5.7 %.
+    assert np.median(rel[cen]) < 1e-3
+    assert np.percentile(rel[cen], 90) < 1e-2
+    assert rel[cen].max() < 0.1
+
+
 def test_calibration_without_standard_errors_has_no_calibration_part(tmp_path):
     """No standard error entered: the calibration's part is unknown, so there is no
     sigma_calibration (not a channel of zeros), and the header says what was missing."""
