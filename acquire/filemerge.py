@@ -43,26 +43,28 @@ def _warn(message: str) -> None:
     print(f"hdrcap: warning: {message}", file=sys.stderr)
 
 
-def _warm_up() -> None:
-    """:func:`pipeline.merge.warm_up_kernels`, in a background thread; a failure is left to the
-    merge itself to report."""
-    from hdrcap.pipeline.merge import warm_up_kernels
-
+def _warm_up(work: Callable[[], None] | None) -> None:
+    """``work`` (default :func:`pipeline.merge.warm_up_kernels`), in a background thread; a
+    failure is left to the command itself to report."""
     try:
-        warm_up_kernels()
-    except Exception:  # noqa: BLE001, S110  (the merge reports its own errors)
+        if work is None:
+            from hdrcap.pipeline.merge import warm_up_kernels as work
+        work()
+    except Exception:  # noqa: BLE001, S110  (the command reports its own errors)
         pass
 
 
 _WARM_UP: list[threading.Thread] = []  # the process's warm-up thread, once started
 
 
-def start_warm_up() -> threading.Thread:
+def start_warm_up(work: Callable[[], None] | None = None) -> threading.Thread:
     """Start :func:`_warm_up` in a thread (numba's set-up overlaps loading the calibration and
-    reading the frames), once per process: later calls return the same thread."""
+    reading the frames, or the EXR a denoise reads), once per process: later calls return the
+    same thread. ``work``: what to run (default: import the merge kernels and initialise
+    numba's CPU target; :func:`pipeline._numba_target.warm_up` for a module already imported)."""
     if _WARM_UP:
         return _WARM_UP[0]
-    thread = threading.Thread(target=_warm_up, name="hdrcap-kernel-warm-up")
+    thread = threading.Thread(target=_warm_up, args=(work,), name="hdrcap-kernel-warm-up")
     _WARM_UP.append(thread)
     thread.start()
     return thread

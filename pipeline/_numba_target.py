@@ -51,4 +51,13 @@ configure()
 
 import numba  # noqa: E402  (configure() imported numba.core.config; nothing compiled before the target is set)
 
-__all__ = ["configure", "numba"]
+__all__ = ["configure", "numba", "warm_up"]
+
+
+def warm_up() -> None:
+    """Initialise numba's CPU target: the registries of implementations that numba builds once
+    per process before it compiles or loads any function (about a second on the 2-core hosts
+    measured), under numba's compiler lock as its own loading does. For a background thread
+    that runs while a command reads its inputs; it changes no result."""
+    with numba.core.compiler_lock.global_compiler_lock:
+        numba.core.registry.cpu_target.target_context.refresh()

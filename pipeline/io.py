@@ -1130,12 +1130,18 @@ HALF_RELATIVE_ERROR = 2.0**-11
 
 def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
     """``arr`` converted to the dtype of ``precision``, refused where the conversion would lose
-    more than :data:`HALF_RELATIVE_ERROR` (half) or anything at all (uint)."""
+    more than :data:`HALF_RELATIVE_ERROR` (half) or anything at all (uint). An array already of
+    that type (float16 for half or auto, uint32 for uint) is stored as it is: no conversion,
+    nothing lost (a half channel read with ``read_exr(native=True)`` and written back)."""
     if precision not in EXR_PRECISIONS:
         raise ValueError(f"channel {name!r}: precision must be one of {', '.join(EXR_PRECISIONS)}, got {precision!r}")
     if name == "irradiance" and precision != "float":
         raise ValueError("the irradiance channel is always stored as float (32 bits)")
     arr = np.asarray(arr)
+    if arr.dtype == np.float16 and precision in ("half", "auto"):
+        return np.ascontiguousarray(arr)  # already half: stored as it is, nothing to lose or check
+    if arr.dtype == np.uint32 and precision == "uint":
+        return np.ascontiguousarray(arr)
     if precision in ("half", "auto"):
         lo, hi = _magnitude_range(arr)
         fits = lo is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
@@ -1296,7 +1302,7 @@ def _json_default(obj):
     raise TypeError(f"cannot store {type(obj).__name__} in the EXR header")
 
 
-def read_exr(path, channels: Iterable[str] | None = None) -> HdrImage:
+def read_exr(path, channels: Iterable[str] | None = None, *, native: bool = False) -> HdrImage:
     """Read an EXR written by :func:`write_exr` (or any scanline EXR) as an :class:`HdrImage`.
 
     Parameters
@@ -1306,6 +1312,10 @@ def read_exr(path, channels: Iterable[str] | None = None) -> HdrImage:
     channels : iterable of str, optional
         Keep only these channels (those the file has; the others are decoded by OpenEXR but
         neither converted nor kept). Default: every channel.
+    native : bool
+        Keep each channel in the type the file stores (float32, float16 for half, uint32 for
+        uint) instead of converting it to float32: for a caller that writes channels back
+        unchanged (:func:`write_exr` stores a channel already in its target type as it is).
 
     Returns
     -------
@@ -1331,7 +1341,7 @@ def read_exr(path, channels: Iterable[str] | None = None) -> HdrImage:
             meta = exr.header().get(_META_KEY)
             wanted = None if channels is None else set(channels)
             data = {
-                name: np.ascontiguousarray(ch.pixels, dtype=np.float32)
+                name: np.ascontiguousarray(ch.pixels, dtype=None if native else np.float32)
                 for name, ch in exr.channels().items()
                 if wanted is None or name in wanted
             }

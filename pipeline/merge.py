@@ -1003,10 +1003,9 @@ def warm_up_kernels() -> None:
     code. For a background thread started while the frames are read (:mod:`acquire.filemerge`);
     it changes no result."""
     from . import kernels  # noqa: F401  (first: it configures numba's compile target)
-    from ._numba_target import numba
+    from ._numba_target import warm_up
 
-    with numba.core.compiler_lock.global_compiler_lock:  # as numba's own loading does
-        numba.core.registry.cpu_target.target_context.refresh()
+    warm_up()
 
 
 def merge_arrays(

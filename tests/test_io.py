@@ -251,6 +251,40 @@ def test_exr_half_sigma_and_uint_nexp_read_back_as_float32(tmp_path, compression
     assert OpenEXR.global_thread_count() == 2
 
 
+def test_exr_native_read_and_same_type_write_keep_every_bit(tmp_path):
+    """read_exr(native=True) gives the stored types (float32, float16, uint32) with the values
+    of the float32 read; writing them back stores each as it is, bit for bit, including
+    subnormal halves (already half: nothing to lose, so not refused as float32 input is)."""
+    import OpenEXR
+
+    ch = _merge_like_channels()
+    sigma = ch["sigma"].astype(np.float16)
+    sigma[0, :3] = np.array([6e-8, 3e-6, -2e-5], np.float16)  # subnormal halves
+    image = HdrImage(dict(ch, sigma=sigma), {"unit": "e-/s"})
+    path = write_exr(tmp_path / "a.exr", image, precision={"sigma": "half", "nexp": "uint"})
+    native = read_exr(path, native=True)
+    plain = read_exr(path)
+    assert {k: v.dtype for k, v in native.channels.items()} == {
+        "irradiance": np.float32,
+        "sigma": np.float16,
+        "nexp": np.uint32,
+    }
+    for k in ch:
+        assert np.array_equal(native.channels[k].astype(np.float32), plain.channels[k]), k
+    assert native.channels["sigma"].tobytes() == sigma.tobytes()
+    for prec in ("half", "auto"):
+        again = write_exr(tmp_path / f"b-{prec}.exr", native, precision={"sigma": prec, "nexp": "uint"})
+        back = read_exr(again, native=True)
+        for k in ch:
+            assert back.channels[k].tobytes() == native.channels[k].tobytes(), (prec, k)
+        with OpenEXR.File(str(again)) as exr:
+            assert str(exr.channels()["sigma"].type()) == "PixelType.HALF"
+    with pytest.raises(ValueError, match="outside the half range"):  # the same values as float32
+        write_exr(
+            tmp_path / "c.exr", HdrImage(dict(ch, sigma=sigma.astype(np.float32)), {}), precision={"sigma": "half"}
+        )
+
+
 def test_exr_precision_refuses_what_it_would_lose(tmp_path):
     ch = _merge_like_channels()
     image = HdrImage(ch, {})

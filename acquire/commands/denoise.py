@@ -123,6 +123,10 @@ def command(
     from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
     t0 = time.perf_counter()
+    from hdrcap.acquire.filemerge import start_warm_up
+    from hdrcap.pipeline._numba_target import warm_up
+
+    start_warm_up(warm_up)  # numba's set-up while the EXR is read
     if method == "adaptive" and bandwidth is not None:
         raise InputError("--bandwidth is for --method constant; the adaptive method uses --range-scale")
     if method == "constant" and range_scale is not None:
@@ -136,7 +140,8 @@ def command(
         return _denoise_tiled(input_exr, output, filter_options, chunks, (sigma_precision, exr_compression))(
             force, as_json, t0
         )
-    image = read_exr(input_exr)
+    # the stored types: the channels carried over are written back without a float32 round trip
+    image = read_exr(input_exr, native=True)
     missing = [c for c in ("irradiance", "sigma") if c not in image.channels]
     if missing:
         raise InputError(
