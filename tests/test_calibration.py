@@ -489,3 +489,29 @@ def test_per_photosite_saturation_map_when_data_allow():
     assert abs(float(err.mean())) < 0.5
     assert float(np.sqrt(np.mean(err**2))) < 2.0 < float(np.std(sensor.offset))  # resolves the 6 DN pattern
     assert cal.params.v_sat < float(np.mean(truth))  # the scalar limit also covers the offset spread
+
+
+def test_flat_pairs_in_order_and_a_pair_censored_away_is_skipped():
+    """estimate_flats computes the pairs' statistics in a thread of its own: the pairs come back
+    in the order of the files, each with the variance of its two frames (g mu + sigma_R^2 of
+    the simulated Poisson counts, within 3 standard errors), and a pair whose photosites are all
+    censored near v_sat is skipped with its files and reason, not lost or reordered."""
+    from hdrcap.pipeline.calibration.flats import estimate_flats
+
+    rng = np.random.default_rng(4)
+    shape, bias, g, s2, v_sat = (32, 40), 100.0, 0.5, 4.0, 4000.0
+    frames, expect = [], []
+    for k, (t, electrons) in enumerate(((0.01, 2000.0), (0.02, 3000.0), (0.03, None), (0.04, 5000.0))):
+        for j in range(2):
+            if electrons is None:  # 45 % clipped at v_sat, the rest within a few DN of it
+                data = np.where(rng.random(shape) < 0.45, v_sat, v_sat - 1.0 - rng.integers(0, 2, shape))
+            else:
+                data = bias + g * rng.poisson(electrons, shape) + rng.normal(0.0, np.sqrt(s2), shape)
+            frames.append(RawFrame(data.astype(np.float32), t, path=f"flat_{k}_{j}.dng"))
+        expect.append(None if electrons is None else g * g * electrons + s2)
+    res = estimate_flats(frames, bias, v_sat, s2)
+    assert [p.exposure_time for p in res.pairs] == [0.01, 0.02, 0.04]
+    for p, want in zip(res.pairs, [e for e in expect if e is not None]):
+        assert abs(p.variance - want) < 3.0 * p.variance_stderr + 1e-9, (p.exposure_time, p.variance, want)
+    assert [s["files"] for s in res.skipped_pairs] == [["flat_2_0.dng", "flat_2_1.dng"]]
+    assert res.skipped_pairs[0]["t"] == 0.03 and "survive" in res.skipped_pairs[0]["reason"]

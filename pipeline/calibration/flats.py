@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -90,6 +91,44 @@ def _check_clipped(n_clipped: int, size: int, v_sat: float, name: str) -> None:
             f"{name}: flat field is saturated ({100 * frac:.1f} % of photosites at or above "
             f"v_sat = {v_sat:.1f} DN); lower the exposure"
         )
+
+
+class _PairWorker:
+    """:func:`~hdrcap.pipeline.calibration.stats.pair_statistics` of the flat pairs in one
+    background thread (its kernel releases the GIL: the next flat's level and the stack's
+    additions run meanwhile), at most :attr:`window` pairs ahead; on leaving, every pair's
+    result is appended to ``pairs`` in the order given, and a pair whose photosites were all
+    censored or clipped away (a ValueError) to ``skipped`` with its reason."""
+
+    window = 2
+
+    def __init__(self, pairs: list[PairStats], skipped: list[dict]):
+        self.pairs, self.skipped = pairs, skipped
+        self.jobs: list[tuple[Any, list[str], float]] = []
+        self.done = 0
+
+    def __enter__(self) -> _PairWorker:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="hdrcap-flat-pairs")
+        return self
+
+    def submit(self, a, b, clip, t: float, upper: float, files: list[str]) -> None:
+        """Queue the pair (a, b) of exposure time ``t`` (files named ``files``)."""
+        while len(self.jobs) - self.done >= self.window:  # bounded: each job holds two frames
+            self.jobs[self.done][0].exception()
+            self.done += 1
+        self.jobs.append((self.pool.submit(pair_statistics, a, b, clip, t, upper=upper), files, t))
+
+    def __exit__(self, *exc) -> None:
+        self.pool.shutdown(wait=True)
+        if exc[0] is not None:
+            return
+        for job, files, t in self.jobs:
+            try:
+                self.pairs.append(job.result())
+            except ValueError as err:  # every photosite censored or clipped away
+                self.skipped.append({"files": files, "t": t, "reason": str(err)})
 
 
 def _flat_level(
@@ -196,39 +235,40 @@ def estimate_flats(
     skipped: list[dict] = []
     sat_span = v_sat - (mu_R if mu_R is not None else float(np.mean(dark_reference)))
     no_rate = as_correction_map(None, ())
-    for i, fr in enumerate(frames):
-        data = np.ascontiguousarray(frame_data(fr))
-        name = frame_name(fr, "flat", i)
-        check_shape(data, shape, name, first)
-        if stack is None:
-            shape, first = data.shape, name
-            stack = PixelStack(shape)
-            offset = as_correction_map(dark_reference, shape)
-            rate = as_correction_map(dark_rate_map, shape)
-        t = frame_time(fr)
-        level, n_clipped = _flat_level(data, offset, rate if t > 0 else no_rate, t, v_sat, clip, name)
-        if level < 3.0 * np.sqrt(sigma2_R):
-            raise InputError(
-                f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
-                f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)"
+    # the pairs' statistics in a thread of their own, in order (the next flat's level meanwhile)
+    with _PairWorker(pairs, skipped) as pair_worker:
+        for i, fr in enumerate(frames):
+            data = np.ascontiguousarray(frame_data(fr))
+            name = frame_name(fr, "flat", i)
+            check_shape(data, shape, name, first)
+            if stack is None:
+                shape, first = data.shape, name
+                stack = PixelStack(shape)
+                offset = as_correction_map(dark_reference, shape)
+                rate = as_correction_map(dark_rate_map, shape)
+            t = frame_time(fr)
+            level, n_clipped = _flat_level(data, offset, rate if t > 0 else no_rate, t, v_sat, clip, name)
+            if level < 3.0 * np.sqrt(sigma2_R):
+                raise InputError(
+                    f"{name}: flat field is dark (mean {level:.1f} DN above the bias, below "
+                    f"3 sigma_R = {3 * np.sqrt(sigma2_R):.1f} DN)"
+                )
+            levels.append((t, float(level), name))
+            in_prnu, note = _prnu_use(level, sat_span, prnu_max_fraction, n_clipped, data.size)
+            if in_prnu:
+                prnu_levels.append(level)
+                stack.add_corrected(
+                    data, offset, rate if t > 0 else no_rate, t, level, _prnu_weight(level), v_sat, n_clipped
+                )
+            notes.append(
+                {"file": name, "t": t, "level": float(level), "clipped": n_clipped, "prnu": in_prnu, "note": note}
             )
-        levels.append((t, float(level), name))
-        in_prnu, note = _prnu_use(level, sat_span, prnu_max_fraction, n_clipped, data.size)
-        if in_prnu:
-            prnu_levels.append(level)
-            stack.add_corrected(
-                data, offset, rate if t > 0 else no_rate, t, level, _prnu_weight(level), v_sat, n_clipped
-            )
-        notes.append({"file": name, "t": t, "level": float(level), "clipped": n_clipped, "prnu": in_prnu, "note": note})
-        if pending is not None and same_exposure(pending[1], t):
-            try:
-                pairs.append(pair_statistics(pending[0], data, clip, t, upper=v_sat))
-            except ValueError as err:  # every photosite censored or clipped away
-                skipped.append({"files": [pending[2], name], "t": t, "reason": str(err)})
-            pending = None
-        else:
-            pending = (data, t, name)
-        n += 1
+            if pending is not None and same_exposure(pending[1], t):
+                pair_worker.submit(pending[0], data, clip, t, v_sat, [pending[2], name])
+                pending = None
+            else:
+                pending = (data, t, name)
+            n += 1
     if n == 0:
         raise InputError("no flat fields given")
     if stack.n == 0:
