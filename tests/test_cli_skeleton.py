@@ -150,6 +150,11 @@ def test_demo_reports_error_against_truth(cli, tmp_path):
         assert (tmp_path / "d" / name).is_file()
     text = (tmp_path / "d" / "summary.txt").read_text()
     assert "error against the simulator's ground truth" in text
+    from hdrcap.pipeline.io import read_exr
+
+    written = set(read_exr(tmp_path / "d" / "demo.exr").channels)
+    listed = text.split("demo.exr (", 1)[1].split(")", 1)[0]
+    assert {c.strip() for c in listed.split(";")[0].split(",")} == written  # the summary names what is there
     assert res["median_abs_relative_error"] < 0.2 and res["n_used"] > 0.9 * 128 * 96
     assert 0.7 < res["z_std"] < 2.0
 

@@ -77,7 +77,7 @@ def run_demo(
         f"({res['elapsed_s']:.1f} s)",
         f"merge: {m.info.get('method', 'ML')}, dark strategy {m.info.get('dark_strategy', 'matched')}, "
         f"{'streamed as frames landed' if res['streamed_merge'] else 'merged after the last frame'}",
-        f"output: {out / 'demo.exr'} (irradiance, sigma, sigma_calibration, nexp, quality), preview {out / 'demo.png'}",
+        f"output: {out / 'demo.exr'} ({_channels(m)}), preview {out / 'demo.png'}",
         "error against the simulator's ground truth (photosites with an unsaturated exposure):",
         f"  median |relative error|   {err['median_abs_relative_error']:.4%}",
         f"  z = (estimate - truth)/sigma: mean {err['z_mean']:+.3f}, std {err['z_std']:.3f} (1 = honest sigma)",
@@ -126,3 +126,10 @@ def command(out, camera, scene, size, seed, target_snr, force, as_json):
         echo_json({"exr": res["exr"], "png": res["png"], **res["error"]})
     else:
         click.echo(res["text"], nl=False)
+
+
+def _channels(result) -> str:
+    """The EXR channels of the demo's merge, and why sigma_calibration is missing when it is."""
+    if getattr(result, "sigma_calibration", None) is not None:
+        return "irradiance, sigma, sigma_calibration, nexp, quality"
+    return "irradiance, sigma, nexp, quality; no sigma_calibration: the calibration has no standard errors"
