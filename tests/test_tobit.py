@@ -32,6 +32,7 @@ from hdrcap.pipeline.params import Calibration
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_honesty import estimated_calibration  # noqa: E402
+from tobit_bands import clip_scene  # noqa: E402
 
 TIMES = np.array([1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0])
 K_EDGES = np.arange(-3.0, 3.01, 0.5)
@@ -45,23 +46,8 @@ def _truth_calibration(sensor):
     )
 
 
-def _electrons_at_k(spec, v_sat, k):
-    """Electrons E with mu_R + g E = v_sat + k sqrt(g^2 E + sigma_R^2) (fixed point)."""
-    e = (v_sat - spec.mu_R) / spec.g
-    for _ in range(10):
-        e = (v_sat + k * np.sqrt(spec.g**2 * e + spec.sigma2_R) - spec.mu_R) / spec.g
-    return e
-
-
 def _clip_scene(sensor, rng, times=TIMES):
-    """Every photosite at k ~ U(-3.5, 3.5) of the clip level of an exposure that has a shorter
-    one (PRNU and dark-current map of the truth), and that k."""
-    spec = sensor.spec
-    shape = sensor.prnu.shape
-    t = np.asarray(times)[rng.integers(1, len(times), shape)]
-    k = rng.uniform(-3.5, 3.5, shape)
-    e = _electrons_at_k(spec, spec.nominal_params().v_sat, k)
-    return (e / t - sensor.dark_current_map()) / sensor.prnu, k
+    return clip_scene(sensor, rng, times)
 
 
 def _monte_carlo(cam, seeds, shape=(128, 128)):
