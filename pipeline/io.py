@@ -1140,8 +1140,6 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
     arr = np.asarray(arr)
     if arr.dtype == np.float16 and precision in ("half", "auto"):
         return np.ascontiguousarray(arr)  # already half: stored as it is, nothing to lose or check
-    if arr.dtype == np.uint32 and precision == "uint":
-        return np.ascontiguousarray(arr)
     if precision in ("half", "auto"):
         lo, hi = _magnitude_range(arr)
         fits = lo is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
@@ -1177,8 +1175,8 @@ def _magnitude_range(arr: np.ndarray) -> tuple[float | None, float | None]:
 
 def _whole_uint32(arr: np.ndarray) -> bool:
     """Whether every value of ``arr`` is a whole number in 0..2**32-1 (what EXR UINT stores)."""
-    if arr.dtype.kind == "b":
-        return True
+    if arr.dtype.kind == "b" or (arr.dtype.kind == "u" and arr.dtype.itemsize <= 4):
+        return True  # every value fits, without a scan
     if arr.dtype.kind in "iu":
         return arr.size == 0 or (int(arr.min()) >= 0 and int(arr.max()) <= 2**32 - 1)
     if arr.dtype.kind != "f":

@@ -979,8 +979,9 @@ class ErrorMaps(NamedTuple):
 
 class SharedTerms(NamedTuple):
     """What :func:`calibration_terms_kernel` computes and with which rules: per-frame ``use``
-    (float64, (n, 3): 1 where the dark level holds the bias map, the factor of D in the dark
-    level (0 for an own dark frame), 1 where it is the timed master dark); ``sat2`` (the
+    (float64, (n, 2): 1 where the dark level holds the bias map, 1 where it is the timed master
+    dark; the factor of D in the dark level is the frame table's ``coefs``, 0 for an own dark
+    frame); ``sat2`` (the
     near-saturation margin squared, 0: no rule), ``censored`` (the samples' censored
     information instead of 1/Var), ``weights`` (False: the PRNU term alone, no frame needed),
     ``calibration`` and ``master`` (which outputs to fill), the master dark's time ``t_ref``
@@ -994,21 +995,6 @@ class SharedTerms(NamedTuple):
     master: bool
     t_ref: float
     n_master: float
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _terms_dark_row(BROW, kind, coef, drow, mrow, BIAS, DR):  # pragma: no cover - compiled
-    """A frame's dark level b_i on one row (DN, float64): its own dark frame, bias plus
-    coef D, or the master dark plus coef D."""
-    if kind == 0:
-        for c in range(BROW.shape[0]):
-            BROW[c] = float(drow[c])
-    elif kind == 1:
-        for c in range(BROW.shape[0]):
-            BROW[c] = BIAS[c] + coef * DR[c]
-    else:
-        for c in range(BROW.shape[0]):
-            BROW[c] = float(mrow[c]) + coef * DR[c]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -1115,14 +1101,15 @@ def calibration_terms_kernel(values, darks, frames, camera, maps, errors, terms,
         NM = np.zeros(Wd)
         BROW = np.empty(Wd)
         WROW = np.empty(Wd)
-        mrow = master[r] if master.shape[0] == H else master[0]
         for i in range(n):
-            drow = darks[i][r] if kinds[i] == 0 else darks[i][0]
-            _terms_dark_row(BROW, kinds[i], use[i, 1], drow, mrow, BIAS, DR)
+            master_frame = kinds[i] == 2  # the master dark is read only then (else a placeholder)
+            for c in range(Wd):
+                mc = float(master[r, c]) if master_frame else 0.0
+                BROW[c] = _dark_level(darks, kinds, coefs, i, r, c, BIAS[c], mc, DR[c])
             _terms_weights_row(
                 WROW, values[i][r], BROW, MU, MP, A, DR, BIAS, U, times[i], g, s2, ks[i], v_sat, sat2, censored
             )
-            _terms_sums_row(WROW, 1.0 / (times[i] * g), use[i, 0], use[i, 1], use[i, 2], WS, NB, ND, NM)
+            _terms_sums_row(WROW, 1.0 / (times[i] * g), use[i, 0], coefs[i], use[i, 1], WS, NB, ND, NM)
         for c in range(Wd):
             used = nexp[r, c] > 0
             wd = WS[c] if WS[c] > 0 else math.inf

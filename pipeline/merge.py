@@ -33,6 +33,7 @@ takes frames one by one as they are captured (first pass) and finishes with the 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import warnings
@@ -738,16 +739,19 @@ class MergeAccumulator:
         # Rows in chunks run in parallel; per chunk: photosites with nexp = 0, sum and max of
         # the iteration counts.
         stats = np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), 3))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
+        # the inputs of the merge kernel and of the calibration's error terms
+        frames = FrameTable(
+            np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64), self._dark_factors(), times
+        )
+        camera = CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level))
+        maps = MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0))
+        with _reflected_lists_quiet():
             merge_kernel(
                 values,
                 darks,
-                FrameTable(
-                    np.asarray(self._kinds, np.int64), np.asarray(self._coefs, np.float64), self._dark_factors(), times
-                ),
-                CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
-                MapSet(MapArg(*self._bias), MapArg(*self._D), MapArg(*self._a), MapArg(master, has_master, 0.0)),
+                frames,
+                camera,
+                maps,
                 StartSums(self._sum, self._cnt, self.stream),
                 IterationOptions(
                     int(opts.iterations),
@@ -760,9 +764,9 @@ class MergeAccumulator:
             )
         release = release_frames or (lambda: None)
         release()
-        sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp, values, darks, master)
+        sig_cal, sig_master, cal_info = self._shared_terms(irr, nexp, values, darks, frames, camera, maps)
         release()
-        _add_in_quadrature(sig, sig_cal if cal_info["included"] else None, sig_master)
+        _add_in_quadrature(sig, sig_cal, sig_master)
         sat = int(stats[:, 0].sum())
         quality, n_defects = _flag_defects(irr, sig, nexp, self.calibration.defect_map)
         masked = self._flag_masked(irr, sig, nexp, quality)
@@ -789,10 +793,8 @@ class MergeAccumulator:
             "weights_precision": "float32" if single else "float64",
             "calibration_error": cal_info,
         }
-        if cal_info["included"]:
+        if sig_cal is not None:
             sig_cal[((quality & ~np.uint8(QUALITY_BITS["masked"])) != 0) | (nexp == 0)] = 0.0  # not a measurement
-        else:  # no calibration error entered: the calibration's part is unknown, not zero
-            sig_cal = None
         return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality, sigma_calibration=sig_cal)
 
     def _flag_masked(self, irr, sig, nexp, quality) -> dict[str, Any]:
@@ -880,8 +882,8 @@ class MergeAccumulator:
         return s_b, s_d, s_a, desc
 
     def _shared_terms(
-        self, irr: np.ndarray, nexp: np.ndarray, values: list, darks: list, master: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray | None, dict]:
+        self, irr: np.ndarray, nexp: np.ndarray, values: list, darks: list, frames, camera, maps
+    ) -> tuple[np.ndarray | None, np.ndarray | None, dict]:
         """The errors common to all exposures of a photosite, propagated to X at the estimate
         with the weights (Eq. 13) of the samples the merge kept (Eq. 11 and the near-saturation
         rule, evaluated at the final estimate; with the censored likelihood of
@@ -898,75 +900,69 @@ class MergeAccumulator:
           (g^2 t_ref D + sigma_R^2)/N.
 
         Computed per photosite by :func:`pipeline.kernels.calibration_terms_kernel` (parallel
-        over rows; the frames as the merge kernel took them: ``values``, ``darks`` with their
-        placeholders, the ``master`` dark or its placeholder).
+        over rows) from the merge kernel's own inputs: ``values``, ``darks`` with their
+        placeholders, and its ``frames``, ``camera`` and ``maps`` tuples (the dark-current
+        coefficient of a frame with its own dark frame is 0).
 
         Returns
         -------
-        (numpy.ndarray, numpy.ndarray or None, dict)
-            sigma_calibration (zeros when ``desc["included"]`` is empty) and the master dark's
-            term (None when no frame shares a timed master dark), e-/s, float32; the
-            description of the calibration's errors.
+        (numpy.ndarray or None, numpy.ndarray or None, dict)
+            sigma_calibration (None when ``desc["included"]`` is empty: the calibration's part
+            is unknown, not zero) and the master dark's term (None when no frame shares a timed
+            master dark), e-/s, float32; the description of the calibration's errors.
         """
         s_b, s_d, s_a, desc = self._calibration_errors()
-        out = np.zeros(self.shape, np.float32)
+        out = np.zeros(self.shape, np.float32) if desc["included"] else None
         master_used = self._shares_timed_master().astype(np.float64)
         out_m = np.zeros(self.shape, np.float32) if master_used.any() else None
-        if not desc["included"] and out_m is None:
+        if out is None and out_m is None:
             return out, out_m, desc
-        from .kernels import (
-            CameraConstants,
-            ErrorMaps,
-            FrameTable,
-            MapArg,
-            MapSet,
-            SharedTerms,
-            calibration_terms_kernel,
-        )
+        from .kernels import ErrorMaps, MapArg, SharedTerms, calibration_terms_kernel
 
-        p = self.calibration.params
-        kinds = np.asarray(self._kinds, np.int64)
-        bias_used = (kinds == 1).astype(np.float64)
-        coefs = np.where(kinds == 0, 0.0, np.asarray(self._coefs, np.float64))
+        bias_used = (frames.kinds == 1).astype(np.float64)
         # Only frames whose dark level comes from the calibration's maps need their weights.
-        needs_weights = bool(np.any(bias_used > 0) or np.any(coefs != 0) or master_used.any())
+        needs_weights = bool(np.any(bias_used > 0) or np.any(frames.coefs != 0) or master_used.any())
         t_ref = self.options.master_dark_time
 
         def err_arg(e):
             return MapArg(e, True, 0.0) if isinstance(e, np.ndarray) else MapArg(np.zeros((1, 1), np.float32), False, e)
 
-        import numba
-
-        with warnings.catch_warnings():  # reflected lists, as for the merge kernel
-            warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
+        with _reflected_lists_quiet():
             calibration_terms_kernel(
                 values,
                 darks,
-                FrameTable(kinds, coefs, self._dark_factors(), np.asarray(self._times, np.float64)),
-                CameraConstants(float(p.g), float(p.sigma2_R), float(p.v_sat), float(p.white_level)),
-                MapSet(
-                    MapArg(*self._bias),
-                    MapArg(*self._D),
-                    MapArg(*self._a),
-                    MapArg(master, self.master_dark is not None, 0.0),
-                ),
+                frames,
+                camera,
+                maps,
                 ErrorMaps(err_arg(s_b), err_arg(s_d), err_arg(s_a)),
                 SharedTerms(
-                    np.ascontiguousarray(np.stack([bias_used, coefs, master_used], axis=1)),
+                    np.ascontiguousarray(np.stack([bias_used, master_used], axis=1)),
                     float(self.options.saturation_sigmas) ** 2,
                     self.options.saturation == "probabilistic",
                     needs_weights,
-                    bool(desc["included"]),
+                    out is not None,
                     out_m is not None,
                     float(t_ref) if t_ref is not None else 0.0,
                     float(self.options.n_dark),
                 ),
                 irr,
                 nexp,
-                out,
-                out if out_m is None else out_m,
+                out if out is not None else out_m,  # a placeholder for the output not asked for
+                out_m if out_m is not None else out,
             )
         return out, out_m, desc
+
+
+@contextlib.contextmanager
+def _reflected_lists_quiet():
+    """Silence numba's pending deprecation of reflected lists around a kernel call: the kernels
+    take plain lists of frames on purpose (``numba.typed.List`` would cost its compilation in
+    every process)."""
+    import numba
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
+        yield
 
 
 def _add_in_quadrature(sigma: np.ndarray, *terms: np.ndarray | None, rows: int = 256) -> None:
