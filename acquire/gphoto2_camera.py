@@ -55,9 +55,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from hdrcap.pipeline.errors import InputError
-
-from .camera import (
+from hdrcap.acquire.camera import (
     BULB_MAX_S,
     CameraBusyError,
     CameraDisconnectedError,
@@ -70,6 +68,7 @@ from .camera import (
     nearest_allowed,
     parse_exposure_label,
 )
+from hdrcap.pipeline.errors import InputError
 
 __all__ = [
     "Gphoto2Camera",

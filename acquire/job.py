@@ -18,10 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hdrcap.acquire.camera import exposure_ladder, nearest_allowed
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import DarkStrategy
-
-from .camera import exposure_ladder, nearest_allowed
 
 __all__ = [
     "Job",

@@ -40,14 +40,13 @@ from typing import Any
 
 import numpy as np
 
+from hdrcap.acquire.camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
+from hdrcap.acquire.compat import CameraProfile, CompatibilityError, check_compatible
+from hdrcap.acquire.manifest import EventLog, Manifest, utc_now
 from hdrcap.pipeline.darks import DarkResolver
 from hdrcap.pipeline.errors import HdrcapError, InputError
 from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.times import ExposureMap, find_exposure, same_bulb_exposure, same_exposure
-
-from .camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
-from .compat import CameraProfile, CompatibilityError, check_compatible
-from .manifest import EventLog, Manifest, utc_now
 
 __all__ = [
     "FrameSpec",

@@ -1,5 +1,5 @@
 """The simulated sensor (physics) and the simulated camera backend."""
 
-from .sensor import PRESETS, SensorSpec, SimulatedSensor, preset
+from hdrcap.mock_camera.sensor import PRESETS, SensorSpec, SimulatedSensor, preset
 
 __all__ = ["PRESETS", "SensorSpec", "SimulatedSensor", "preset"]

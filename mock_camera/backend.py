@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dng import exposure_rational, write_dng
-from .sensor import SensorSpec, SimulatedSensor
+from hdrcap.mock_camera.dng import exposure_rational, write_dng
+from hdrcap.mock_camera.sensor import SensorSpec, SimulatedSensor
 
 __all__ = ["SimulatedCamera"]
 

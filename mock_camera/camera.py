@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from hdrcap.mock_camera.backend import SimulatedCamera
+from hdrcap.mock_camera.sensor import PRESETS, SensorSpec
 from hdrcap.pipeline.camera_types import (
     CameraBusyError,
     CameraDisconnectedError,
@@ -37,9 +39,6 @@ from hdrcap.pipeline.camera_types import (
     StorageFullError,
 )
 from hdrcap.pipeline.params import THIRD_STOP_TIMES
-
-from .backend import SimulatedCamera
-from .sensor import PRESETS, SensorSpec
 
 __all__ = ["MockCamera", "MockFaults", "STANDARD_TIMES"]
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .sensor import SimulatedSensor
+from hdrcap.mock_camera.sensor import SimulatedSensor
 
 __all__ = ["EmvaSetSpec", "write_emva_set", "write_pgm"]
 

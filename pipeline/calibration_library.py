@@ -18,9 +18,9 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from .camera_types import same_model
-from .errors import InputError
-from .params import Calibration
+from hdrcap.pipeline.camera_types import same_model
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.params import Calibration
 
 __all__ = [
     "LibraryEntry",
@@ -163,7 +163,7 @@ def store_calibration(
     InputError
         No camera model or no ISO known.
     """
-    from .calibration import save_calibration
+    from hdrcap.pipeline.calibration import save_calibration
 
     prov = calibration.provenance or {}
     camera = camera or prov.get("camera") or calibration.params.name
@@ -209,7 +209,7 @@ def find_calibration(
     -------
     (LibraryEntry, Calibration) or None
     """
-    from .calibration import load_calibration
+    from hdrcap.pipeline.calibration import load_calibration
 
     model = model_slug(camera)
     if not model or iso is None:

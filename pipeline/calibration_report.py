@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from .params import DEFECT_BITS, Calibration, ShutterTable
-from .plotting import new_figure, save_figure
+from hdrcap.pipeline.params import DEFECT_BITS, Calibration, ShutterTable
+from hdrcap.pipeline.plotting import new_figure, save_figure
 
 __all__ = ["write_report"]
 

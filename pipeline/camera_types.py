@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import HdrcapError
+from hdrcap.pipeline.errors import HdrcapError
 
 __all__ = [
     "FAULT_KINDS",

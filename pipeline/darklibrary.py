@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera_types import same_model as same_camera
-from .errors import InputError
-from .io import atomic_output
-from .times import EXPOSURE_RTOL, same_exposure, unique_exposures
+from hdrcap.pipeline.camera_types import same_model as same_camera
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import atomic_output
+from hdrcap.pipeline.times import EXPOSURE_RTOL, same_exposure, unique_exposures
 
 __all__ = ["DarkEntry", "DarkLibrary", "LIBRARY_FORMAT", "LIBRARY_VERSION", "same_camera"]
 

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .darklibrary import DarkLibrary
-from .noise import DarkStrategy
-from .times import ExposureMap
+from hdrcap.pipeline.darklibrary import DarkLibrary
+from hdrcap.pipeline.noise import DarkStrategy
+from hdrcap.pipeline.times import ExposureMap
 
 __all__ = ["DarkSource", "DarkResolver", "default_strategy", "ORIGINS"]
 
@@ -147,7 +147,7 @@ class DarkResolver:
             A master dark of that time was already served (its dark frames must all come
             before).
         """
-        from .errors import InputError
+        from hdrcap.pipeline.errors import InputError
 
         hit = self._darks.get(t)
         if hit is None:

@@ -78,8 +78,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
-from .errors import InputError
+from hdrcap.pipeline._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
+from hdrcap.pipeline.errors import InputError
 
 __all__ = [
     "DEFAULT_RANGE_SCALE",

@@ -52,9 +52,9 @@ from typing import Any
 
 import numpy as np
 
-from .develop_names import DEMOSAIC_METHODS, LINEAR_METHODS, OUTPUT_SPACES
-from .dngwrite import CameraColour
-from .errors import InputError
+from hdrcap.pipeline.develop_names import DEMOSAIC_METHODS, LINEAR_METHODS, OUTPUT_SPACES
+from hdrcap.pipeline.dngwrite import CameraColour
+from hdrcap.pipeline.errors import InputError
 
 __all__ = [
     "DEMOSAIC_METHODS",
@@ -612,7 +612,7 @@ def develop_image(image, method: str = "malvar2004", space: str = "camera", *, s
         No irradiance channel, a non-Bayer mosaic, an unknown method or space, or a colour space
         the header's colour metadata cannot give.
     """
-    from .io import HdrImage
+    from hdrcap.pipeline.io import HdrImage
 
     ch, attrs = image.channels, image.attrs
     if "irradiance" not in ch:

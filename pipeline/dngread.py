@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from hdrcap.pipeline.errors import InputError
 
 __all__ = ["DngPixels", "decode_dng", "raw_page"]
 

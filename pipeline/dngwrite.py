@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io import HdrImage, atomic_output
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import HdrImage, atomic_output
 
 __all__ = [
     "CameraColour",
@@ -368,7 +368,7 @@ def camera_colour(path) -> CameraColour | None:
     """
     import tifffile
 
-    from .io import _tiff_complaints
+    from hdrcap.pipeline.io import _tiff_complaints
 
     path = Path(path)
     try:

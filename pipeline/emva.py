@@ -37,14 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from .calibration.dark import fit_dark_current
-from .calibration.gain import PhotonTransferFit, photon_transfer_gain
-from .calibration.readout import QUANTISATION_LIMIT, QUANTISATION_VARIANCE
-from .calibration.stats import PairStats, pair_statistics
-from .errors import InputError
-from .io import EmvaDataset, read_emva_descriptor, read_image16
-from .params import Calibration, SensorParams
-from .times import ExposureMap
+from hdrcap.pipeline.calibration.dark import fit_dark_current
+from hdrcap.pipeline.calibration.gain import PhotonTransferFit, photon_transfer_gain
+from hdrcap.pipeline.calibration.readout import QUANTISATION_LIMIT, QUANTISATION_VARIANCE
+from hdrcap.pipeline.calibration.stats import PairStats, pair_statistics
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import EmvaDataset, read_emva_descriptor, read_image16
+from hdrcap.pipeline.params import Calibration, SensorParams
+from hdrcap.pipeline.times import ExposureMap
 
 __all__ = [
     "EmvaData",

@@ -15,8 +15,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .noise import exposure_weight, merged_variance
-from .params import SensorParams
+from hdrcap.pipeline.noise import exposure_weight, merged_variance
+from hdrcap.pipeline.params import SensorParams
 
 __all__ = [
     "error_against_truth",
@@ -374,7 +374,7 @@ def weights_vs_output(
         ``v`` (output above black, DN), ``t`` (exposure times, s), ``X`` (e-/s), ``sigma2_R``
         (DN^2) and ``weights`` (method -> normalised weights).
     """
-    from .weighting import WEIGHTING_METHODS
+    from hdrcap.pipeline.weighting import WEIGHTING_METHODS
 
     D = params.dark_current if D is None else D
     v = np.linspace(1.0, params.v_sat - params.mu_R, n, endpoint=False)

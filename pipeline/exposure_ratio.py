@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from hdrcap.pipeline.errors import InputError
 
 __all__ = [
     "RatioOptions",

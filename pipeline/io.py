@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from .blocks import flat_blocks
-from .errors import InputError, OutputExistsError
+from hdrcap.pipeline.blocks import flat_blocks
+from hdrcap.pipeline.errors import InputError, OutputExistsError
 
 __all__ = [
     "BAD_VALUES",
@@ -256,7 +256,7 @@ MAX_RAW_COMPRESSION = 8
 
 def _refuse_impossible_size(path: Path, tif) -> None:
     """Refuse a raw image whose stated dimensions cannot fit in its stored data."""
-    from .dngread import raw_page
+    from hdrcap.pipeline.dngread import raw_page
 
     try:
         page = raw_page(tif)
@@ -383,7 +383,7 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
     """
     import tifffile
 
-    from .dngread import decode_dng
+    from hdrcap.pipeline.dngread import decode_dng
 
     with _tiff_complaints() as complaints:
         try:

@@ -44,8 +44,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import prange
 
-from ._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
-from .noise import variance_of_rate
+from hdrcap.pipeline._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
+from hdrcap.pipeline.noise import variance_of_rate
 
 __all__ = [
     "merge_kernel",

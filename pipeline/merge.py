@@ -43,13 +43,18 @@ from typing import Any
 
 import numpy as np
 
-from .darks import DarkResolver, default_strategy
-from .errors import InputError
-from .exposure_ratio import EXPOSURE_TIME_MODES, ExposureRatios, estimate_exposure_ratios, subsample_window
-from .io import RawFrame, check_exposure_time, check_frames
-from .noise import DarkStrategy, dark_factor
-from .params import DEFECT_BITS, Calibration
-from .times import same_exposure
+from hdrcap.pipeline.darks import DarkResolver, default_strategy
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.exposure_ratio import (
+    EXPOSURE_TIME_MODES,
+    ExposureRatios,
+    estimate_exposure_ratios,
+    subsample_window,
+)
+from hdrcap.pipeline.io import RawFrame, check_exposure_time, check_frames
+from hdrcap.pipeline.noise import DarkStrategy, dark_factor
+from hdrcap.pipeline.params import DEFECT_BITS, Calibration
+from hdrcap.pipeline.times import same_exposure
 
 __all__ = [
     "MergeResult",
@@ -468,7 +473,7 @@ class MergeAccumulator:
             if self._values[0].dtype != np.float32:
                 self._values = [x.astype(np.float32) for x in self._values]
         if self.stream:
-            from .kernels import MapArg, first_pass_kernel
+            from hdrcap.pipeline.kernels import MapArg, first_pass_kernel
 
             base = (self.master_dark.astype(np.float32, copy=False), True, 0.0) if kind == 2 else self._bias
             first_pass_kernel(
@@ -705,14 +710,14 @@ class MergeAccumulator:
         at once."""
         import numba
 
-        from .kernels import (
+        from hdrcap.pipeline.kernels import (
             CameraConstants,
             FrameTable,
             IterationOptions,
             MapArg,
             MapSet,
             MergeOutputs,
-            StartSums,  # first: it configures numba's compile target
+            StartSums,
             merge_kernel,
         )
 
@@ -917,7 +922,7 @@ class MergeAccumulator:
         out_m = np.zeros(self.shape, np.float32) if master_used.any() else None
         if out is None and out_m is None:
             return out, out_m, desc
-        from .kernels import ErrorMaps, MapArg, SharedTerms, calibration_terms_kernel
+        from hdrcap.pipeline.kernels import ErrorMaps, MapArg, SharedTerms, calibration_terms_kernel
 
         bias_used = (frames.kinds == 1).astype(np.float64)
         # Only frames whose dark level comes from the calibration's maps need their weights.
@@ -998,8 +1003,8 @@ def warm_up_kernels() -> None:
     function: a third of a second or more), so that the first merge only loads its compiled
     code. For a background thread started while the frames are read (:mod:`acquire.filemerge`);
     it changes no result."""
-    from . import kernels  # noqa: F401  (first: it configures numba's compile target)
-    from ._numba_target import warm_up
+    from hdrcap.pipeline import kernels  # noqa: F401  (first: it configures numba's compile target)
+    from hdrcap.pipeline._numba_target import warm_up
 
     warm_up()
 

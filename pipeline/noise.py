@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .dark_strategy import DarkStrategy
+from hdrcap.pipeline.dark_strategy import DarkStrategy
 
 __all__ = [
     "DarkStrategy",

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .times import find_exposure, same_exposure
+from hdrcap.pipeline.times import find_exposure, same_exposure
 
 __all__ = ["SensorParams", "Calibration", "ShutterTable", "THIRD_STOP_TIMES", "DEFECT_BITS"]
 

@@ -68,7 +68,7 @@ def save_figure(fig, path, force: bool = False, dpi: int = 110) -> Path:
     Path
         ``path``.
     """
-    from .io import atomic_output
+    from hdrcap.pipeline.io import atomic_output
 
     path = Path(path)
     with atomic_output(path, force=force, suffix=".png") as tmp:

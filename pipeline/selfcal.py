@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .io import RawFrame, check_frames
-from .params import Calibration, SensorParams
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import RawFrame, check_frames
+from hdrcap.pipeline.params import Calibration, SensorParams
 
 __all__ = [
     "SELF_CALIBRATED",

@@ -29,11 +29,11 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .darks import DarkResolver
-from .errors import InputError
-from .merge import MergeResult
-from .noise import DarkStrategy, exposure_variance
-from .params import Calibration, SensorParams
+from hdrcap.pipeline.darks import DarkResolver
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.merge import MergeResult
+from hdrcap.pipeline.noise import DarkStrategy, exposure_variance
+from hdrcap.pipeline.params import Calibration, SensorParams
 
 __all__ = [
     "WEIGHTING_METHODS",

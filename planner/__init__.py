@@ -5,10 +5,10 @@
 predicts the merge's SNR for any exposure set. Imports point down: planner -> pipeline.
 """
 
-from .ladder import THIRD_STOP_LADDER, parse_time, shutter_ladder
-from .meter import MeterReport, meter
-from .plan import Plan, irradiance_histogram, plan_bracket, plan_exhaustive, plan_exposures
-from .predict import SnrPrediction, SystematicErrors, predict_snr, systematic_errors_from_calibration
+from hdrcap.planner.ladder import THIRD_STOP_LADDER, parse_time, shutter_ladder
+from hdrcap.planner.meter import MeterReport, meter
+from hdrcap.planner.plan import Plan, irradiance_histogram, plan_bracket, plan_exhaustive, plan_exposures
+from hdrcap.planner.predict import SnrPrediction, SystematicErrors, predict_snr, systematic_errors_from_calibration
 
 __all__ = [
     "Plan",

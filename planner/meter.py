@@ -22,9 +22,8 @@ from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.noise import exposure_variance
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.times import unique_exposures
-
-from .ladder import THIRD_STOP_LADDER
-from .predict import K_SIGMA
+from hdrcap.planner.ladder import THIRD_STOP_LADDER
+from hdrcap.planner.predict import K_SIGMA
 
 __all__ = ["MeterReport", "meter", "read_irradiance_map"]
 

@@ -40,10 +40,9 @@ from hdrcap.pipeline.blocks import flat_blocks
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.times import find_exposure, same_exposure, unique_exposures
-
-from . import select
-from .ladder import THIRD_STOP_LADDER
-from .predict import (
+from hdrcap.planner import select
+from hdrcap.planner.ladder import THIRD_STOP_LADDER
+from hdrcap.planner.predict import (
     K_SIGMA,
     SystematicErrors,
     combine_terms,

@@ -112,7 +112,7 @@ def plan_from_dict(d: dict):
     -------
     planner.plan.Plan
     """
-    from .plan import Plan
+    from hdrcap.planner.plan import Plan
 
     return Plan(
         exposures=list(d.get("exposures", [])),

@@ -10,9 +10,8 @@ import numpy as np
 
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.plotting import new_figure, save_figure
-
-from .plan import Plan
-from .predict import K_SIGMA, predict_snr, usable_fraction
+from hdrcap.planner.plan import Plan
+from hdrcap.planner.predict import K_SIGMA, predict_snr, usable_fraction
 
 __all__ = ["exposure_ranges", "plot_plan"]
 

@@ -28,8 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from hdrcap.pipeline.params import Calibration
-
-from .predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
+from hdrcap.planner.predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
 
 __all__ = [
     "target_loss_db",

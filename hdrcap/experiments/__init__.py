@@ -10,8 +10,14 @@ below it imports it; ``hdrcap evaluate`` is its command line.
 * :mod:`.figures`: their figures.
 """
 
-from .denoising import CONTROL_SCENES, EVAL_SCENES, EVAL_TIMES, evaluate_denoising, simulate_merged_scene
-from .snr import (
+from hdrcap.experiments.denoising import (
+    CONTROL_SCENES,
+    EVAL_SCENES,
+    EVAL_TIMES,
+    evaluate_denoising,
+    simulate_merged_scene,
+)
+from hdrcap.experiments.snr import (
     BASELINES,
     CURVES,
     OPTIMAL_OPTIONS,

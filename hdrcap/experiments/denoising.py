@@ -260,7 +260,7 @@ def evaluate_denoising(out_dir: str | Path, seed: int = 0, quick: bool = False) 
 
 
 def _write(report: dict, scenes: dict[str, DenoisedScene], out_dir: Path) -> dict:
-    from .figures import plot_denoising
+    from hdrcap.experiments.figures import plot_denoising
 
     png = out_dir / "denoise_evaluation.png"
     js = out_dir / "denoise_evaluation.json"

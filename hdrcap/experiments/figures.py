@@ -16,7 +16,7 @@ from hdrcap.pipeline.denoise import DEFAULT_RANGE_SCALE
 from hdrcap.pipeline.plotting import new_figure, save_figure
 
 if TYPE_CHECKING:
-    from .denoising import DenoisedScene
+    from hdrcap.experiments.denoising import DenoisedScene
 
 __all__ = ["write_plots", "plot_denoising"]
 

@@ -523,7 +523,7 @@ def run_evaluation(
 
 def _write_results(results: dict, out: Path, force: bool) -> None:
     """The PNGs (their names under ``results["plots"]``) and ``evaluation.json`` into ``out``."""
-    from .figures import write_plots
+    from hdrcap.experiments.figures import write_plots
 
     out.mkdir(parents=True, exist_ok=True)
     results["plots"] = write_plots(results, out, force)

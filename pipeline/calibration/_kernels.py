@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
+from hdrcap.pipeline._numba_target import numba  # numba, its compile target set (512-bit vectors on AVX-512)
 
 __all__ = [
     "stack_add",

@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
-from ..times import find_exposure, unique_exposures
-from . import _kernels as _k
-from .frames import check_shape, frame_data, frame_name, group_by_exposure
-from .stats import PixelStack, robust_mean_std
+from hdrcap.pipeline.calibration import _kernels as _k
+from hdrcap.pipeline.calibration.frames import check_shape, frame_data, frame_name, group_by_exposure
+from hdrcap.pipeline.calibration.stats import PixelStack, robust_mean_std
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.times import find_exposure, unique_exposures
 
 __all__ = [
     "MasterDark",

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..params import DEFECT_BITS
-from . import _kernels as _k
+from hdrcap.pipeline.calibration import _kernels as _k
+from hdrcap.pipeline.params import DEFECT_BITS
 
 __all__ = ["DEFECT_BITS", "DefectThresholds", "response_defects", "hot_defects", "neutral_prnu", "defect_counts"]
 

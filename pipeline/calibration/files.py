@@ -14,13 +14,13 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError
-from ..io import RawFrame, read_frame
-from ..params import Calibration
-from .dark import MasterDark
-from .shutter import estimate_shutter_table
-from .stats import DEFAULT_CLIP
-from .workflow import calibrate, with_file_metadata
+from hdrcap.pipeline.calibration.dark import MasterDark
+from hdrcap.pipeline.calibration.shutter import estimate_shutter_table
+from hdrcap.pipeline.calibration.stats import DEFAULT_CLIP
+from hdrcap.pipeline.calibration.workflow import calibrate, with_file_metadata
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import RawFrame, read_frame
+from hdrcap.pipeline.params import Calibration
 
 __all__ = ["FileFrames", "calibrate_files", "add_shutter_table"]
 
@@ -93,7 +93,7 @@ def _split_times(groups: Mapping[str, list], times: Sequence[float] | None) -> d
 
 def _dark_library_sink(folder: PathLike, meta: Mapping[str, Any], provenance: Mapping[str, Any], force: bool):
     """A ``dark_sink`` that stores each master dark in the dark library at ``folder``."""
-    from ..darklibrary import DarkLibrary
+    from hdrcap.pipeline.darklibrary import DarkLibrary
 
     lib = DarkLibrary(folder)
 

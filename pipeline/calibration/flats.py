@@ -16,11 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..times import same_exposure
-from . import _kernels as _k
-from .frames import check_shape, frame_data, frame_name, frame_time
-from .stats import (
+from hdrcap.pipeline.calibration import _kernels as _k
+from hdrcap.pipeline.calibration.frames import check_shape, frame_data, frame_name, frame_time
+from hdrcap.pipeline.calibration.stats import (
     DEFAULT_CLIP,
     PairStats,
     PixelStack,
@@ -29,6 +27,8 @@ from .stats import (
     as_correction_map,
     pair_statistics,
 )
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.times import same_exposure
 
 __all__ = ["FlatResult", "estimate_flats"]
 

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..times import same_exposure
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.times import same_exposure
 
 __all__ = ["frame_name", "frame_data", "frame_time", "check_shape", "group_by_exposure"]
 

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..times import unique_exposures
-from .stats import PairStats
+from hdrcap.pipeline.calibration.stats import PairStats
+from hdrcap.pipeline.times import unique_exposures
 
 __all__ = [
     "prnu_correction_factor",

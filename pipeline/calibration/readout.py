@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from ..times import same_exposure
-from .frames import check_shape, frame_data, frame_name, frame_time
-from .stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
+from hdrcap.pipeline.calibration.frames import check_shape, frame_data, frame_name, frame_time
+from hdrcap.pipeline.calibration.stats import DEFAULT_CLIP, PairStats, PixelStack, pair_statistics, robust_mean_std
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.times import same_exposure
 
 __all__ = [
     "ReadoutEstimate",

@@ -6,9 +6,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..errors import InputError
-from .frames import check_shape, frame_data, frame_name
-from .stats import DEFAULT_CLIP, PixelStack, pair_statistics, robust_mean_std
+from hdrcap.pipeline.calibration.frames import check_shape, frame_data, frame_name
+from hdrcap.pipeline.calibration.stats import DEFAULT_CLIP, PixelStack, pair_statistics, robust_mean_std
+from hdrcap.pipeline.errors import InputError
 
 __all__ = ["estimate_saturation"]
 

@@ -31,11 +31,11 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..errors import InputError
-from ..exposure_ratio import RatioOptions, estimate_exposure_ratios, subsample_window
-from ..params import Calibration, ShutterTable
-from ..times import find_exposure, unique_exposures
-from .frames import check_shape, frame_data, frame_name, frame_time
+from hdrcap.pipeline.calibration.frames import check_shape, frame_data, frame_name, frame_time
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.exposure_ratio import RatioOptions, estimate_exposure_ratios, subsample_window
+from hdrcap.pipeline.params import Calibration, ShutterTable
+from hdrcap.pipeline.times import find_exposure, unique_exposures
 
 __all__ = ["estimate_shutter_table", "shutter_summary"]
 

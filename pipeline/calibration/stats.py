@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from ..times import same_exposure
-from . import _kernels as _k
-from .frames import frame_data, frame_time
+from hdrcap.pipeline.calibration import _kernels as _k
+from hdrcap.pipeline.calibration.frames import frame_data, frame_time
+from hdrcap.pipeline.times import same_exposure
 
 __all__ = [
     "DEFAULT_CLIP",

@@ -18,12 +18,24 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..params import Calibration, SensorParams
-from .dark import DarkCurrentMap, DarkFit, DarkSeries, MasterDark, shrink_dark_current_map, stream_master_darks
-from .defects import DEFECT_BITS, DefectThresholds, defect_counts, hot_defects, neutral_prnu, response_defects
-from .flats import FlatResult, estimate_flats
-from .gain import (
+from hdrcap.pipeline.calibration.dark import (
+    DarkCurrentMap,
+    DarkFit,
+    DarkSeries,
+    MasterDark,
+    shrink_dark_current_map,
+    stream_master_darks,
+)
+from hdrcap.pipeline.calibration.defects import (
+    DEFECT_BITS,
+    DefectThresholds,
+    defect_counts,
+    hot_defects,
+    neutral_prnu,
+    response_defects,
+)
+from hdrcap.pipeline.calibration.flats import FlatResult, estimate_flats
+from hdrcap.pipeline.calibration.gain import (
     DarkVariance,
     PhotonTransferFit,
     fit_dark_variance,
@@ -34,10 +46,12 @@ from .gain import (
     prnu_correction_factor,
     usable_pairs,
 )
-from .readout import ReadoutEstimate, estimate_readout
-from .saturation import estimate_saturation
-from .shutter import shutter_summary
-from .stats import DEFAULT_CLIP, PairTap
+from hdrcap.pipeline.calibration.readout import ReadoutEstimate, estimate_readout
+from hdrcap.pipeline.calibration.saturation import estimate_saturation
+from hdrcap.pipeline.calibration.shutter import shutter_summary
+from hdrcap.pipeline.calibration.stats import DEFAULT_CLIP, PairTap
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.params import Calibration, SensorParams
 
 __all__ = ["GAIN_METHODS", "calibrate", "calibration_summary", "format_summary", "with_file_metadata"]
 
