@@ -43,7 +43,7 @@ def _shape(mpix: float) -> tuple[int, int]:
 
 
 def _runs(root: Path, n: int, mpix: float) -> list[Path]:
-    from hdrcap.acquire.simulation import simulate_bracket
+    from hdrcap.mock_camera.simulation import simulate_bracket
 
     first = root / "run_000"
     simulate_bracket("camera-B", "hdr", TIMES, first, True, _shape(mpix), 4.0, 2e5, 1, None, False, progress=False)
@@ -60,7 +60,7 @@ def _runs(root: Path, n: int, mpix: float) -> list[Path]:
 @contextlib.contextmanager
 def _one_by_one(single: bool):
     """With ``single``, the archive commits the runs of a batch one at a time (the old client)."""
-    from hdrcap.acquire.archive import Archive
+    from hdrcap.batch.archive import Archive
 
     if not single:
         yield
@@ -87,7 +87,7 @@ def main(argv=None) -> dict:
 
     import xarray as xr
 
-    from hdrcap.acquire.batch import BatchSettings, calibration_identity, find_runs, merge_run, run_batch
+    from hdrcap.batch.driver import BatchSettings, calibration_identity, find_runs, merge_run, run_batch
 
     settings = BatchSettings(calibration=None, camera="camera-B", calibration_id=calibration_identity(None, "camera-B"))
     out: dict = {

@@ -93,7 +93,7 @@ def _write(root: Path, reps, spec, cal, times, frames, darks) -> tuple[list[Path
 
 def _merge(frames, darks, cal, out: Path, extra=()) -> dict:
     """One ``hdrcap merge`` process: wall time, CPU seconds, peak RSS (os.wait4), its JSON."""
-    cmd = [sys.executable, "-c", "import sys; from hdrcap.acquire.cli import main; sys.exit(main())", "merge"]
+    cmd = [sys.executable, "-c", "import sys; from hdrcap.cli import main; sys.exit(main())", "merge"]
     cmd += [*map(str, frames), "--darks", *map(str, darks), "--calibration", str(cal), "-o", str(out), "--json"]
     cmd += list(extra)
     log = out.with_suffix(".log")
@@ -202,7 +202,7 @@ def main(argv=None) -> dict:
 
 
 def _bytes(size: str) -> int:
-    from hdrcap.acquire.tiledmerge import parse_memory
+    from hdrcap.pipeline.merge.tiled import parse_memory
 
     return parse_memory(size)
 

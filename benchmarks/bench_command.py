@@ -194,7 +194,7 @@ def time_parts(sim: dict, repeats: int) -> dict:
     """hdrcap's command in parts, in this process: read, check_frames, kernel, EXR write."""
     from hdrcap.pipeline import io as pio
     from hdrcap.pipeline.calibration import load_calibration
-    from hdrcap.pipeline.merge import merge_arrays
+    from hdrcap.pipeline.merge.accumulator import merge_arrays
 
     paths = [*sim["frames"], *sim["darks"]]
     parts: dict[str, float] = {}

@@ -4,7 +4,7 @@ The inputs are simulated once into ``--work`` (kept there for the next run; ``--
 deletes them at the end):
 
 * calibrate: a lab's calibration set written as DNG by the simulated camera
-  (:func:`hdrcap.acquire.simulation.simulate_calibration_set`): 2 bias frames, 1 saturation
+  (:func:`hdrcap.mock_camera.simulation.simulate_calibration_set`): 2 bias frames, 1 saturation
   frame, 100 flats (``--flats``; 12 photon-transfer pairs from 3 % to 85 % of saturation and
   the rest at 75 %) and 2 dark frames at each of 6 exposure times.
 * denoise and plan: a 24 Mpixel merged EXR from ``hdrcap merge`` of a simulated 6 + 6 bracket
@@ -53,7 +53,7 @@ def hdrcap_exe() -> str:
 
 def simulate(work: Path, shape, n_flats: int) -> dict:
     """Write the calibration set, calibrate it once, merge a bracket with that calibration."""
-    from hdrcap.acquire.simulation import CALIBRATION_SET, simulate_bracket, simulate_calibration_set
+    from hdrcap.mock_camera.simulation import CALIBRATION_SET, simulate_bracket, simulate_calibration_set
 
     desc_path = work / "inputs.json"
     if desc_path.exists():
@@ -175,8 +175,8 @@ def bench_calibrate(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
 def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
     """The denoise command (each variant), then its parts in this process (EXR read, filter, EXR write
     with the command's channel precisions)."""
-    from hdrcap.acquire.tileddenoise import exr_pixel_types, output_precision
-    from hdrcap.pipeline.denoise import DenoiseSettings, denoise
+    from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
+    from hdrcap.pipeline.denoise.tiled import exr_pixel_types, output_precision
     from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
     cmd = [hdrcap_exe(), "denoise", desc["merged"], "-o", work / "denoised.exr", "--force"]

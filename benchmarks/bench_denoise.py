@@ -1,4 +1,4 @@
-"""Time the uncertainty-driven bilateral filter (pipeline.denoise) on a 24 Mpixel mosaic.
+"""Time the uncertainty-driven bilateral filter (pipeline.denoise.filter) on a 24 Mpixel mosaic.
 
 Prints one JSON object: image size, settings, threads, the median and all of ``--runs`` timed
 runs after one warm-up (which also loads or compiles the numba kernel), Mpixel/s, the CPU
@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hdrcap.pipeline.denoise import DenoiseSettings, denoise  # noqa: E402
+from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise  # noqa: E402
 
 
 def make_input(h: int, w: int, seed: int = 0):
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
                 "mpixel_per_s": round(mpx / med, 2),
                 "cpu_s_median": round(statistics.median(cpu), 3),
                 "load_average_1min": round(os.getloadavg()[0], 2),
-                "note": "wall time of the full pipeline.denoise.denoise call (validation, allocation, kernel); "
+                "note": "wall time of the full pipeline.denoise.filter.denoise call (validation, allocation, kernel); "
                 "cpu_s is the process CPU time over all threads: cpu_s / threads is the wall time to expect "
                 "on an otherwise idle machine",
             },

@@ -35,7 +35,7 @@ import numpy as np
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.calibration import calibrate
 from hdrcap.pipeline.io import RawFrame
-from hdrcap.pipeline.merge import merge_arrays
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 
 CAMERAS = ("camera-A", "camera-B", "camera-R")
 TIMES = (0.125, 0.5, 2.0, 8.0, 30.0)

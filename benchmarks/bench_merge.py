@@ -47,7 +47,7 @@ def _frames(shape, seed=0):
 
 
 def bench_kernel(shape, iterations, repeats=3):
-    from hdrcap.pipeline.merge import merge_arrays
+    from hdrcap.pipeline.merge.accumulator import merge_arrays
     from hdrcap.pipeline.params import Calibration
 
     values, darks, spec = _frames(shape)
@@ -90,7 +90,7 @@ def main(argv=None):
     import numba
     from numba.core import config
 
-    import hdrcap.pipeline.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
+    import hdrcap.pipeline.merge.kernels  # noqa: F401  (sets numba's CPU features before anything compiles)
 
     report = {
         "mpix": args.mpix,

@@ -93,7 +93,7 @@ import json, sys, time
 sys.path.insert(0, sys.argv[2])
 from hdrcap.pipeline.calibration import load_calibration
 from hdrcap.pipeline.io import read_frame
-from hdrcap.pipeline import merge as M
+from hdrcap.pipeline.merge import accumulator as M
 files, darks, calib, options = json.loads(sys.argv[1])
 frames = [read_frame(f) for f in files]
 dk = [read_frame(f) for f in darks]

@@ -38,7 +38,7 @@ from simcal import bracket, calibrated_sensor  # noqa: E402
 
 from hdrcap.mock_camera import preset  # noqa: E402
 from hdrcap.mock_camera.scenes import make_scene  # noqa: E402
-from hdrcap.pipeline.merge import merge_frames  # noqa: E402
+from hdrcap.pipeline.merge.accumulator import merge_frames  # noqa: E402
 
 #: The bracket's nominal exposure times, s (up to 300 s, as the issue asks).
 TIMES = (0.08, 0.6, 5.0, 40.0, 300.0)

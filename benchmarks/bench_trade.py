@@ -1,6 +1,6 @@
 """The speed/accuracy trade of the ML merge: every knob on the same simulated data.
 
-Knobs (``pipeline.merge.merge_arrays`` options unless said otherwise):
+Knobs (``pipeline.merge.accumulator.merge_arrays`` options unless said otherwise):
 
 * iterations 0 (the non-saturated average the merge starts from: ``merge_weighted`` with
   uniform weights), 1, 2, 3, converged (the default: up to 20, tolerance 1e-6);
@@ -65,8 +65,8 @@ def run_camera(camera: str, shape, reps: int, seed: int, timing_runs: int, n_bin
     from hdrcap.experiments import make_setup, simulate_bracket_arrays
     from hdrcap.mock_camera import PRESETS
     from hdrcap.pipeline.evaluation import bound_variance, log_bins, snr_per_bin
-    from hdrcap.pipeline.merge import merge_arrays
-    from hdrcap.pipeline.weighting import merge_weighted
+    from hdrcap.pipeline.merge.accumulator import merge_arrays
+    from hdrcap.pipeline.merge.weighting import merge_weighted
 
     spec = PRESETS[camera]
     setup = make_setup(spec, shape=shape, seed=seed, params=spec.nominal_params())

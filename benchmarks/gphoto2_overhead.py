@@ -1,4 +1,4 @@
-"""Per-frame overhead of :class:`hdrcap.acquire.gphoto2_camera.Gphoto2Camera` on libgphoto2's
+"""Per-frame overhead of :class:`hdrcap.acquire.camera.gphoto2.Gphoto2Camera` on libgphoto2's
 virtual camera: the wall time of ``set_exposure`` + ``capture`` (download and delete included)
 and the number of full configuration-tree reads (``gp_camera_get_config``) per frame. Prints JSON.
 
@@ -35,7 +35,7 @@ class Counting(gp.Camera):
         count["get_single_config"] += 1
         return super().get_single_config(*a)
 gp.Camera = Counting
-from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
+from hdrcap.acquire.camera.gphoto2 import Gphoto2Camera
 out = Path({out!r})
 cam = Gphoto2Camera(pair_wait_s=0)
 times = [0.01, 0.02, 0.05, 0.1]

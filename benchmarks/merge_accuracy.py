@@ -51,7 +51,7 @@ def main(argv=None):
 
     emva = emva_dataset_dir()
     if emva is not None:
-        from hdrcap.pipeline.merge import merge_arrays
+        from hdrcap.pipeline.merge.accumulator import merge_arrays
         from hdrcap.pipeline.params import Calibration, SensorParams
 
         ds, steps, load = T._emva_steps(emva)

@@ -41,7 +41,7 @@ def _digest(res) -> str:
 
 def checksums() -> dict[str, str]:
     from hdrcap.api import simulate
-    from hdrcap.pipeline import merge as pm
+    from hdrcap.pipeline.merge import accumulator as pm
     from hdrcap.pipeline.params import Calibration
 
     sim = simulate("camera-A", "hdr", TIMES, seed=3, shape=(70, 132), darks=True)

@@ -15,7 +15,7 @@ import numpy as np
 
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline import merge as merge_mod
+from hdrcap.pipeline.merge import accumulator as merge_mod
 from hdrcap.pipeline.params import Calibration
 from hdrcap.planner import (
     SystematicErrors,

@@ -14,8 +14,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hdrcap.acquire.session import CapturePlan, CaptureSession  # noqa: E402
-from hdrcap.mock_camera.camera import MockCamera  # noqa: E402
+from hdrcap.acquire.camera.mock import MockCamera  # noqa: E402
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession  # noqa: E402
 from hdrcap.mock_camera.scenes import make_scene  # noqa: E402
 
 TIMES = [0.001, 0.004, 0.016, 0.064, 0.25, 1.0]

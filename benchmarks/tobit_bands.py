@@ -59,7 +59,7 @@ def clip_scene(sensor, rng, times):
 def bands(camera: str, seeds: int, darks: str, size: int = 192) -> dict:
     """The per-band figures of ``seeds`` seeds (see the module docstring)."""
     from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-    from hdrcap.pipeline.merge import merge_arrays
+    from hdrcap.pipeline.merge.accumulator import merge_arrays
 
     spec = PRESETS[camera]
     times = np.asarray(BRACKETS[darks])

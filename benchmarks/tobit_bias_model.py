@@ -11,7 +11,7 @@ Per k, z = (estimate - theta)/sigma (mean / spread) of:
 * ``cox-snell``: the root minus its first-order bias (kappa_{11,1} + kappa_111/2)/I^2;
 * ``firth``: the root of the score plus (1/2) d log I/d theta (Jeffreys-penalised likelihood);
 * ``centred``: the root minus kappa_{11,1}/(2 I^2), the first-order mean of the Wald statistic
-  times sigma (what the merge does now, ``pipeline.kernels._tobit``);
+  times sigma (what the merge does now, ``pipeline.merge.kernels._tobit``);
 
 and ``bias``: the estimate's own mean error in units of 1/sqrt(I(theta)). Numpy and scipy only
 (nothing of hdrcap), one seed.

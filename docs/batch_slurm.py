@@ -32,8 +32,8 @@ def main() -> None:
 
     from dask_jobqueue import SLURMCluster
 
-    from hdrcap.acquire.batch import BatchSettings, calibration_identity, run_batch
-    from hdrcap.acquire.filemerge import merge_options
+    from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
+    from hdrcap.pipeline.merge.files import merge_options
 
     cluster = SLURMCluster(
         queue=args.queue,

@@ -2,6 +2,6 @@
 
 import sys
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 
 sys.exit(main())

@@ -248,9 +248,9 @@ def camera_calibration(camera: str, temperature: float | None = None) -> Calibra
     Calibration
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), dark current (e-/s).
     """
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
-    return resolve_calibration(None, camera, temperature)
+    return camera_model(camera=camera, temperature=temperature)
 
 
 def _as_calibration(calibration: CalibrationLike | None) -> Calibration:
@@ -515,7 +515,7 @@ def merge(
         Unreadable, duplicate or mismatched frames; arrays without exposure times; a missing
         dark frame; an unknown option or a bad option value.
     """
-    from hdrcap.pipeline.merge import merge_frames
+    from hdrcap.pipeline.merge.accumulator import merge_frames
 
     calib = _as_calibration(calibration)
     items = _items(frames, "frames")
@@ -669,7 +669,7 @@ def denoise(
         Bad settings, or sigma not finite and > 0 where nexp > 0.
     """
     from hdrcap import __version__
-    from hdrcap.pipeline import denoise as _dn
+    from hdrcap.pipeline.denoise import filter as _dn
 
     if not isinstance(hdr, HdrResult):
         raise InputError(f"denoise: expected an HdrResult (from merge or read_exr), got {type(hdr).__name__}")

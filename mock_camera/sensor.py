@@ -32,9 +32,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hdrcap.pipeline.params import SensorParams
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.params import Calibration, SensorParams
 
-__all__ = ["SensorSpec", "SimulatedSensor", "PRESETS", "REALISTIC", "preset", "QUANTISATION_VARIANCE", "DEFECT_KINDS"]
+__all__ = [
+    "SensorSpec",
+    "SimulatedSensor",
+    "PRESETS",
+    "REALISTIC",
+    "preset",
+    "preset_name",
+    "preset_calibration",
+    "QUANTISATION_VARIANCE",
+    "DEFECT_KINDS",
+]
 
 #: Variance of the rounding error of a uniform quantiser with step 1 DN.
 QUANTISATION_VARIANCE = 1.0 / 12.0
@@ -444,3 +455,77 @@ class SimulatedSensor:
         if self.stuck_values.size:
             value[self.defects["stuck"]] = self.stuck_values
         return value.astype(np.uint16)
+
+
+def preset_name(camera: str) -> str:
+    """The simulator preset a camera option names: ``camera-B``, or ``mock:camera-B`` (the
+    spelling of ``hdrcap capture --camera``; ``mock:`` alone is camera-B).
+
+    Parameters
+    ----------
+    camera : str
+        The option's value.
+
+    Returns
+    -------
+    str
+        The preset name (not checked against :data:`PRESETS`).
+
+    Raises
+    ------
+    InputError
+        A real camera (``gphoto2[:MODEL]``): it has no nominal parameters.
+
+    Examples
+    --------
+    >>> preset_name("mock:camera-A"), preset_name("camera-B")
+    ('camera-A', 'camera-B')
+    """
+    backend, sep, name = camera.partition(":")
+    if not sep:
+        return camera
+    if backend == "mock":
+        return name or "camera-B"
+    raise InputError(
+        f"camera {camera}: a real camera has no nominal parameters; give its calibration file "
+        "(--calibration, from `hdrcap calibrate`) or a simulator preset (mock:PRESET)"
+    )
+
+
+def preset_calibration(camera: str, temperature: float | None = None) -> Calibration:
+    """The nominal calibration of a simulator preset: its Table 2 scalars, no maps, no
+    standard errors (its calibration error is unknown, not zero).
+
+    Parameters
+    ----------
+    camera : str
+        Preset name, also spelt ``mock:NAME`` (:func:`preset_name`).
+    temperature : float, optional
+        Sensor temperature, degrees C (the dark current doubles every
+        ``doubling_temperature``); recorded in the provenance.
+
+    Returns
+    -------
+    Calibration
+        g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), dark current (e-/s); provenance
+        ``source``, ``camera`` (the model name its files carry) and ``iso``.
+
+    Raises
+    ------
+    InputError
+        Unknown preset, or a real camera's name.
+
+    Examples
+    --------
+    >>> cal = preset_calibration("camera-B")
+    >>> cal.params.v_sat, cal.stderr
+    (1023.0, {})
+    """
+    name = preset_name(camera)
+    if name not in PRESETS:
+        raise InputError(f"unknown camera preset {name!r}; choose from {', '.join(PRESETS)}")
+    spec = PRESETS[name]
+    prov: dict = {"source": f"preset {name} (nominal simulator parameters)", "camera": spec.model, "iso": spec.iso}
+    if temperature is not None:
+        prov["temperature"] = temperature
+    return Calibration(params=spec.nominal_params(temperature), provenance=prov)

@@ -53,8 +53,8 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.develop_names import DEMOSAIC_METHODS, LINEAR_METHODS, OUTPUT_SPACES
-from hdrcap.pipeline.dngwrite import CameraColour
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io.dngwrite import CameraColour
 
 __all__ = [
     "DEMOSAIC_METHODS",

@@ -362,7 +362,7 @@ def weights_vs_output(
     X : float
         The constant irradiance, e-/s.
     methods : sequence of str, optional
-        Methods of :data:`pipeline.weighting.WEIGHTING_METHODS` (default: all).
+        Methods of :data:`pipeline.merge.weighting.WEIGHTING_METHODS` (default: all).
     n : int
         Number of output values.
     D : float, optional
@@ -374,7 +374,7 @@ def weights_vs_output(
         ``v`` (output above black, DN), ``t`` (exposure times, s), ``X`` (e-/s), ``sigma2_R``
         (DN^2) and ``weights`` (method -> normalised weights).
     """
-    from hdrcap.pipeline.weighting import WEIGHTING_METHODS
+    from hdrcap.pipeline.merge.weighting import WEIGHTING_METHODS
 
     D = params.dark_current if D is None else D
     v = np.linspace(1.0, params.v_sat - params.mu_R, n, endpoint=False)

@@ -68,7 +68,7 @@ def variance_of_rate(u, g2t, D, sigma2_R, k):
     u = a max(mu, 0) + D. The one place the formula is written.
 
     Plain arithmetic without literals, so that it works on numpy arrays and, compiled by numba
-    (inlined), on float32 or float64 scalars inside the merge kernel (:mod:`pipeline.kernels`)
+    (inlined), on float32 or float64 scalars inside the merge kernel (:mod:`pipeline.merge.kernels`)
     in the precision of its arguments. With k = 0 it is Var(v_i) alone.
 
     Parameters

@@ -242,7 +242,7 @@ class Calibration:
         Estimated standard error of each a_j (dimensionless), float32; ``None`` if unknown.
     dark_library : str or None
         Folder of a dark library (master darks with their frame count N, see
-        ``pipeline.darklibrary``) that belongs to this calibration; ``None`` if none.
+        ``pipeline.calibration.darklibrary``) that belongs to this calibration; ``None`` if none.
     saturation_map : numpy.ndarray or None
         Per-photosite saturation limit, DN, float32 (from >= 3 saturation frames); ``None``
         means ``params.v_sat`` everywhere.

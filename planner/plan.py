@@ -216,7 +216,7 @@ class Plan:
     overhead_s: float = 0.0
 
     def merge_options(self) -> dict[str, Any]:
-        """Keyword options for ``pipeline.merge.merge_arrays`` (fields of ``MergeOptions``)
+        """Keyword options for ``pipeline.merge.accumulator.merge_arrays`` (fields of ``MergeOptions``)
         that apply the decisions: ``iterations``, ``saturation`` ("threshold" |
         "probabilistic"), ``saturation_sigmas`` (the margin the plan assumed), ``prnu``
         ("map" | "scalar"); and, only when every exposure has the same dark strategy,
@@ -228,20 +228,9 @@ class Plan:
         dict
             Keyword options of the merge.
         """
-        out: dict[str, Any] = {}
-        d = self.decisions
-        if "iterations" in d:
-            out["iterations"] = int(d["iterations"]["choice"])
-        if "saturation" in d:
-            out["saturation"] = d["saturation"]["choice"]
-        out["saturation_sigmas"] = float(self.saturation_sigmas)
-        if "prnu" in d:
-            out["prnu"] = d["prnu"]["choice"]
-        if self.darks and len(set(self.darks)) == 1:
-            out["dark_strategy"] = self.darks[0]
-            if self.darks[0] == "master" and len(set(self.n_dark)) == 1:
-                out["n_dark"] = int(self.n_dark[0])
-        return out
+        from hdrcap.pipeline.planfile import decided_merge_options
+
+        return decided_merge_options(self.decisions, list(self.darks), list(self.n_dark), self.saturation_sigmas)
 
     def explain(self) -> str:
         """The message and each model decision with the figure that drove it, one per line.

@@ -53,7 +53,7 @@ CALL_TIMEOUT_S = 20
 
 def _cli(*args) -> tuple[int, str, str]:
     """Run ``hdrcap ARGS`` in this process; return (exit status, stdout, stderr)."""
-    from hdrcap.acquire.cli import main
+    from hdrcap.cli import main
 
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -487,7 +487,7 @@ def _library_call(fn: Callable[[], object]) -> Callable[[], Outcome]:
 
 
 def _manifest_target(corpus: Corpus, path: Path, out: Path):
-    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.capture.manifest import Manifest
 
     run = path.parent / "run"
     run.mkdir(exist_ok=True)
@@ -503,7 +503,7 @@ def _manifest_target(corpus: Corpus, path: Path, out: Path):
 
 
 def _events_target(corpus: Corpus, path: Path, out: Path):
-    from hdrcap.acquire.manifest import EventLog
+    from hdrcap.acquire.capture.manifest import EventLog
 
     run = path.parent / "run"
     run.mkdir(exist_ok=True)

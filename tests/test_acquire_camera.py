@@ -14,7 +14,7 @@ from hdrcap.acquire.camera import (
     nearest_allowed,
     parse_exposure_label,
 )
-from hdrcap.mock_camera.camera import MockCamera, MockFaults
+from hdrcap.acquire.camera.mock import MockCamera, MockFaults
 
 
 @pytest.mark.parametrize(
@@ -217,8 +217,8 @@ def test_session_survives_failing_reconnects_and_a_new_port(tmp_path):
     reconnecting (each failure is logged), and every planned frame lands once."""
     import json
 
-    from hdrcap.acquire.manifest import Manifest
-    from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy
+    from hdrcap.acquire.capture.manifest import Manifest
+    from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RetryPolicy
 
     faults = MockFaults(seed=5, disconnect_rate=0.25, reconnect_fail_rate=1.0, reconnect_failures=2, renumber_rate=1.0)
     cam = MockCamera("camera-B", _scene((24, 24)), seed=2, faults=faults)
@@ -265,7 +265,7 @@ def test_bulb_exposures_beyond_30_s_are_planned_captured_and_verified(tmp_path, 
     and captured on one with bulb; the frame's EXIF time is the bulb time."""
     import json
 
-    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.capture.manifest import Manifest
 
     job = tmp_path / "job.toml"
     job.write_text(BULB_JOB.format(bulb=""))

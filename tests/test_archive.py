@@ -11,7 +11,7 @@ import pytest
 import xarray as xr
 import zarr
 
-from hdrcap.acquire.archive import CHANNELS, RUN_COORDS, Archive, ArchiveRun, open_archive, read_run, stage_channels
+from hdrcap.batch.archive import CHANNELS, RUN_COORDS, Archive, ArchiveRun, open_archive, read_run, stage_channels
 from hdrcap.pipeline.errors import InputError
 
 SHAPE = (6, 8)

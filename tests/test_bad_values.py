@@ -13,12 +13,12 @@ import struct
 import numpy as np
 import pytest
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_exr, read_raw
-from hdrcap.pipeline.merge import QUALITY_BITS, merge_arrays
+from hdrcap.pipeline.merge.accumulator import QUALITY_BITS, merge_arrays
 from hdrcap.pipeline.params import Calibration
 
 MASKED, SATURATED = QUALITY_BITS["masked"], QUALITY_BITS["saturated"]

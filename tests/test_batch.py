@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from hdrcap.acquire.cli import main as cli_main
-from hdrcap.acquire.simulation import simulate_bracket
+from hdrcap.cli import main as cli_main
+from hdrcap.mock_camera.simulation import simulate_bracket
 from hdrcap.pipeline.io import read_exr
 
 pytestmark = pytest.mark.slow
@@ -126,7 +126,7 @@ def test_batch_cli_identical_to_merge_records_failure_and_resumes(runs, tmp_path
 
 
 def test_planned_run_follows_its_recorded_plan_as_merge_plan_does(runs, tmp_path):
-    from hdrcap.acquire.manifest import Manifest
+    from hdrcap.acquire.capture.manifest import Manifest
 
     folder = runs["planned"].resolve()
     archive = tmp_path / "p.zarr"
@@ -168,7 +168,7 @@ def _export(archive: Path, run: int, out: Path) -> Path:
 
 
 def test_killed_worker_loses_nothing(runs, tmp_path):
-    from hdrcap.acquire.batch import BatchSettings, calibration_identity, run_batch
+    from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
 
     archive = tmp_path / "k.zarr"
     settings = BatchSettings(calibration=None, camera=CAMERA, calibration_id=calibration_identity(None, CAMERA))
@@ -191,7 +191,7 @@ def test_killed_worker_loses_nothing(runs, tmp_path):
     ds = xr.open_zarr(archive)
     assert sorted(map(str, ds["folder"].values)) == sorted(str(f.resolve()) for f in folders)  # exactly once
     # ... and the runs are the merge's: the same as a batch without the kill (other test's archive layout).
-    from hdrcap.acquire.batch import find_runs, merge_run
+    from hdrcap.batch.driver import find_runs, merge_run
 
     for src in find_runs(folders[:1]):
         ref = merge_run(src, settings).run
@@ -203,7 +203,7 @@ def test_killed_worker_loses_nothing(runs, tmp_path):
 def test_time_series_of_one_photosite_with_sigma(runs, tmp_path):
     """Three runs of the same scene: the archive's time series of a photosite scatters about the
     simulator's truth as its sigma says."""
-    from hdrcap.acquire.batch import BatchSettings, calibration_identity, run_batch
+    from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
 
     archive = tmp_path / "t.zarr"
     settings = BatchSettings(calibration=None, camera=CAMERA, calibration_id=calibration_identity(None, CAMERA))

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 
 # Published EMVA 1288 reference-implementation results for reference set 001 (Basler CCD,
 # 12 bit): the example results file of EMVA1288/emva1288, doc/datasets/datasets_results.rst

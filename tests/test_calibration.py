@@ -342,13 +342,13 @@ def test_calibration_file_round_trip_and_checks(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="junk.npz"):
         load_calibration(tmp_path / "junk.npz")
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
-    assert resolve_calibration(str(path), None).params == cal.params
+    assert camera_model(path).params == cal.params
 
 
 def test_dark_library(tmp_path):
-    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.calibration.darklibrary import DarkLibrary
 
     lib = DarkLibrary(tmp_path / "lib")
     assert lib.entries() == []
@@ -371,7 +371,7 @@ def test_emva_stage_on_a_simulated_descriptor(tmp_path):
     everywhere; the real reference set is tested in test_calibrate_cli.py)."""
     from PIL import Image
 
-    from hdrcap.pipeline.emva import emva_calibration, emva_data, emva_results
+    from hdrcap.pipeline.calibration.emva import emva_calibration, emva_data, emva_results
     from hdrcap.pipeline.io import read_emva_descriptor
 
     spec = PRESETS["camera-A"].replace(dark_current=50.0)

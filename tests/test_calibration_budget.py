@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline import merge as merge_mod
-from hdrcap.pipeline.merge import merge_arrays
+from hdrcap.pipeline.merge import accumulator as merge_mod
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_honesty import estimated_calibration  # noqa: E402
@@ -170,8 +170,8 @@ def test_sigma_calibration_of_the_censored_likelihood_equals_finite_differences(
 def test_calibration_without_standard_errors_has_no_calibration_part(tmp_path):
     """No standard error entered: the calibration's part is unknown, so there is no
     sigma_calibration (not a channel of zeros), and the header says what was missing."""
-    from hdrcap.acquire.filemerge import build_hdr_image
     from hdrcap.pipeline.io import RawFrame, read_exr, write_exr
+    from hdrcap.pipeline.merge.files import build_hdr_image
     from hdrcap.pipeline.params import Calibration
 
     spec = PRESETS["camera-B"]
@@ -190,8 +190,8 @@ def test_calibration_without_standard_errors_has_no_calibration_part(tmp_path):
 
 
 def test_exr_carries_sigma_calibration(tmp_path):
-    from hdrcap.acquire.filemerge import build_hdr_image
     from hdrcap.pipeline.io import RawFrame, read_exr, write_exr
+    from hdrcap.pipeline.merge.files import build_hdr_image
 
     X, cal, values, times = _long_model_bracket(7, n=2, t=8.0)
     res = merge_arrays(values, times, cal, dark_strategy="model")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.pipeline.calibration_library import entry_name, library_dir, model_slug
+from hdrcap.pipeline.calibration.library import entry_name, library_dir, model_slug
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_exr
 
@@ -93,7 +93,7 @@ def test_calibrate_once_then_merge_finds_it(tmp_path, cli):
 def test_entries_match_by_the_shared_model_rule(monkeypatch, tmp_path):
     """An entry stored under libgphoto2's name serves frames whose EXIF spells the model its own
     way, and a different model (D7500) is not served."""
-    from hdrcap.pipeline.calibration_library import find_calibration, store_calibration
+    from hdrcap.pipeline.calibration.library import find_calibration, store_calibration
     from hdrcap.pipeline.params import Calibration, SensorParams
 
     monkeypatch.setenv("HDRCAP_DATA_DIR", str(tmp_path / "lib"))

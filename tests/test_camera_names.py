@@ -1,4 +1,4 @@
-"""One normalisation of camera model names (pipeline.camera_types), shared by the compatibility
+"""One normalisation of camera model names (pipeline.compat), shared by the compatibility
 check and the dark library: libgphoto2, EXIF and user spellings of one model match, distinct
 models whose names share a prefix do not."""
 
@@ -9,9 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hdrcap.acquire import compat
-from hdrcap.pipeline import camera_types
-from hdrcap.pipeline.darklibrary import DarkLibrary, same_camera
+from hdrcap.pipeline import compat
+from hdrcap.pipeline.calibration.darklibrary import DarkLibrary, same_camera
 
 #: (name a, name b, same model?) as the three sources spell real cameras
 PAIRS = [
@@ -32,9 +31,8 @@ def test_dark_library_and_compat_agree_on_model_names(a, b, same):
     assert compat.same_model(a, b) is same
 
 
-def test_compat_uses_the_pipeline_normalisation():
-    assert compat.normalise_model is camera_types.normalise_model
-    assert compat.same_model is camera_types.same_model
+def test_the_dark_library_uses_the_one_model_rule():
+    assert same_camera is compat.same_model
 
 
 @given(st.text(alphabet="ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789 -", min_size=1, max_size=12))

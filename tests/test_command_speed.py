@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from hdrcap.pipeline import io as pio
-from hdrcap.pipeline.merge import _add_in_quadrature
+from hdrcap.pipeline.merge.accumulator import _add_in_quadrature
 from tests.test_io import _dng
 
 _FLOATS = hnp.arrays(
@@ -115,7 +115,7 @@ def test_released_frames_leave_memory_and_stay_readable(tmp_path):
 def test_help_does_not_import_numpy(args):
     code = (
         "import sys\n"
-        "from hdrcap.acquire.cli import main\n"
+        "from hdrcap.cli import main\n"
         f"rc = main({args!r})\n"
         "heavy = sorted(m for m in ('numpy', 'scipy', 'numba', 'OpenEXR', 'tifffile') if m in sys.modules)\n"
         "print('RESULT', rc, heavy)\n"
@@ -128,10 +128,10 @@ def test_help_does_not_import_numpy(args):
 _MERGE_DIGEST = """
 import hashlib, sys
 from hdrcap.api import simulate
-from hdrcap.pipeline.merge import merge_arrays
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 warm = sys.argv[1] == "warm"
 if warm:
-    from hdrcap.acquire.filemerge import start_warm_up
+    from hdrcap.pipeline.merge.files import start_warm_up
     thread = start_warm_up()  # the merge below races it, as in hdrcap merge
     assert start_warm_up() is thread  # once per process (the command and merge_files both ask)
 sim = simulate("camera-A", "hdr", [0.001, 0.01, 0.1], seed=5, shape=(24, 36), darks=True)

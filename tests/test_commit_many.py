@@ -12,7 +12,7 @@ import pytest
 import xarray as xr
 import zarr
 
-from hdrcap.acquire.archive import CHANNELS, RUN_COORDS, Archive
+from hdrcap.batch.archive import CHANNELS, RUN_COORDS, Archive
 from tests.test_archive import _run, _staged
 
 

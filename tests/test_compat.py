@@ -9,16 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrcap.acquire.compat import (
+from hdrcap.acquire.camera.mock import MockCamera
+from hdrcap.acquire.capture.job import load_job, run_job
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RetryPolicy, RunConflictError, VerificationError
+from hdrcap.pipeline.compat import (
     CameraProfile,
     CompatibilityError,
     check_compatible,
     normalise_model,
     same_model,
 )
-from hdrcap.acquire.job import load_job, run_job
-from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy, RunConflictError, VerificationError
-from hdrcap.mock_camera.camera import MockCamera
 
 FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
 
@@ -103,14 +103,14 @@ def test_calibration_of_another_camera_is_refused_before_any_frame(tmp_path, cli
 
 
 def test_a_silent_iso_substitution_is_refused(tmp_path):
-    from hdrcap.acquire.job import JobError
+    from hdrcap.acquire.capture.job import JobError
 
     with pytest.raises(JobError, match="applied ISO 400, not 100"):
         run_job(load_job(_job(tmp_path, camera="iso = 100")), progress=False, echo=lambda s: None)
 
 
 def _library(tmp_path, iso, model=None) -> Path:
-    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.calibration.darklibrary import DarkLibrary
     from hdrcap.pipeline.io import read_frame
 
     lib = DarkLibrary(tmp_path / "darks")
@@ -218,7 +218,7 @@ def test_resume_on_another_camera_is_refused_before_any_frame(tmp_path):
 
 
 def test_masters_at_any_temperature_are_a_warning_when_the_camera_reports_none(tmp_path):
-    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.calibration.darklibrary import DarkLibrary
 
     lib = DarkLibrary(tmp_path / "darks")
     model = MockCamera("camera-B", _scene()).identity.model

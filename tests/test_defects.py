@@ -15,7 +15,7 @@ from hdrcap.pipeline.calibration import (
     load_calibration,
     save_calibration,
 )
-from hdrcap.pipeline.calibration_report import write_report
+from hdrcap.pipeline.calibration.report import write_report
 from hdrcap.pipeline.io import RawFrame
 from hdrcap.pipeline.params import DEFECT_BITS, Calibration
 

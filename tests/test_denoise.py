@@ -11,9 +11,9 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 from hdrcap.experiments import CONTROL_SCENES, EVAL_SCENES, evaluate_denoising, simulate_merged_scene
-from hdrcap.pipeline.denoise import (
+from hdrcap.pipeline.denoise.filter import (
     DenoiseSettings,
     bilateral_adaptive,
     bilateral_constant,

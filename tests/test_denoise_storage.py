@@ -8,9 +8,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from hdrcap.acquire.cli import main
-from hdrcap.acquire.tileddenoise import exr_pixel_types
-from hdrcap.pipeline.denoise import DenoiseSettings, denoise
+from hdrcap.cli import main
+from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
+from hdrcap.pipeline.denoise.tiled import exr_pixel_types
 from hdrcap.pipeline.io import HALF_RELATIVE_ERROR, HdrImage, read_exr, write_exr
 
 SHAPE = (40, 36)
@@ -108,7 +108,7 @@ def test_median_subsample_same_in_memory_and_tiled(merged, tmp_path, capsys, mon
     the same regular subsample, and it is the subsample's median computed independently."""
     import json
 
-    import hdrcap.acquire.tileddenoise as td
+    import hdrcap.pipeline.denoise.tiled as td
 
     monkeypatch.setattr(td, "MEDIAN_SAMPLES", 100)
     infos = []

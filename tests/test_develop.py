@@ -19,7 +19,7 @@ import tifffile
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 from hdrcap.pipeline.develop import (
     DEMOSAIC_METHODS,
     SIGMA_NOT_PROPAGATED,
@@ -29,7 +29,9 @@ from hdrcap.pipeline.develop import (
     propagate_variance,
     support_radius,
 )
-from hdrcap.pipeline.dngwrite import (
+from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+from hdrcap.pipeline.io.dngwrite import (
     CameraColour,
     camera_colour,
     colour_from_dng_tags,
@@ -37,8 +39,6 @@ from hdrcap.pipeline.dngwrite import (
     colour_tags,
     write_float_dng,
 )
-from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 from tests.colour_sim import CANON_CM, CANON_NEUTRAL, XYZ_TO_SRGB, camera_mosaic, mosaic, recolour_frames
 
 #: D50 white, CIE 15 chromaticity (0.3457, 0.3585), as XYZ with Y = 1 (the DNG connection space white).
@@ -309,7 +309,7 @@ def test_help_does_not_import_the_colour_libraries():
     import subprocess
     import sys
 
-    code = "import sys; from hdrcap.acquire.cli import main; main(['--help']); print(sorted(m for m in sys.modules if m.startswith('colour')))"
+    code = "import sys; from hdrcap.cli import main; main(['--help']); print(sorted(m for m in sys.modules if m.startswith('colour')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().endswith("[]")
 

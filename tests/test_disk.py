@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-import hdrcap.acquire.manifest as manifest_mod
-import hdrcap.acquire.session as session_mod
-from hdrcap.acquire.manifest import EventLog, Manifest
-from hdrcap.acquire.session import CapturePlan, CaptureSession, LocalIOError, RetryPolicy, estimate_run_bytes
-from hdrcap.mock_camera.camera import MockCamera
-from hdrcap.pipeline.camera_types import CameraDisconnectedError
+import hdrcap.acquire.capture.manifest as manifest_mod
+import hdrcap.acquire.capture.session as session_mod
+from hdrcap.acquire.camera.mock import MockCamera
+from hdrcap.acquire.camera.types import CameraDisconnectedError
+from hdrcap.acquire.capture.manifest import EventLog, Manifest
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LocalIOError, RetryPolicy, estimate_run_bytes
 from hdrcap.pipeline.errors import OutputExistsError
 from hdrcap.pipeline.io import atomic_output, sha256_file
 
@@ -150,7 +150,7 @@ def no_hard_links(monkeypatch):
 
 
 def test_run_folders_without_hard_links(tmp_path, no_hard_links):
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
     res = CaptureSession(
         MockCamera("camera-B", _scene()),
@@ -158,7 +158,7 @@ def test_run_folders_without_hard_links(tmp_path, no_hard_links):
         _plan(),
         retry=FAST,
         progress=False,
-        calibration=resolve_calibration(None, "camera-B"),
+        calibration=camera_model(camera="camera-B"),
     ).run()
     assert res.captured == len(_plan().frames) and res.merge is not None
     _frames_once(tmp_path / "r", _plan())

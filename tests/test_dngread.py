@@ -11,8 +11,8 @@ import tifffile
 
 from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline import io as pio
-from hdrcap.pipeline.dngread import decode_dng
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io.dngread import decode_dng
 
 
 def _sim_dng(path, data, cfa="RGGB", black=128.0, white=4095, t=1 / 250):

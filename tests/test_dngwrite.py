@@ -1,4 +1,4 @@
-"""Float DNG output of the merge (`pipeline.dngwrite`, `hdrcap merge -o out.dng`)."""
+"""Float DNG output of the merge (`pipeline.io.dngwrite`, `hdrcap merge -o out.dng`)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from hdrcap.mock_camera.dng import write_dng
-from hdrcap.pipeline.dngwrite import dng_layout, write_float_dng
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 from hdrcap.pipeline.io import HdrImage, read_exr
+from hdrcap.pipeline.io.dngwrite import dng_layout, write_float_dng
 
 #: LibRaw converts a float raw image to integers, its maximum mapped to this value.
 _LIBRAW_FLOAT_TARGET = 16383

@@ -15,7 +15,7 @@ import pytest
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.mock_camera.emva_sets import EmvaSetSpec, write_emva_set, write_pgm
 from hdrcap.mock_camera.sensor import SensorSpec
-from hdrcap.pipeline.emva import QUANTISATION_LIMIT, QUANTISATION_VARIANCE, calibrate_descriptor, emva_data
+from hdrcap.pipeline.calibration.emva import QUANTISATION_LIMIT, QUANTISATION_VARIANCE, calibrate_descriptor, emva_data
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_emva_descriptor
 
@@ -102,7 +102,7 @@ def test_dark_current_reported_when_the_series_supports_it(tmp_path):
 
 
 def test_pgm_values_are_read_as_stored(tmp_path):
-    from hdrcap.pipeline.emva import _read_pgm
+    from hdrcap.pipeline.calibration.emva import _read_pgm
 
     rng = np.random.default_rng(4)
     for bits in (8, 10, 12, 16):

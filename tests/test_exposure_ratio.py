@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from simcal import bracket, calibrated_sensor
 
-from hdrcap.acquire.filemerge import build_hdr_image
-from hdrcap.acquire.session import StreamingMerge
+from hdrcap.acquire.capture.session import StreamingMerge
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.exposure_ratio import estimate_exposure_ratios
-from hdrcap.pipeline.merge import merge_frames
+from hdrcap.pipeline.merge.accumulator import merge_frames
+from hdrcap.pipeline.merge.files import build_hdr_image
 
 TIMES = (0.08, 0.6, 5.0, 40.0, 300.0)
 

@@ -24,7 +24,7 @@ PRELUDE = """
 import json, os, sys, threading, time
 from pathlib import Path
 sys.path.insert(0, {repo!r})
-from hdrcap.acquire.gphoto2_camera import Gphoto2Camera, list_cameras
+from hdrcap.acquire.camera.gphoto2 import Gphoto2Camera, list_cameras
 from hdrcap.acquire.camera import (CameraBusyError, CameraDisconnectedError, CameraGoneError, StorageFullError,
                             frame_is_dark, fault_kind)
 OUT = Path({out!r})
@@ -340,7 +340,7 @@ def test_a_failed_constructor_releases_the_camera(tmp_path):
     r = run_vcam(
         tmp_path,
         """
-        from hdrcap.acquire import gphoto2_camera as g
+        from hdrcap.acquire.camera import gphoto2 as g
         made = []
         class Spy(g._Worker):
             def __init__(self, *a, **k):
@@ -401,11 +401,11 @@ def test_job_check_against_the_virtual_camera(tmp_path, cli):
 def test_session_on_the_virtual_camera_refuses_jpeg(tmp_path, cli):
     """The whole chain (job -> Gphoto2Camera -> session) on the virtual camera, which only
     delivers JPEG: the session stops at once with a clear message instead of merging JPEGs."""
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
     from hdrcap.pipeline.calibration import save_calibration
 
     # a calibration of this camera (the compatibility check refuses a simulator preset's)
-    cal = resolve_calibration(None, "camera-B")
+    cal = camera_model(camera="camera-B")
     save_calibration(tmp_path / "cal.json", cal.replace(provenance={"camera": "NIKON CORPORATION NIKON D750"}))
     job = tmp_path / "job.toml"
     job.write_text(
@@ -548,7 +548,7 @@ class FakeBody:
 
 
 def _fake_camera(body, **kw):
-    from hdrcap.acquire.gphoto2_camera import Gphoto2Camera
+    from hdrcap.acquire.camera.gphoto2 import Gphoto2Camera
 
     cls = type("FakeGphoto2Camera", (Gphoto2Camera,), {"worker_factory": staticmethod(lambda name: body)})
     return cls(**kw)
@@ -604,7 +604,7 @@ def test_worker_reads_only_the_storage_fields_marked_valid():
     import types
 
     gp = pytest.importorskip("gphoto2")
-    from hdrcap.acquire.gphoto2_camera import _WorkerState, free_images
+    from hdrcap.acquire.camera.gphoto2 import _WorkerState, free_images
 
     def info(fields, **kw):
         base = dict(
@@ -768,13 +768,13 @@ def test_capture_command_sets_iso_and_enforces_on_the_virtual_camera(tmp_path, c
         "XDG_CONFIG_HOME": str(tmp_path / "xdg"),
         "HDRCAP_LOCK_DIR": str(tmp_path / "locks"),
     }
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
     from hdrcap.pipeline.calibration.archive import save_calibration
 
     # a calibration of this camera (the compatibility check refuses a simulator preset's)
     calib = save_calibration(
         tmp_path / "calib.npz",
-        resolve_calibration(None, "camera-B").replace(provenance={"camera": "NIKON CORPORATION NIKON D750"}),
+        camera_model(camera="camera-B").replace(provenance={"camera": "NIKON CORPORATION NIKON D750"}),
     )
     base = [
         "capture",
@@ -840,9 +840,9 @@ def test_gphoto2_success_path_raw_frames_through_the_virtual_camera(tmp_path):
         from hdrcap.mock_camera.dng import write_dng
         from hdrcap.mock_camera.scenes import make_scene
         from hdrcap.mock_camera.sensor import PRESETS
-        from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy
-        from hdrcap.acquire.manifest import Manifest
-        from hdrcap.acquire.cliutil import resolve_calibration
+        from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy
+        from hdrcap.acquire.capture.manifest import Manifest
+        from hdrcap.acquire.camera.model import camera_model
         VDIR = Path(os.environ["VCAMERADIR"])
         spec = PRESETS["camera-B"]
         sim = SimulatedCamera(spec, make_scene("hdr", (32, 48), decades=2.0, x_max=3e4), seed=4)
@@ -870,7 +870,7 @@ def test_gphoto2_success_path_raw_frames_through_the_virtual_camera(tmp_path):
 
         cam = Gphoto2Camera(pair_wait_s=0)
         plan = CapturePlan.bracket([0.0025, 0.01, 0.05], cam.allowed_exposure_times(), "matched")
-        cal = resolve_calibration(None, "camera-B")
+        cal = camera_model(camera="camera-B")
         res = CaptureSession(RawThroughVcam(cam), OUT / "run", plan, calibration=cal,
                              light=LightBlocker("command", "true", "true"),
                              retry=RetryPolicy(max_attempts=3, backoff_s=0.01, max_backoff_s=0.02, timeout_s=20),

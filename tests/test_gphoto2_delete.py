@@ -8,7 +8,7 @@ import logging
 import pytest
 
 from hdrcap.acquire.camera import CameraDisconnectedError
-from hdrcap.acquire.gphoto2_camera import GphotoError
+from hdrcap.acquire.camera.gphoto2 import GphotoError
 from tests.test_gphoto2_camera import FakeBody, _fake_camera
 
 

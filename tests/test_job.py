@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrcap.acquire.job import load_job
+from hdrcap.acquire.capture.job import load_job
 from hdrcap.pipeline.errors import InputError
 
 GOOD = """\
@@ -211,9 +211,9 @@ def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
 
 
 def test_master_darks_come_from_the_dark_library(tmp_path, cli):
-    from hdrcap.mock_camera.camera import MockCamera
+    from hdrcap.acquire.camera.mock import MockCamera
     from hdrcap.mock_camera.scenes import make_scene
-    from hdrcap.pipeline import darklibrary
+    from hdrcap.pipeline.calibration import darklibrary
     from hdrcap.pipeline.io import read_frame
 
     lib = darklibrary.DarkLibrary(tmp_path / "darks")
@@ -241,7 +241,7 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
     frame merged with its own strategy and the planner's merge options, the decisions in the
     EXR header, and the result within its stated uncertainty of the truth."""
     from hdrcap import planner
-    from hdrcap.acquire.job import run_job
+    from hdrcap.acquire.capture.job import run_job
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.scenes import make_scene
     from hdrcap.mock_camera.sensor import SimulatedSensor

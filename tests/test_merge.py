@@ -15,7 +15,7 @@ import pytest
 
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.merge import MergeAccumulator, merge_arrays
+from hdrcap.pipeline.merge.accumulator import MergeAccumulator, merge_arrays
 from hdrcap.pipeline.noise import exposure_variance
 from hdrcap.pipeline.params import Calibration, SensorParams
 
@@ -493,7 +493,7 @@ def test_weights_precision_choice():
 def test_float32_weights_agree_with_float64_weights(cam, monkeypatch):
     """The float32 weights change the estimates by a negligible fraction of their sigma (the
     Monte Carlo tests above check the float32 path against the truth and the bound)."""
-    import hdrcap.pipeline.merge as pm
+    import hdrcap.pipeline.merge.accumulator as pm
 
     spec = PRESETS[cam]
     sensor = SimulatedSensor(spec, (128, 128), seed=3)
@@ -514,7 +514,7 @@ def test_float32_weights_agree_with_float64_weights(cam, monkeypatch):
 def test_shared_division_equals_one_division_per_sample():
     """The iteration pass with one division for three samples gives the weights of one
     division per sample (relative 1e-13), dropped samples included."""
-    from hdrcap.pipeline.kernels import _iterate
+    from hdrcap.pipeline.merge.kernels import _iterate
 
     rng = np.random.default_rng(9)
     n, W = 7, 300
@@ -539,7 +539,7 @@ def test_shared_division_equals_one_division_per_sample():
 def test_map_extrema_follow_in_place_changes():
     """The float32-weights check sees a map as it is now: a map changed in place gives its new
     extrema (no stale cache), non-finite maps give NaN, scalars their value."""
-    import hdrcap.pipeline.merge as pm
+    import hdrcap.pipeline.merge.accumulator as pm
 
     maps = [np.full((4, 4), float(i), np.float32) for i in range(5)]
     assert [pm._extrema((m, True, 0.0)) for m in maps] == [(float(i), float(i)) for i in range(5)]

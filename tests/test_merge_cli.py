@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hdrcap.acquire.cli import main as cli_main  # noqa: F401  (imported to fail early if the CLI breaks)
+from hdrcap.cli import main as cli_main  # noqa: F401  (imported to fail early if the CLI breaks)
 from hdrcap.pipeline.io import read_exr
 
 

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from simcal import bracket, calibrated_sensor
 
-from hdrcap.acquire.filemerge import build_hdr_image, summary
 from hdrcap.mock_camera import preset
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline.denoise import DenoiseSettings, denoise
+from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
 from hdrcap.pipeline.io import read_exr, write_exr
-from hdrcap.pipeline.merge import QUALITY_BITS, merge_frames
+from hdrcap.pipeline.merge.accumulator import QUALITY_BITS, merge_frames
+from hdrcap.pipeline.merge.files import build_hdr_image, summary
 from hdrcap.pipeline.params import DEFECT_BITS
 
 SHAPE = (128, 128)

@@ -10,7 +10,7 @@ import pytest
 from simcal import calibrated_sensor
 
 from hdrcap.mock_camera import preset
-from hdrcap.pipeline.merge import merge_arrays
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration, SensorParams
 
 SHAPE = (96, 96)

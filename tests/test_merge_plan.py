@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 from hdrcap.pipeline.io import read_exr, read_frame
 
 TIMES = [0.001, 0.004, 0.016, 0.064, 0.25, 1.0]
@@ -38,7 +38,7 @@ def data(tmp_path_factory):
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.sensor import SimulatedSensor
     from hdrcap.pipeline.calibration import save_calibration
-    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.calibration.darklibrary import DarkLibrary
     from hdrcap.pipeline.params import Calibration
 
     root = tmp_path_factory.mktemp("mergeplan")

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hdrcap.acquire.session import StreamingMerge
+from hdrcap.acquire.capture.session import StreamingMerge
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.io import RawFrame
-from hdrcap.pipeline.merge import merge_arrays, merge_frames
+from hdrcap.pipeline.merge.accumulator import merge_arrays, merge_frames
 from hdrcap.pipeline.params import Calibration
 
 COPIES = 4

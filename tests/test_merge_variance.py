@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline import merge as pm
+from hdrcap.pipeline.merge import accumulator as pm
 from hdrcap.pipeline.params import Calibration
 
 TIMES = [0.002, 0.01, 0.05, 0.25, 1.0, 0.5]

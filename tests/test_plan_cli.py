@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.io import HdrImage, read_exr, write_exr

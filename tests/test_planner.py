@@ -12,8 +12,8 @@ import pytest
 
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline import merge as merge_mod
 from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.merge import accumulator as merge_mod
 from hdrcap.pipeline.params import Calibration, SensorParams
 from hdrcap.planner import (
     SystematicErrors,
@@ -707,7 +707,7 @@ def test_a_dim_scene_is_planned_with_bulb_exposures_beyond_30_s():
     has bulb (acquire.camera.exposure_ladder), the plan uses exposures above 30 s and reaches the
     target by an SNR computed here from Eq. 3, 6, 12; without bulb the same request is infeasible."""
     from hdrcap.acquire.camera import exposure_ladder
-    from hdrcap.mock_camera.camera import MockCamera
+    from hdrcap.acquire.camera.mock import MockCamera
 
     p = SensorParams(g=0.5, mu_R=1024.0, sigma2_R=4.0, v_sat=65000.0, white_level=65535.0, dark_current=0.01)
     cal = Calibration(p)

@@ -13,7 +13,7 @@ import numpy as np
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from hdrcap.pipeline.merge import MergeAccumulator, merge_arrays
+from hdrcap.pipeline.merge.accumulator import MergeAccumulator, merge_arrays
 from hdrcap.pipeline.params import Calibration, SensorParams
 
 SETTINGS = settings(

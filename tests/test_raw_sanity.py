@@ -12,9 +12,9 @@ import pytest
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.backend import SimulatedCamera
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline import dngread
 from hdrcap.pipeline import io as pio
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import dngread
 
 T = 1 / 100
 
@@ -158,7 +158,7 @@ def test_frames_contradicting_their_set_are_refused(frames, tmp_path):
 
 
 def test_the_corrupt_dng_is_refused_by_the_merge_command(frames, tmp_path):
-    from hdrcap.acquire.cli import main
+    from hdrcap.cli import main
 
     bad = _write(tmp_path, "flipped.dng", _flip4(frames[0].read_bytes(), 100))
     out = tmp_path / "out.exr"

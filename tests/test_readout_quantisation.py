@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.pipeline.calibration import calibrate
 from hdrcap.pipeline.calibration.readout import (

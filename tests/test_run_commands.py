@@ -10,9 +10,9 @@ import threading
 
 import pytest
 
-import hdrcap.acquire.job as job_mod
-from hdrcap.acquire.cli import main
-from hdrcap.acquire.manifest import EventLog, Manifest
+import hdrcap.acquire.capture.job as job_mod
+from hdrcap.acquire.capture.manifest import EventLog, Manifest
+from hdrcap.cli import main
 from tests.test_unattended import _StoppingCamera
 
 

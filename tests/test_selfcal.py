@@ -17,9 +17,9 @@ from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.backend import SimulatedCamera
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.mock_camera.sensor import SensorSpec, SimulatedSensor
+from hdrcap.pipeline.calibration.selfcal import SELF_CALIBRATED, self_calibrate
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import RawFrame, read_exr
-from hdrcap.pipeline.selfcal import SELF_CALIBRATED, self_calibrate
 
 REPO = Path(__file__).resolve().parents[1]
 TIMES = (1 / 2000, 1 / 250, 1 / 30, 1 / 4, 2.0)

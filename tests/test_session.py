@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrcap.acquire.manifest import Manifest
-from hdrcap.acquire.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
-from hdrcap.mock_camera.camera import MockCamera, MockFaults
+from hdrcap.acquire.camera.mock import MockCamera, MockFaults
+from hdrcap.acquire.capture.manifest import Manifest
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_frame, sha256_file
 
@@ -51,7 +51,7 @@ def _check_run(run_dir: Path, plan: CapturePlan) -> dict:
 
 
 def test_session_records_verified_frames_and_merges(tmp_path):
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
     plan = CapturePlan.bracket(TIMES, _camera().allowed_exposure_times(), "matched")
     cam = _camera()
@@ -59,7 +59,7 @@ def test_session_records_verified_frames_and_merges(tmp_path):
         cam,
         tmp_path / "run",
         plan,
-        calibration=resolve_calibration(None, "camera-B"),
+        calibration=camera_model(camera="camera-B"),
         retry=FAST,
         progress=False,
         meta={"seed": 0},
@@ -150,7 +150,7 @@ def test_lock_prevents_two_sessions(tmp_path, monkeypatch):
         with pytest.raises(SessionError, match="another hdrcap session"):
             CaptureSession(_camera(), tmp_path / "run", CapturePlan.bracket(TIMES[:1]), progress=False).run()
     # the same camera from another run folder
-    from hdrcap.acquire.session import _identity, _lock_key
+    from hdrcap.acquire.capture.session import _identity, _lock_key
 
     cam = _camera()
     with FileLock(str(tmp_path / "locks" / (_lock_key(_identity(cam)) + ".lock"))):
@@ -174,10 +174,10 @@ SOAK = r"""
 import sys, json
 from pathlib import Path
 sys.path.insert(0, sys.argv[1])
-from hdrcap.mock_camera.camera import MockCamera, MockFaults
+from hdrcap.acquire.camera.mock import MockCamera, MockFaults
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.acquire.session import CapturePlan, CaptureSession, RetryPolicy
-from hdrcap.acquire.cliutil import resolve_calibration
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RetryPolicy
+from hdrcap.acquire.camera.model import camera_model
 run, seed, kill = Path(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 faults = MockFaults(seed=seed, busy_rate=0.20, disconnect_rate=0.02, corrupt_rate=0.01, truncate_rate=0.005,
                     hang_rate=0.005, hang_s=0.01, kill_after=kill or None)
@@ -185,7 +185,7 @@ faults = MockFaults(seed=seed, busy_rate=0.20, disconnect_rate=0.02, corrupt_rat
 cam = MockCamera("camera-B", make_scene("hdr", (32, 32), decades=3.0, x_max=2e4), seed=11, faults=faults)
 times = [1/4000, 1/1000, 1/250, 1/60, 1/15, 1/4, 1.0, 2.0, 4.0, 8.0]
 plan = CapturePlan.bracket(times, cam.allowed_exposure_times(), "matched", repeats=20)
-res = CaptureSession(cam, run, plan, calibration=resolve_calibration(None, "camera-B"),
+res = CaptureSession(cam, run, plan, calibration=camera_model(camera="camera-B"),
                      retry=RetryPolicy(max_attempts=40, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02),
                      resume=bool(kill == 0), progress=False).run()
 print(json.dumps({"captured": res.captured, "resumed": res.resumed, "adopted": res.adopted, "retries": res.retries,
@@ -307,14 +307,14 @@ class _NoShape:
 
 
 def test_session_learns_the_size_from_the_first_frame(tmp_path):
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
     plan = CapturePlan.bracket(TIMES[:3], None, "matched")
     res = CaptureSession(
         _NoShape(_camera()),
         tmp_path / "run",
         plan,
-        calibration=resolve_calibration(None, "camera-B"),
+        calibration=camera_model(camera="camera-B"),
         retry=FAST,
         progress=False,
     ).run()
@@ -323,7 +323,7 @@ def test_session_learns_the_size_from_the_first_frame(tmp_path):
 
 
 def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
     # the library's masters: 8 dark frames per time averaged, taken earlier with the same sensor
     lib_cam = _camera()
@@ -340,7 +340,7 @@ def test_master_darks_from_the_library_replace_dark_frames(tmp_path):
         cam,
         tmp_path / "run",
         plan,
-        calibration=resolve_calibration(None, "camera-B"),
+        calibration=camera_model(camera="camera-B"),
         retry=FAST,
         progress=False,
         master_darks=masters,
@@ -388,7 +388,7 @@ def test_a_torn_manifest_header_is_not_trusted(tmp_path):
     lines = mpath.read_text().splitlines(keepends=True)
     mpath.write_text(lines[0][: len(lines[0]) // 2] + "\n" + "".join(lines[1:]))
     other = CapturePlan.bracket(TIMES[2:4], None, "matched")  # would have passed unchecked before
-    from hdrcap.acquire.session import VerificationError
+    from hdrcap.acquire.capture.session import VerificationError
 
     with pytest.raises(VerificationError, match="unreadable"):
         CaptureSession(_camera(), tmp_path / "run", other, retry=FAST, progress=False, resume=True).run()
@@ -403,10 +403,10 @@ def test_a_torn_manifest_header_is_not_trusted(tmp_path):
 def test_a_light_leak_at_a_short_exposure_is_caught_with_a_calibration(tmp_path):
     """At 1/60 s the lit scene's median is ~1 % of the range: below the 5 % rule, yet ~10 DN
     above the calibrated dark level, far beyond the noise of a 32x32 median."""
-    from hdrcap.acquire.cliutil import resolve_calibration
-    from hdrcap.acquire.session import VerificationError
+    from hdrcap.acquire.camera.model import camera_model
+    from hdrcap.acquire.capture.session import VerificationError
 
-    cal = resolve_calibration(None, "camera-B")
+    cal = camera_model(camera="camera-B")
     plan = CapturePlan.bracket([1 / 60], None, "matched")
     leaky = _camera()
     leaky.cover = lambda: None  # the lens cap fell off

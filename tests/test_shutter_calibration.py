@@ -14,16 +14,16 @@ import pytest
 import tifffile
 from simcal import bracket, calibrated_sensor
 
-from hdrcap.acquire.cli import main
-from hdrcap.acquire.filemerge import build_hdr_image
-from hdrcap.acquire.session import StreamingMerge
+from hdrcap.acquire.capture.session import StreamingMerge
+from hdrcap.cli import main
 from hdrcap.mock_camera import preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.calibration import load_calibration, save_calibration
 from hdrcap.pipeline.calibration.shutter import estimate_shutter_table
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import RawFrame
-from hdrcap.pipeline.merge import merge_frames
+from hdrcap.pipeline.merge.accumulator import merge_frames
+from hdrcap.pipeline.merge.files import build_hdr_image
 from hdrcap.pipeline.params import ShutterTable
 
 SHAPE = (128, 128)

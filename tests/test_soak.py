@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from hdrcap.acquire.manifest import EventLog, Manifest
+from hdrcap.acquire.capture.manifest import EventLog, Manifest
 from hdrcap.pipeline.io import read_exr, sha256_file
 
 REPO = Path(__file__).resolve().parents[1]
@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: disk full once, at capture call ENOSPC_AT (0: never) - the fixture's ENOSPC.
 SCRIPT = r"""
 import errno, sys
-import hdrcap.acquire.job as job
+import hdrcap.acquire.capture.job as job
 
 at = int(sys.argv[1])
 real_open = job.open_camera
@@ -46,7 +46,7 @@ class DiskFullOnce:
 
 
 job.open_camera = lambda j, n=0: DiskFullOnce(real_open(j, n))
-from hdrcap.acquire.cli import main
+from hdrcap.cli import main
 
 sys.exit(main(sys.argv[2:]))
 """

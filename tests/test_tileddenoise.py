@@ -9,10 +9,10 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.acquire.cli import main
-from hdrcap.acquire.tileddenoise import ExrRows, exr_layout
+from hdrcap.cli import main
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline.denoise import DenoiseSettings, support_depth
+from hdrcap.pipeline.denoise.filter import DenoiseSettings, support_depth
+from hdrcap.pipeline.denoise.tiled import ExrRows, exr_layout
 from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 
 SHAPE = (90, 64)

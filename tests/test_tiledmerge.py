@@ -11,14 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hdrcap.acquire.cli import main
-from hdrcap.acquire.tiledmerge import RowFile, chunk_rows_for, parse_memory, row_source
+from hdrcap.cli import main
 from hdrcap.mock_camera.dng import write_dng
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.mock_camera.sensor import preset
 from hdrcap.pipeline.calibration import save_calibration
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import read_exr
+from hdrcap.pipeline.merge.tiled import RowFile, chunk_rows_for, parse_memory, row_source
 from hdrcap.pipeline.params import ShutterTable
 from tests.simcal import calibrated_sensor
 
@@ -146,7 +146,7 @@ def test_weight_precision_is_chosen_for_the_whole_frame(bracket, tmp_path, capsy
     """A tile whose own extrema would allow float32 weights where the whole frame does not is
     merged again with the whole frame's choice (here: a rule on the bias map's maximum that
     half of the tiles pass)."""
-    from hdrcap.pipeline import merge as pm
+    from hdrcap.pipeline.merge import accumulator as pm
 
     def rule(self, values, darks, master):
         return pm._extrema(self._bias)[1] < limit

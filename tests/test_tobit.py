@@ -27,7 +27,7 @@ from scipy.special import log_ndtr
 from scipy.stats import norm
 
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline.merge import merge_arrays
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -210,7 +210,7 @@ def test_noise_free_frames_far_from_the_clip_give_the_truth(cam, monkeypatch):
     score is 0 there; nothing to centre), as the threshold model's. Before the fix, a Newton
     iterate where the score was exactly 0 ended on the midpoint of the bracket: 0.1-1.8 %
     below X on 6 of 727 such photosites of camera-B."""
-    from hdrcap.pipeline import merge as merge_mod
+    from hdrcap.pipeline.merge import accumulator as merge_mod
 
     monkeypatch.setattr(merge_mod, "SINGLE_PRECISION_WEIGHTS", False)  # float32 sums: a few 1e-6
     spec = PRESETS[cam].replace(dark_current=40.0, dcnu=0.3)
@@ -239,7 +239,7 @@ def test_censored_root_does_not_depend_on_the_start():
     """The solver of the censored likelihood (kernels._tobit) from starting points 2 sigma
     either side of the root, on photosites with censored samples and on one without: the same
     root (to 1e-9 relative)."""
-    from hdrcap.pipeline import kernels as K
+    from hdrcap.pipeline.merge import kernels as K
 
     spec = PRESETS["camera-B"]
     p = spec.nominal_params()

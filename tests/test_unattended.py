@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from hdrcap.acquire.job import ScheduleError, job_from_dict, load_job, run_job, run_schedule
-from hdrcap.acquire.manifest import EventLog, Manifest
-from hdrcap.acquire.session import (
+from hdrcap.acquire.camera.mock import MockCamera
+from hdrcap.acquire.capture.job import ScheduleError, job_from_dict, load_job, run_job, run_schedule
+from hdrcap.acquire.capture.manifest import EventLog, Manifest
+from hdrcap.acquire.capture.session import (
     EXIT_CODES,
     CapturePlan,
     CaptureSession,
@@ -26,7 +27,6 @@ from hdrcap.acquire.session import (
     StopEvent,
     VerificationError,
 )
-from hdrcap.mock_camera.camera import MockCamera
 from hdrcap.pipeline.io import sha256_file
 
 REPO = Path(__file__).resolve().parents[1]
@@ -231,9 +231,9 @@ class _StoppingCamera:
 
 
 def test_stop_event_ends_the_session_between_frames_and_resume_completes(tmp_path):
-    from hdrcap.acquire.cliutil import resolve_calibration
+    from hdrcap.acquire.camera.model import camera_model
 
-    cal = resolve_calibration(None, "camera-B")
+    cal = camera_model(camera="camera-B")
     plan = CapturePlan.bracket([0.004, 0.032, 0.25], MockCamera("camera-B", _scene((24, 32))).allowed_exposure_times())
     stop = StopEvent()
     cam = _StoppingCamera(MockCamera("camera-B", _scene((24, 32)), seed=2), stop, after=4)
@@ -319,7 +319,7 @@ def test_notification_hooks_get_the_summary(tmp_path):
 def test_a_failing_hook_is_only_a_warning(tmp_path):
     warnings = []
     job = job_from_dict({"notify": {"on_done": "exit 3"}, "exposure": {"times": [0.01]}})
-    from hdrcap.acquire.job import notify
+    from hdrcap.acquire.capture.job import notify
 
     notify(job, {"status": "done"}, warnings.append)
     assert len(warnings) == 1 and "exit 3" in warnings[0]
@@ -375,8 +375,8 @@ def test_metering_retries_busy_and_disconnects(tmp_path):
 def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
     from filelock import FileLock
 
-    import hdrcap.acquire.job as job_mod
-    from hdrcap.acquire.session import hold_run_locks, lock_dir
+    import hdrcap.acquire.capture.job as job_mod
+    from hdrcap.acquire.capture.session import hold_run_locks, lock_dir
 
     monkeypatch.setenv("HDRCAP_LOCK_DIR", str(tmp_path / "locks"))
     opened = []
@@ -404,7 +404,7 @@ def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
 
 
 def test_the_default_lock_folder_is_per_user_not_tmp(tmp_path, monkeypatch):
-    from hdrcap.acquire.session import lock_dir
+    from hdrcap.acquire.capture.session import lock_dir
 
     monkeypatch.delenv("HDRCAP_LOCK_DIR", raising=False)
     (tmp_path / "run").mkdir()

@@ -1,4 +1,4 @@
-"""Table 1 weightings (pipeline.weighting): closed forms for a linear sensor and the merge."""
+"""Table 1 weightings (pipeline.merge.weighting): closed forms for a linear sensor and the merge."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.merge.weighting import WEIGHTING_METHODS, merge_weighted, weights
 from hdrcap.pipeline.params import Calibration, SensorParams
-from hdrcap.pipeline.weighting import WEIGHTING_METHODS, merge_weighted, weights
 
 P = SensorParams(g=0.92, mu_R=32.0, sigma2_R=18.0, v_sat=1023.0, white_level=1023.0, dark_current=1.0)
 V = np.array([0.0, 5.0, 100.0, 495.5, 900.0, 991.0])

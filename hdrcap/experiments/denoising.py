@@ -1,6 +1,6 @@
 """The paper's Fig. 8d on the simulator: adaptive against constant-bandwidth bilateral filtering.
 
-The filter is :mod:`hdrcap.pipeline.denoise`; this module simulates camera-B brackets of mock
+The filter is :mod:`hdrcap.pipeline.denoise.filter`; this module simulates camera-B brackets of mock
 scenes, merges them, filters the merges with both bandwidth rules and compares the normalised
 MSE against the simulator's truth.
 """
@@ -18,7 +18,7 @@ import numpy as np
 
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline.denoise import (
+from hdrcap.pipeline.denoise.filter import (
     DEFAULT_RADIUS,
     DEFAULT_RANGE_SCALE,
     DEFAULT_SPATIAL_SIGMA,
@@ -27,7 +27,7 @@ from hdrcap.pipeline.denoise import (
     normalised_mse,
 )
 from hdrcap.pipeline.io import atomic_output
-from hdrcap.pipeline.merge import MergeResult, merge_arrays
+from hdrcap.pipeline.merge.accumulator import MergeResult, merge_arrays
 from hdrcap.pipeline.params import Calibration
 
 __all__ = [
@@ -212,7 +212,7 @@ def evaluate_denoising(out_dir: str | Path, seed: int = 0, quick: bool = False) 
       infinite bandwidth (a plain Gaussian filter).
 
     Normalised MSE is ``mean(((estimate - truth) / truth)^2)`` over the photosites with
-    ``nexp > 0`` (:func:`pipeline.denoise.normalised_mse`); the unfiltered merge is reported too.
+    ``nexp > 0`` (:func:`pipeline.denoise.filter.normalised_mse`); the unfiltered merge is reported too.
 
     Parameters
     ----------

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from hdrcap.pipeline.denoise import DEFAULT_RANGE_SCALE
+from hdrcap.pipeline.denoise.filter import DEFAULT_RANGE_SCALE
 from hdrcap.pipeline.plotting import new_figure, save_figure
 
 if TYPE_CHECKING:

@@ -36,9 +36,9 @@ from hdrcap.pipeline.evaluation import (
     weights_vs_output,
 )
 from hdrcap.pipeline.io import atomic_output
-from hdrcap.pipeline.merge import MergeResult, merge_arrays
+from hdrcap.pipeline.merge.accumulator import MergeResult, merge_arrays
+from hdrcap.pipeline.merge.weighting import merge_weighted
 from hdrcap.pipeline.params import Calibration, SensorParams
-from hdrcap.pipeline.weighting import merge_weighted
 
 __all__ = [
     "EvalSetup",
@@ -70,7 +70,7 @@ BASELINES = (
     "kirk-andersen",
 )
 #: Curves of the SNR plots: the baselines, Eq. 13 at the observed value (one pass), and the
-#: maximum-likelihood merge of pipeline.merge ("optimal").
+#: maximum-likelihood merge of pipeline.merge.accumulator ("optimal").
 CURVES = BASELINES + ("optimal@observed", "optimal-defaults", "optimal")
 
 #: Options of the ML merge for the ``optimal`` curve: Eq. 11 threshold only. The evaluation's
@@ -83,7 +83,7 @@ OPTIMAL_OPTIONS = {"saturation_sigmas": 0.0}
 NOTES = {
     "snr_db": "-10 log10(mean ((estimate - X)/X)^2) over the photosites and repetitions of each bin",
     "efficiency": "mean(bound/X^2) / mean(((estimate - X)/X)^2); bound = 1/sum_i w_i(X), Eq. 12-13",
-    "optimal": "maximum-likelihood merge of pipeline.merge (iterative Eq. 12-13), options "
+    "optimal": "maximum-likelihood merge of pipeline.merge.accumulator (iterative Eq. 12-13), options "
     + json.dumps(OPTIMAL_OPTIONS),
     "optimal-defaults": "the same merge with its default options (near-saturation rule 3 sigma on)",
     "optimal@observed": "Eq. 13 evaluated at each sample's observed value, one pass",
@@ -259,10 +259,10 @@ def merge_method(
 ) -> MergeResult:
     """Merge with curve ``name`` of :data:`CURVES`.
 
-    ``optimal`` is the maximum-likelihood merge (:func:`pipeline.merge.merge_arrays` with
+    ``optimal`` is the maximum-likelihood merge (:func:`pipeline.merge.accumulator.merge_arrays` with
     ``options``); ``optimal-defaults`` the same merge with its default options;
     ``optimal@observed`` the registry's Eq. 13 at the observed value (one pass); the others
-    the Table 1 weightings of :func:`pipeline.weighting.merge_weighted`.
+    the Table 1 weightings of :func:`pipeline.merge.weighting.merge_weighted`.
 
     Parameters
     ----------

@@ -93,7 +93,7 @@ def _split_times(groups: Mapping[str, list], times: Sequence[float] | None) -> d
 
 def _dark_library_sink(folder: PathLike, meta: Mapping[str, Any], provenance: Mapping[str, Any], force: bool):
     """A ``dark_sink`` that stores each master dark in the dark library at ``folder``."""
-    from hdrcap.pipeline.darklibrary import DarkLibrary
+    from hdrcap.pipeline.calibration.darklibrary import DarkLibrary
 
     lib = DarkLibrary(folder)
 

@@ -1,0 +1,508 @@
+"""Batch reprocessing: many runs merged on dask.distributed into one run archive.
+
+:func:`find_runs` turns the folders given into :class:`RunSource` (file paths only: capture
+run folders through their ``manifest.jsonl``, or folders of raw brackets); :func:`merge_run` is
+the task a worker runs for one run: it reads the frames itself and merges them with
+:func:`pipeline.merge.files.merge_files`, exactly as ``hdrcap merge`` does; :func:`run_batch` sends
+one task per run to a local cluster or a scheduler, commits every merged run to the
+:class:`hdrcap.batch.archive.Archive` as it arrives (the runs that finished while the previous ones
+were committed together, in one commit), records failures and skips runs already there.
+
+Over the network go the task (a run's file paths and the merge settings, a few kB) and a few
+kB of result: a worker that sees the archive's file system writes the run's encoded chunk files
+into the batch's staging folder (:func:`hdrcap.batch.archive.stage_channels`) and the client commits
+them by renaming; otherwise the float32 arrays (12 bytes per photosite) go to the client. The
+raw frames are read on the worker and never leave it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import functools
+import hashlib
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hdrcap.pipeline.errors import InputError
+
+__all__ = [
+    "RunSource",
+    "BatchSettings",
+    "RunOutcome",
+    "BatchReport",
+    "find_runs",
+    "merge_run",
+    "run_batch",
+    "calibration_identity",
+]
+
+
+@dataclass(frozen=True)
+class RunSource:
+    """The files of one run (paths only; the worker reads them).
+
+    Parameters
+    ----------
+    folder : str
+        The run folder, absolute; the run's identity in the archive.
+    frames : tuple of str
+        Light frames (raw files), in capture order.
+    darks : tuple of str
+        Dark frames.
+    start_time : str or None
+        Start of the run (ISO 8601) from its manifest; None: from the first frame.
+    plan : dict or None
+        The planner's plan recorded in the manifest (per-exposure dark strategies, decided options).
+    dark_strategy : str or None
+        The capture plan's dark strategy for every exposure (None: mixed or unknown).
+    """
+
+    folder: str
+    frames: tuple[str, ...]
+    darks: tuple[str, ...] = ()
+    start_time: str | None = None
+    plan: dict | None = None
+    dark_strategy: str | None = None
+
+
+@dataclass(frozen=True)
+class BatchSettings:
+    """How every run is merged: the options of ``hdrcap merge``.
+
+    Parameters
+    ----------
+    calibration : str or None
+        Calibration file (read on the worker); or
+    camera : str or None
+        a simulator preset.
+    options : dict
+        Merge options (:func:`pipeline.merge.files.merge_options`).
+    given : frozenset of str
+        Names of the options the user set (they win over a plan's).
+    weighting : str
+        ``optimal`` or a baseline of :mod:`pipeline.merge.weighting`.
+    dark_strategy : str or None
+        One dark strategy for every exposure (None: the run's own, else the merge's default).
+    master_dark_frames : float or None
+        Frames averaged into each dark file of a master exposure.
+    calibration_id : dict
+        Calibration identity recorded with every run (:func:`calibration_identity`).
+    sigma_precision : str
+        Storage precision of the uncertainty channels, as ``hdrcap merge --sigma-precision``
+        (the archive holds the values an EXR of ``hdrcap merge`` would hold).
+    """
+
+    calibration: str | None
+    camera: str | None
+    options: dict[str, Any] = field(default_factory=dict)
+    given: frozenset[str] = frozenset()
+    weighting: str = "optimal"
+    dark_strategy: str | None = None
+    master_dark_frames: float | None = None
+    calibration_id: dict[str, Any] = field(default_factory=dict)
+    sigma_precision: str = "auto"
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What a worker sends back for one run: the run to commit (None if it failed), warnings,
+    merge seconds (wall clock), the one-line error of a run that failed on bad input, and the
+    worker process's CPU seconds during the task (all its threads: the merge kernel's too)."""
+
+    run: Any
+    warnings: tuple[str, ...]
+    seconds: float
+    error: str | None = None
+    cpu_seconds: float = 0.0
+
+
+@dataclass
+class BatchReport:
+    """What a batch did: runs committed (folder -> run number), skipped (already in the
+    archive), failed (folder -> error), warnings, wall-clock seconds, and the seconds spent
+    merging (summed over the workers) and committing (on the client), the CPU seconds of the
+    workers' tasks (summed) and of the client process (commits, scheduling, communication): CPU
+    seconds do not depend on what else the machine runs), and the seconds until the cluster's
+    workers were ready."""
+
+    archive: str
+    committed: dict[str, int] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    merge_seconds: float = 0.0
+    commit_seconds: float = 0.0
+    merge_cpu_seconds: float = 0.0
+    client_cpu_seconds: float = 0.0
+    startup_seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {
+            "archive": self.archive,
+            "committed": len(self.committed),
+            "skipped": len(self.skipped),
+            "failed": self.failed,
+            "warnings": self.warnings,
+            "seconds": round(self.seconds, 3),
+            "merge_seconds": round(self.merge_seconds, 3),
+            "commit_seconds": round(self.commit_seconds, 3),
+            "merge_cpu_seconds": round(self.merge_cpu_seconds, 3),
+            "client_cpu_seconds": round(self.client_cpu_seconds, 3),
+            "startup_seconds": round(self.startup_seconds, 3),
+        }
+
+
+# --------------------------------------------------------------------------- finding runs
+def _capture_run(folder: Path) -> RunSource:
+    from hdrcap.acquire.capture.manifest import Manifest
+
+    man = Manifest(folder)
+    head = man.header() or {}
+    recs = sorted(man.frames().values(), key=lambda r: r.get("index", 0))
+    lights = tuple(str(folder / r["file"]) for r in recs if r.get("kind") == "light")
+    darks = tuple(str(folder / r["file"]) for r in recs if r.get("kind") == "dark")
+    if not lights:
+        raise InputError(f"{folder}: its manifest.jsonl records no light frame")
+    plan = (head.get("planning") or {}).get("plan") or None
+    strategy = (head.get("plan") or {}).get("dark_strategy")
+    return RunSource(
+        str(folder), lights, darks, head.get("time"), plan, None if strategy in (None, "mixed") else strategy
+    )
+
+
+def _bracket_run(folder: Path) -> RunSource:
+    from hdrcap.pipeline.io import RAW_EXTENSIONS
+
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RAW_EXTENSIONS)
+    darks = tuple(str(p) for p in files if "dark" in p.stem.lower())
+    lights = tuple(str(p) for p in files if "dark" not in p.stem.lower())
+    if not lights:
+        raise InputError(
+            f"{folder}: no manifest.jsonl and no raw file ({', '.join(sorted(RAW_EXTENSIONS))}); not a run folder"
+        )
+    return RunSource(str(folder), lights, darks)
+
+
+def find_runs(paths: Sequence[Path]) -> list[RunSource]:
+    """The runs of ``paths``: capture run folders (with ``manifest.jsonl``: its light and dark
+    frames, start time and plan) or folders of raw files (files whose name holds ``dark`` are
+    the dark frames). Each folder once, in the order given.
+
+    Parameters
+    ----------
+    paths : sequence of Path
+        Folders.
+
+    Returns
+    -------
+    list of RunSource
+    """
+    from hdrcap.acquire.capture.manifest import MANIFEST_NAME
+
+    out, seen = [], set()
+    for p in paths:
+        folder = Path(p).resolve()
+        if not folder.is_dir():
+            raise InputError(f"{p}: not a folder (give run folders or folders of raw brackets)")
+        if str(folder) in seen:
+            continue
+        seen.add(str(folder))
+        out.append(_capture_run(folder) if (folder / MANIFEST_NAME).is_file() else _bracket_run(folder))
+    if not out:
+        raise InputError("no run folder given")
+    return out
+
+
+def calibration_identity(calibration: str | None, camera: str | None) -> dict[str, Any]:
+    """The calibration identity recorded with every run: its file and the file's sha256, or
+    the preset's name."""
+    if calibration:
+        from hdrcap.pipeline.io import sha256_file
+
+        path = Path(calibration)
+        if not path.is_file():
+            raise InputError(f"{calibration}: no such calibration file")
+        return {"file": str(path.resolve()), "sha256": sha256_file(path)}
+    return {"preset": camera}
+
+
+# --------------------------------------------------------------------------- the task
+@functools.lru_cache(maxsize=4)
+def _calibration(calibration: str | None, camera: str | None):
+    """The calibration, loaded once per worker process."""
+    from hdrcap.acquire.camera.model import camera_model
+
+    return camera_model(calibration, camera)
+
+
+def _start_time(source: RunSource, frames) -> str:
+    if source.start_time:
+        return source.start_time
+    stamp = frames[0].timestamp if frames else None
+    if stamp:  # EXIF writes 2024:05:01 12:00:00
+        date, _, clock = str(stamp).strip().partition(" ")
+        iso = f"{date.replace(':', '-')}T{clock}" if clock else date.replace(":", "-")
+        try:
+            _dt.datetime.fromisoformat(iso)
+            return iso
+        except ValueError:
+            pass
+    first = min(os.stat(p).st_mtime for p in source.frames)
+    return _dt.datetime.fromtimestamp(first, _dt.UTC).isoformat()
+
+
+def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None = None) -> RunOutcome:
+    """Merge one run on the worker, as ``hdrcap merge`` would: the same
+    :func:`pipeline.merge.files.merge_files` and EXR content, the run's recorded plan and dark
+    strategy unless the settings override them.
+
+    Parameters
+    ----------
+    source : RunSource
+        The run's files.
+    settings : BatchSettings
+        The merge settings.
+    staging : (str, str) or None
+        The batch's staging folder and token: if this worker sees it, the merged arrays are
+        written there as the archive's chunk files instead of being sent back.
+
+    Returns
+    -------
+    RunOutcome
+        The :class:`hdrcap.batch.archive.ArchiveRun` (float32 channels as in the EXR), warnings, seconds;
+        or the one-line error of a run that failed on bad input (other exceptions propagate).
+    """
+    from hdrcap.pipeline.errors import HdrcapError
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        out = _merge_run(source, settings, staging, t0)
+    except HdrcapError as err:  # bad input: a one-line error, no worker traceback in the log
+        out = RunOutcome(None, (), time.perf_counter() - t0, _describe(err))
+    return dataclasses.replace(out, cpu_seconds=time.process_time() - c0)
+
+
+def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
+
+    from hdrcap.batch.archive import ArchiveRun, complete_channels, stage_channels
+    from hdrcap.pipeline.io import as_stored
+    from hdrcap.pipeline.merge.files import build_hdr_image, exr_precision, library_root, merge_files
+
+    calib = _calibration(settings.calibration, settings.camera)
+    plan = None
+    if source.plan is not None and settings.weighting == "optimal":
+        from hdrcap.pipeline.planfile import check_plan
+
+        plan = check_plan(source.plan, f"{source.folder}/manifest.jsonl")
+    strategy = settings.dark_strategy or (None if plan is not None else source.dark_strategy)
+    options = dict(settings.options)
+    if strategy and "dark_strategy" not in options:
+        from hdrcap.pipeline.noise import DarkStrategy
+
+        options["dark_strategy"] = DarkStrategy(strategy)
+    warnings: list[str] = []
+    done = merge_files(
+        [Path(f) for f in source.frames],
+        calib,
+        options,
+        dark_paths=[Path(d) for d in source.darks],
+        weighting=settings.weighting,
+        plan=plan,
+        dark_strategy=strategy,
+        plan_file=None if plan is None else plan.path,
+        master_dark_frames=settings.master_dark_frames,
+        library=library_root(calib, settings.calibration),
+        given=lambda n: n in settings.given,
+        warn=warnings.append,
+    )
+    img = build_hdr_image(done.result, done.frames, calib, done.extra)
+    channels = complete_channels(as_stored(img.channels, exr_precision(img.channels, settings.sigma_precision)))
+    staged = stage_channels(staging, _task_key(source), channels)
+    run = ArchiveRun(
+        folder=source.folder,
+        start_time=_start_time(source, done.frames),
+        channels={} if staged else channels,
+        staged=staged,
+        staged_shape=img.shape,
+        header=img.attrs,
+        exposure_times=[fr.exposure_time for fr in done.frames],
+        plan=source.plan,
+        merge_options={"weighting": settings.weighting, "merge": img.attrs.get("merge")},
+        calibration=dict(settings.calibration_id, params=calib.params.to_dict(), provenance=calib.provenance),
+    )
+    return RunOutcome(run, tuple(warnings), time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------- the driver
+@contextmanager
+def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Any]:
+    """A dask.distributed client: of the scheduler at ``scheduler``, or of a local cluster of
+    ``workers`` worker processes running one task at a time, each with ``threads`` threads for
+    the merge kernel (default: its share of the cores). Results are fetched from the workers
+    directly, not through the scheduler."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        with Client(scheduler, direct_to_workers=True) as client:  # results straight from the worker
+            yield client
+        return
+    n = workers or max(1, (os.cpu_count() or 1))
+    threads = str(threads or max(1, (os.cpu_count() or 1) // n))
+    env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
+    with (
+        LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=env) as cluster,
+        Client(cluster, direct_to_workers=True) as client,
+    ):
+        yield client
+
+
+def _describe(err: BaseException) -> str:
+    from hdrcap.pipeline.errors import HdrcapError
+
+    text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    return text if isinstance(err, HdrcapError) else f"{type(err).__name__}: {text}"
+
+
+def _task_key(source: RunSource) -> str:
+    return "hdrcap-merge-" + hashlib.sha256(source.folder.encode()).hexdigest()[:16]
+
+
+def run_batch(
+    paths: Sequence[Path],
+    archive,
+    settings: BatchSettings,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    threads: int | None = None,
+    force: bool = False,
+    progress: bool | None = None,
+    on_submit: Callable[[Any], None] | None = None,
+) -> BatchReport:
+    """Merge the runs of ``paths`` on dask.distributed and commit each to ``archive``.
+
+    Runs already in the archive are skipped unless ``force`` (then rewritten in place). One
+    task per run; a run whose task fails is recorded in the archive with its error and the
+    others go on; a task whose worker dies is re-run by Dask.
+
+    Parameters
+    ----------
+    paths : sequence of Path
+        Run folders or folders of raw brackets.
+    archive : str or Path
+        The ``.zarr`` archive (created if missing).
+    settings : BatchSettings
+        The merge settings.
+    workers : int or None
+        Worker processes of the local cluster (default: one per core).
+    scheduler : str or None
+        Address of a running Dask scheduler (instead of a local cluster).
+    threads : int or None
+        Merge-kernel threads per local worker (default: the cores divided among the workers).
+    force : bool
+        Merge runs already in the archive again.
+    progress : bool or None
+        Progress bar with ETA (default: on a terminal).
+    on_submit : callable or None
+        Called with the client once the tasks are submitted (tests use it to kill a worker).
+
+    Returns
+    -------
+    BatchReport
+    """
+    from hdrcap.batch.archive import Archive
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    sources = find_runs(paths)
+    store = Archive(archive)
+    report = BatchReport(str(archive))
+    there = store.folders()
+    todo = [s for s in sources if force or s.folder not in there]
+    report.skipped = [s.folder for s in sources if s not in todo]
+    if todo:
+        staging = store.open_staging()
+        try:
+            _run_tasks(todo, settings, staging, store, report, workers, scheduler, threads, force, progress, on_submit)
+        finally:
+            store.close_staging(staging)
+    report.seconds = time.perf_counter() - t0
+    report.client_cpu_seconds = time.process_time() - c0
+    return report
+
+
+def _run_tasks(todo, settings, staging, store, report, workers, scheduler, threads, force, progress, on_submit):
+    """Submit one task per run and commit (or record the failure of) each as it finishes."""
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    with _client(workers, scheduler, threads) as client:
+        report.startup_seconds = time.perf_counter() - t0
+        futures = {client.submit(merge_run, s, settings, staging, key=_task_key(s), pure=False): s for s in todo}
+        if on_submit is not None:
+            on_submit(client)
+        show = sys.stderr.isatty() if progress is None else progress
+        with tqdm(total=len(todo), desc="batch", unit="run", disable=not show, dynamic_ncols=True) as bar:
+            # the runs finished while the previous ones were committed are committed together
+            for done in as_completed(futures).batches():
+                _land_many([(fut, futures.pop(fut)) for fut in done], store, force, report)
+                for fut in done:
+                    fut.release()
+                bar.update(len(done))
+
+
+def _land_many(finished, store, force: bool, report: BatchReport) -> None:
+    """Commit finished tasks' runs to the archive (together when they can be, see
+    :meth:`hdrcap.batch.archive.Archive.commit_many`), or record each failure."""
+    good = []
+    for fut, source in finished:
+        try:
+            out = fut.result()
+            report.merge_seconds += out.seconds
+            report.merge_cpu_seconds += out.cpu_seconds
+            if out.error is not None:
+                raise InputError(out.error)
+        except Exception as err:  # any failure of one run: recorded, the batch goes on
+            _record_failure(store, source, err, report)
+            continue
+        good.append((source, out))
+    if len(good) > 1:
+        t0 = time.perf_counter()
+        try:
+            numbers = store.commit_many([out.run for _s, out in good], replace=force)
+        except Exception:  # noqa: BLE001  (nothing of them committed: one by one, to record which run fails)
+            numbers = None
+        report.commit_seconds += time.perf_counter() - t0
+        if numbers is not None:
+            for (source, out), i in zip(good, numbers):
+                report.committed[source.folder] = i
+                report.warnings.extend(f"{source.folder}: {w}" for w in out.warnings)
+            return
+    for source, out in good:
+        _land(source, out, store, force, report)
+
+
+def _record_failure(store, source: RunSource, err: BaseException, report: BatchReport) -> None:
+    message = _describe(err)
+    store.record_failure(source.folder, message)
+    report.failed[source.folder] = message
+
+
+def _land(source: RunSource, out: RunOutcome, store, force: bool, report: BatchReport) -> None:
+    """Commit one finished task's run to the archive, or record its failure."""
+    try:
+        t0 = time.perf_counter()
+        report.committed[source.folder] = store.commit(out.run, replace=force)
+        report.commit_seconds += time.perf_counter() - t0
+    except Exception as err:  # any failure of one run: recorded, the batch goes on
+        _record_failure(store, source, err, report)
+        return
+    report.warnings.extend(f"{source.folder}: {w}" for w in out.warnings)

@@ -1,0 +1,158 @@
+"""``hdrcap capture``: capture one plan (a fixed bracket or a target SNR) into a run folder,
+with dark frames, verification, manifest and resume; the job-file-free form of ``hdrcap run``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from hdrcap.cli.util import echo_json, many_values
+from hdrcap.pipeline.dark_strategy import DarkStrategy
+
+
+@many_values("--times")
+@click.command("capture")
+@click.option(
+    "--camera",
+    default="mock:camera-B",
+    show_default=True,
+    help="mock:PRESET or PRESET (simulator, as in plan and merge) or gphoto2[:MODEL] (a real camera; "
+    "see `hdrcap cameras`).",
+)
+@click.option("--port", default=None, help="gphoto2 port of the camera (usb:001,004).")
+@click.option("--serial", default=None, help="gphoto2 camera serial number (see `hdrcap cameras`).")
+@click.option("--iso", type=click.IntRange(min=1), default=None, help="ISO speed to set (read back and checked).")
+@click.option(
+    "--enforce",
+    is_flag=True,
+    help="Set wrong camera settings (program, focus, RAW, ISO, long-exposure NR) instead of refusing.",
+)
+@click.option("--times", multiple=True, type=float, help="Exposure times, s (a fixed bracket; several after one flag).")
+@click.option(
+    "--target-snr-db",
+    "--target-snr",
+    "target_snr",
+    type=float,
+    default=None,
+    help="Plan the exposures for this SNR, dB (meter + planner), as in plan; --target-snr is an alias.",
+)
+@click.option(
+    "--dark-strategy",
+    "--darks",
+    "dark_strategy",
+    type=click.Choice([s.value for s in DarkStrategy]),
+    default=None,
+    help="Dark frames: one per exposure, N averaged per exposure, or none (model), as in merge; --darks "
+    "is a deprecated alias (merge's --darks takes dark frame files).  "
+    "[default: matched; with --target-snr-db the planner's choice]",
+)
+@click.option(
+    "--dark-count",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Dark frames per exposure time for --darks master.",
+)
+@click.option(
+    "--block-light",
+    type=click.Choice(["mock", "prompt", "command", "none"]),
+    default=None,
+    help="How the light is blocked for dark frames (default: mock for the simulator, prompt otherwise).",
+)
+@click.option("--cover-command", default=None, help="Shell command that blocks the light (--block-light command).")
+@click.option("--uncover-command", default=None, help="Shell command that unblocks the light.")
+@click.option("--calibration", default=None, help="Calibration file (from `hdrcap calibrate`).")
+@click.option("--scene", default="hdr", show_default=True, help="Simulator scene (mock camera).")
+@click.option("--size", default="256x192", show_default=True, help="Simulator mosaic WIDTHxHEIGHT (mock camera).")
+@click.option("--seed", default=0, show_default=True, type=int, help="Simulator seed (mock camera).")
+@click.option(
+    "--run-dir",
+    "--out",
+    "out",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Run folder (as in run; --out is an alias).",
+)
+@click.option("--resume", is_flag=True, help="Continue an interrupted capture in --run-dir.")
+@click.option("--force", is_flag=True, help="Overwrite hdr.exr / preview.png in --run-dir.")
+@click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
+@click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary.")
+def command(
+    camera,
+    port,
+    serial,
+    iso,
+    enforce,
+    times,
+    target_snr,
+    dark_strategy,
+    dark_count,
+    block_light,
+    cover_command,
+    uncover_command,
+    calibration,
+    scene,
+    size,
+    seed,
+    out,
+    resume,
+    force,
+    progress,
+    as_json,
+):
+    """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
+    hash every frame into manifest.jsonl, and merge it to --run-dir/hdr.exr.
+
+    SIGTERM or Ctrl-C ends the capture cleanly before the next frame (exit 143 / 130, camera
+    closed); --resume continues it. Exit status: see docs/acquisition.md.
+    """
+    from hdrcap.acquire.capture.job import job_from_dict, run_job
+    from hdrcap.acquire.capture.session import stop_on_signals
+    from hdrcap.cli.commands.run import _describe
+    from hdrcap.mock_camera import PRESETS
+    from hdrcap.pipeline.errors import InputError
+
+    backend, _, name = camera.partition(":") if ":" in camera or camera == "gphoto2" else ("mock", ":", camera)
+    if backend not in ("mock", "gphoto2") or (backend == "mock" and name and name not in PRESETS):
+        raise InputError(
+            f"--camera must be mock:PRESET, PRESET ({', '.join(PRESETS)}) or gphoto2[:MODEL], got {camera!r}"
+        )
+    cam: dict = {"backend": backend}
+    if backend == "mock":
+        cam.update(preset=name or "camera-B", size=size, seed=seed)
+    else:
+        cam.update({k: v for k, v in (("model", name), ("port", port), ("serial", serial)) if v})
+        cam["enforce"] = enforce
+    if iso is not None:
+        cam["iso"] = iso
+    if not times and target_snr is None:
+        raise InputError("give --times (a fixed bracket) or --target-snr-db")
+    exposure = {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}
+    if times:
+        exposure["times"] = list(times)
+    darks = {"count": dark_count, "block_light": block_light or ("mock" if backend == "mock" else "prompt")}
+    if dark_strategy:
+        darks["strategy"] = dark_strategy
+    if cover_command:
+        darks["cover_command"] = cover_command
+    if uncover_command:
+        darks["uncover_command"] = uncover_command
+    data = {
+        "job": {"name": "capture"},
+        "camera": cam,
+        "exposure": exposure,
+        "darks": darks,
+        "output": {"folder": str(out)},
+    }
+    if backend == "mock":
+        data["scene"] = {"name": scene}
+    if calibration:
+        data["calibration"] = {"file": calibration}
+    job = job_from_dict(data)
+    with stop_on_signals() as stop:  # SIGTERM / Ctrl-C: a clean, resumable stop (exit 143 / 130)
+        res = run_job(job, resume=resume, run_dir=out, progress=progress, force=force, stop=stop)
+    if as_json:
+        echo_json(res)
+    else:
+        click.echo(_describe(res))

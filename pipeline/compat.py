@@ -1,0 +1,244 @@
+"""One compatibility check of calibration, dark library, camera and frames.
+
+Everything a run combines must come from the same camera at the same ISO: the calibration
+(its provenance: camera, serial, ISO, temperature), the master darks of the dark library,
+the camera that is connected (its identity) and each frame it delivers (EXIF make/model and
+ISO). :func:`check_compatible` compares two :class:`CameraProfile` and is used at plan time,
+when each frame is verified and on resume:
+
+* **model**: names are normalised (:func:`normalise_model`, the one rule the dark
+  library, the calibration library and the camera locks share) so libgphoto2's ``Nikon DSC D750`` and the EXIF
+  ``NIKON CORPORATION`` + ``NIKON D750`` are the same camera; a mismatch is an error. Unknown
+  names match anything.
+* **serial**: when both are known it decides (a mismatch is an error even for equal models).
+* **ISO**: when both are known they must agree (an error: the gain g depends on it).
+* **temperature**: a difference above the tolerance (or an unknown temperature where one is
+  expected) is only a warning; the dark current depends on it, the calibration still holds.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any
+
+from hdrcap.pipeline.errors import InputError
+
+__all__ = [
+    "CameraProfile",
+    "CompatibilityError",
+    "check_compatible",
+    "normalise_model",
+    "same_model",
+    "TEMPERATURE_TOLERANCE_C",
+]
+
+#: Largest temperature difference, degrees C, before a warning (the dark current of a typical
+#: sensor doubles every ~6 degrees C).
+TEMPERATURE_TOLERANCE_C = 5.0
+
+
+class CompatibilityError(InputError):
+    """Calibration, dark library, camera or frame belong to different cameras or ISOs."""
+
+
+@dataclass(frozen=True)
+class CameraProfile:
+    """What identifies the camera behind a calibration, a master dark, a connection or a frame.
+
+    Attributes
+    ----------
+    source : str
+        What this describes, for messages (``calibration cal.json``, ``camera``, ``frame 0003``).
+    model : str
+        Camera name as that source spells it ("" when unknown).
+    serial : str
+        Serial number ("" when unknown).
+    iso : float or None
+        ISO speed.
+    temperature_c : float or None
+        Sensor temperature, degrees C.
+    """
+
+    source: str
+    model: str = ""
+    serial: str = ""
+    iso: float | None = None
+    temperature_c: float | None = None
+
+    @classmethod
+    def from_calibration(cls, calibration, name: str = "calibration") -> CameraProfile:
+        """The camera a :class:`pipeline.params.Calibration` was made on (its provenance)."""
+        prov: dict[str, Any] = dict(getattr(calibration, "provenance", {}) or {})
+        return cls(
+            name,
+            str(prov.get("camera") or ""),
+            str(prov.get("serial") or ""),
+            _num(prov.get("iso")),
+            _num(prov.get("temperature")),
+        )
+
+    @classmethod
+    def from_camera(cls, camera, iso: float | None = None) -> CameraProfile:
+        """A connected camera: its identity (model, serial) and temperature, and ``iso`` (s)et."""
+        ident = getattr(camera, "identity", None)
+        try:
+            temp = camera.temperature() if hasattr(camera, "temperature") else None
+        except Exception:  # a camera that cannot say: unknown
+            temp = None
+        return cls(
+            "camera",
+            str(getattr(ident, "model", "") or ""),
+            str(getattr(ident, "serial", "") or ""),
+            _num(iso),
+            _num(temp),
+        )
+
+    @classmethod
+    def from_record(cls, record: dict, source: str) -> CameraProfile:
+        """A camera identity recorded in a manifest (``{"model": ..., "serial": ...}``)."""
+        return cls(source, str(record.get("model") or ""), str(record.get("serial") or ""))
+
+
+def check_compatible(
+    expected: CameraProfile, actual: CameraProfile, temperature_tolerance: float = TEMPERATURE_TOLERANCE_C
+) -> list[str]:
+    """Refuse ``actual`` unless it is the camera and ISO of ``expected``.
+
+    Parameters
+    ----------
+    expected : CameraProfile
+        What the run relies on (the calibration, the run's first camera, the run's ISO).
+    actual : CameraProfile
+        What is offered (the connected camera, a master dark, a frame).
+    temperature_tolerance : float
+        Largest temperature difference, degrees C, before a warning.
+
+    Returns
+    -------
+    list of str
+        Warnings (temperature).
+
+    Raises
+    ------
+    CompatibilityError
+        Different serial numbers, models or ISO speeds (one line naming both sides).
+    """
+    a, b = expected, actual
+    if a.serial and b.serial:
+        if a.serial.strip().upper() != b.serial.strip().upper():
+            raise CompatibilityError(
+                f"{b.source} is camera serial {b.serial} ({b.model or 'model unknown'}), but "
+                f"{a.source} belongs to serial {a.serial} ({a.model or 'model unknown'})"
+            )
+    elif not same_model(a.model, b.model):
+        raise CompatibilityError(
+            f"{b.source} is a {b.model!r}, but {a.source} belongs to a {a.model!r} (another camera)"
+        )
+    if a.iso is not None and b.iso is not None and abs(a.iso - b.iso) > 0.5:
+        raise CompatibilityError(
+            f"{b.source} is at ISO {b.iso:g}, but {a.source} is at ISO {a.iso:g} (the gain depends on the ISO)"
+        )
+    warnings = []
+    if a.temperature_c is not None:
+        if b.temperature_c is None:
+            warnings.append(f"{b.source}: temperature unknown; {a.source} was at {a.temperature_c:g} C")
+        elif abs(a.temperature_c - b.temperature_c) > temperature_tolerance:
+            warnings.append(
+                f"{b.source} is at {b.temperature_c:g} C, {a.source} at {a.temperature_c:g} C "
+                f"(more than {temperature_tolerance:g} C apart: dark current differs)"
+            )
+    return warnings
+
+
+def _num(value) -> float | None:
+    try:
+        return None if value is None or value == "" else float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+#: Words of camera names that are not part of the model: company suffixes, libgphoto2's labels
+#: and the brands (EXIF writes the brand twice: Make "NIKON CORPORATION", Model "NIKON D750").
+_NOISE_WORDS = {
+    "CORPORATION",
+    "CORP",
+    "INC",
+    "CO",
+    "LTD",
+    "COMPANY",
+    "GMBH",
+    "AG",
+    "KK",
+    "IMAGING",
+    "OPTICAL",
+    "ELECTRIC",
+    "DIGITAL",
+    "CAMERA",
+    "DSC",
+    "PTP",
+    "MODE",
+    "CONTROL",
+    "PC",
+    "USB",
+    "NIKON",
+    "CANON",
+    "SONY",
+    "FUJIFILM",
+    "FUJI",
+    "OLYMPUS",
+    "OM",
+    "PENTAX",
+    "RICOH",
+    "PANASONIC",
+    "LEICA",
+    "SIGMA",
+    "HASSELBLAD",
+    "KODAK",
+    "EASTMAN",
+    "SAMSUNG",
+    "HDRCAP",
+    "ZWO",
+    "QHY",
+}
+
+
+def normalise_model(name: str | None) -> tuple[str, ...]:
+    """The words of a camera name that name the model, upper case.
+
+    Parameters
+    ----------
+    name : str or None
+        A camera name as libgphoto2, EXIF (make + model) or a user wrote it.
+
+    Returns
+    -------
+    tuple of str
+        ``("D750",)`` for ``Nikon DSC D750`` and ``NIKON CORPORATION NIKON D750``; ``()`` for
+        an unknown name.
+    """
+    words = re.findall(r"[A-Z0-9]+", (name or "").upper())
+    return tuple(w for w in words if w not in _NOISE_WORDS)
+
+
+def same_model(a: str | None, b: str | None) -> bool:
+    """Whether two camera names denote the same model: equal normalised words, or one's are
+    the end of the other's (a make written in front); an unknown name matches any. So
+    libgphoto2's "Nikon DSC D750" and the EXIF "NIKON CORPORATION NIKON D750" match, while
+    "Nikon D750" and "Nikon D7500" do not (whole words, never substrings). The dark library
+    (:func:`pipeline.calibration.darklibrary.same_camera`) and the compatibility check both use it.
+
+    Parameters
+    ----------
+    a, b : str or None
+        Camera names.
+
+    Returns
+    -------
+    bool
+    """
+    x, y = normalise_model(a), normalise_model(b)
+    if not x or not y:
+        return True
+    short, long_ = sorted((x, y), key=len)
+    return long_[len(long_) - len(short) :] == short
