@@ -192,8 +192,9 @@ def _best(fn, repeats: int):
 
 def time_parts(sim: dict, repeats: int) -> dict:
     """hdrcap's command in parts, in this process: read, check_frames, kernel, EXR write."""
-    from hdrcap.pipeline import io as pio
     from hdrcap.pipeline.calibration import load_calibration
+    from hdrcap.pipeline.io import exr as pexr
+    from hdrcap.pipeline.io import raw as pio
     from hdrcap.pipeline.merge.accumulator import merge_arrays
 
     paths = [*sim["frames"], *sim["darks"]]
@@ -210,9 +211,9 @@ def time_parts(sim: dict, repeats: int) -> dict:
     small = cal.replace(prnu=cal.prnu[:64], dark_current_map=cal.dark_current_map[:64])
     merge_arrays([v[:64] for v in values], times, small, darks=[d[:64] for d in darks])  # compile or load the cache
     parts["kernel_seconds"], res = _best(lambda: merge_arrays(values, times, cal, darks=darks), repeats)
-    image = pio.HdrImage({"irradiance": res.irradiance, "sigma": res.sigma, "nexp": res.nexp}, {"unit": "e-/s"})
+    image = pexr.ExrContent({"irradiance": res.irradiance, "sigma": res.sigma, "nexp": res.nexp}, {"unit": "e-/s"})
     with tempfile.TemporaryDirectory(prefix="bench_exr_") as tmp:
-        parts["write_seconds"], _ = _best(lambda: pio.write_exr(Path(tmp) / "o.exr", image, force=True), repeats)
+        parts["write_seconds"], _ = _best(lambda: pexr.write_exr(Path(tmp) / "o.exr", *image, force=True), repeats)
     return parts, image
 
 
@@ -225,7 +226,7 @@ EXR_VARIANTS = {
 
 def exr_table(image, repeats: int) -> dict:
     """Size (MB) and write time (s) of every compression x precision, and the loss of half sigma."""
-    from hdrcap.pipeline import io as pio
+    from hdrcap.pipeline.io import exr as pio
 
     table = {}
     sig = image.channels["sigma"]
@@ -235,7 +236,7 @@ def exr_table(image, repeats: int) -> dict:
             for label, prec in EXR_VARIANTS.items():
                 try:
                     sec, _ = _best(
-                        partial(pio.write_exr, path, image, force=True, compression=comp, precision=prec), repeats
+                        partial(pio.write_exr, path, *image, force=True, compression=comp, precision=prec), repeats
                     )
                 except ValueError as err:
                     table[f"{comp}, {label}"] = {"error": str(err)}
@@ -247,7 +248,7 @@ def exr_table(image, repeats: int) -> dict:
                     "megabytes": round(path.stat().st_size / 1e6, 1),
                 }
         for threads in (1, 2):
-            sec, _ = _best(partial(pio.write_exr, path, image, force=True, threads=threads), repeats)
+            sec, _ = _best(partial(pio.write_exr, path, *image, force=True, threads=threads), repeats)
             table[f"zip, float32 x3, {threads} thread(s)"] = {"write_seconds": round(sec, 3)}
     finite = np.isfinite(sig) & (sig != 0)
     rel = np.abs(sig[finite].astype(np.float16).astype(np.float32) / sig[finite] - 1)

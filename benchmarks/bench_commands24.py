@@ -13,7 +13,7 @@ deletes them at the end):
 Each command runs as a subprocess (the installed ``hdrcap`` console script), one warm-up run
 (page cache, numba cache) then best of ``--repeats``; peak memory is the process's maximum
 resident set (``os.wait4``). The reference for calibrate is reading the same frame files once
-with :func:`hdrcap.pipeline.io.read_raw` and touching every pixel (in this process; alternated
+with :func:`hdrcap.pipeline.io.raw.read_raw` and touching every pixel (in this process; alternated
 with the command runs), so that ``calibrate_to_read`` is the whole command's time over the
 time of reading its inputs once. The parts of denoise and plan (EXR read, filter, EXR write;
 map read, planning) are timed in this process.
@@ -98,7 +98,7 @@ def calibrate_args(files: dict) -> list[str]:
 
 def read_all(paths) -> int:
     """Read every frame file once with read_raw and touch every pixel (the calibrate reference)."""
-    from hdrcap.pipeline.io import read_raw
+    from hdrcap.pipeline.io.raw import read_raw
 
     total = 0
     for p in paths:
@@ -177,7 +177,7 @@ def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
     with the command's channel precisions)."""
     from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
     from hdrcap.pipeline.denoise.tiled import exr_pixel_types, output_precision
-    from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+    from hdrcap.pipeline.io.exr import read_exr, write_exr
 
     cmd = [hdrcap_exe(), "denoise", desc["merged"], "-o", work / "denoised.exr", "--force"]
     out = {"command": time_alternating(cmd, envs, repeats)}
@@ -186,12 +186,12 @@ def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
     ch = image.channels
     settings = DenoiseSettings(layout="cfa")
     filt_s, res = _best(lambda: denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings), repeats)
-    outimg = HdrImage(dict(ch, irradiance=res.irradiance, sigma=res.sigma), image.attrs)
+    outimg = (dict(ch, irradiance=res.irradiance, sigma=res.sigma), image.header)
     precision = output_precision(exr_pixel_types(Path(desc["merged"])))
     write_s = {}
     for comp in ("zip", "zstd", "rle"):  # the default first; the others are --exr-compression
         write_s[comp], _ = _best(
-            lambda: write_exr(work / "parts.exr", outimg, force=True, compression=comp, precision=precision),  # noqa: B023
+            lambda: write_exr(work / "parts.exr", *outimg, force=True, compression=comp, precision=precision),  # noqa: B023
             repeats,
         )
     (work / "parts.exr").unlink(missing_ok=True)

@@ -34,7 +34,7 @@ import numpy as np
 
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.calibration import calibrate
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 from hdrcap.pipeline.merge.accumulator import merge_arrays
 
 CAMERAS = ("camera-A", "camera-B", "camera-R")

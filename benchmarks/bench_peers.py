@@ -92,7 +92,7 @@ RUN_HDRCAP = r"""
 import json, sys, time
 sys.path.insert(0, sys.argv[2])
 from hdrcap.pipeline.calibration import load_calibration
-from hdrcap.pipeline.io import read_frame
+from hdrcap.pipeline.io.raw import read_frame
 from hdrcap.pipeline.merge import accumulator as M
 files, darks, calib, options = json.loads(sys.argv[1])
 frames = [read_frame(f) for f in files]
@@ -145,7 +145,7 @@ def simulate(work: Path, camera: str, shape, seed: int):
         d = cam.capture_to(work / f"dark_{i}.dng", t, dark=True, overwrite=True)
         files.append(str(f))
         darks.append(str(d))
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     times = []
     for i, f in enumerate(files):
@@ -205,7 +205,7 @@ HDRCAP_ROWS = {
 def run_hdrcap(name: str, sim: dict, work: Path) -> dict:
     """``hdrcap merge`` from the DNGs to an EXR (whole command; its irradiance saved as .npy for
     the accuracy columns), then the merge call alone in memory (a separate process)."""
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     calib, flags, with_darks, options = HDRCAP_ROWS[name]
     exe = Path(sys.executable).with_name("hdrcap")

@@ -33,12 +33,14 @@ from typing import Any
 
 import numpy as np
 
+import hdrcap
+from hdrcap.pipeline.merge.accumulator import MergeOptions
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from simcal import bracket, calibrated_sensor  # noqa: E402
 
 from hdrcap.mock_camera import preset  # noqa: E402
 from hdrcap.mock_camera.scenes import make_scene  # noqa: E402
-from hdrcap.pipeline.merge.accumulator import merge_frames  # noqa: E402
 
 #: The bracket's nominal exposure times, s (up to 300 s, as the issue asks).
 TIMES = (0.08, 0.6, 5.0, 40.0, 300.0)
@@ -103,7 +105,7 @@ def case_figures(sensor, cal, seed: int, exposure_times: str = "effective") -> d
     its :func:`figures`."""
     X = make_scene("gradient", sensor.shape, decades=4.0, x_max=2e4)
     frames, darks = bracket(sensor, X, TIMES, seed=seed)
-    res = merge_frames(frames, cal, darks, exposure_times=exposure_times)
+    res = hdrcap.merge(frames, calibration=cal, darks=darks, options=MergeOptions(exposure_times=exposure_times))
     normal = ~np.logical_or.reduce(list(sensor.defects.values()))
     info = cal.provenance["calibration"]
     return {

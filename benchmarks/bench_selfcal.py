@@ -122,7 +122,7 @@ def read_hdrmerge(path: Path) -> np.ndarray:
 
 def main(argv=None) -> int:
     from hdrcap.mock_camera.scenes import parse_size
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="1024x768", help="WIDTHxHEIGHT of the mosaic")
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     img = read_exr(exr)
     y = img.channels["irradiance"].astype(np.float64)
     valid = img.channels["nexp"] > 0
-    sc = img.attrs["self_calibration"]
+    sc = img.header["self_calibration"]
     results = {"hdrcap (no calibration)": {"seconds": r["wall_seconds"], "snr_db_per_decade": {}}}
     s = scale_fit(y, truth, valid & (y > 0))
     results["hdrcap (no calibration)"].update(

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from hdrcap.pipeline.calibration import calibrate  # noqa: E402
-from hdrcap.pipeline.io import RawFrame  # noqa: E402
+from hdrcap.pipeline.io.raw import RawFrame  # noqa: E402
 
 
 def rss_mb() -> float:

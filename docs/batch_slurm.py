@@ -33,7 +33,6 @@ def main() -> None:
     from dask_jobqueue import SLURMCluster
 
     from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
-    from hdrcap.pipeline.merge.files import merge_options
 
     cluster = SLURMCluster(
         queue=args.queue,
@@ -49,8 +48,7 @@ def main() -> None:
     settings = BatchSettings(
         calibration=args.calibration,
         camera=None,
-        # the defaults of `hdrcap merge` (iterations 20, tolerance 1e-6, threshold saturation, PRNU map)
-        options=merge_options(20, 1e-6, "threshold", "map", None, None, 3.0),
+        # the defaults of `hdrcap merge` (BatchSettings' default MergeOptions)
         calibration_id=calibration_identity(args.calibration, None),
     )
     try:

@@ -27,7 +27,7 @@ DOCS = Path(__file__).resolve().parent
 sys.path.insert(0, str(DOCS.parent))  # the tests' colour camera (tests/colour_sim.py)
 
 from hdrcap.mock_camera.scenes import make_scene  # noqa: E402
-from hdrcap.pipeline.io import HdrImage, read_exr, write_exr  # noqa: E402
+from hdrcap.pipeline.io.exr import read_exr, write_exr  # noqa: E402
 from hdrcap.pipeline.preview import write_preview_png  # noqa: E402
 from tests.colour_sim import camera_mosaic, recolour_frames  # noqa: E402
 
@@ -61,7 +61,7 @@ def colour_scene() -> np.ndarray:
 
 def main(work: Path) -> None:
     work.mkdir(parents=True, exist_ok=True)
-    write_exr(work / "scene.exr", HdrImage({"irradiance": colour_scene().astype(np.float32)}), force=True)
+    write_exr(work / "scene.exr", {"irradiance": colour_scene().astype(np.float32)}, force=True)
     sim = work / "sim"
     _hdrcap("simulate", "--camera", "camera-B", "--scene", work / "scene.exr", "--out", sim, "--seed", "0", "--force")
     frames = recolour_frames(sorted(sim.glob("frame_*.dng")), work)

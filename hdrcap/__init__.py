@@ -30,6 +30,7 @@ __all__ = [
     "HdrResult",
     "HdrcapError",
     "InputError",
+    "MergeOptions",
     "Simulation",
     "__version__",
     "calibrate",

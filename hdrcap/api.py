@@ -25,23 +25,27 @@ import dataclasses
 import inspect
 import os
 from collections.abc import Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Union
 
 import numpy as np
 
 from hdrcap.pipeline.errors import HdrcapError, InputError
-from hdrcap.pipeline.io import IMAGE_EXTENSIONS, HdrImage, RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
+from hdrcap.pipeline.merge.accumulator import MergeOptions
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.result import HdrResult
 
 if TYPE_CHECKING:  # imported lazily at run time (numba, the planner, the simulator)
+    from hdrcap.pipeline.planfile import PlanFile
     from hdrcap.planner.plan import Plan
 
 __all__ = [
     "HdrResult",
     "HdrcapError",
     "InputError",
+    "MergeOptions",
     "Simulation",
     "calibrate",
     "camera_calibration",
@@ -56,7 +60,7 @@ __all__ = [
 ]
 
 #: A frame given to the API: a file path (raw file, or 16-bit PNG/TIFF with its exposure
-#: time), a 2-D array of raw values in DN, or a :class:`~hdrcap.pipeline.io.RawFrame`.
+#: time), a 2-D array of raw values in DN, or a :class:`~hdrcap.pipeline.io.raw.RawFrame`.
 FrameLike = Union[str, "os.PathLike[str]", np.ndarray, RawFrame]
 
 #: A camera model: a :class:`Calibration`, a calibration file written by :func:`save_calibration`
@@ -66,83 +70,7 @@ CalibrationLike = Union[Calibration, str, "os.PathLike[str]"]
 #: Exposure times of :func:`simulate` when none are given, s.
 DEFAULT_SIMULATION_TIMES: tuple[float, ...] = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
-_UNIT = "electrons per second per photosite"
-_SIGMA = "standard deviation of irradiance, same unit"
-_NEXP = "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)"
-
-
 # --------------------------------------------------------------------------- results
-
-
-@dataclass(frozen=True, eq=False)
-class HdrResult:
-    """A merged HDR image: irradiance with its uncertainty, per photosite of the raw mosaic.
-
-    Attributes
-    ----------
-    irradiance : numpy.ndarray
-        float32 (H, W), e-/s per photosite. Where ``nexp == 0`` (saturated in every exposure)
-        it is a lower bound. Never NaN or infinite; dark photosites may be negative.
-    sigma : numpy.ndarray
-        float32 (H, W), standard deviation of ``irradiance``, e-/s (0 where ``nexp == 0``).
-    nexp : numpy.ndarray
-        float32 (H, W), number of unsaturated exposures used per photosite.
-    metadata : dict
-        JSON-ready description: unit, CFA pattern, exposure times (s), source files, the
-        calibration, the merge (and denoise) options, hdrcap version. Written into the EXR
-        header by :meth:`write`.
-    extra_channels : dict
-        Other float32 (H, W) channels carried along (e.g. from an EXR), name -> array.
-    """
-
-    irradiance: np.ndarray
-    sigma: np.ndarray
-    nexp: np.ndarray
-    metadata: dict[str, Any] = field(default_factory=dict)
-    extra_channels: dict[str, np.ndarray] = field(default_factory=dict)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """Mosaic size (rows, columns), photosites."""
-        return tuple(self.irradiance.shape)  # type: ignore[return-value]
-
-    @property
-    def measured(self) -> np.ndarray:
-        """Boolean (H, W) mask of the photosites with at least one unsaturated exposure."""
-        return np.asarray(self.nexp) > 0
-
-    def to_image(self) -> HdrImage:
-        """The EXR content: channels ``irradiance``, ``sigma``, ``nexp`` (+ extra) and the
-        metadata as header attributes."""
-        channels = {"irradiance": self.irradiance, "sigma": self.sigma, "nexp": self.nexp, **self.extra_channels}
-        return HdrImage(channels, dict(self.metadata))
-
-    @classmethod
-    def from_image(cls, image: HdrImage, name: str = "image") -> HdrResult:
-        """An :class:`HdrResult` from an :class:`~hdrcap.pipeline.io.HdrImage` (e.g. a read
-        EXR). ``nexp`` defaults to 1 everywhere when the image has no such channel.
-
-        Raises
-        ------
-        InputError
-            No ``irradiance`` or ``sigma`` channel, or channels of different sizes.
-        """
-        ch = dict(image.channels)
-        missing = [c for c in ("irradiance", "sigma") if c not in ch]
-        if missing:
-            raise InputError(f"{name}: no {' or '.join(missing)} channel; expected a merge result")
-        shapes = {np.shape(a) for a in ch.values()}
-        if len(shapes) > 1:
-            raise InputError(f"{name}: channel sizes differ ({', '.join(f'{k} {np.shape(v)}' for k, v in ch.items())})")
-        irr = np.asarray(ch.pop("irradiance"), np.float32)
-        sig = np.asarray(ch.pop("sigma"), np.float32)
-        nexp = np.asarray(ch.pop("nexp"), np.float32) if "nexp" in ch else np.ones(irr.shape, np.float32)
-        return cls(irr, sig, nexp, dict(image.attrs), ch)
-
-    def write(self, path: str | os.PathLike[str], *, force: bool = False, compression: str = "zip") -> Path:
-        """Write this result as a float32 EXR (atomically; an existing file is kept unless
-        ``force``). ``compression``: zip, zips, piz, zstd, rle or none. Returns the path."""
-        return write_exr(path, self, force=force, compression=compression)
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,7 +140,7 @@ def _times(times: Sequence[float | None] | None, n: int, what: str) -> list[floa
 
 def _frame(item: Any, t: float | None, what: str, index: int, *, need_time: bool = True) -> RawFrame:
     """Read or wrap one frame; ``t`` (s) overrides the file's exposure time."""
-    from hdrcap.pipeline.io import check_exposure_time, read_frame
+    from hdrcap.pipeline.io.raw import check_exposure_time, read_frame
 
     name = f"{what} {index + 1}"
     if isinstance(item, RawFrame):
@@ -248,9 +176,9 @@ def camera_calibration(camera: str, temperature: float | None = None) -> Calibra
     Calibration
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), dark current (e-/s).
     """
-    from hdrcap.acquire.camera.model import camera_model
+    from hdrcap.mock_camera.sensor import preset_calibration
 
-    return camera_model(camera=camera, temperature=temperature)
+    return preset_calibration(camera, temperature)
 
 
 def _as_calibration(calibration: CalibrationLike | None) -> Calibration:
@@ -430,24 +358,14 @@ def calibrate(
 # --------------------------------------------------------------------------- merge
 
 
-def _merge_metadata(
-    result: Any, frames: Sequence[RawFrame], calibration: Calibration, cfa_pattern: str | None
-) -> dict[str, Any]:
-    """The EXR header of a merge (the attributes ``hdrcap merge`` writes)."""
-    from hdrcap import __version__
+def _plan_file(plan: Plan | PlanFile | Mapping[str, Any]) -> PlanFile:
+    """A plan as the merge reads it (from :func:`plan`, a plan file read back, or its JSON)."""
+    from hdrcap.pipeline.planfile import PlanFile, check_plan
 
-    return {
-        "unit": _UNIT,
-        "sigma": _SIGMA,
-        "nexp": _NEXP,
-        "cfa_pattern": cfa_pattern or frames[0].cfa_pattern or "none",
-        "exposure_times": [fr.exposure_time for fr in frames],
-        "source_files": [fr.path for fr in frames],
-        "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
-        "hdrcap_version": __version__,
-        "merge": result.info,
-        "weighting": "optimal",
-    }
+    if isinstance(plan, PlanFile):
+        return plan
+    data = plan.to_dict() if hasattr(plan, "to_dict") else plan
+    return check_plan(dict(data), "plan")
 
 
 def merge(
@@ -458,15 +376,18 @@ def merge(
     darks: Iterable[FrameLike] | None = None,
     dark_times: Sequence[float | None] | None = None,
     master_dark: FrameLike | None = None,
-    dark_strategy: str | None = None,
+    options: MergeOptions | None = None,
+    plan: Plan | PlanFile | Mapping[str, Any] | None = None,
+    weighting: str = "optimal",
     cfa_pattern: str | None = None,
-    **options: Any,
 ) -> HdrResult:
     """Merge a bracket of raw frames into irradiance and its uncertainty (Eq. 6, 8-13, Fig. 3).
 
     The optimal maximum-likelihood merge: per-exposure estimates x_i = (v_i - b_i)/(t_i g a)
     (Eq. 6) weighted by their inverse variance from the calibrated noise model (Eq. 13),
-    iterated to convergence; sigma^2 = 1 / sum of the weights (Eq. 12).
+    iterated to convergence; sigma^2 = 1 / sum of the weights (Eq. 12). The same path as
+    ``hdrcap merge`` (:func:`hdrcap.pipeline.merge.files.merge_files`): the same files give
+    the same result and, written, the same EXR.
 
     Parameters
     ----------
@@ -476,56 +397,71 @@ def merge(
     times : sequence of float, optional
         Exposure times, s, one per frame. Required for arrays and PNG/TIFF files; for raw
         files they override EXIF (None entries: from the file).
-    calibration : Calibration, path or str
+    calibration : Calibration, path or str, optional
         The camera model: a :class:`Calibration`, a calibration file, or a simulator preset
-        name (``"camera-B"``: nominal scalars).
+        name (``"camera-B"``: nominal scalars). None: the calibration library's entry for the
+        frames' camera, else a self-calibration from the bracket (docs/selfcal.md).
     darks : paths or 2-D arrays, optional
         Dark frames (DN), matched to the frames by exposure time: one per time for
-        ``matched``, or each a master dark of ``n_dark`` frames for ``master``.
+        ``matched``, or each a master dark of ``options.n_dark`` frames for ``master``.
     dark_times : sequence of float, optional
         Exposure times of ``darks``, s. Default for arrays: the frames' ``times`` when there is
         one dark per frame (same order).
     master_dark : path or 2-D array, optional
-        One master dark (DN) for every exposure, averaged from ``n_dark`` frames; taken at
-        ``master_dark_time`` s (option; a raw file's own time by default), the calibrated
+        One master dark (DN) for every exposure, averaged from ``options.n_dark`` frames; taken
+        at ``options.master_dark_time`` s (a raw file's own time by default), the calibrated
         dark current over the difference being added.
-    dark_strategy : {"matched", "master", "model"}, optional
-        Default: ``matched`` with ``darks``, ``master`` with ``master_dark``, ``model`` (bias
-        level plus calibrated dark current, no dark frame) otherwise.
+    options : MergeOptions, optional
+        Iterations, tolerance, saturation model (Eq. 8-11), PRNU, dark strategy, master-dark
+        frame count and time, exposure times; default ``MergeOptions(exposure_times=
+        "effective")`` (each frame's effective time estimated from the bracket).
+    plan : Plan, PlanFile or dict, optional
+        A plan (:func:`plan`): its per-exposure dark strategies and decided options apply,
+        except the fields of ``options`` that differ from their defaults.
+    weighting : str
+        ``"optimal"`` or a baseline of Table 1 (:data:`hdrcap.pipeline.merge.weighting.WEIGHTING_METHODS`).
     cfa_pattern : str, optional
-        Bayer tile recorded in the metadata (e.g. ``"RGGB"``; default: the raw file's, else
+        Bayer tile recorded in the header (e.g. ``"RGGB"``; default: the raw file's, else
         ``"none"``); :func:`denoise` filters each colour plane when one is recorded.
-    **options
-        Merge options: ``iterations`` (int, default 20), ``tolerance`` (relative, 1e-6),
-        ``saturation`` (``"threshold"`` or ``"probabilistic"``, Eq. 8-10),
-        ``saturation_sigmas`` (3.0), ``prnu`` (``"map"`` or ``"scalar"``), ``n_dark``
-        (frames in each master dark), ``master_dark_time`` (s); per frame: ``dark_strategies``
-        (e.g. a plan's ``Plan.darks``) and ``n_darks`` (e.g. ``Plan.n_dark``). A plan's
-        ``Plan.merge_options()`` fits here.
 
     Returns
     -------
     HdrResult
-        float32 irradiance (e-/s), sigma (e-/s) and nexp, and the metadata (exposure times,
-        source files, calibration, options).
+        float32 irradiance (e-/s) and sigma (e-/s), nexp, quality, sigma_calibration (when the
+        calibration has standard errors) and the header (exposure times, source files,
+        calibration, options).
 
     Raises
     ------
     InputError
         Unreadable, duplicate or mismatched frames; arrays without exposure times; a missing
-        dark frame; an unknown option or a bad option value.
-    """
-    from hdrcap.pipeline.merge.accumulator import merge_frames
+        dark frame; a bad option value.
 
-    calib = _as_calibration(calibration)
+    Examples
+    --------
+    >>> sim = simulate("camera-B", times=[0.01, 0.1, 1.0], shape=(32, 48), seed=1)
+    >>> hdr = merge(sim.frames, sim.times, calibration=sim.calibration)
+    >>> hdr.shape, hdr.header["unit"]
+    ((32, 48), 'electrons per second per photosite')
+    >>> bool(abs(hdr.irradiance[hdr.measured] / sim.truth[hdr.measured] - 1).mean() < 0.1)
+    True
+    """
+    from hdrcap.pipeline.merge.files import MergeRequest, merge_files
+
+    calib: Calibration | str | os.PathLike[str] | None = None
+    if calibration is not None:
+        calib = _as_calibration(calibration)
+        if isinstance(calibration, (str, os.PathLike)) and Path(calibration).exists():
+            calib = calibration  # its file: a dark library relative to it is found too
     items = _items(frames, "frames")
     if not items:
         raise InputError("no frames to merge")
     ts = _times(times, len(items), "frame")
     fr = [_frame(x, t, "frame", i) for i, (x, t) in enumerate(zip(items, ts))]
-    if dark_strategy is not None:
-        options["dark_strategy"] = getattr(dark_strategy, "value", dark_strategy)
-    dk = None
+    opts = MergeOptions(exposure_times="effective") if options is None else options
+    if not isinstance(opts, MergeOptions):
+        raise InputError(f"options: expected a MergeOptions, got {type(opts).__name__}")
+    dk: list[RawFrame] = []
     if darks is not None:
         ditems = _items(darks, "darks")
         if dark_times is None and len(ditems) == len(fr):
@@ -534,21 +470,24 @@ def merge(
             ]
         else:
             dts = _times(dark_times, len(ditems), "dark frame")
-        dk = [_frame(x, t, "dark frame", i) for i, (x, t) in enumerate(zip(ditems, dts))] or None
-    md = None
-    if master_dark is not None:
-        t_ref = options.get("master_dark_time")
-        if isinstance(master_dark, (str, os.PathLike)) and Path(master_dark).suffix.lower() in IMAGE_EXTENSIONS:
-            md = _frame(master_dark, 1.0 if t_ref is None else t_ref, "master dark", 0)
-            options.setdefault("master_dark_time", t_ref)  # a PNG/TIFF has no time: used as is
-        elif isinstance(master_dark, (str, os.PathLike, RawFrame)):
-            md = _frame(master_dark, t_ref, "master dark", 0)
-        else:
-            md = _frame(master_dark, None, "master dark", 0, need_time=False)
-            options.setdefault("master_dark_time", t_ref)
-    result = merge_frames(fr, calib, dk, md, **options)
-    meta = _merge_metadata(result, fr, calib, cfa_pattern)
-    return HdrResult(result.irradiance, result.sigma, result.nexp, meta)
+        dk = [_frame(x, t, "dark frame", i) for i, (x, t) in enumerate(zip(ditems, dts))]
+    md: FrameLike | None = master_dark
+    if master_dark is not None and not isinstance(master_dark, (str, os.PathLike, RawFrame)):
+        md = _frame(master_dark, None, "master dark", 0, need_time=False)  # an array: no exposure time
+    defaults = MergeOptions(exposure_times="effective")
+    given = frozenset(f.name for f in dataclasses.fields(opts) if getattr(opts, f.name) != getattr(defaults, f.name))
+    request = MergeRequest(
+        frames=fr,
+        calibration=calib,
+        options=opts,
+        darks=dk,
+        master_dark=md,
+        plan=None if plan is None else _plan_file(plan),
+        given=given,
+        weighting=weighting,
+        header={} if cfa_pattern is None else {"cfa_pattern": cfa_pattern},
+    )
+    return merge_files(request)
 
 
 # --------------------------------------------------------------------------- plan
@@ -681,14 +620,16 @@ def denoise(
         bandwidth,
         radius,
         spatial_sigma,
-        _dn.layout_from_metadata(hdr.metadata) if layout == "auto" else layout,
+        _dn.layout_from_metadata(hdr.header) if layout == "auto" else layout,
     )
-    res = _dn.denoise(hdr.irradiance, hdr.sigma, hdr.nexp, settings, name="denoise input")
-    meta = dict(hdr.metadata)
-    meta["sigma"] = _dn.SIGMA_MEANING
+    res = _dn.denoise(hdr.irradiance, hdr.sigma, hdr.nexp, settings, name="denoise input", quality=hdr.quality)
+    header = dict(hdr.header)
+    header["sigma"] = _dn.SIGMA_MEANING
     source = "metadata cfa_pattern" if layout == "auto" else "layout argument"
-    meta["denoise"] = _dn.denoise_header(settings, res, source, hdr.metadata.get("sigma", _SIGMA), __version__)
-    return HdrResult(res.irradiance, res.sigma, np.asarray(hdr.nexp, np.float32), meta, dict(hdr.extra_channels))
+    header["denoise"] = _dn.denoise_header(
+        settings, res, source, hdr.header.get("sigma") or "standard deviation of irradiance", __version__
+    )
+    return hdr.replace(irradiance=res.irradiance, sigma=res.sigma, header=header)
 
 
 # --------------------------------------------------------------------------- simulation
@@ -749,7 +690,7 @@ def simulate(
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
     from hdrcap.mock_camera.scenes import SCENES, make_scene
-    from hdrcap.pipeline.io import check_exposure_time
+    from hdrcap.pipeline.io.raw import check_exposure_time
 
     if camera not in PRESETS:
         raise InputError(f"unknown camera preset {camera!r}; choose from {', '.join(PRESETS)}")
@@ -807,7 +748,8 @@ def read_exr(path: str | os.PathLike[str]) -> HdrResult:
     Parameters
     ----------
     path : str or path-like
-        The EXR file (channels ``irradiance`` and ``sigma`` in e-/s, optional ``nexp``).
+        The EXR file (channels ``irradiance`` and ``sigma`` in e-/s, optional ``nexp``,
+        ``quality``, ``sigma_calibration``).
 
     Returns
     -------
@@ -818,26 +760,34 @@ def read_exr(path: str | os.PathLike[str]) -> HdrResult:
     InputError
         Missing or unreadable file, no irradiance or sigma channel.
     """
-    from hdrcap.pipeline.io import read_exr as _read
+    from hdrcap.pipeline.io.results import read_result
 
-    return HdrResult.from_image(_read(path), str(path))
+    return read_result(path)
 
 
 def write_exr(
-    path: str | os.PathLike[str], hdr: HdrResult | HdrImage, *, force: bool = False, compression: str = "zip"
+    path: str | os.PathLike[str],
+    hdr: HdrResult,
+    *,
+    force: bool = False,
+    compression: str = "zip",
+    sigma_precision: str = "auto",
 ) -> Path:
-    """Write a result as a float32 EXR, atomically (an existing file is kept unless ``force``).
+    """Write a result as an EXR, atomically (an existing file is kept unless ``force``): the
+    file ``hdrcap merge`` writes for the same result (:meth:`HdrResult.write`).
 
     Parameters
     ----------
     path : str or path-like
         Output file; its folder must exist.
-    hdr : HdrResult or HdrImage
-        Channels (irradiance, sigma, nexp, ...) and metadata (the EXR header).
+    hdr : HdrResult
+        The merge (or a denoised one).
     force : bool
         Replace an existing file.
     compression : str
         zip (default), zips, piz, zstd, rle or none.
+    sigma_precision : {"auto", "half", "float"}
+        Storage of the sigma channels (``auto``: half where they fit, at most 0.05 % lost).
 
     Returns
     -------
@@ -849,12 +799,10 @@ def write_exr(
     OutputExistsError
         The file exists and ``force`` is false.
     InputError
-        The output folder does not exist or is not writable.
+        The output folder does not exist or is not writable; a bad option.
     """
-    from hdrcap.pipeline.io import EXR_COMPRESSIONS
-    from hdrcap.pipeline.io import write_exr as _write
+    from hdrcap.pipeline.io.results import write_result
 
-    if compression not in EXR_COMPRESSIONS:
-        raise InputError(f"compression must be one of {', '.join(EXR_COMPRESSIONS)}, got {compression!r}")
-    image = hdr.to_image() if isinstance(hdr, HdrResult) else hdr
-    return _write(path, image, force=force, compression=compression)
+    if not isinstance(hdr, HdrResult):
+        raise InputError(f"write_exr: expected an HdrResult, got {type(hdr).__name__}")
+    return write_result(hdr, path, format="exr", force=force, compression=compression, sigma_precision=sigma_precision)

@@ -7,7 +7,7 @@ ExposureTime, FNumber and ISO both in IFD0 (TIFF/EP) and in the EXIF IFD (LibRaw
 ISO from the EXIF IFD to compute exposure values).
 
 No TIFF library writes an EXIF sub-IFD with DNG tags, so this is the one hand-written
-encoder of the project; :func:`hdrcap.pipeline.io.read_raw` reads the files back through rawpy.
+encoder of the project; :func:`hdrcap.pipeline.io.raw.read_raw` reads the files back through rawpy.
 """
 
 from __future__ import annotations

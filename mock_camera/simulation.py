@@ -40,7 +40,9 @@ def simulate_bracket(
     from hdrcap import __version__
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
-    from hdrcap.pipeline.io import HdrImage, atomic_output, write_exr
+    from hdrcap.pipeline.io.exr import write_exr
+    from hdrcap.pipeline.io.files import atomic_output
+    from hdrcap.pipeline.schema import UNIT_ELECTRONS
 
     if camera_name not in PRESETS:
         raise InputError(f"unknown camera preset {camera_name!r}; choose from {', '.join(PRESETS)}")
@@ -70,14 +72,14 @@ def simulate_bracket(
         written["darks" if d else "frames"].append(str(path))
     params = spec.nominal_params(temperature)
     attrs = {
-        "unit": "electrons per second per photosite",
+        "unit": UNIT_ELECTRONS,
         "content": "ground truth irradiance of the simulation",
         "camera": camera_name,
         "scene": scene,
         "seed": seed,
         "hdrcap_version": __version__,
     }
-    write_exr(out / "truth.exr", HdrImage({"irradiance": X.astype(np.float32)}, attrs), force=force)
+    write_exr(out / "truth.exr", {"irradiance": X.astype(np.float32)}, attrs, force=force)
     desc = {
         "camera": camera_name,
         "scene": scene,
@@ -128,7 +130,7 @@ def simulate_calibration_set(
 
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
-    from hdrcap.pipeline.io import atomic_output
+    from hdrcap.pipeline.io.files import atomic_output
 
     if camera_name not in PRESETS:
         raise InputError(f"unknown camera preset {camera_name!r}; choose from {', '.join(PRESETS)}")

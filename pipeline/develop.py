@@ -55,6 +55,9 @@ import numpy as np
 from hdrcap.pipeline.develop_names import DEMOSAIC_METHODS, LINEAR_METHODS, OUTPUT_SPACES
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.dngwrite import CameraColour
+from hdrcap.pipeline.io.exr import ExrContent
+from hdrcap.pipeline.result import HdrResult
+from hdrcap.pipeline.schema import UNIT_ELECTRONS
 
 __all__ = [
     "DEMOSAIC_METHODS",
@@ -587,14 +590,16 @@ CHANNELS_MEANING = (
 )
 
 
-def develop_image(image, method: str = "malvar2004", space: str = "camera", *, source: str = ""):
-    """Develop a merged CFA irradiance :class:`~pipeline.io.HdrImage` into an RGB one.
+def develop_image(
+    result: HdrResult, method: str = "malvar2004", space: str = "camera", *, source: str = ""
+) -> ExrContent:
+    """Develop a merge (a CFA irradiance mosaic) into a scene-linear RGB image.
 
     Parameters
     ----------
-    image : HdrImage
-        What ``hdrcap merge`` wrote: channels ``irradiance`` (and ``sigma``, ``nexp``,
-        ``quality`` when present), header ``cfa_pattern`` and ``camera_colour``.
+    result : HdrResult
+        What ``hdrcap merge`` wrote: irradiance, sigma, nexp, quality, and the header's
+        ``cfa_pattern`` and ``camera_colour``.
     method, space : str
         As for :func:`develop`.
     source : str
@@ -602,7 +607,7 @@ def develop_image(image, method: str = "malvar2004", space: str = "camera", *, s
 
     Returns
     -------
-    HdrImage
+    ExrContent
         Channels ``R``, ``G``, ``B``, ``sigma.R``/``G``/``B`` (linear methods), ``nexp``,
         ``quality`` (when the input has it); the header keeps the input's under ``source_header``.
 
@@ -612,27 +617,22 @@ def develop_image(image, method: str = "malvar2004", space: str = "camera", *, s
         No irradiance channel, a non-Bayer mosaic, an unknown method or space, or a colour space
         the header's colour metadata cannot give.
     """
-    from hdrcap.pipeline.io import HdrImage
-
-    ch, attrs = image.channels, image.attrs
-    if "irradiance" not in ch:
-        raise InputError(
-            f"{source or 'the EXR'}: no irradiance channel; develop needs a CFA irradiance EXR written by `hdrcap merge`"
-        )
-    if ch["irradiance"].ndim != 2 or any(np.shape(a) != ch["irradiance"].shape for a in ch.values()):
-        raise InputError(f"{source or 'the EXR'}: channels of different shapes; not an EXR of `hdrcap merge`")
+    attrs = result.header
+    irr = np.asarray(result.irradiance)
+    if irr.ndim != 2:
+        raise InputError(f"{source or 'the EXR'}: the irradiance is not a 2-D mosaic; not an EXR of `hdrcap merge`")
     _check_method(method)
     _check_cfa(attrs.get("cfa_pattern"))
-    colour = CameraColour.from_attrs(attrs["camera_colour"]) if "camera_colour" in attrs else None
+    colour = CameraColour.from_attrs(attrs["camera_colour"]) if attrs.get("camera_colour") is not None else None
     res = develop(
-        ch["irradiance"],
-        ch.get("sigma"),
-        ch.get("nexp"),
+        irr,
+        result.sigma,
+        result.nexp,
         attrs["cfa_pattern"],
         method=method,
         space=space,
         colour=colour,
-        quality=ch.get("quality"),
+        quality=result.quality,
     )
     out = {name: res.rgb[..., k] for k, name in enumerate("RGB")}
     if res.sigma is not None:
@@ -643,7 +643,7 @@ def develop_image(image, method: str = "malvar2004", space: str = "camera", *, s
     from hdrcap import __version__
 
     head = {
-        "unit": attrs.get("unit", "electrons per second per photosite"),
+        "unit": attrs.get("unit") or UNIT_ELECTRONS,
         "cfa_pattern": "none",
         "layout": "rgb",
         "channels": CHANNELS_MEANING,
@@ -662,4 +662,4 @@ def develop_image(image, method: str = "malvar2004", space: str = "camera", *, s
         },
         "source_header": attrs,
     }
-    return HdrImage(out, head)
+    return ExrContent(out, head)

@@ -1,7 +1,7 @@
 """Figures, made in one place: matplotlib's object-oriented API, no global backend.
 
 Every figure hdrcap draws is a :class:`matplotlib.figure.Figure` made by :func:`new_figure`
-and written by :func:`save_figure` through :func:`hdrcap.pipeline.io.atomic_output`. Nothing
+and written by :func:`save_figure` through :func:`hdrcap.pipeline.io.files.atomic_output`. Nothing
 calls ``matplotlib.use`` or ``pyplot``: the Agg canvas is attached to each figure, so drawing
 works on a headless rig and never changes the backend of a notebook or program that imports
 hdrcap.
@@ -68,7 +68,7 @@ def save_figure(fig, path, force: bool = False, dpi: int = 110) -> Path:
     Path
         ``path``.
     """
-    from hdrcap.pipeline.io import atomic_output
+    from hdrcap.pipeline.io.files import atomic_output
 
     path = Path(path)
     with atomic_output(path, force=force, suffix=".png") as tmp:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrcap.pipeline.io import atomic_output
+from hdrcap.pipeline.io.files import atomic_output
 
 __all__ = ["mosaic_to_rgb", "tonemap_log", "tonemap_log_colour", "write_preview_png"]
 

@@ -295,7 +295,7 @@ def read_irradiance_map(path: str | Path) -> np.ndarray:
     InputError
         No such channel, or NaN or infinite values.
     """
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     names = ("irradiance", "Y", "R", "G")
     img = read_exr(path, channels=names)  # the others (sigma, nexp, ...) are not converted

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from hdrcap.mock_camera.dng import write_dng
-from hdrcap.pipeline.io import read_raw
+from hdrcap.pipeline.io.raw import read_raw
 
 #: XYZ (D65) to linear sRGB, IEC 61966-2-1 (published, 4 decimals).
 XYZ_TO_SRGB = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])

@@ -156,7 +156,7 @@ def _tiff_frames(frames: tuple[Path, ...], folder: Path) -> tuple[Path, ...]:
     """The mosaics of ``frames`` as single-channel 16-bit TIFF files (exposure times via --times)."""
     import tifffile
 
-    from hdrcap.pipeline.io import read_raw
+    from hdrcap.pipeline.io.raw import read_raw
 
     folder.mkdir(parents=True, exist_ok=True)
     out = []
@@ -235,7 +235,7 @@ def build_corpus(root: Path) -> Corpus:
     emva = emva_dir / "EMVA1288_Data.txt"
     if not emva.exists():
         _emva_set(emva_dir)
-    from hdrcap.pipeline.io import read_raw
+    from hdrcap.pipeline.io.raw import read_raw
 
     libraw_dng = _libraw_dng(frames[0], root / "libraw.dng")
     times = tuple(read_raw(f).exposure_time for f in frames)
@@ -419,7 +419,7 @@ def _peak_mib() -> float:
 def _exr_is_finite(path: Path) -> bool:
     import numpy as np
 
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     return all(np.isfinite(ch).all() for ch in read_exr(path).channels.values())
 

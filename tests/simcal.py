@@ -8,7 +8,7 @@ import numpy as np
 
 from hdrcap.mock_camera import SimulatedSensor
 from hdrcap.pipeline.calibration import calibrate
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 
 DARK_TIMES = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 

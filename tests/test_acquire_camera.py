@@ -77,7 +77,7 @@ def test_mock_camera_protocol_and_coercion(tmp_path):
     # 0.011 s is not allowed: the camera applies the log-nearest standard speed, 1/100 s
     assert cam.set_exposure(0.011) == pytest.approx(1 / 100)
     res = cam.capture(tmp_path / "a.dng")
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     fr = read_frame(res.path)
     assert fr.exposure_time == pytest.approx(1 / 100, rel=1e-9)
@@ -130,7 +130,7 @@ def test_mock_camera_hang_respects_timeout(tmp_path):
 @pytest.mark.parametrize("fault", ["corrupt_rate", "truncate_rate"])
 def test_mock_camera_bad_files_do_not_open(tmp_path, fault):
     from hdrcap.pipeline.errors import InputError
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     cam = MockCamera("camera-B", _scene(), seed=1, faults=MockFaults(**{fault: 1.0}))
     res = cam.capture(tmp_path / "a.dng")  # reported as a success, as real transfers do

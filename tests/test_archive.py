@@ -72,8 +72,8 @@ def test_read_run_and_errors(tmp_path):
     store = Archive(path)
     store.commit(_run(0))
     img = read_run(path, 0)
-    assert img.attrs == {"unit": "electrons per second per photosite", "i": 0}
-    np.testing.assert_array_equal(img.channels["sigma"], _run(0).channels["sigma"])
+    assert img.header == {"unit": "electrons per second per photosite", "i": 0}
+    np.testing.assert_array_equal(img.sigma, _run(0).channels["sigma"])
     with pytest.raises(InputError, match="run 4 is not in the archive"):
         read_run(path, 4)
     with pytest.raises(InputError, match="differs from the archive"):

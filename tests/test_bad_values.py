@@ -17,9 +17,11 @@ from hdrcap.cli import main
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import read_exr, read_raw
-from hdrcap.pipeline.merge.accumulator import QUALITY_BITS, merge_arrays
+from hdrcap.pipeline.io.exr import read_exr
+from hdrcap.pipeline.io.raw import read_raw
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.schema import QUALITY_BITS
 
 MASKED, SATURATED = QUALITY_BITS["masked"], QUALITY_BITS["saturated"]
 N_BAD = 50
@@ -113,7 +115,7 @@ def test_masked_merge_against_the_clean_one_and_the_truth(bracket, tmp_path, cap
     assert len(warned) == 1 and str(frames[BAD]) in warned[0] and f" {N_BAD} photosites" in warned[0], err
     ref, img = read_exr(tmp_path / "clean.exr").channels, read_exr(tmp_path / "m.exr")
     ch = img.channels
-    assert img.attrs["masked_values"] == {str(f): (N_BAD if i == BAD else 0) for i, f in enumerate(frames)}
+    assert img.header["masked_values"] == {str(f): (N_BAD if i == BAD else 0) for i, f in enumerate(frames)}
     masked = np.zeros((48, 64), bool)
     masked[rows, cols] = True
     q = ch["quality"].astype(np.uint8)
@@ -137,8 +139,8 @@ def test_masked_merge_against_the_clean_one_and_the_truth(bracket, tmp_path, cap
     assert np.all(sig[ok] > 0)
     # saturated only where every frame that was not masked is saturated
     np.testing.assert_array_equal((q[masked] & SATURATED) != 0, nexp == 0)
-    assert img.attrs["merge"]["masked_photosites"] == N_BAD
-    assert img.attrs["merge"]["masked_per_frame"] == [N_BAD if i == BAD else 0 for i in range(len(frames))]
+    assert img.header["merge"]["masked_photosites"] == N_BAD
+    assert img.header["merge"]["masked_per_frame"] == [N_BAD if i == BAD else 0 for i in range(len(frames))]
 
 
 def test_mask_refused_with_chunks_baselines_and_self_calibration(bracket, tmp_path, capsys):

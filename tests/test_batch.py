@@ -16,7 +16,7 @@ import xarray as xr
 
 from hdrcap.cli import main as cli_main
 from hdrcap.mock_camera.simulation import simulate_bracket
-from hdrcap.pipeline.io import read_exr
+from hdrcap.pipeline.io.exr import read_exr
 
 pytestmark = pytest.mark.slow
 
@@ -116,7 +116,7 @@ def test_batch_cli_identical_to_merge_records_failure_and_resumes(runs, tmp_path
             got = ds[name].isel(run=i).values
             assert got.dtype == arr.dtype and np.array_equal(got, arr, equal_nan=True), (folder, name)
         back = read_exr(_export(archive, i, tmp_path / f"e{k}.exr"))
-        assert back.attrs == ref.attrs
+        assert back.header == ref.header
         assert all(np.array_equal(back.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
     # Re-running resumes: the runs there are skipped, only the failed one is tried again.
     proc = cli("batch", *folders, "--camera", CAMERA, "-o", archive, "--workers", "1", "--json")
@@ -155,11 +155,11 @@ def test_planned_run_follows_its_recorded_plan_as_merge_plan_does(runs, tmp_path
     )
     ref, got = read_exr(ref), read_exr(_export(archive, 0, tmp_path / "got.exr"))
     assert (
-        got.attrs["merge"] == ref.attrs["merge"]
-        and got.attrs["merge"]["saturation"] == plan["merge_options"]["saturation"]
+        got.header["merge"] == ref.header["merge"]
+        and got.header["merge"]["saturation"] == plan["merge_options"]["saturation"]
     )
     assert all(np.array_equal(got.channels[n], ref.channels[n], equal_nan=True) for n in ref.channels)
-    assert got.attrs["planner"]["plan_file"] == str(folder / "manifest.jsonl")
+    assert got.header["planner"]["plan_file"] == str(folder / "manifest.jsonl")
 
 
 def _export(archive: Path, run: int, out: Path) -> Path:

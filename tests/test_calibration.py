@@ -21,7 +21,7 @@ from hdrcap.pipeline.calibration import (
     save_calibration,
 )
 from hdrcap.pipeline.errors import InputError, OutputExistsError
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 
 SHAPE = (256, 256)
 
@@ -372,7 +372,7 @@ def test_emva_stage_on_a_simulated_descriptor(tmp_path):
     from PIL import Image
 
     from hdrcap.pipeline.calibration.emva import emva_calibration, emva_data, emva_results
-    from hdrcap.pipeline.io import read_emva_descriptor
+    from hdrcap.pipeline.io.emva_descriptor import read_emva_descriptor
 
     spec = PRESETS["camera-A"].replace(dark_current=50.0)
     sensor = SimulatedSensor(spec, (96, 96), seed=6)

@@ -170,8 +170,9 @@ def test_sigma_calibration_of_the_censored_likelihood_equals_finite_differences(
 def test_calibration_without_standard_errors_has_no_calibration_part(tmp_path):
     """No standard error entered: the calibration's part is unknown, so there is no
     sigma_calibration (not a channel of zeros), and the header says what was missing."""
-    from hdrcap.pipeline.io import RawFrame, read_exr, write_exr
-    from hdrcap.pipeline.merge.files import build_hdr_image
+    from hdrcap.pipeline.header import with_merge_header
+    from hdrcap.pipeline.io.exr import read_exr
+    from hdrcap.pipeline.io.raw import RawFrame
     from hdrcap.pipeline.params import Calibration
 
     spec = PRESETS["camera-B"]
@@ -183,25 +184,26 @@ def test_calibration_without_standard_errors_has_no_calibration_part(tmp_path):
     assert res.info["calibration_error"]["included"] == []
     assert set(res.info["calibration_error"]["missing"]) == {"bias", "dark current", "PRNU spread (prnu scalar)"}
     frames = [RawFrame(v, t, path=f"f{i}") for i, (v, t) in enumerate(zip(values, (0.1, 1.0)))]
-    path = write_exr(tmp_path / "m.exr", build_hdr_image(res, frames, cal))
+    path = with_merge_header(res, frames, cal).write(tmp_path / "m.exr")
     back = read_exr(path)
     assert "sigma_calibration" not in back.channels
-    assert back.attrs["merge"]["calibration_error"]["included"] == []
+    assert back.header["merge"]["calibration_error"]["included"] == []
 
 
 def test_exr_carries_sigma_calibration(tmp_path):
-    from hdrcap.pipeline.io import RawFrame, read_exr, write_exr
-    from hdrcap.pipeline.merge.files import build_hdr_image
+    from hdrcap.pipeline.header import with_merge_header
+    from hdrcap.pipeline.io.exr import read_exr
+    from hdrcap.pipeline.io.raw import RawFrame
 
     X, cal, values, times = _long_model_bracket(7, n=2, t=8.0)
     res = merge_arrays(values, times, cal, dark_strategy="model")
     frames = [RawFrame(v, t, path=f"f{i}") for i, (v, t) in enumerate(zip(values, times))]
     path = tmp_path / "m.exr"
-    write_exr(path, build_hdr_image(res, frames, cal))
+    with_merge_header(res, frames, cal).write(path, sigma_precision="float")
     back = read_exr(path)
     np.testing.assert_array_equal(back.channels["sigma_calibration"], res.sigma_calibration)
-    assert "calibration" in back.attrs["sigma_calibration"]
-    assert back.attrs["merge"]["calibration_error"]["gain_relative_stderr"] > 0
+    assert "calibration" in back.header["sigma_calibration"]
+    assert back.header["merge"]["calibration_error"]["gain_relative_stderr"] > 0
 
 
 def test_planner_prediction_with_the_calibration_budget_matches_the_measured_snr():

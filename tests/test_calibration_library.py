@@ -9,7 +9,7 @@ import pytest
 
 from hdrcap.pipeline.calibration.library import entry_name, library_dir, model_slug
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import read_exr
+from hdrcap.pipeline.io.exr import read_exr
 
 
 def test_keys_and_folder(monkeypatch, tmp_path):
@@ -74,7 +74,7 @@ def test_calibrate_once_then_merge_finds_it(tmp_path, cli):
     proc = cli("merge", *frames, "-o", tmp_path / "m.exr", check=True, env=env)
     assert "from the calibration library" in proc.stderr and name in proc.stderr
     img = read_exr(tmp_path / "m.exr")
-    assert "self_calibration" not in img.attrs and img.attrs["calibration"]["params"]["g"] == shown["params"]["g"]
+    assert img.header["self_calibration"] is None and img.header["calibration"]["params"]["g"] == shown["params"]["g"]
     truth = read_exr(sim / "truth.exr").channels["irradiance"]
     ok = img.channels["nexp"] > 0
     assert abs(np.median((img.channels["irradiance"][ok] - truth[ok]) / img.channels["sigma"][ok])) < 0.5

@@ -12,7 +12,7 @@ import pytest
 
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.pipeline.calibration import calibrate
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 
 
 def shots(sensor, X, t, n, rng, kind, dark=False):

@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from hdrcap.pipeline.io import read_exr, read_raw
+from hdrcap.pipeline.io.exr import read_exr
+from hdrcap.pipeline.io.raw import read_raw
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +66,8 @@ def test_merge_end_to_end_against_truth(bracket, cli, tmp_path):
     assert summary["finite"] and summary["n_frames"] == 3 and summary["n_darks"] == 3
     img = read_exr(exr)
     assert set(img.channels) >= {"irradiance", "sigma", "nexp"}
-    assert img.attrs["unit"].startswith("electrons per second")
-    assert img.attrs["cfa_pattern"] == "RGGB" and len(img.attrs["exposure_times"]) == 3
+    assert img.header["unit"].startswith("electrons per second")
+    assert img.header["cfa_pattern"] == "RGGB" and len(img.header["exposure_times"]) == 3
     truth = read_exr(out / "truth.exr").channels["irradiance"].astype(float)
     ok = img.channels["nexp"] > 0
     z = (img.channels["irradiance"][ok] - truth[ok]) / img.channels["sigma"][ok]
@@ -150,7 +151,7 @@ def test_demo_reports_error_against_truth(cli, tmp_path):
         assert (tmp_path / "d" / name).is_file()
     text = (tmp_path / "d" / "summary.txt").read_text()
     assert "error against the simulator's ground truth" in text
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     written = set(read_exr(tmp_path / "d" / "demo.exr").channels)
     listed = text.split("demo.exr (", 1)[1].split(")", 1)[0]

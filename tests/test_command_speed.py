@@ -11,7 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from hdrcap.pipeline import io as pio
+from hdrcap.pipeline.io import exr as pexr
+from hdrcap.pipeline.io import files as pfiles
+from hdrcap.pipeline.io import raw as praw
 from hdrcap.pipeline.merge.accumulator import _add_in_quadrature
 from tests.test_io import _dng
 
@@ -31,14 +33,14 @@ def _reference_range(arr):
 @settings(max_examples=200, deadline=None)
 @given(_FLOATS)
 def test_magnitude_range_equals_the_masked_reference(arr):
-    assert pio._magnitude_range(arr) == _reference_range(arr)
+    assert pexr._magnitude_range(arr) == _reference_range(arr)
 
 
 def test_magnitude_range_over_many_blocks_finds_extremes_anywhere():
     arr = np.full((700, 300), 2.0, np.float32)  # > 3 blocks
     arr[650, 299], arr[3, 0], arr[400, 7], arr[100, 100] = 7e4, 3e-6, np.nan, -np.inf
-    assert pio._magnitude_range(arr) == (float(np.float32(3e-6)), 7e4)
-    assert pio._magnitude_range(np.zeros((500, 500), np.float32)) == (None, None)
+    assert pexr._magnitude_range(arr) == (float(np.float32(3e-6)), 7e4)
+    assert pexr._magnitude_range(np.zeros((500, 500), np.float32)) == (None, None)
 
 
 @settings(max_examples=200, deadline=None)
@@ -47,7 +49,7 @@ def test_whole_uint32_equals_the_plain_check(arr):
     a64 = arr.astype(np.float64)
     expected = bool(np.isfinite(a64).all() and (a64 >= 0).all() and (a64 <= 2**32 - 1).all())
     expected = expected and bool((a64 == np.round(a64)).all())
-    assert pio._whole_uint32(arr) == expected
+    assert pexr._whole_uint32(arr) == expected
 
 
 @pytest.mark.parametrize(
@@ -64,7 +66,7 @@ def test_whole_uint32_equals_the_plain_check(arr):
     ],
 )
 def test_whole_uint32_by_dtype(arr, whole):
-    assert pio._whole_uint32(arr) is whole
+    assert pexr._whole_uint32(arr) is whole
 
 
 @settings(max_examples=100, deadline=None)
@@ -99,15 +101,15 @@ def _resident_mb() -> float:
 def test_released_frames_leave_memory_and_stay_readable(tmp_path):
     data = np.random.default_rng(1).integers(64, 4096, (2048, 4096), dtype=np.uint16)  # 16 MB
     path = _dng(tmp_path / "f.dng", data)
-    frame = pio.read_frame(path)
+    frame = praw.read_frame(path)
     assert np.array_equal(frame.data, data)  # every page touched: resident
     before = _resident_mb()
-    assert pio.release_mapped_pages([frame.data, frame.data[:10]]) >= data.nbytes  # one mapping, once
+    assert pfiles.release_mapped_pages([frame.data, frame.data[:10]]) >= data.nbytes  # one mapping, once
     after = _resident_mb()
     assert before - after > 0.75 * data.nbytes / 2**20
     assert np.array_equal(frame.data, data)  # read again from the file
     plain = data.copy()
-    assert pio.release_mapped_pages([plain]) == 0
+    assert pfiles.release_mapped_pages([plain]) == 0
     assert np.array_equal(plain, data)
 
 

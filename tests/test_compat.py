@@ -111,7 +111,7 @@ def test_a_silent_iso_substitution_is_refused(tmp_path):
 
 def _library(tmp_path, iso, model=None) -> Path:
     from hdrcap.pipeline.calibration.darklibrary import DarkLibrary
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     lib = DarkLibrary(tmp_path / "darks")
     cam = MockCamera("camera-B", _scene(), seed=5)

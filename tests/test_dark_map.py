@@ -9,7 +9,7 @@ import pytest
 
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.pipeline.calibration import calibrate
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 
 DARK_TIMES = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)  # the documented dark series (hdrcap simulate --calibration-set)
 

@@ -16,7 +16,7 @@ from hdrcap.pipeline.calibration import (
     save_calibration,
 )
 from hdrcap.pipeline.calibration.report import write_report
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 from hdrcap.pipeline.params import DEFECT_BITS, Calibration
 
 SHAPE = (256, 256)

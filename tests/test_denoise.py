@@ -21,7 +21,7 @@ from hdrcap.pipeline.denoise.filter import (
     normalised_mse,
 )
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+from hdrcap.pipeline.io.exr import read_exr, write_exr
 
 
 def _gauss_sums(radius, s, one_sided=False):
@@ -195,7 +195,7 @@ def _merged_exr(path, sigma=None, nexp=True, cfa="RGGB"):
         ch["sigma"] = np.full_like(irr, 30.0) if sigma is None else sigma
     if nexp:
         ch["nexp"] = np.full_like(irr, 2.0)
-    write_exr(path, HdrImage(ch, {"cfa_pattern": cfa, "unit": "electrons per second per photosite", "custom": [1, 2]}))
+    write_exr(path, ch, {"cfa_pattern": cfa, "unit": "electrons per second per photosite", "custom": [1, 2]})
     return irr
 
 
@@ -221,8 +221,8 @@ def test_cli_denoise_keeps_header_and_adds_settings(tmp_path, capsys):
         "spatial_sigma": 1.0,
     }
     im = read_exr(dst)
-    assert im.attrs["custom"] == [1, 2] and im.attrs["cfa_pattern"] == "RGGB"
-    assert im.attrs["denoise"]["settings"]["radius"] == 1 and "bias" in im.attrs["sigma"]
+    assert im.header["custom"] == [1, 2] and im.header["cfa_pattern"] == "RGGB"
+    assert im.header["denoise"]["settings"]["radius"] == 1 and "bias" in im.header["sigma"]
     assert np.std(im.channels["irradiance"]) < np.std(irr)
     np.testing.assert_array_equal(im.channels["nexp"], 2.0)
     assert src.read_bytes() == before  # input untouched
@@ -246,7 +246,7 @@ def test_cli_denoise_keeps_header_and_adds_settings(tmp_path, capsys):
     )
     assert code == 0, err
     assert json.loads(out)["settings"]["bandwidth"] == 50.0
-    assert read_exr(dst).attrs["denoise"]["settings"]["layout"] == "mono"
+    assert read_exr(dst).header["denoise"]["settings"]["layout"] == "mono"
 
 
 @pytest.mark.parametrize(

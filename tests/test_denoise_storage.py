@@ -11,7 +11,7 @@ import pytest
 from hdrcap.cli import main
 from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
 from hdrcap.pipeline.denoise.tiled import exr_pixel_types
-from hdrcap.pipeline.io import HALF_RELATIVE_ERROR, HdrImage, read_exr, write_exr
+from hdrcap.pipeline.io.exr import HALF_RELATIVE_ERROR, read_exr, write_exr
 
 SHAPE = (40, 36)
 
@@ -33,7 +33,7 @@ def merged(tmp_path_factory):
     channels = {"irradiance": irr, "sigma": sigma, "sigma_calibration": sig_cal, "nexp": nexp, "quality": quality}
     path = tmp_path_factory.mktemp("dns") / "merged.exr"
     precision = {"sigma": "half", "nexp": "uint", "quality": "uint"}
-    write_exr(path, HdrImage(channels, {"cfa_pattern": "RGGB"}), precision=precision)
+    write_exr(path, channels, {"cfa_pattern": "RGGB"}, precision=precision)
     return path
 
 
@@ -83,7 +83,7 @@ def test_float_input_stays_float(tmp_path, capsys):
     irr = rng.uniform(1e5, 2e5, SHAPE).astype(np.float32)
     ch = {"irradiance": irr, "sigma": np.full(SHAPE, 1e6, np.float32), "nexp": np.full(SHAPE, 2.5, np.float32)}
     src = tmp_path / "in.exr"
-    write_exr(src, HdrImage(ch, {"cfa_pattern": "RGGB"}))
+    write_exr(src, ch, {"cfa_pattern": "RGGB"})
     dst = tmp_path / "out.exr"
     _cli(src, dst)
     capsys.readouterr()

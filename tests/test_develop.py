@@ -30,7 +30,6 @@ from hdrcap.pipeline.develop import (
     support_radius,
 )
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
 from hdrcap.pipeline.io.dngwrite import (
     CameraColour,
     camera_colour,
@@ -39,10 +38,17 @@ from hdrcap.pipeline.io.dngwrite import (
     colour_tags,
     write_float_dng,
 )
+from hdrcap.pipeline.io.exr import read_exr, write_exr
+from hdrcap.pipeline.result import HdrResult
 from tests.colour_sim import CANON_CM, CANON_NEUTRAL, XYZ_TO_SRGB, camera_mosaic, mosaic, recolour_frames
 
 #: D50 white, CIE 15 chromaticity (0.3457, 0.3585), as XYZ with Y = 1 (the DNG connection space white).
 D50_XYZ = np.array([0.3457 / 0.3585, 1.0, (1 - 0.3457 - 0.3585) / 0.3585])
+
+
+def _mosaic(irr, cfa):
+    """A merge result holding only an irradiance mosaic of ``cfa``."""
+    return HdrResult(irr, np.ones_like(irr), np.ones_like(irr), header={"cfa_pattern": cfa})
 
 
 def _reference(mos, cfa, method):
@@ -201,9 +207,9 @@ def test_menon_writes_no_sigma_and_says_so():
     mos = np.random.default_rng(5).lognormal(6, 1, (24, 24))
     res = develop(mos, 0.05 * mos, np.ones_like(mos), "RGGB", method="menon2007")
     assert res.sigma is None and res.info["sigma"] == SIGMA_NOT_PROPAGATED
-    image = develop_image(HdrImage({"irradiance": mos, "sigma": 0.05 * mos}, {"cfa_pattern": "RGGB"}), "menon2007")
+    image = develop_image(HdrResult(mos, 0.05 * mos, np.ones_like(mos), header={"cfa_pattern": "RGGB"}), "menon2007")
     assert not any(name.startswith("sigma") for name in image.channels)
-    assert image.attrs["sigma"] == SIGMA_NOT_PROPAGATED
+    assert image.header["sigma"] == SIGMA_NOT_PROPAGATED
 
 
 # --------------------------------------------------------------------------- end to end
@@ -230,7 +236,7 @@ def colour_bracket(tmp_path_factory):
     rgb = np.empty((h, w, 3))
     for i, patch in enumerate(PATCHES):
         rgb[:, i * PATCH_W : (i + 1) * PATCH_W] = patch
-    write_exr(d / "scene.exr", HdrImage({"irradiance": camera_mosaic(rgb, SCALE).astype(np.float32)}))
+    write_exr(d / "scene.exr", {"irradiance": camera_mosaic(rgb, SCALE).astype(np.float32)}, {})
     sim = d / "sim"
     run_cli("simulate", "--camera", "camera-A", "--scene", d / "scene.exr", "--out", sim, "--seed", "9", check=True)
     frames = recolour_frames(sorted(sim.glob("frame_*.dng")), d)
@@ -244,7 +250,7 @@ def colour_bracket(tmp_path_factory):
 
 def test_merge_records_the_frames_colour_metadata(colour_bracket):
     d, _ = colour_bracket
-    recorded = CameraColour.from_attrs(read_exr(d / "m.exr").attrs["camera_colour"])
+    recorded = CameraColour.from_attrs(read_exr(d / "m.exr").header["camera_colour"])
     np.testing.assert_allclose(recorded.color_matrix_1, CANON_CM.ravel(), atol=1e-4)
     np.testing.assert_allclose(recorded.as_shot_neutral, CANON_NEUTRAL / CANON_NEUTRAL.max(), atol=1e-4)
     assert recorded.illuminant_1 == 21
@@ -255,9 +261,9 @@ def test_developed_exr_matches_the_reference_demosaic_of_the_merge(colour_bracke
     merged = read_exr(d / "m.exr")
     developed = read_exr(d / "rgb.exr")  # OpenEXR's reader groups R, G, B (and sigma.R/G/B)
     m = np.array(info["matrix_camera_to_output"])
-    ref = _reference(merged.channels["irradiance"].astype(np.float64), merged.attrs["cfa_pattern"], "malvar2004")
+    ref = _reference(merged.channels["irradiance"].astype(np.float64), merged.header["cfa_pattern"], "malvar2004")
     np.testing.assert_allclose(developed.channels["RGB"], ref @ m.T, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
-    assert developed.channels["sigma"].shape == ref.shape and developed.attrs["source_header"]["cfa_pattern"] == "RGGB"
+    assert developed.channels["sigma"].shape == ref.shape and developed.header["source_header"]["cfa_pattern"] == "RGGB"
     assert (d / "p.png").stat().st_size > 0
 
 
@@ -281,7 +287,7 @@ def test_developed_colours_are_the_scenes_within_sigma(colour_bracket):
 def _merged_like(tmp_path, attrs):
     mos = np.random.default_rng(1).lognormal(5, 1, (16, 16)).astype(np.float32)
     path = tmp_path / "in.exr"
-    write_exr(path, HdrImage({"irradiance": mos, "sigma": 0.1 * mos, "nexp": np.ones_like(mos)}, attrs))
+    write_exr(path, {"irradiance": mos, "sigma": 0.1 * mos, "nexp": np.ones_like(mos)}, attrs)
     return path
 
 
@@ -353,7 +359,7 @@ def test_float_dng_of_a_non_dng_source_gets_libraws_matrix(tmp_path, monkeypatch
     monkeypatch.setattr(rawpy, "imread", lambda p: FakeRaw() if p == str(src) else real_imread(p))
     assert camera_colour(src).source == "IMG_0001.CR2: LibRaw"
     irr = np.random.default_rng(4).gamma(2.0, 50.0, (32, 32)).astype(np.float32)
-    write_float_dng(tmp_path / "o.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "RGGB"}), source=src)
+    write_float_dng(tmp_path / "o.dng", _mosaic(irr, "RGGB"), source=src)
     with tifffile.TiffFile(tmp_path / "o.dng") as tif:
         tags = {code: t.value for code, t in tif.pages[0].tags.items()}
     back = colour_from_dng_tags(tags)

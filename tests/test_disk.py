@@ -17,7 +17,7 @@ from hdrcap.acquire.camera.types import CameraDisconnectedError
 from hdrcap.acquire.capture.manifest import EventLog, Manifest
 from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LocalIOError, RetryPolicy, estimate_run_bytes
 from hdrcap.pipeline.errors import OutputExistsError
-from hdrcap.pipeline.io import atomic_output, sha256_file
+from hdrcap.pipeline.io.files import atomic_output, sha256_file
 
 FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
 TIMES = [0.001, 0.004, 0.016, 0.064]

@@ -10,8 +10,8 @@ import pytest
 import tifffile
 
 from hdrcap.mock_camera.dng import write_dng
-from hdrcap.pipeline import io as pio
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io import raw as pio
 from hdrcap.pipeline.io.dngread import decode_dng
 
 

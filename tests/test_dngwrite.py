@@ -16,11 +16,17 @@ from hypothesis.extra.numpy import arrays
 
 from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline.errors import InputError, OutputExistsError
-from hdrcap.pipeline.io import HdrImage, read_exr
 from hdrcap.pipeline.io.dngwrite import dng_layout, write_float_dng
+from hdrcap.pipeline.io.exr import read_exr
+from hdrcap.pipeline.result import HdrResult
 
 #: LibRaw converts a float raw image to integers, its maximum mapped to this value.
 _LIBRAW_FLOAT_TARGET = 16383
+
+
+def _mosaic(irr, cfa):
+    """A merge result holding only an irradiance mosaic of ``cfa``."""
+    return HdrResult(irr, np.ones_like(irr), np.ones_like(irr), header={"cfa_pattern": cfa})
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +56,7 @@ def test_float_dng_holds_the_exr_irradiance_exactly(merged):
     assert data.dtype == np.float32 and tags[339] == 3 and tags[258] == 32 and tags[262] == 32803
     np.testing.assert_array_equal(data, exr.channels["irradiance"])
     codes = {"R": 0, "G": 1, "B": 2}
-    assert tuple(tags[33422]) == tuple(codes[c] for c in exr.attrs["cfa_pattern"]) and tuple(tags[33421]) == (2, 2)
+    assert tuple(tags[33422]) == tuple(codes[c] for c in exr.header["cfa_pattern"]) and tuple(tags[33421]) == (2, 2)
     assert tags[50714] == 0 and tags[50717] >= data.max() > tags[50717] - 1
     assert "2^0 = irradiance in electrons per second per photosite" in tags[270]
     # Independent of the code: the simulator's truth, within the merge's own sigma.
@@ -98,7 +104,7 @@ def test_colour_matrix_and_white_balance_copied_from_a_dng(tmp_path):
     )
     src.write_bytes(buf.getvalue())
     irr = np.random.default_rng(1).gamma(2.0, 50.0, (32, 32)).astype(np.float32)
-    write_float_dng(tmp_path / "o.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "GRBG"}), source=src)
+    write_float_dng(tmp_path / "o.dng", _mosaic(irr, "GRBG"), source=src)
     tags, data = _tags(tmp_path / "o.dng")
     cm = np.array(tags[50721], float).reshape(9, 2)
     np.testing.assert_allclose(cm[:, 0] / cm[:, 1], np.ravel(matrix), atol=1e-4)
@@ -114,7 +120,7 @@ def test_colour_matrix_and_white_balance_copied_from_a_dng(tmp_path):
 def test_sixteen_bit_dng_scales_by_a_power_of_two(tmp_path):
     irr = np.random.default_rng(2).lognormal(8, 3, (32, 32)).astype(np.float32)
     irr[0, 0] = 3.0e8  # a bright highlight: beyond half's range unless scaled
-    lay = write_float_dng(tmp_path / "h.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "RGGB"}), bits=16)
+    lay = write_float_dng(tmp_path / "h.dng", _mosaic(irr, "RGGB"), bits=16)
     tags, data = _tags(tmp_path / "h.dng")
     assert data.dtype == np.float16 and tags[258] == 16 and tags[339] == 3 and lay.exponent > 0
     assert f"2^{lay.exponent} =" in tags[270]
@@ -126,16 +132,16 @@ def test_sixteen_bit_dng_scales_by_a_power_of_two(tmp_path):
 def test_invalid_input_is_refused(tmp_path):
     irr = np.ones((32, 32), np.float32)
     with pytest.raises(InputError, match="Bayer"):
-        write_float_dng(tmp_path / "a.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "none"}))
+        write_float_dng(tmp_path / "a.dng", _mosaic(irr, "none"))
     bad = irr.copy()
     bad[3, 3] = np.nan
     with pytest.raises(InputError, match="NaN"):
-        write_float_dng(tmp_path / "b.dng", HdrImage({"irradiance": bad}, {"cfa_pattern": "RGGB"}))
+        write_float_dng(tmp_path / "b.dng", _mosaic(bad, "RGGB"))
     with pytest.raises(InputError, match="16 or 32"):
         dng_layout(irr, 24)
-    write_float_dng(tmp_path / "c.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "RGGB"}))
+    write_float_dng(tmp_path / "c.dng", _mosaic(irr, "RGGB"))
     with pytest.raises(OutputExistsError, match="exists"):
-        write_float_dng(tmp_path / "c.dng", HdrImage({"irradiance": irr}, {"cfa_pattern": "RGGB"}))
+        write_float_dng(tmp_path / "c.dng", _mosaic(irr, "RGGB"))
     assert not (tmp_path / "a.dng").exists() and not (tmp_path / "b.dng").exists()
 
 

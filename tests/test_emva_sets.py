@@ -17,7 +17,7 @@ from hdrcap.mock_camera.emva_sets import EmvaSetSpec, write_emva_set, write_pgm
 from hdrcap.mock_camera.sensor import SensorSpec
 from hdrcap.pipeline.calibration.emva import QUANTISATION_LIMIT, QUANTISATION_VARIANCE, calibrate_descriptor, emva_data
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import read_emva_descriptor
+from hdrcap.pipeline.io.emva_descriptor import read_emva_descriptor
 
 #: An 8-bit CMOS whose read noise (0.1 DN^2 with the rounding) is below one DN: the dark
 #: variance is quantisation-limited and the dark signal of its short exposures far below 1 DN.

@@ -21,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hdrcap.pipeline import calibration as calpkg
-from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+from hdrcap.pipeline.io.exr import read_exr, write_exr
 from hdrcap.pipeline.params import Calibration, SensorParams
 from hdrcap.planner.plan import _ELIGIBLE_DIRECT, _HIST_BLOCK, eligible_mask, irradiance_histogram
 from hdrcap.planner.predict import usable_fraction
@@ -124,13 +124,13 @@ def test_read_exr_keeps_only_the_requested_channels(tmp_path):
         "sigma": rng.random((20, 30)).astype(np.float32) + 0.5,
         "nexp": rng.integers(0, 6, (20, 30)).astype(np.float32),
     }
-    path = write_exr(tmp_path / "m.exr", HdrImage(ch, {"unit": "e-/s"}), precision={"sigma": "half", "nexp": "uint"})
+    path = write_exr(tmp_path / "m.exr", ch, {"unit": "e-/s"}, precision={"sigma": "half", "nexp": "uint"})
     full = read_exr(path)
     part = read_exr(path, channels=["irradiance", "nexp", "Y"])
     assert set(part.channels) == {"irradiance", "nexp"}
     for name, arr in part.channels.items():
         assert arr.dtype == np.float32 and np.array_equal(arr, full.channels[name])
-    assert part.attrs == full.attrs
+    assert part.header == full.header
     assert read_exr(path, channels=[]).channels == {}
 
 

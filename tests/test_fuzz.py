@@ -116,7 +116,7 @@ def test_a_stuck_call_is_stored_and_reported(tmp_path):
 #: Decodes one file three times in a fresh interpreter: first thing, after another file, again.
 _DECODE_IN_ORDER = """
 import json, sys
-from hdrcap.pipeline.io import read_raw
+from hdrcap.pipeline.io.raw import read_raw
 
 def outcome(path):
     try:

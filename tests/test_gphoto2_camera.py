@@ -135,7 +135,7 @@ def test_capture_download_delete_and_dng_from_card(tmp_path):
     assert got.read_bytes() == (vdir / "scene.jpg").read_bytes()  # the virtual camera returns its .jpg
     assert r["applied"] == pytest.approx(0.01)
     assert r["camera_file"] not in r["after"] and r["kept"]
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     fr = read_frame(r["dng"])
     assert fr.exposure_time == pytest.approx(1 / 125) and fr.shape == (32, 32)

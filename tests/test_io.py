@@ -10,16 +10,10 @@ import pytest
 
 from hdrcap.mock_camera.dng import exposure_rational, write_dng
 from hdrcap.pipeline.errors import InputError, OutputExistsError
-from hdrcap.pipeline.io import (
-    HdrImage,
-    atomic_output,
-    check_frames,
-    read_emva_descriptor,
-    read_exr,
-    read_frame,
-    read_raw,
-    write_exr,
-)
+from hdrcap.pipeline.io.emva_descriptor import read_emva_descriptor
+from hdrcap.pipeline.io.exr import ExrContent, read_exr, write_exr
+from hdrcap.pipeline.io.files import atomic_output
+from hdrcap.pipeline.io.raw import check_frames, read_frame, read_raw
 
 
 def _dng(path, data, t=1 / 250, iso=400, cfa="RGGB", black=128, white=4095):
@@ -132,15 +126,15 @@ def test_exr_round_trip_all_channels_and_attributes(tmp_path):
         "hdrcap_version": "0.1.0",
         "merge": {"iterations": 3, "saturation": "threshold"},
     }
-    path = write_exr(tmp_path / "o.exr", HdrImage(ch, attrs))
+    path = write_exr(tmp_path / "o.exr", ch, attrs)
     back = read_exr(path)
     assert set(back.channels) == set(ch)
     for k in ch:
         assert back.channels[k].dtype == np.float32 and np.array_equal(back.channels[k], ch[k])
-    assert back.attrs == json.loads(json.dumps(attrs))  # full float64 precision kept
+    assert back.header == json.loads(json.dumps(attrs))  # full float64 precision kept
     with pytest.raises(OutputExistsError):
-        write_exr(path, HdrImage(ch, attrs))
-    write_exr(path, HdrImage({"irradiance": ch["sigma"]}, {}), force=True)
+        write_exr(path, ch, attrs)
+    write_exr(path, {"irradiance": ch["sigma"]}, {}, force=True)
     assert set(read_exr(path).channels) == {"irradiance"}
 
 
@@ -159,7 +153,7 @@ def test_atomic_output_gets_the_usual_file_mode(tmp_path):
     """Outputs are readable like any file the process creates (mkstemp alone gives 0600)."""
     import stat
 
-    from hdrcap.pipeline import io as pio
+    from hdrcap.pipeline.io import files as pio
 
     target = tmp_path / "out.txt"
     with atomic_output(target) as tmp:
@@ -227,12 +221,13 @@ def _merge_like_channels(shape=(20, 30)):
 
 @pytest.mark.parametrize("compression", ["zip", "zips", "piz", "zstd", "rle", "none"])
 def test_exr_half_sigma_and_uint_nexp_read_back_as_float32(tmp_path, compression):
-    from hdrcap.pipeline.io import HALF_RELATIVE_ERROR
+    from hdrcap.pipeline.io.exr import HALF_RELATIVE_ERROR
 
     ch = _merge_like_channels()
     path = write_exr(
         tmp_path / "o.exr",
-        HdrImage(ch, {"unit": "e-/s"}),
+        ch,
+        {"unit": "e-/s"},
         compression=compression,
         precision={"sigma": "half", "nexp": "uint"},
         threads=2,
@@ -260,8 +255,8 @@ def test_exr_native_read_and_same_type_write_keep_every_bit(tmp_path):
     ch = _merge_like_channels()
     sigma = ch["sigma"].astype(np.float16)
     sigma[0, :3] = np.array([6e-8, 3e-6, -2e-5], np.float16)  # subnormal halves
-    image = HdrImage(dict(ch, sigma=sigma), {"unit": "e-/s"})
-    path = write_exr(tmp_path / "a.exr", image, precision={"sigma": "half", "nexp": "uint"})
+    image = ExrContent(dict(ch, sigma=sigma), {"unit": "e-/s"})
+    path = write_exr(tmp_path / "a.exr", *image, precision={"sigma": "half", "nexp": "uint"})
     native = read_exr(path, native=True)
     plain = read_exr(path)
     assert {k: v.dtype for k, v in native.channels.items()} == {
@@ -273,36 +268,34 @@ def test_exr_native_read_and_same_type_write_keep_every_bit(tmp_path):
         assert np.array_equal(native.channels[k].astype(np.float32), plain.channels[k]), k
     assert native.channels["sigma"].tobytes() == sigma.tobytes()
     for prec in ("half", "auto"):
-        again = write_exr(tmp_path / f"b-{prec}.exr", native, precision={"sigma": prec, "nexp": "uint"})
+        again = write_exr(tmp_path / f"b-{prec}.exr", *native, precision={"sigma": prec, "nexp": "uint"})
         back = read_exr(again, native=True)
         for k in ch:
             assert back.channels[k].tobytes() == native.channels[k].tobytes(), (prec, k)
         with OpenEXR.File(str(again)) as exr:
             assert str(exr.channels()["sigma"].type()) == "PixelType.HALF"
     with pytest.raises(ValueError, match="outside the half range"):  # the same values as float32
-        write_exr(
-            tmp_path / "c.exr", HdrImage(dict(ch, sigma=sigma.astype(np.float32)), {}), precision={"sigma": "half"}
-        )
+        write_exr(tmp_path / "c.exr", dict(ch, sigma=sigma.astype(np.float32)), {}, precision={"sigma": "half"})
 
 
 def test_exr_precision_refuses_what_it_would_lose(tmp_path):
     ch = _merge_like_channels()
-    image = HdrImage(ch, {})
+    image = ExrContent(ch, {})
     with pytest.raises(ValueError, match="irradiance channel is always stored as float"):
-        write_exr(tmp_path / "a.exr", image, precision={"irradiance": "half"})
-    big = HdrImage(dict(ch, sigma=np.full((20, 30), 1e5, np.float32)), {})
+        write_exr(tmp_path / "a.exr", *image, precision={"irradiance": "half"})
+    big = ExrContent(dict(ch, sigma=np.full((20, 30), 1e5, np.float32)), {})
     with pytest.raises(ValueError, match="'sigma': values .* outside the half range"):
-        write_exr(tmp_path / "b.exr", big, precision={"sigma": "half"})
-    frac = HdrImage(dict(ch, nexp=np.full((20, 30), 0.5, np.float32)), {})
+        write_exr(tmp_path / "b.exr", *big, precision={"sigma": "half"})
+    frac = ExrContent(dict(ch, nexp=np.full((20, 30), 0.5, np.float32)), {})
     with pytest.raises(ValueError, match="'nexp': uint needs whole numbers"):
-        write_exr(tmp_path / "c.exr", frac, precision={"nexp": "uint"})
+        write_exr(tmp_path / "c.exr", *frac, precision={"nexp": "uint"})
     with pytest.raises(ValueError, match="precision given for channels the image does not have: x"):
-        write_exr(tmp_path / "d.exr", image, precision={"x": "half"})
+        write_exr(tmp_path / "d.exr", *image, precision={"x": "half"})
     with pytest.raises(ValueError, match="precision must be one of"):
-        write_exr(tmp_path / "e.exr", image, precision={"sigma": "double"})
+        write_exr(tmp_path / "e.exr", *image, precision={"sigma": "double"})
     # infinities and zeros are stored exactly as half
-    special = HdrImage(dict(ch, sigma=np.where(ch["nexp"] == 0, np.inf, 0).astype(np.float32)), {})
-    back = read_exr(write_exr(tmp_path / "f.exr", special, precision={"sigma": "half"}))
+    special = ExrContent(dict(ch, sigma=np.where(ch["nexp"] == 0, np.inf, 0).astype(np.float32)), {})
+    back = read_exr(write_exr(tmp_path / "f.exr", *special, precision={"sigma": "half"}))
     assert np.array_equal(back.channels["sigma"], special.channels["sigma"])
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
 
@@ -312,6 +305,6 @@ def test_exr_auto_precision_is_half_only_where_it_fits(tmp_path):
 
     ch = _merge_like_channels()
     for sigma, expect in ((ch["sigma"], "PixelType.HALF"), (ch["sigma"] * 1e4, "PixelType.FLOAT")):
-        path = write_exr(tmp_path / f"{expect}.exr", HdrImage(dict(ch, sigma=sigma), {}), precision={"sigma": "auto"})
+        path = write_exr(tmp_path / f"{expect}.exr", dict(ch, sigma=sigma), precision={"sigma": "auto"})
         with OpenEXR.File(str(path)) as exr:
             assert str(exr.channels()["sigma"].type()) == expect

@@ -102,7 +102,7 @@ def test_exposure_outside_camera_range_rejected_before_any_frame(tmp_path, cli):
 
 def test_run_job_merge_within_stated_uncertainty(tmp_path, cli):
     from hdrcap.mock_camera.scenes import make_scene
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     p = _write(tmp_path, GOOD)
     proc = cli("run", p, "--json", "--no-progress")
@@ -125,9 +125,9 @@ def test_run_job_merge_within_stated_uncertainty(tmp_path, cli):
     assert sum(r["type"] == "frame" for r in recs) == 12
     # the header lists the frames relative to the run folder and carries the first frame's colour
     # metadata, read from the file itself (the run is not started from its own folder)
-    sources = img.attrs["source_files"]
+    sources = img.header["source_files"]
     assert len(sources) == 6 and all((Path(res["run_dir"]) / f).is_file() for f in sources)
-    assert len(img.attrs["camera_colour"]["color_matrix_1"]) == 9, img.attrs.get("camera_colour")
+    assert len(img.header["camera_colour"]["color_matrix_1"]) == 9, img.header.get("camera_colour")
     developed = tmp_path / "rgb.exr"
     proc = cli("develop", res["exr"], "-o", developed, "--space", "linear-srgb")
     assert proc.returncode == 0 and developed.is_file(), proc.stderr
@@ -214,7 +214,7 @@ def test_master_darks_come_from_the_dark_library(tmp_path, cli):
     from hdrcap.acquire.camera.mock import MockCamera
     from hdrcap.mock_camera.scenes import make_scene
     from hdrcap.pipeline.calibration import darklibrary
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     lib = darklibrary.DarkLibrary(tmp_path / "darks")
     cam = MockCamera("camera-B", make_scene("hdr", (48, 64), decades=3.0, x_max=2e4), seed=3)
@@ -246,7 +246,7 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
     from hdrcap.mock_camera.scenes import make_scene
     from hdrcap.mock_camera.sensor import SimulatedSensor
     from hdrcap.pipeline.calibration import save_calibration
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
     from hdrcap.pipeline.params import Calibration
     from hdrcap.planner.plan import Plan
 
@@ -286,7 +286,7 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
     dark_times = sorted(r["file_exposure_s"] for r in res.frames.values() if r["kind"] == "dark")
     assert dark_times == pytest.approx([1 / 250, 1 / 15, 1.0], rel=1e-3)
     img = read_exr(summary["exr"])
-    m, p = img.attrs["merge"], img.attrs["planner"]
+    m, p = img.header["merge"], img.header["planner"]
     assert m["dark_strategies"] == darks and m["iterations"] == 5 and m["saturation"] == "probabilistic"
     assert p["decisions"] == decisions and p["predicted_min_snr_db"] == 22.0
     assert p["options_from_plan"] == {

@@ -66,6 +66,7 @@ MOCK_CAMERA_MAY_READ = (
     "hdrcap.pipeline.errors",
     "hdrcap.pipeline.times",
     "hdrcap.pipeline.io",
+    "hdrcap.pipeline.schema",
 )
 
 

@@ -410,7 +410,8 @@ def test_bad_input_raises_input_error():
 
 
 def _emva_steps(emva_dir):
-    from hdrcap.pipeline.io import read_emva_descriptor, read_image16
+    from hdrcap.pipeline.io.emva_descriptor import read_emva_descriptor
+    from hdrcap.pipeline.io.raw import read_image16
 
     ds = read_emva_descriptor(emva_dir / "EMVA1288_Data.txt")
     darks = {round(s.exposure_time, 9): s for s in ds.dark()}

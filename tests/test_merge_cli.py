@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from hdrcap.cli import main as cli_main  # noqa: F401  (imported to fail early if the CLI breaks)
-from hdrcap.pipeline.io import read_exr
+from hdrcap.pipeline.io.exr import read_exr
 
 
 def test_merge_cli_knobs_recorded_and_accurate(tmp_path, cli):
@@ -37,9 +37,9 @@ def test_merge_cli_knobs_recorded_and_accurate(tmp_path, cli):
         check=True,
     )
     img = read_exr(out)
-    m = img.attrs["merge"]
+    m = img.header["merge"]
     assert m["iterations"] == 9 and m["tolerance"] == 1e-5 and m["saturation"] == "threshold"
-    assert m["prnu"] == "scalar" and m["dark_strategy"] == "matched" and img.attrs["weighting"] == "optimal"
+    assert m["prnu"] == "scalar" and m["dark_strategy"] == "matched" and img.header["weighting"] == "optimal"
     truth = read_exr(sim / "truth.exr").channels["irradiance"]
     ok = img.channels["nexp"] > 0
     z = (img.channels["irradiance"][ok] - truth[ok]) / img.channels["sigma"][ok]
@@ -65,5 +65,5 @@ def test_merge_cli_knobs_recorded_and_accurate(tmp_path, cli):
         "1",
         check=True,
     )
-    p = read_exr(tmp_path / "p.exr").attrs["merge"]
+    p = read_exr(tmp_path / "p.exr").header["merge"]
     assert p["dark_strategy"] == "master" and p["saturation"] == "probabilistic" and p["master_dark"]

@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 from simcal import bracket, calibrated_sensor
 
+import hdrcap
 from hdrcap.mock_camera import preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
-from hdrcap.pipeline.io import read_exr, write_exr
-from hdrcap.pipeline.merge.accumulator import QUALITY_BITS, merge_frames
-from hdrcap.pipeline.merge.files import build_hdr_image, summary
+from hdrcap.pipeline.io.exr import read_exr
 from hdrcap.pipeline.params import DEFECT_BITS
+from hdrcap.pipeline.result import summarise as summary
+from hdrcap.pipeline.schema import QUALITY_BITS
 
 SHAPE = (128, 128)
 TIMES = (0.004, 0.03, 0.25, 2.0)
@@ -27,7 +28,7 @@ def merged():
     sensor, cal = calibrated_sensor(spec, seed=8, shape=SHAPE)
     X = make_scene("gradient", SHAPE, decades=3.0, x_max=2e5)
     frames, darks = bracket(sensor, X, TIMES, seed=8)
-    res = merge_frames(frames, cal, darks)
+    res = hdrcap.merge(frames, calibration=cal, darks=darks)
     return sensor, cal, X, frames, res
 
 
@@ -65,10 +66,10 @@ def test_no_confident_wrong_number(merged):
 
 def test_quality_channel_in_the_exr_and_the_denoiser_skips_it(merged, tmp_path):
     _sensor, cal, X, frames, res = merged
-    path = write_exr(tmp_path / "m.exr", build_hdr_image(res, frames, cal))
+    path = res.write(tmp_path / "m.exr")
     img = read_exr(path)
     np.testing.assert_array_equal(img.channels["quality"], res.quality.astype(np.float32))
-    assert "16 saturated" in img.attrs["quality"] and "1 dead" in img.attrs["quality"]
+    assert "16 saturated" in img.header["quality"] and "1 dead" in img.header["quality"]
     s = summary(res)
     assert s["defects_flagged"] == res.info["defects_flagged"]
     # the denoiser leaves the flagged photosites alone and never averages them in

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from hdrcap.cli import main
-from hdrcap.pipeline.io import read_exr, read_frame
+from hdrcap.pipeline.io.exr import read_exr
+from hdrcap.pipeline.io.raw import read_frame
 
 TIMES = [0.001, 0.004, 0.016, 0.064, 0.25, 1.0]
 MIXED = ["matched", "model", "matched", "model", "matched", "model"]
@@ -125,14 +126,14 @@ def test_merge_plan_applies_per_exposure_strategies_and_records_decisions(data, 
     )
     assert code == 0, err
     img = read_exr(out)
-    m, p = img.attrs["merge"], img.attrs["planner"]
+    m, p = img.header["merge"], img.header["planner"]
     assert m["dark_strategies"] == MIXED and m["dark_strategy"] == "mixed"
     assert m["iterations"] == 9 and m["saturation"] == "probabilistic" and m["prnu"] == "map"
     assert p["options_from_plan"] == {"saturation": "probabilistic", "prnu": "map", "saturation_sigmas": 3.0}
     assert p["options_overridden"] == {"iterations": {"plan": 6, "used": 9}}
     assert p["decisions"]["iterations"]["choice"] == 6 and p["predicted_min_snr_db"] == 21.5
     assert p["plan_sha256"] == hashlib.sha256(plan.read_bytes()).hexdigest() and p["plan_file"] == str(plan)
-    src = img.attrs["dark_sources"]
+    src = img.header["dark_sources"]
     assert [s == "model" for s in src] == [s == "model" for s in MIXED]
     assert all(f"_{t:g}s" in s for t, s in zip(TIMES, src) if s != "model")
     z = _z(img, data["truth"])
@@ -167,8 +168,8 @@ def test_master_darks_from_the_calibration_dark_library(data, tmp_path, capsys):
     code, _, err = _run(capsys, "merge", *five, "--calibration", data["cal"], "--dark-strategy", "master", "-o", out)
     assert code == 0, err
     img = read_exr(out)
-    assert img.attrs["merge"]["n_dark_per_frame"] == [N_LIB] * 5
-    assert all(str(data["root"] / "darklib") in s for s in img.attrs["dark_sources"])
+    assert img.header["merge"]["n_dark_per_frame"] == [N_LIB] * 5
+    assert all(str(data["root"] / "darklib") in s for s in img.header["dark_sources"])
     z = _z(img, data["truth"])
     assert 0.9 < z.std() < 1.1 and abs(z.mean()) < 0.1, (z.std(), z.mean())
     # the library lacks 0.25 s: the error names the time
@@ -267,7 +268,7 @@ def test_merge_takes_the_json_of_hdrcap_plan(data, tmp_path, capsys):
     )
     assert code == 0, err
     img = read_exr(tmp_path / "p.exr")
-    p, m = img.attrs["planner"], img.attrs["merge"]
+    p, m = img.header["planner"], img.header["merge"]
     assert p["decisions"] == plan["decisions"] and p["predicted_min_snr_db"] == plan["predicted_min_snr_db"]
     for name, value in p["options_from_plan"].items():
         assert m[name] == value
@@ -295,8 +296,8 @@ def test_dark_strategy_given_overrides_the_plan_and_bad_plans_fail(data, tmp_pat
     assert code == 0, err
     assert "'denoise' is not one hdrcap merge knows" in err
     img = read_exr(tmp_path / "o.exr")
-    p = img.attrs["planner"]
-    assert img.attrs["merge"]["dark_strategies"] == ["matched"] * 6
+    p = img.header["planner"]
+    assert img.header["merge"]["dark_strategies"] == ["matched"] * 6
     assert p["options_overridden"] == {"darks": {"plan": ["model"] * 6, "used": "matched"}}
     assert p["options_from_plan"] == {"saturation": "threshold"} and p["options_ignored"] == ["denoise"]
     (tmp_path / "bad.json").write_text("{not json")

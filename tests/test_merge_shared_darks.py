@@ -11,10 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import hdrcap
 from hdrcap.acquire.capture.session import StreamingMerge
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline.io import RawFrame
-from hdrcap.pipeline.merge.accumulator import merge_arrays, merge_frames
+from hdrcap.pipeline.io.raw import RawFrame
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration
 
 COPIES = 4
@@ -79,14 +80,14 @@ def test_copies_with_their_own_darks_are_not_grouped():
 
 
 def test_batch_files_and_streaming_equal_the_array_merge():
-    """merge_frames (dark frames matched by time through the DarkResolver) and the session's
+    """hdrcap.merge (dark frames matched by time through the DarkResolver) and the session's
     StreamingMerge group the copies the same way as merge_arrays with one shared object."""
     times = [0.05, 0.2]
     X, cal, values, ts, darks = _bracket("camera-B", times, 4, shape=(48, 64), dark_current=50.0)
     ref = merge_arrays(values, ts, cal, darks)
     frames = [RawFrame(v, t, path=f"f{i}") for i, (v, t) in enumerate(zip(values, ts))]
     dark_frames = [RawFrame(darks[COPIES * j], t, path=f"d{j}") for j, t in enumerate(times)]
-    batch = merge_frames(frames, cal, dark_frames)
+    batch = hdrcap.merge(frames, calibration=cal, darks=dark_frames)
     assert batch.info["dark_shared_by"] == [COPIES] * len(values)
     np.testing.assert_array_equal(batch.sigma, ref.sigma)
     np.testing.assert_array_equal(batch.irradiance, ref.irradiance)
@@ -104,7 +105,7 @@ def test_cli_several_frames_per_time_one_dark_per_time(tmp_path, cli):
     """``hdrcap merge`` takes repeats of each exposure time with one dark frame per time: the
     copies share it (recorded in the EXR) and the stated sigma is honest against the truth."""
     from hdrcap.mock_camera.backend import SimulatedCamera
-    from hdrcap.pipeline.io import read_exr
+    from hdrcap.pipeline.io.exr import read_exr
 
     spec = PRESETS["camera-B"]
     X = np.full((40, 60), 30.0)
@@ -117,7 +118,7 @@ def test_cli_several_frames_per_time_one_dark_per_time(tmp_path, cli):
     out = tmp_path / "m.exr"
     cli("merge", *frames, "--darks", *darks, "--camera", "camera-B", "-o", out, "--prnu", "scalar", check=True)
     img = read_exr(out)
-    assert img.attrs["merge"]["dark_shared_by"] == [COPIES] * len(frames)
+    assert img.header["merge"]["dark_shared_by"] == [COPIES] * len(frames)
     z = (img.channels["irradiance"] - X) / img.channels["sigma"]
     assert 0.8 < z.std() < 1.2, z.std()  # 2400 photosites; independent darks would give ~1.5
 

@@ -10,7 +10,7 @@ import pytest
 from hdrcap.cli import main
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+from hdrcap.pipeline.io.exr import read_exr, write_exr
 from hdrcap.pipeline.params import THIRD_STOP_TIMES
 
 
@@ -24,7 +24,7 @@ def _run(capsys, *args):
 def scene_exr(tmp_path):
     X = make_scene("hdr", (48, 64), decades=3, x_max=5e4).astype(np.float32)
     path = tmp_path / "truth.exr"
-    write_exr(path, HdrImage({"irradiance": X}, {"unit": "e-/s"}))
+    write_exr(path, {"irradiance": X}, {"unit": "e-/s"})
     return path
 
 

@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import hdrcap
 from hdrcap.mock_camera import PRESETS, SimulatedSensor
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 from hdrcap.pipeline.merge import accumulator as merge_mod
 from hdrcap.pipeline.params import Calibration, SensorParams
 from hdrcap.planner import (
@@ -455,12 +456,12 @@ def test_dark_error_model_matches_simulated_merge_without_dark_frames():
     for _ in range(S):
         frames = [RawFrame(sensor.expose(X, ti, rng=rng), ti) for ti in t]
         darks = [RawFrame(sensor.expose(0, ti, dark=True, rng=rng), ti) for ti in t]
-        e_model += np.mean((merge_mod.merge_frames(frames, cal).irradiance - X) ** 2)
-        e_matched += np.mean((merge_mod.merge_frames(frames, cal, darks[:1]).irradiance - X) ** 2)
+        e_model += np.mean((hdrcap.merge(frames, calibration=cal).irradiance - X) ** 2)
+        e_matched += np.mean((hdrcap.merge(frames, calibration=cal, darks=darks[:1]).irradiance - X) ** 2)
     meas_model = 10 * np.log10(150.0**2 * S / e_model)
     meas_matched = 10 * np.log10(150.0**2 * S / e_matched)
     pred_model = predict_snr(150.0, t, cal, "model", errors=errors).snr_db
-    # merge_frames uses one dark frame per exposure time: the three frames share it
+    # hdrcap.merge uses one dark frame per exposure time: the three frames share it
     assert abs(meas_model - pred_model) < 0.5, (meas_model, pred_model)
     assert meas_matched > meas_model + 1.0  # the dark frame pays off here
     plan = plan_exposures(cal, X, 20.0, errors=errors)

@@ -252,7 +252,7 @@ def test_calibration_recovers_its_camera_within_stated_errors(log_g, log_s2, bit
 
     from hdrcap.mock_camera import PRESETS, SimulatedSensor
     from hdrcap.pipeline.calibration import calibrate
-    from hdrcap.pipeline.io import RawFrame
+    from hdrcap.pipeline.io.raw import RawFrame
 
     white = float(2**bits - 1)
     g, s2 = 10**log_g, 10**log_s2

@@ -12,9 +12,9 @@ import pytest
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.backend import SimulatedCamera
 from hdrcap.mock_camera.scenes import make_scene
-from hdrcap.pipeline import io as pio
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import dngread
+from hdrcap.pipeline.io import raw as pio
 
 T = 1 / 100
 

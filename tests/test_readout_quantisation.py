@@ -21,7 +21,7 @@ from hdrcap.pipeline.calibration.readout import (
     quantiser_errors,
 )
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
 
 SEEDS = range(16)
 

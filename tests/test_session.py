@@ -15,7 +15,8 @@ from hdrcap.acquire.camera.mock import MockCamera, MockFaults
 from hdrcap.acquire.capture.manifest import Manifest
 from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import read_frame, sha256_file
+from hdrcap.pipeline.io.files import sha256_file
+from hdrcap.pipeline.io.raw import read_frame
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)

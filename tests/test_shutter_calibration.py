@@ -14,6 +14,7 @@ import pytest
 import tifffile
 from simcal import bracket, calibrated_sensor
 
+import hdrcap
 from hdrcap.acquire.capture.session import StreamingMerge
 from hdrcap.cli import main
 from hdrcap.mock_camera import preset
@@ -21,9 +22,9 @@ from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.calibration import load_calibration, save_calibration
 from hdrcap.pipeline.calibration.shutter import estimate_shutter_table
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame
-from hdrcap.pipeline.merge.accumulator import merge_frames
-from hdrcap.pipeline.merge.files import build_hdr_image
+from hdrcap.pipeline.header import with_merge_header
+from hdrcap.pipeline.io.raw import RawFrame
+from hdrcap.pipeline.merge.accumulator import MergeOptions
 from hdrcap.pipeline.params import ShutterTable
 
 SHAPE = (128, 128)
@@ -100,10 +101,10 @@ def test_the_merge_applies_the_table_where_the_bracket_cannot_estimate_its_ratio
     cal_t = cal.replace(shutter=estimate_shutter_table(frames, cal))
     light, darks = bracket(sensor, X, SPARSE, seed=6)
     normal = ~np.logical_or.reduce(list(sensor.defects.values()))
-    own = merge_frames(light, cal, darks)  # effective times, no table: the bracket alone
+    own = hdrcap.merge(light, calibration=cal, darks=darks)  # effective times, no table: the bracket alone
     assert own.info["exposure_time_ratios"]["estimated"] == [False, False, False]
     spread_n, bias_n = _figures(own, X, normal)
-    res = merge_frames(light, cal_t, darks)
+    res = hdrcap.merge(light, calibration=cal_t, darks=darks)
     spread, bias = _figures(res, X, normal)
     print(f"bracket only: z spread {spread_n:.3f}, bias per decade {np.round(100 * bias_n, 3)} %")
     print(f"with the table: z spread {spread:.3f}, bias per decade {np.round(100 * bias, 3)} %")
@@ -121,15 +122,15 @@ def test_nominal_switches_the_table_off_and_the_header_records_every_stage():
     sensor, cal, X, frames = _camera(6)
     cal_t = cal.replace(shutter=estimate_shutter_table(frames, cal))
     light, darks = bracket(sensor, X, SPARSE, seed=6)
-    off = merge_frames(light, cal_t, darks, exposure_times="nominal")
+    off = hdrcap.merge(light, calibration=cal_t, darks=darks, options=MergeOptions(exposure_times="nominal"))
     assert off.info["exposure_times"] == list(SPARSE) and off.info["shutter_table"]["applied"] == [False] * 3
-    res = merge_frames(light, cal_t, darks)
-    head = build_hdr_image(res, light, cal_t).attrs
+    res = hdrcap.merge(light, calibration=cal_t, darks=darks)
+    head = res.header
     assert head["exposure_times"] == list(SPARSE)
     np.testing.assert_allclose(head["exposure_times_calibrated"], [t * cal_t.shutter.lookup(t)[0] for t in SPARSE])
     np.testing.assert_allclose(head["exposure_times_effective"], res.info["exposure_times"])
     assert head["shutter_corrections"]["reference"] == 1.0 and head["shutter_corrections"]["applied"] == [True] * 3
-    assert build_hdr_image(res, light, cal).attrs["shutter_corrections"] is None
+    assert with_merge_header(res, light, cal).header["shutter_corrections"] is None  # no table: none recorded
     # the streaming merge of a capture session applies it as each frame arrives
     sm = StreamingMerge(cal_t, X.shape, "matched")
     for f, d in zip(light, darks):
@@ -145,7 +146,7 @@ def test_the_bracket_refines_the_table_where_its_frames_overlap():
     cal_t = cal.replace(shutter=estimate_shutter_table(frames, cal))
     times = (1 / 250, 1 / 60, 1 / 15)
     light, darks = bracket(sensor, X, times, seed=3)
-    res = merge_frames(light, cal_t, darks)
+    res = hdrcap.merge(light, calibration=cal_t, darks=darks)
     calibrated = np.array(res.info["exposure_times_calibrated"])
     eff = np.array(res.info["exposure_times"])
     assert res.info["exposure_time_ratios"]["estimated"] == [True, True, True]

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from hdrcap.acquire.capture.manifest import EventLog, Manifest
-from hdrcap.pipeline.io import read_exr, sha256_file
+from hdrcap.pipeline.io.exr import read_exr
+from hdrcap.pipeline.io.files import sha256_file
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -27,7 +27,7 @@ from hdrcap.acquire.capture.session import (
     StopEvent,
     VerificationError,
 )
-from hdrcap.pipeline.io import sha256_file
+from hdrcap.pipeline.io.files import sha256_file
 
 REPO = Path(__file__).resolve().parents[1]
 FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)

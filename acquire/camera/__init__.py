@@ -194,7 +194,7 @@ def exposure_ladder(camera) -> list[float]:
 
 def dark_level(path) -> float:
     """How much light a frame saw: its median above black as a fraction of the range
-    (raw files via :func:`pipeline.io.read_frame`, JPEG/PNG previews via Pillow)."""
+    (raw files via :func:`pipeline.io.raw.read_frame`, JPEG/PNG previews via Pillow)."""
     import numpy as np
 
     path = Path(path)
@@ -204,7 +204,7 @@ def dark_level(path) -> float:
         with Image.open(path) as im:
             data = np.asarray(im.convert("L"), dtype=np.float64)
         return float(np.median(data) / 255.0)
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     fr = read_frame(path)
     black = fr.black_level or 0.0

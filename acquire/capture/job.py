@@ -864,7 +864,7 @@ def _meter_fn(camera, run_dir: Path, retry=None, stop=None, sleep=time.sleep):
     Files of an earlier, interrupted metering stay; new ones never reuse their names."""
     from hdrcap.acquire.camera import fault_kind
     from hdrcap.acquire.capture.session import RetryPolicy, SessionError
-    from hdrcap.pipeline.io import read_frame
+    from hdrcap.pipeline.io.raw import read_frame
 
     retry = retry or RetryPolicy()
     meter_dir = run_dir / "meter"
@@ -1137,8 +1137,11 @@ def _plan_merge_options(planned: dict) -> dict:
 def _write_outputs(
     job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force, planner_header: dict | None = None
 ) -> dict:
-    from hdrcap.pipeline.io import RawFrame, write_exr
-    from hdrcap.pipeline.merge.files import build_hdr_image
+    """The run's outputs: the merge's EXR (the one header builder and writer every door uses),
+    the preview PNG, and the error against the truth when the camera is simulated."""
+    from hdrcap.pipeline.header import with_merge_header
+    from hdrcap.pipeline.io.raw import RawFrame
+    from hdrcap.pipeline.io.results import write_result
     from hdrcap.pipeline.preview import write_preview_png
 
     out: dict[str, Any] = {}
@@ -1153,17 +1156,17 @@ def _write_outputs(
         RawFrame(data=None, exposure_time=r["file_exposure_s"], path=str(run_dir / r["file"]), cfa_pattern=cfa)
         for r in lights
     ]
-    extra = {
-        "source_files": [r["file"] for r in lights],
+    run = {
         "run_dir": str(run_dir),
         "job": job.name,
         "camera": lights[0]["camera"] if lights else {},
         "manifest": "manifest.jsonl",
     }
-    if planner_header:
-        extra["planner"] = planner_header
+    merge = with_merge_header(
+        merge, frames, calibration, source_files=[r["file"] for r in lights], run=run, planner=planner_header
+    )
     if exr_path is not None:
-        write_exr(exr_path, build_hdr_image(merge, frames, calibration, extra), force=force)
+        write_result(merge, exr_path, format="exr", force=force)
         out["exr"] = str(exr_path)
     if png_path is not None:
         write_preview_png(png_path, merge.irradiance, cfa, force=force)

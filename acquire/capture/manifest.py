@@ -139,7 +139,7 @@ class Manifest:
 
     def verify_hashes(self) -> list[str]:
         """Keys whose file is missing or whose sha256 differs from the manifest's."""
-        from hdrcap.pipeline.io import sha256_file
+        from hdrcap.pipeline.io.files import sha256_file
 
         bad = []
         for key, rec in self.frames().items():

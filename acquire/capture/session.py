@@ -7,7 +7,7 @@ Guarantees
 * Every planned frame ends up in the run folder exactly once, under a name derived from its
   unique plan key (``frames/0007_light_0.004s.dng``); a file is never overwritten.
 * A frame is recorded in the manifest only after it was verified: it opens with
-  :func:`pipeline.io.read_frame`, its size is the camera's and the exposure time in the file
+  :func:`pipeline.io.raw.read_frame`, its size is the camera's and the exposure time in the file
   is the one the camera reported applying. Its sha256 is recorded.
 * Busy cameras are retried with exponential backoff; disconnects and hangs cause a reconnect
   (a new camera object) and a retry; bad files are captured again; card full and camera gone
@@ -566,7 +566,7 @@ class StreamingMerge:
         )
 
     def result(self):
-        """The :class:`pipeline.merge.accumulator.MergeResult` of everything added."""
+        """The :class:`pipeline.result.HdrResult` of everything added."""
         if not len(self._acc):
             raise SessionError("no light frames to merge")
         return self._acc.result()
@@ -806,7 +806,7 @@ class CaptureSession:
 
     def _replay(self, done: dict) -> StreamingMerge | None:
         """The merge of the frames recorded before a resume, in capture order."""
-        from hdrcap.pipeline.io import read_frame
+        from hdrcap.pipeline.io.raw import read_frame
 
         merger = None
         if self.calibration is not None:
@@ -994,7 +994,7 @@ class CaptureSession:
 
     def _verify(self, path: Path, spec: FrameSpec, applied: float, res) -> tuple[dict, np.ndarray]:
         """Open the file and check its size and exposure time (CorruptFrameError if not)."""
-        from hdrcap.pipeline.io import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
+        from hdrcap.pipeline.io.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
         if path.suffix.lower() not in RAW_EXTENSIONS | IMAGE_EXTENSIONS:
             raise InputError(
@@ -1090,7 +1090,7 @@ class CaptureSession:
             raise stop
 
     def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict) -> dict:
-        from hdrcap.pipeline.io import sha256_file
+        from hdrcap.pipeline.io.files import sha256_file
 
         self._frame_bytes = max(self._frame_bytes, final.stat().st_size)
         return {
@@ -1247,8 +1247,8 @@ def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> No
 
 def _link_new(src: Path, dst: Path) -> None:
     """Put ``src`` at ``dst`` without ever replacing an existing file (also on file systems
-    without hard links, :func:`pipeline.io.place_new`)."""
-    from hdrcap.pipeline.io import place_new
+    without hard links, :func:`pipeline.io.files.place_new`)."""
+    from hdrcap.pipeline.io.files import place_new
 
     try:
         place_new(src, dst)

@@ -45,6 +45,8 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.result import HdrResult
+from hdrcap.pipeline.schema import CHANNEL_NAMES
 
 __all__ = [
     "ArchiveRun",
@@ -59,7 +61,7 @@ __all__ = [
 ]
 
 #: The per-photosite variables, as in the EXR of ``hdrcap merge``.
-CHANNELS = ("irradiance", "sigma", "nexp", "quality", "sigma_calibration")
+CHANNELS = CHANNEL_NAMES
 #: Channels a merge may leave out, and the value that stands for "not given" in the archive
 #: (quality 0: no flag; sigma_calibration NaN: not computed). :func:`read_run` leaves
 #: sigma_calibration out again when it is NaN everywhere, so an exported EXR has the merge's
@@ -191,7 +193,7 @@ class ArchiveRun:
 
 
 def _json(obj: Any) -> str:
-    from hdrcap.pipeline.io import _json_default
+    from hdrcap.pipeline.io.exr import _json_default
 
     return json.dumps(obj, sort_keys=True, default=_json_default)
 
@@ -287,8 +289,8 @@ def open_archive(path):
     return xr.open_zarr(path, consolidated=True)
 
 
-def read_run(path, index: int):
-    """One committed run of the archive as the :class:`pipeline.io.HdrImage` of ``hdrcap merge``.
+def read_run(path: str | Path, index: int) -> HdrResult:
+    """One committed run of the archive as the result ``hdrcap merge`` gives for that run.
 
     Parameters
     ----------
@@ -299,11 +301,16 @@ def read_run(path, index: int):
 
     Returns
     -------
-    HdrImage
-        float32 channels irradiance, sigma (e-/s per photosite) and nexp; the run's EXR header.
-    """
-    from hdrcap.pipeline.io import HdrImage
+    HdrResult
+        The channels as the run's EXR stores them (read back as float32; quality as uint8),
+        and the run's header. ``sigma_calibration`` and ``quality`` are left out where the
+        merge had none.
 
+    Raises
+    ------
+    InputError
+        Not an archive, or no such run.
+    """
     ds = open_archive(path)
     n = ds.sizes["run"]
     if not 0 <= index < n:
@@ -313,15 +320,24 @@ def read_run(path, index: int):
             else f"{path}: the archive holds no run yet"
         )
     one = ds.isel(run=index)
+    header = json.loads(str(one["header"].values))
     channels = {}
     for name in CHANNELS:
         if name not in one:
             continue
         arr = np.asarray(one[name].values, dtype=np.float32)
-        if name == "sigma_calibration" and np.all(np.isnan(arr)):
-            continue
+        if name in OPTIONAL_FILL and header.get(name) is None:
+            continue  # the merge had no such channel (its description is None)
         channels[name] = arr
-    return HdrImage(channels, json.loads(str(one["header"].values)))
+    quality = channels.get("quality")
+    return HdrResult(
+        channels["irradiance"],
+        channels["sigma"],
+        channels["nexp"],
+        quality=None if quality is None else quality.astype(np.uint8),
+        sigma_calibration=channels.get("sigma_calibration"),
+        header=header,
+    )
 
 
 class Archive:

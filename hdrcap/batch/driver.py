@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.merge.accumulator import MergeOptions
 
 __all__ = [
     "RunSource",
@@ -82,8 +83,8 @@ class BatchSettings:
         Calibration file (read on the worker); or
     camera : str or None
         a simulator preset.
-    options : dict
-        Merge options (:func:`pipeline.merge.files.merge_options`).
+    options : MergeOptions
+        Merge options (default: ``hdrcap merge``'s).
     given : frozenset of str
         Names of the options the user set (they win over a plan's).
     weighting : str
@@ -101,7 +102,7 @@ class BatchSettings:
 
     calibration: str | None
     camera: str | None
-    options: dict[str, Any] = field(default_factory=dict)
+    options: MergeOptions = field(default_factory=lambda: MergeOptions(exposure_times="effective"))
     given: frozenset[str] = frozenset()
     weighting: str = "optimal"
     dark_strategy: str | None = None
@@ -179,7 +180,7 @@ def _capture_run(folder: Path) -> RunSource:
 
 
 def _bracket_run(folder: Path) -> RunSource:
-    from hdrcap.pipeline.io import RAW_EXTENSIONS
+    from hdrcap.pipeline.io.raw import RAW_EXTENSIONS
 
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in RAW_EXTENSIONS)
     darks = tuple(str(p) for p in files if "dark" in p.stem.lower())
@@ -225,7 +226,7 @@ def calibration_identity(calibration: str | None, camera: str | None) -> dict[st
     """The calibration identity recorded with every run: its file and the file's sha256, or
     the preset's name."""
     if calibration:
-        from hdrcap.pipeline.io import sha256_file
+        from hdrcap.pipeline.io.files import sha256_file
 
         path = Path(calibration)
         if not path.is_file():
@@ -243,10 +244,11 @@ def _calibration(calibration: str | None, camera: str | None):
     return camera_model(calibration, camera)
 
 
-def _start_time(source: RunSource, frames) -> str:
+def _start_time(source: RunSource, result: Any) -> str:
     if source.start_time:
         return source.start_time
-    stamp = frames[0].timestamp if frames else None
+    stamps = result.header.get("capture_times") or [None]
+    stamp = stamps[0]
     if stamp:  # EXIF writes 2024:05:01 12:00:00
         date, _, clock = str(stamp).strip().partition(" ")
         iso = f"{date.replace(':', '-')}T{clock}" if clock else date.replace(":", "-")
@@ -291,10 +293,10 @@ def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, st
 
 
 def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
-
     from hdrcap.batch.archive import ArchiveRun, complete_channels, stage_channels
-    from hdrcap.pipeline.io import as_stored
-    from hdrcap.pipeline.merge.files import build_hdr_image, exr_precision, library_root, merge_files
+    from hdrcap.pipeline.io.exr import as_stored
+    from hdrcap.pipeline.merge.files import MergeRequest, library_root, merge_files
+    from hdrcap.pipeline.schema import storage_precision
 
     calib = _calibration(settings.calibration, settings.camera)
     plan = None
@@ -303,39 +305,40 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
 
         plan = check_plan(source.plan, f"{source.folder}/manifest.jsonl")
     strategy = settings.dark_strategy or (None if plan is not None else source.dark_strategy)
-    options = dict(settings.options)
-    if strategy and "dark_strategy" not in options:
-        from hdrcap.pipeline.noise import DarkStrategy
-
-        options["dark_strategy"] = DarkStrategy(strategy)
+    options, given = settings.options, settings.given
+    if strategy and options.dark_strategy is None:
+        options = dataclasses.replace(options, dark_strategy=strategy)
+        given = given | {"dark_strategy"} if settings.dark_strategy else given
     warnings: list[str] = []
-    done = merge_files(
-        [Path(f) for f in source.frames],
-        calib,
-        options,
-        dark_paths=[Path(d) for d in source.darks],
-        weighting=settings.weighting,
-        plan=plan,
-        dark_strategy=strategy,
-        plan_file=None if plan is None else plan.path,
-        master_dark_frames=settings.master_dark_frames,
-        library=library_root(calib, settings.calibration),
-        given=lambda n: n in settings.given,
+    result = merge_files(
+        MergeRequest(
+            frames=[Path(f) for f in source.frames],
+            calibration=calib,
+            dark_library=library_root(calib, settings.calibration),
+            options=options,
+            darks=[Path(d) for d in source.darks],
+            master_dark_frames=settings.master_dark_frames,
+            plan=plan,
+            given=given,
+            weighting=settings.weighting,
+            tiling=None,
+        ),
         warn=warnings.append,
     )
-    img = build_hdr_image(done.result, done.frames, calib, done.extra)
-    channels = complete_channels(as_stored(img.channels, exr_precision(img.channels, settings.sigma_precision)))
+    stored = as_stored(result.channels(), storage_precision(result.channels(), settings.sigma_precision))
+    channels = complete_channels(stored)
     staged = stage_channels(staging, _task_key(source), channels)
+    frames = result.header.get("exposure_times") or []
     run = ArchiveRun(
         folder=source.folder,
-        start_time=_start_time(source, done.frames),
+        start_time=_start_time(source, result),
         channels={} if staged else channels,
         staged=staged,
-        staged_shape=img.shape,
-        header=img.attrs,
-        exposure_times=[fr.exposure_time for fr in done.frames],
+        staged_shape=result.shape,
+        header=result.header,
+        exposure_times=list(frames),
         plan=source.plan,
-        merge_options={"weighting": settings.weighting, "merge": img.attrs.get("merge")},
+        merge_options={"weighting": settings.weighting, "merge": result.header.get("merge")},
         calibration=dict(settings.calibration_id, params=calib.params.to_dict(), provenance=calib.provenance),
     )
     return RunOutcome(run, tuple(warnings), time.perf_counter() - t0)

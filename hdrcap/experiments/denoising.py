@@ -26,9 +26,10 @@ from hdrcap.pipeline.denoise.filter import (
     bilateral_constant,
     normalised_mse,
 )
-from hdrcap.pipeline.io import atomic_output
-from hdrcap.pipeline.merge.accumulator import MergeResult, merge_arrays
+from hdrcap.pipeline.io.files import atomic_output
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration
+from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
     "EVAL_TIMES",
@@ -92,7 +93,7 @@ class DenoisedScene:
     report: dict[str, Any]
 
 
-def simulate_merged_scene(scene: str, shape: tuple[int, int], seed: int) -> tuple[np.ndarray, MergeResult]:
+def simulate_merged_scene(scene: str, shape: tuple[int, int], seed: int) -> tuple[np.ndarray, HdrResult]:
     """A camera-B bracket (:data:`EVAL_TIMES`) with matched darks of a mock scene, merged.
 
     The merge uses the nominal camera-B parameters and the sensor's true PRNU map, so that the
@@ -132,7 +133,7 @@ def _bandwidth_sweep(sigma: np.ndarray, n: int) -> np.ndarray:
     return np.logspace(np.log10(0.3 * np.percentile(s, 1)), np.log10(3 * np.percentile(s, 99)), n)
 
 
-def denoise_scene(name: str, truth: np.ndarray, merged: MergeResult, n_bandwidths: int) -> DenoisedScene:
+def denoise_scene(name: str, truth: np.ndarray, merged: HdrResult, n_bandwidths: int) -> DenoisedScene:
     """Filter one merge with every constant bandwidth of the sweep and every range scale.
 
     Parameters
@@ -141,7 +142,7 @@ def denoise_scene(name: str, truth: np.ndarray, merged: MergeResult, n_bandwidth
         Scene name (decides claim or control).
     truth : numpy.ndarray
         True irradiance, e-/s.
-    merged : MergeResult
+    merged : HdrResult
         The merge of the scene's bracket.
     n_bandwidths : int
         Finite constant bandwidths in the sweep (an infinite one is added).

@@ -35,10 +35,11 @@ from hdrcap.pipeline.evaluation import (
     snr_per_bin,
     weights_vs_output,
 )
-from hdrcap.pipeline.io import atomic_output
-from hdrcap.pipeline.merge.accumulator import MergeResult, merge_arrays
+from hdrcap.pipeline.io.files import atomic_output
+from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.merge.weighting import merge_weighted
 from hdrcap.pipeline.params import Calibration, SensorParams
+from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
     "EvalSetup",
@@ -256,7 +257,7 @@ def merge_method(
     times: Sequence[float],
     calibration: Calibration,
     **options: Any,
-) -> MergeResult:
+) -> HdrResult:
     """Merge with curve ``name`` of :data:`CURVES`.
 
     ``optimal`` is the maximum-likelihood merge (:func:`pipeline.merge.accumulator.merge_arrays` with
@@ -279,7 +280,7 @@ def merge_method(
 
     Returns
     -------
-    MergeResult
+    HdrResult
         Irradiance (e-/s), sigma (e-/s) and nexp per photosite.
     """
     if name == "optimal-defaults":

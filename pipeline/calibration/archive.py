@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import atomic_output, release_mapped_pages
+from hdrcap.pipeline.io.files import atomic_output, release_mapped_pages
 from hdrcap.pipeline.params import Calibration, SensorParams, ShutterTable
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "save_calibration", "load_calibration"]

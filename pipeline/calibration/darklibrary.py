@@ -18,7 +18,7 @@ import numpy as np
 
 from hdrcap.pipeline.compat import same_model as same_camera
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import atomic_output
+from hdrcap.pipeline.io.files import atomic_output
 from hdrcap.pipeline.times import EXPOSURE_RTOL, same_exposure, unique_exposures
 
 __all__ = ["DarkEntry", "DarkLibrary", "LIBRARY_FORMAT", "LIBRARY_VERSION", "same_camera"]

@@ -2,7 +2,7 @@
 
 Each stage is a separate, testable function, as in the EMVA 1288 reference implementation:
 
-1. parse: :func:`hdrcap.pipeline.io.read_emva_descriptor` (descriptor -> steps and image paths);
+1. parse: :func:`hdrcap.pipeline.io.emva_descriptor.read_emva_descriptor` (descriptor -> steps and image paths);
 2. data: :func:`emva_data` streams the images once and reduces them to numbers (temporal
    pair statistics per exposure time, spatial sums of the non-uniformity stacks);
 3. results: :func:`emva_results` computes the EMVA 1288 (Release 3.x) quantities: system
@@ -42,7 +42,8 @@ from hdrcap.pipeline.calibration.gain import PhotonTransferFit, photon_transfer_
 from hdrcap.pipeline.calibration.readout import QUANTISATION_LIMIT, QUANTISATION_VARIANCE
 from hdrcap.pipeline.calibration.stats import PairStats, pair_statistics
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import EmvaDataset, read_emva_descriptor, read_image16
+from hdrcap.pipeline.io.emva_descriptor import EmvaDataset, read_emva_descriptor
+from hdrcap.pipeline.io.raw import read_image16
 from hdrcap.pipeline.params import Calibration, SensorParams
 from hdrcap.pipeline.times import ExposureMap
 

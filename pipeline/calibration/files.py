@@ -19,7 +19,7 @@ from hdrcap.pipeline.calibration.shutter import estimate_shutter_table
 from hdrcap.pipeline.calibration.stats import DEFAULT_CLIP
 from hdrcap.pipeline.calibration.workflow import calibrate, with_file_metadata
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame, read_frame
+from hdrcap.pipeline.io.raw import RawFrame, read_frame
 from hdrcap.pipeline.params import Calibration
 
 __all__ = ["FileFrames", "calibrate_files", "add_shutter_table"]

@@ -1,7 +1,7 @@
 """The calibration's view of an input frame, and frame series grouped by exposure time.
 
 A frame is any object with ``data`` (a 2-D raw mosaic, DN), ``exposure_time`` (s) and
-optionally ``path`` and ``white_level`` (e.g. :class:`hdrcap.pipeline.io.RawFrame`), or a
+optionally ``path`` and ``white_level`` (e.g. :class:`hdrcap.pipeline.io.raw.RawFrame`), or a
 bare array (exposure time 0 s).
 """
 

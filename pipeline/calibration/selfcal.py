@@ -37,13 +37,16 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame, check_frames
+from hdrcap.pipeline.io.raw import RawFrame, check_frames
 from hdrcap.pipeline.params import Calibration, SensorParams
+from hdrcap.pipeline.result import HdrResult
+from hdrcap.pipeline.schema import UNIT_DN, UNIT_ELECTRONS
 
 __all__ = [
     "SELF_CALIBRATED",
     "PairEstimate",
     "SelfCalibration",
+    "self_calibration_header",
     "check_bracket",
     "cfa_black_tile",
     "saturation_level",
@@ -160,8 +163,8 @@ class SelfCalibration:
     def unit(self) -> str:
         """The irradiance unit of a merge with this model."""
         if self.gain_known:
-            return "electrons per second per photosite"
-        return "DN per second per photosite (gain unknown: not electrons)"
+            return UNIT_ELECTRONS
+        return UNIT_DN
 
     @property
     def gain_relative_stderr(self) -> float:
@@ -680,42 +683,64 @@ def calibration_sigma(irradiance: np.ndarray, nexp: np.ndarray, selfcal: SelfCal
     return np.where(np.asarray(nexp) > 0, out, 0.0).astype(np.float32)
 
 
-def apply_self_calibration(image, selfcal: SelfCalibration, *, times_applied: bool = True):
-    """Make a merge's EXR content state its self-calibration: the unit, the header attribute
+def apply_self_calibration(result: HdrResult, selfcal: SelfCalibration, *, times_applied: bool = True) -> HdrResult:
+    """A merge that states its self-calibration: the unit, the header entry
     ``self_calibration`` (:meth:`SelfCalibration.header`), sigma including the calibration's
     own uncertainty (:func:`calibration_sigma`, added in quadrature) and the calibration part
-    as the channel ``sigma_calibration`` (added in quadrature to the merge's own calibration part
-    when it has one).
+    as ``sigma_calibration`` (added in quadrature to the merge's own calibration part when it
+    has one).
 
     Parameters
     ----------
-    image : pipeline.io.HdrImage
-        Channels ``irradiance``, ``sigma``, ``nexp``; changed in place.
+    result : HdrResult
+        The merge (with its header).
     selfcal : SelfCalibration
+        The bracket's self-calibration.
     times_applied : bool
         Whether the merge used the effective exposure times (False: the nominal ones, recorded).
 
     Returns
     -------
-    pipeline.io.HdrImage
-        ``image``.
+    HdrResult
+        A new result; ``result`` is not changed.
     """
-    ch = image.channels
-    cal = calibration_sigma(ch["irradiance"], ch["nexp"], selfcal)
-    ch["sigma"] = np.sqrt(np.square(ch["sigma"], dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(
-        np.float32
-    )
-    prior = ch.get("sigma_calibration")  # the merge's own calibration part (maps), if any
-    ch["sigma_calibration"] = (
+    cal = calibration_sigma(result.irradiance, result.nexp, selfcal)
+    sigma = np.sqrt(np.square(result.sigma, dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(np.float32)
+    prior = result.sigma_calibration  # the merge's own calibration part (maps), if any
+    sigma_cal = (
         cal
         if prior is None
         else np.sqrt(np.square(prior, dtype=np.float64) + np.square(cal, dtype=np.float64)).astype(np.float32)
     )
+    header = self_calibration_header(result.header, selfcal, times_applied=times_applied)
+    return result.replace(sigma=sigma, sigma_calibration=sigma_cal, header=header)
+
+
+def self_calibration_header(
+    header: dict[str, Any], selfcal: SelfCalibration, *, times_applied: bool = True
+) -> dict[str, Any]:
+    """A merge's header stating its self-calibration: the unit, ``self_calibration``
+    (:meth:`SelfCalibration.header`) and what the sigma channels hold.
+
+    Parameters
+    ----------
+    header : dict
+        The merge's header.
+    selfcal : SelfCalibration
+        The bracket's self-calibration.
+    times_applied : bool
+        Whether the merge used the effective exposure times.
+
+    Returns
+    -------
+    dict
+        A new header.
+    """
     head = selfcal.header()
     head["merged_with"] = "effective exposure times" if times_applied else "nominal exposure times"
-    image.attrs["self_calibration"] = head
-    image.attrs["calibration_source"] = SELF_CALIBRATED
-    image.attrs["unit"] = selfcal.unit
-    image.attrs["sigma"] = f"standard deviation of irradiance, same unit; {head['sigma']}"
-    image.attrs["sigma_calibration"] = "the part of sigma due to the self-calibration's estimates (systematic)"
-    return image
+    out = dict(header)
+    out["self_calibration"] = head
+    out["unit"] = selfcal.unit
+    out["sigma"] = f"standard deviation of irradiance, same unit; {head['sigma']}"
+    out["sigma_calibration"] = "the part of sigma due to the self-calibration's estimates (systematic)"
+    return out

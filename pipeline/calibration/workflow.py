@@ -361,7 +361,7 @@ def calibrate(
     ----------
     bias, saturation, flats, darks : iterable of frames
         Objects with ``data`` (2-D raw mosaic, DN), ``exposure_time`` (s) and optional
-        ``path``/``white_level``, e.g. :class:`hdrcap.pipeline.io.RawFrame`. Saturation
+        ``path``/``white_level``, e.g. :class:`hdrcap.pipeline.io.raw.RawFrame`. Saturation
         frames and darks are optional; darks at >= 6 exposure times, ordered by time.
     clip : float or None
         Sigma-clipping threshold, standard deviations; None disables all outlier rejection.

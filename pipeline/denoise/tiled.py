@@ -13,7 +13,6 @@ into the output EXR.
 
 from __future__ import annotations
 
-import json
 import sys
 import tempfile
 import uuid
@@ -24,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.merge.tiled import RowFile, write_exr_rows
+from hdrcap.pipeline.io.exr import read_exr_layout, write_exr
+from hdrcap.pipeline.merge.tiled import RowFile
 
 __all__ = [
     "ExrRows",
@@ -101,28 +101,8 @@ def exr_layout(path: Path) -> tuple[dict[str, Any], list[str], tuple[int, int]]:
     InputError
         Not a readable EXR, or corrupt hdrcap metadata.
     """
-    import OpenEXR
-
-    from hdrcap.pipeline.io import _META_KEY, _check_readable, _quiet_stderr
-
-    _check_readable(path)
-    try:
-        with _quiet_stderr(), OpenEXR.File(str(path), header_only=True) as exr:
-            head = exr.header()
-            meta = head.get(_META_KEY)
-            (x0, y0), (x1, y1) = head["dataWindow"]
-            names = [c.name for c in head["channels"]]
-    except Exception as err:
-        raise InputError(f"{path}: not a readable EXR file ({err})") from None
-    try:
-        attrs = json.loads(meta) if meta is not None else {}
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: corrupt hdrcap metadata in the EXR header") from None
-    return attrs, names, (int(y1 - y0 + 1), int(x1 - x0 + 1))
-
-
-#: EXR pixel types as the precision names of :func:`hdrcap.pipeline.io.write_exr`.
-_PRECISION_OF_TYPE = {"FLOAT": "float", "HALF": "half", "UINT": "uint"}
+    layout = read_exr_layout(path)
+    return layout.header, list(layout.channels), layout.shape
 
 
 def exr_pixel_types(path: Path) -> dict[str, str]:
@@ -131,29 +111,19 @@ def exr_pixel_types(path: Path) -> dict[str, str]:
     Parameters
     ----------
     path : pathlib.Path
-        A readable EXR (checked by :func:`exr_layout` or :func:`hdrcap.pipeline.io.read_exr`).
+        A readable EXR.
 
     Returns
     -------
     dict of str to str
         Channel name -> ``"float"``, ``"half"`` or ``"uint"``.
     """
-    import OpenEXR
-
-    from hdrcap.pipeline.io import _quiet_stderr
-
-    with _quiet_stderr():
-        f = OpenEXR.InputFile(str(path))
-        try:
-            channels = f.header()["channels"]
-        finally:
-            f.close()
-    return {name: _PRECISION_OF_TYPE.get(str(ch.type), "float") for name, ch in channels.items()}
+    return read_exr_layout(path).channels
 
 
 def output_precision(stored: dict[str, str], sigma: str = "auto") -> dict[str, str]:
     """Storage precision of each channel of a filtered EXR: ``irradiance`` float32, the filtered
-    ``sigma`` as ``hdrcap merge --sigma-precision`` stores it (:func:`hdrcap.pipeline.io.write_exr`'s
+    ``sigma`` as ``hdrcap merge --sigma-precision`` stores it (:func:`hdrcap.pipeline.io.exr.write_exr`'s
     ``auto``: half where the channel fits half's range, at most 0.05 % lost), every other channel
     as the input stored it (its values were read from that type: lossless).
 
@@ -167,7 +137,7 @@ def output_precision(stored: dict[str, str], sigma: str = "auto") -> dict[str, s
     Returns
     -------
     dict of str to str
-        Channel name -> precision for :func:`hdrcap.pipeline.io.write_exr`.
+        Channel name -> precision for :func:`hdrcap.pipeline.io.exr.write_exr`.
     """
     out = dict(stored, irradiance="float")
     if "sigma" in stored:
@@ -255,7 +225,7 @@ def denoise_tiled(
     precision : dict, optional
         Channel storage (:func:`output_precision`; default float for every channel).
     compression : str
-        EXR compression, one of :data:`hdrcap.pipeline.io.EXR_COMPRESSIONS`.
+        EXR compression, one of :data:`hdrcap.pipeline.io.exr.EXR_COMPRESSIONS`.
     attrs, names, shape
         :func:`exr_layout` of ``input_exr``.
     header_entry : callable
@@ -353,7 +323,9 @@ def denoise_tiled(
         out_attrs["sigma"] = SIGMA_MEANING
         out_attrs["denoise"] = header_entry(unchanged)
         channels = {n: outs.get(n, src[n]) for n in names}
-        write_exr_rows(output, channels, out_attrs, precision or {}, compression, force, rows)
+        write_exr(
+            output, channels, out_attrs, force=force, compression=compression, precision=precision, block_rows=rows
+        )
     ordered = [samples[r0] for r0 in sorted(samples)]
     return TiledDenoise(
         out_attrs,

@@ -8,7 +8,7 @@ LibRaw's ``raw_image_visible``, ``black_level_per_channel`` and ``white_level``.
 
 Everything outside that simple case (compressed data, linearisation tables, per-channel or
 masked-area black levels, opcode lists, odd active areas, several raw images, non-Bayer CFA) is
-left to LibRaw: :func:`decode_dng` returns None and :func:`pipeline.io.read_raw` falls back.
+left to LibRaw: :func:`decode_dng` returns None and :func:`pipeline.io.raw.read_raw` falls back.
 Inconsistent files (image data beyond the end of the file, strips or tiles that do not cover
 the stated dimensions) raise :class:`~pipeline.errors.InputError`.
 """

@@ -30,7 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import HdrImage, atomic_output
+from hdrcap.pipeline.io.files import atomic_output
+from hdrcap.pipeline.result import HdrResult
+from hdrcap.pipeline.schema import UNIT_ELECTRONS
 
 __all__ = [
     "CameraColour",
@@ -368,7 +370,7 @@ def camera_colour(path) -> CameraColour | None:
     """
     import tifffile
 
-    from hdrcap.pipeline.io import _tiff_complaints
+    from hdrcap.pipeline.io.raw import _tiff_complaints
 
     path = Path(path)
     try:
@@ -469,23 +471,23 @@ def _libraw_colour_tags(source, have: set[int]) -> list[tuple]:
 
 
 def write_float_dng(
-    path, image: HdrImage, *, bits: int = 32, force: bool = False, source: str | Path | None = None
+    path, result: HdrResult, *, bits: int = 32, force: bool = False, source: str | Path | None = None
 ) -> DngFloatLayout:
-    """Write the ``irradiance`` channel of ``image`` as a linear float CFA DNG.
+    """Write the irradiance of a merge as a linear float CFA DNG.
 
     Parameters
     ----------
     path : str or Path
         Output file (written atomically; an existing file only with ``force``).
-    image : HdrImage
-        A merge result: the ``irradiance`` channel (unit in ``attrs["unit"]``) and the CFA pattern
-        in ``attrs["cfa_pattern"]``.
+    result : HdrResult
+        A merge: its irradiance (unit in ``header["unit"]``) and the CFA pattern in
+        ``header["cfa_pattern"]``.
     bits : {32, 16}
         Float width per photosite.
     force : bool
         Overwrite an existing file.
     source : str or Path, optional
-        Frame whose colour tags are copied; default the first of ``attrs["source_files"]``.
+        Frame whose colour tags are copied; default the first of ``header["source_files"]``.
 
     Returns
     -------
@@ -499,19 +501,19 @@ def write_float_dng(
     """
     import tifffile
 
-    irr = np.asarray(image.channels["irradiance"], dtype=np.float32)
+    irr = np.asarray(result.irradiance, dtype=np.float32)
     if irr.ndim != 2:
         raise InputError(f"float DNG: the irradiance must be a 2-D mosaic, got shape {irr.shape}")
-    cfa = str(image.attrs.get("cfa_pattern", "none"))
+    cfa = str(result.header.get("cfa_pattern") or "none")
     layout = dng_layout(irr, bits)
     _cfa_codes(cfa)
     if source is None:
-        sources = image.attrs.get("source_files") or []
+        sources = result.header.get("source_files") or []
         source = sources[0] if sources else None
     colour = source_colour_tags(source) if source is not None else []
     if source is not None and not any(e[0] == 50721 for e in colour):
         colour += _libraw_colour_tags(source, {e[0] for e in colour})
-    unit = image.attrs.get("unit", "electrons per second per photosite")
+    unit = result.header.get("unit") or UNIT_ELECTRONS
     # A power of two scales a float32 exactly: the only rounding is float16's, when bits is 16.
     stored = irr if layout.exponent == 0 else irr * np.float32(2.0**-layout.exponent)
     stored = stored.astype(np.float32 if bits == 32 else np.float16, copy=False)

@@ -16,7 +16,7 @@ For every photosite, from N exposures (v_i, b_i, t_i):
   samples contribute their survival probability; maximised by safeguarded Newton steps;
 * photosites with no usable sample: ``nexp = 0``, ``sigma = 0`` and a lower bound;
 * defective photosites (the calibration's ``defect_map``): ``nexp = 0``, ``sigma = 0``, and
-  the reason in the ``quality`` bit field (:data:`QUALITY_BITS`), never a confident value;
+  the reason in the ``quality`` bit field (:data:`pipeline.schema.QUALITY_BITS`), never a confident value;
 * masked samples (a per-frame mask: impossible raw values the reader masked): no sample of
   that frame, like a saturated one, but never called saturated; the photosite is estimated
   from the other frames and carries the ``masked`` quality bit (masked in every frame:
@@ -38,7 +38,7 @@ import dataclasses
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -50,32 +50,23 @@ from hdrcap.pipeline.exposure_ratio import (
     estimate_exposure_ratios,
     subsample_window,
 )
-from hdrcap.pipeline.io import RawFrame, check_exposure_time, check_frames
+from hdrcap.pipeline.io.raw import RawFrame, check_exposure_time, check_frames
 from hdrcap.pipeline.merge.darks import DarkResolver, default_strategy
 from hdrcap.pipeline.noise import DarkStrategy, dark_factor
 from hdrcap.pipeline.params import DEFECT_BITS, Calibration
+from hdrcap.pipeline.result import HdrResult
+from hdrcap.pipeline.schema import QUALITY_BITS
 from hdrcap.pipeline.times import same_exposure
 
 __all__ = [
-    "MergeResult",
     "MergeOptions",
     "MergeAccumulator",
     "merge_arrays",
     "merge_frames",
     "as_strategy",
-    "QUALITY_BITS",
     "quality_channel",
 ]
 
-#: Bits of the per-photosite ``quality`` channel (uint8; 0 a trusted measurement): the
-#: calibration's defect bits (:data:`pipeline.params.DEFECT_BITS`: 1 dead, 2 weak, 4 hot,
-#: 8 stuck) and the merge's own flags (16: saturated in every exposure, the irradiance is a
-#: lower bound; 32: masked, a frame's value at the photosite was masked, e.g. an impossible raw
-#: value read with ``bad_values="mask"``, and the estimate comes from the other frames). Any bit
-#: but ``masked`` means ``nexp = 0`` and ``sigma = 0``: not a measurement; ``masked`` alone with
-#: ``nexp > 0`` is a measurement from fewer frames, with ``nexp = 0`` (masked in every frame, or
-#: saturated in every frame not masked: then with bit 16 and a lower bound) none.
-QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16, "masked": 32}
 
 _SATURATION_MODELS = ("threshold", "probabilistic")
 _PRNU_MODES = ("map", "scalar")
@@ -104,27 +95,6 @@ def as_strategy(value: DarkStrategy | str | None) -> DarkStrategy | None:
         return DarkStrategy(value)
     except ValueError:
         raise InputError(f"dark strategy must be matched, master or model, got {value!r}") from None
-
-
-@dataclass
-class MergeResult:
-    """Irradiance (e-/s per photosite), its total standard uncertainty ``sigma`` (same unit:
-    photon, read and dark-frame noise plus the calibration's per-photosite error), the
-    calibration part alone ``sigma_calibration`` (e-/s; what averaging more frames cannot
-    reduce; None when none of the calibration's standard errors entered: its part is then
-    unknown, not zero, and ``info["calibration_error"]["missing"]`` names what was missing) and the number of unsaturated
-    exposures used per photosite (0: saturated everywhere, irradiance is a lower bound and
-    both sigmas are 0; or a defective photosite). ``quality`` says why (uint8 bit field of
-    :data:`QUALITY_BITS`, 0 a trusted measurement). ``info`` records the options and inputs
-    (``calibration_error``: which standard errors entered and the common relative scale error
-    of the gain)."""
-
-    irradiance: np.ndarray
-    sigma: np.ndarray
-    nexp: np.ndarray
-    info: dict[str, Any] = field(default_factory=dict)
-    quality: np.ndarray | None = None  # uint8 bit field of QUALITY_BITS (None: not computed)
-    sigma_calibration: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -202,7 +172,7 @@ class MergeOptions:
 
 
 def quality_channel(nexp: np.ndarray, defect_map: np.ndarray | None) -> np.ndarray:
-    """The per-photosite quality bit field (:data:`QUALITY_BITS`).
+    """The per-photosite quality bit field (:data:`pipeline.schema.QUALITY_BITS`).
 
     Parameters
     ----------
@@ -700,7 +670,7 @@ class MergeAccumulator:
             "exposure_time_ratios": None if ratios is None else ratios.to_dict(),
         }
 
-    def result(self, *, release_frames: Callable[[], Any] | None = None) -> MergeResult:
+    def result(self, *, release_frames: Callable[[], Any] | None = None) -> HdrResult:
         """Run the iterations (Eq. 12-13, Fig. 3) and return the merge.
 
         ``release_frames`` is called when the frames have been read: after the iterations and
@@ -800,7 +770,7 @@ class MergeAccumulator:
         }
         if sig_cal is not None:
             sig_cal[((quality & ~np.uint8(QUALITY_BITS["masked"])) != 0) | (nexp == 0)] = 0.0  # not a measurement
-        return MergeResult(irradiance=irr, sigma=sig, nexp=nexp, info=info, quality=quality, sigma_calibration=sig_cal)
+        return HdrResult(irr, sig, nexp, quality=quality, sigma_calibration=sig_cal, header={"merge": info})
 
     def _flag_masked(self, irr, sig, nexp, quality) -> dict[str, Any]:
         """The masked samples' fix-up after the kernels, in place: the ``masked`` bit where a
@@ -1011,7 +981,7 @@ def warm_up_kernels() -> None:
 
 def merge_arrays(
     values, times, calibration: Calibration, darks=None, *, dark_strategies=None, n_darks=None, masks=None, **options
-) -> MergeResult:
+) -> HdrResult:
     """Merge raw mosaics into irradiance and uncertainty (Eq. 6, 8-13, Fig. 3).
 
     Parameters
@@ -1041,7 +1011,7 @@ def merge_arrays(
 
     Returns
     -------
-    MergeResult
+    HdrResult
         float32 irradiance (e-/s), sigma (e-/s) and nexp; ``info`` records the options and the
         dark strategy of every frame.
     """
@@ -1084,7 +1054,7 @@ def merge_arrays(
     )
 
 
-def _accumulate(calibration, shape, master, values, times, darks, strategies, n_darks, options, masks) -> MergeResult:
+def _accumulate(calibration, shape, master, values, times, darks, strategies, n_darks, options, masks) -> HdrResult:
     """The batch merge of aligned per-frame inputs (one pass, :class:`MergeAccumulator`)."""
     acc = MergeAccumulator(calibration, shape, master_dark=master, stream=False, **options)
     for v, t, d, s, n, m in zip(values, times, darks, strategies, n_darks, masks):
@@ -1110,7 +1080,7 @@ def merge_frames(
     dark_strategies: Sequence[DarkStrategy | str | None] | None = None,
     n_darks: Sequence[float | None] | None = None,
     **options,
-) -> MergeResult:
+) -> HdrResult:
     """Merge a bracket of raw frames into irradiance and uncertainty (Eq. 6, 8-13).
 
     Each frame's dark level is the one :class:`pipeline.merge.darks.DarkResolver` serves its
@@ -1119,7 +1089,7 @@ def merge_frames(
     Parameters
     ----------
     frames : sequence of RawFrame
-        The bracket; any order. Masked photosites of a frame (:attr:`pipeline.io.RawFrame.
+        The bracket; any order. Masked photosites of a frame (:attr:`pipeline.io.raw.RawFrame.
         masked`) are left out of that frame (see :meth:`MergeAccumulator.add`).
     calibration : Calibration
         Camera model (g, mu_R, sigma2_R, v_sat, D; optional PRNU and dark-current maps).
@@ -1140,7 +1110,7 @@ def merge_frames(
 
     Returns
     -------
-    MergeResult
+    HdrResult
         As :func:`merge_arrays`.
     """
     frames = check_frames(frames)

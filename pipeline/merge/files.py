@@ -1,52 +1,177 @@
-"""Merging raw files into an EXR: the library behind ``hdrcap merge`` and ``hdrcap run``.
+"""From a bracket of files (or frames) to a merge result: the one path every door takes.
 
-:func:`merge_files` reads a bracket (in parallel threads), gives every frame the dark level
-that :class:`pipeline.merge.darks.DarkResolver` serves its exposure (dark frames given, one master
-dark, or the calibration's dark library), applies a plan file's per-exposure dark strategies
-and decided options, and merges (optimal, streamed into a ``MergeAccumulator``, or a baseline
-weighting). :func:`build_hdr_image` is the EXR content of a merge, :func:`summary` its
-one-line figures.
+:func:`merge_files` is what ``hdrcap merge``, ``hdrcap batch``, the capture jobs and the Python
+API call: it resolves the camera model (the one given, else the calibration library's, else a
+self-calibration from the bracket, :func:`bracket_calibration`), applies a plan file's
+per-exposure dark strategies and decided options, gives every frame the dark level
+:class:`pipeline.merge.darks.DarkResolver` serves its exposure, and merges in memory (frames
+streamed into a :class:`pipeline.merge.accumulator.MergeAccumulator` as they are decoded) or
+tile by tile (:mod:`pipeline.merge.tiled`) when the frames are larger than the memory budget,
+or with a baseline weighting of Table 1. The result carries the complete header
+(:func:`pipeline.header.with_merge_header`); :func:`pipeline.io.results.write_result` writes
+it.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Union
 
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import IMAGE_EXTENSIONS, RawFrame
+from hdrcap.pipeline.merge.accumulator import MergeOptions
 from hdrcap.pipeline.merge.darks import DarkResolver, default_strategy
 from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.params import Calibration
-
-if TYPE_CHECKING:  # the planner (and scipy under it) is imported only for a merge with a plan
-    from hdrcap.pipeline.planfile import PlanFile
+from hdrcap.pipeline.planfile import PlanFile
+from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
-    "FileMerge",
-    "merge_files",
-    "streamed_merge",
-    "read_frames",
-    "build_hdr_image",
-    "summary",
-    "merge_options",
+    "FrameSource",
+    "MergeRequest",
+    "WEIGHTINGS",
+    "bracket_calibration",
     "library_root",
+    "merge_files",
+    "read_frames",
+    "start_warm_up",
 ]
+
+#: A frame of a request: a file (raw, or 16-bit PNG/TIFF with its time) or a frame in memory.
+FrameSource = Union[str, "os.PathLike[str]", RawFrame]
+
+#: The optimal weighting; the baselines of Table 1 are :data:`pipeline.merge.weighting.WEIGHTING_METHODS`.
+WEIGHTINGS = ("optimal",)
 
 
 def _warn(message: str) -> None:
     print(f"hdrcap: warning: {message}", file=sys.stderr)
 
 
+# --------------------------------------------------------------------------- the request
+@dataclass(frozen=True)
+class MergeRequest:
+    """Everything a merge of a bracket needs, whichever door it comes in by.
+
+    Attributes
+    ----------
+    frames : sequence of path or RawFrame
+        The bracket, any order.
+    calibration : Calibration, path or None
+        The camera model, or its calibration file (a relative dark library in it is found
+        from the file's folder too). None: the calibration library's entry for the frames'
+        camera, ISO and size, else a self-calibration from the bracket.
+    options : MergeOptions
+        Merge options (the defaults use the effective exposure times).
+    darks : sequence of path or RawFrame
+        Dark frames, matched to the frames by exposure time (``matched``), or master darks of
+        their time (``master``, each of ``master_dark_frames`` frames).
+    times : sequence of float, optional
+        Exposure times of ``frames``, s, overriding the files' (needed for PNG/TIFF).
+    master_dark : path or RawFrame, optional
+        One master dark for every ``master`` exposure (a PNG/TIFF is used as is, a raw file
+        with its exposure time: the calibrated dark current over the difference is added).
+    master_dark_frames : float, optional
+        Frames averaged into each master dark given here (N); library masters carry theirs.
+    plan : PlanFile, optional
+        A plan (``hdrcap plan --json``): its per-exposure dark strategies and decided options
+        apply, except options named in ``given``.
+    given : frozenset of str
+        Fields of ``options`` the user set (they win over the plan's); ``dark_strategy`` here
+        means one strategy for every exposure.
+    weighting : str
+        ``optimal`` (Eq. 6-13) or a baseline of :mod:`pipeline.merge.weighting`.
+    dark_library : str, optional
+        The dark library folder (default: the calibration's, see :func:`library_root`).
+    bad_values : {"refuse", "mask"}
+        Impossible raw values: refuse the file, or mask them (left out of that frame, quality
+        bit ``masked``; needs a calibration given and the in-memory optimal merge).
+    tiling : int, "auto" or None
+        Rows per tile (even); ``auto``: tiles when the in-memory merge would exceed
+        ``memory_budget``; None: in memory.
+    memory_budget : int, optional
+        Bytes (default: half of the machine's memory).
+    scratch_dir : path, optional
+        Where a tiled merge spills decoded frames and its outputs (default: the system's
+        temporary folder).
+    header : mapping
+        Further header entries of the door (``run``; ``source_files``, ``cfa_pattern`` to
+        override what the frames say).
+    """
+
+    frames: Sequence[FrameSource]
+    calibration: Calibration | str | os.PathLike[str] | None = None
+    options: MergeOptions = field(default_factory=lambda: MergeOptions(exposure_times="effective"))
+    darks: Sequence[FrameSource] = ()
+    times: Sequence[float | None] | None = None
+    master_dark: FrameSource | None = None
+    master_dark_frames: float | None = None
+    plan: PlanFile | None = None
+    given: frozenset[str] = frozenset()
+    weighting: str = "optimal"
+    dark_library: str | None = None
+    bad_values: str = "refuse"
+    tiling: int | str | None = "auto"
+    memory_budget: int | None = None
+    scratch_dir: str | os.PathLike[str] | None = None
+    header: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.frames:
+            raise InputError("no frames to merge")
+        if self.times is not None and len(self.times) != len(self.frames):
+            raise InputError(f"--times gives {len(self.times)} exposure times for {len(self.frames)} frames")
+        if self.bad_values not in ("refuse", "mask"):
+            raise InputError(f"bad values must be refused or masked, not {self.bad_values!r}")
+        if self.tiling not in ("auto", None) and not (isinstance(self.tiling, int) and self.tiling >= 2):
+            raise InputError(f"tiling must be auto, None or a number of rows >= 2, got {self.tiling!r}")
+        self._check_darks()
+        self._check_other_weighting()
+        _check_weighting(self.weighting)
+
+    def _check_darks(self) -> None:
+        strategy = self.options.dark_strategy
+        if strategy is DarkStrategy.MATCHED and not self.darks:
+            raise InputError("--dark-strategy matched needs dark frames (--darks)")
+        if self.master_dark is not None and self.darks and self.plan is None:
+            raise InputError("give either --darks or --master-dark, not both (both only with --plan)")
+        if self.master_dark is not None and strategy not in (None, DarkStrategy.MASTER):
+            raise InputError(f"--master-dark needs --dark-strategy master, not {strategy.value}")
+
+    def _check_other_weighting(self) -> None:
+        if self.bad_values == "mask":
+            if self.calibration is None:
+                raise InputError(
+                    "--bad-values mask needs --calibration or --camera (the self-calibration would read the masked "
+                    "values)"
+                )
+            if self.weighting != "optimal":
+                raise InputError(f"--bad-values mask works with --weighting optimal, not {self.weighting}")
+        if self.plan is not None and self.weighting != "optimal":
+            raise InputError(f"--plan works with --weighting optimal, not {self.weighting}")
+
+
+def _check_weighting(weighting: str) -> None:
+    if weighting == "optimal":
+        return
+    from hdrcap.pipeline.merge.weighting import WEIGHTING_METHODS
+
+    if weighting not in WEIGHTING_METHODS:
+        raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(WEIGHTING_METHODS)}")
+
+
+# --------------------------------------------------------------------------- warm-up, frames
 def _warm_up(work: Callable[[], None] | None) -> None:
-    """``work`` (default :func:`pipeline.merge.accumulator.warm_up_kernels`), in a background thread; a
-    failure is left to the command itself to report."""
+    """``work`` (default :func:`pipeline.merge.accumulator.warm_up_kernels`), in a background
+    thread; a failure is left to the command itself to report."""
     try:
         if work is None:
             from hdrcap.pipeline.merge.accumulator import warm_up_kernels as work
@@ -59,10 +184,20 @@ _WARM_UP: list[threading.Thread] = []  # the process's warm-up thread, once star
 
 
 def start_warm_up(work: Callable[[], None] | None = None) -> threading.Thread:
-    """Start :func:`_warm_up` in a thread (numba's set-up overlaps loading the calibration and
-    reading the frames, or the EXR a denoise reads), once per process: later calls return the
-    same thread. ``work``: what to run (default: import the merge kernels and initialise
-    numba's CPU target; :func:`pipeline._numba_target.warm_up` for a module already imported)."""
+    """Start numba's set-up in a thread, once per process (it overlaps loading the calibration
+    and reading the frames, or the EXR a denoise reads).
+
+    Parameters
+    ----------
+    work : callable, optional
+        What to run (default: import the merge kernels and initialise numba's CPU target;
+        :func:`pipeline._numba_target.warm_up` for a module already imported).
+
+    Returns
+    -------
+    threading.Thread
+        The process's warm-up thread (later calls return the same one).
+    """
     if _WARM_UP:
         return _WARM_UP[0]
     thread = threading.Thread(target=_warm_up, args=(work,), name="hdrcap-kernel-warm-up")
@@ -71,13 +206,55 @@ def start_warm_up(work: Callable[[], None] | None = None) -> threading.Thread:
     return thread
 
 
-def read_frames(paths, times=None, what="frame", progress=False, bad_values="refuse") -> list[RawFrame]:
+def _frames_in(
+    items: Sequence[FrameSource],
+    times: Sequence[float | None] | None,
+    what: str,
+    progress: bool,
+    bad_values: str = "refuse",
+) -> Iterator[RawFrame]:
+    """The frames in order: files decoded two at a time (LibRaw releases the GIL), frames in
+    memory as they are (``times`` overriding their exposure time)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tqdm import tqdm
+
+    from hdrcap.pipeline.io.raw import check_exposure_time, read_frame
+
+    items = list(items)
+    ts = list(times) if times else [None] * len(items)
+    if len(ts) != len(items):
+        raise InputError(f"--times gives {len(ts)} exposure times for {len(items)} {what}s")
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        futures = [
+            None if isinstance(it, RawFrame) else pool.submit(read_frame, Path(it), t, bad_values=bad_values)
+            for it, t in zip(items, ts)
+        ]
+        bar = tqdm(total=len(items), desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False)
+        with bar:
+            for it, t, fut in zip(items, ts, futures):
+                if fut is not None:
+                    yield fut.result()
+                elif t is None:
+                    yield it  # type: ignore[misc]
+                else:
+                    yield dataclasses.replace(it, exposure_time=check_exposure_time(t, it.path or what))  # type: ignore[type-var]
+                bar.update()
+
+
+def read_frames(
+    paths: Iterable[FrameSource],
+    times: Sequence[float | None] | None = None,
+    what: str = "frame",
+    progress: bool = False,
+    bad_values: str = "refuse",
+) -> list[RawFrame]:
     """Read raw files or 16-bit images, two at a time.
 
     Parameters
     ----------
-    paths : sequence of path
-        The files.
+    paths : sequence of path or RawFrame
+        The files (frames already read are kept).
     times : sequence of float, optional
         Exposure times, s, one per path; they override EXIF.
     what : str
@@ -85,234 +262,17 @@ def read_frames(paths, times=None, what="frame", progress=False, bad_values="ref
     progress : bool
         Show a progress bar.
     bad_values : {"refuse", "mask"}
-        As :func:`pipeline.io.read_raw`.
+        As :func:`pipeline.io.raw.read_raw`.
 
     Returns
     -------
     list of RawFrame
         In the order of ``paths``.
     """
-    return list(_read_parallel(paths, times, what, progress, bad_values))
+    return list(_frames_in(list(paths), times, what, progress, bad_values))
 
 
-def _read_parallel(paths, times, what, progress, bad_values="refuse") -> Iterator[RawFrame]:
-    """Decode raw files in a thread pool (LibRaw releases the GIL), yielding frames in order."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from tqdm import tqdm
-
-    from hdrcap.pipeline.io import read_frame
-
-    paths = list(paths)
-    if times:
-        if len(times) != len(paths):
-            raise InputError(f"--times gives {len(times)} exposure times for {len(paths)} {what}s")
-    else:
-        times = [None] * len(paths)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        futures = [pool.submit(read_frame, p, t, bad_values=bad_values) for p, t in zip(paths, times)]
-        for fut in tqdm(futures, desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False):
-            yield fut.result()
-
-
-def _camera_colour(frames) -> dict | None:
-    """The first frame's colour metadata (colour matrices, white balance) for the header, so
-    that ``hdrcap develop`` works from the EXR alone; None without a file or a matrix."""
-    from hdrcap.pipeline.io.dngwrite import camera_colour
-
-    path = frames[0].path if frames else None
-    if not path:
-        return None
-    try:
-        found = camera_colour(path)
-    except InputError as err:
-        _warn(f"no colour matrix recorded: {err}")
-        return None
-    return None if found is None else found.to_attrs()
-
-
-def build_hdr_image(result, frames, calibration, extra=None):
-    """The EXR content of a merge: channels and header attributes.
-
-    Parameters
-    ----------
-    result : MergeResult
-        The merge.
-    frames : list of RawFrame
-        The frames merged (their files, times, CFA pattern).
-    calibration : Calibration
-        The camera model used.
-    extra : dict, optional
-        Further header attributes.
-
-    Returns
-    -------
-    HdrImage
-    """
-    from hdrcap import __version__
-    from hdrcap.pipeline.io import HdrImage
-
-    attrs = {
-        "unit": "electrons per second per photosite",
-        "sigma": "total standard uncertainty of irradiance (noise plus calibration error), same unit",
-        "sigma_calibration": "the calibration's part of sigma alone (systematic: more frames do not reduce it), "
-        "same unit",
-        "nexp": "number of unsaturated exposures used (0: saturated everywhere, irradiance is a lower bound)",
-        "cfa_pattern": frames[0].cfa_pattern or "none",
-        "exposure_times": [fr.exposure_time for fr in frames],
-        "exposure_times_effective": result.info.get("exposure_times", [fr.exposure_time for fr in frames]),
-        # after the calibration's shutter table alone (before the bracket's own estimate)
-        "exposure_times_calibrated": result.info.get(
-            "exposure_times_calibrated", result.info.get("exposure_times", [fr.exposure_time for fr in frames])
-        ),
-        "shutter_corrections": _shutter_header(calibration, result.info),
-        "source_files": [fr.path for fr in frames],
-        "calibration": {"params": calibration.params.to_dict(), "provenance": calibration.provenance},
-        "hdrcap_version": __version__,
-        "merge": result.info,
-    }
-    colour = _camera_colour(frames)
-    if colour is not None:
-        attrs["camera_colour"] = colour
-    if extra:
-        attrs.update(extra)
-    channels = {"irradiance": result.irradiance, "sigma": result.sigma, "nexp": result.nexp}
-    if getattr(result, "sigma_calibration", None) is not None:
-        channels["sigma_calibration"] = result.sigma_calibration
-    quality = getattr(result, "quality", None)
-    if quality is not None:
-        from hdrcap.pipeline.merge.accumulator import QUALITY_BITS
-
-        channels["quality"] = quality  # uint8 bits: stored as uint (or float) without a float32 copy here
-        attrs["quality"] = (
-            "bit field, 0 a trusted measurement; any bit but masked: nexp = 0, not a measurement; masked (a frame's "
-            "impossible raw value left out) with nexp > 0: estimated from the other frames: "
-        ) + ", ".join(f"{bit} {name}" for name, bit in QUALITY_BITS.items())
-    return HdrImage(channels, attrs)
-
-
-def _shutter_header(calibration, info) -> dict[str, Any] | None:
-    """The calibration's shutter table as the EXR header records it (None without one): the
-    table (times s, factors, relative standard errors, reference s) and, per frame, whether it
-    applied (``--exposure-times nominal`` or a time not in the table: not applied)."""
-    table = getattr(calibration, "shutter", None)
-    if table is None:
-        return None
-    applied = (info.get("shutter_table") or {}).get("applied")
-    return {**table.to_dict(), "applied": applied}
-
-
-def exr_precision(channels, sigma: str = "auto") -> dict[str, str]:
-    """Storage precision of each merge channel: irradiance float32; sigma and
-    sigma_calibration as ``sigma`` says (``auto``: half where the channel fits half's range, at
-    most 0.05 % lost); nexp and quality as uint (whole numbers, lossless).
-
-    Parameters
-    ----------
-    channels : mapping of str to array
-        The image's channels (only present ones get an entry).
-    sigma : {"auto", "half", "float"}
-        Precision of the uncertainty channels.
-
-    Returns
-    -------
-    dict of str to str
-        Channel name -> precision for :func:`hdrcap.pipeline.io.write_exr`.
-    """
-    wanted = {"sigma": sigma, "sigma_calibration": sigma, "nexp": "uint", "quality": "uint"}
-    return {name: p for name, p in wanted.items() if name in channels}
-
-
-def _median_relative_sigma(irr, sig, ok, max_samples=1_000_000):
-    """Median of sigma/|irradiance| over usable photosites (a regular subsample of at most
-    ``max_samples`` of them on large images)."""
-    step = max(1, irr.size // max_samples)
-    i, s, o = irr.ravel()[::step], sig.ravel()[::step], ok.ravel()[::step]
-    if not o.any():
-        return None
-    return float(np.median(s[o] / np.maximum(np.abs(i[o]), 1e-30)))
-
-
-def summary(result) -> dict:
-    """Figures of a merge for a one-line report.
-
-    Parameters
-    ----------
-    result : MergeResult
-        The merge.
-
-    Returns
-    -------
-    dict
-        Shape, irradiance range (e-/s), median relative sigma, photosites saturated everywhere
-        (defects and photosites masked in every frame not counted), defective photosites
-        flagged, whether everything is finite, and (when there are some) the photosites with a
-        masked value.
-    """
-    irr, sig, nexp = result.irradiance, result.sigma, result.nexp
-    ok = nexp > 0
-    n_defects = int(result.info.get("defects_flagged", 0))  # nexp = 0 too, saturated or not
-    n_void = int(result.info.get("masked_everywhere", 0))  # nexp = 0, no information at all
-    # a float array is finite where its least and largest value are (a NaN makes both NaN):
-    # no full-size masks
-    extrema = (irr.min(), irr.max(), sig.min(), sig.max())
-    out = {
-        "shape": list(irr.shape),
-        "irradiance_min": float(extrema[0]),
-        "irradiance_max": float(extrema[1]),
-        "median_relative_sigma": _median_relative_sigma(irr, sig, ok),
-        "saturated_everywhere": ok.size - int(np.count_nonzero(ok)) - n_defects - n_void,
-        "defects_flagged": n_defects,
-        "finite": bool(np.isfinite(extrema).all()),
-    }
-    if result.info.get("masked_photosites"):  # only where a frame had masked values
-        out["masked_photosites"] = int(result.info["masked_photosites"])
-    return out
-
-
-def merge_options(
-    iterations,
-    tolerance,
-    saturation,
-    prnu,
-    dark_strategy,
-    master_dark_frames,
-    saturation_sigmas,
-    exposure_times="effective",
-):
-    """Keyword options of :func:`pipeline.merge.accumulator.merge_arrays` from the command-line knobs.
-
-    Parameters
-    ----------
-    iterations, tolerance, saturation, prnu, saturation_sigmas
-        As :class:`pipeline.merge.accumulator.MergeOptions`.
-    dark_strategy : str or None
-        One dark strategy for every exposure.
-    master_dark_frames : float or None
-        Frames averaged into each master dark.
-    exposure_times : {"effective", "nominal"}
-        Effective times estimated from the bracket, or the nominal ones.
-
-    Returns
-    -------
-    dict
-    """
-    opts = {
-        "iterations": iterations,
-        "tolerance": tolerance,
-        "saturation": saturation,
-        "prnu": prnu,
-        "saturation_sigmas": saturation_sigmas,
-        "exposure_times": exposure_times,
-    }
-    if dark_strategy:
-        opts["dark_strategy"] = DarkStrategy(dark_strategy)
-    if master_dark_frames is not None:
-        opts["n_dark"] = master_dark_frames
-    return opts
-
-
-def library_root(calib, calibration_path=None) -> str | None:
+def library_root(calib: Calibration, calibration_path: str | os.PathLike[str] | None = None) -> str | None:
     """The calibration's dark library folder.
 
     Parameters
@@ -327,7 +287,7 @@ def library_root(calib, calibration_path=None) -> str | None:
     str or None
         The folder, or None without a dark library.
     """
-    root = getattr(calib, "dark_library", None)
+    root = calib.dark_library
     if not root:
         return None
     p = Path(root)
@@ -338,309 +298,26 @@ def library_root(calib, calibration_path=None) -> str | None:
     return str(p)
 
 
-def _missing_dark(fr: RawFrame, strategy: DarkStrategy, resolver: DarkResolver) -> InputError:
-    t = fr.exposure_time
-    if strategy is DarkStrategy.MATCHED:
-        return InputError(
-            f"{fr.path}: no dark frame with exposure time {t:g} s for its matched dark strategy; give one with --darks"
-        )
-    root = None if resolver.library is None else resolver.library.root
-    where = f"the dark library {root} holds none for this camera" if root else "the calibration has no dark library"
-    return InputError(f"{fr.path}: no master dark for exposure {t:g} s: none in --darks, no --master-dark, and {where}")
-
-
-def _check_plan_covered(plan: PlanFile, frames: list[RawFrame], warn: Callable[[str], None]) -> None:
-    """Every planned exposure time must be among the frames; fewer frames than planned warn."""
-    seen = [0] * len(plan.times)
-    for fr in frames:
-        seen[plan.group(fr.exposure_time)] += 1
-    missing = [t for t, k in zip(plan.times, seen) if k == 0]
-    if missing:
-        raise InputError(f"{plan.path}: planned exposure {missing[0]:g} s matches no frame (within 0.1 %)")
-    for t, c, k in zip(plan.times, plan.counts, seen):
-        if k < c:
-            warn(f"the plan has {c} exposures of {t:g} s, the frames {k}")
-
-
-def streamed_merge(
-    frame_paths,
-    dark_paths,
-    times,
-    calib,
-    options,
-    master_dark=None,
-    progress=False,
-    *,
-    strategy_for=None,
-    resolver: DarkResolver | None = None,
-    plan: PlanFile | None = None,
-    warn: Callable[[str], None] = _warn,
-    bad_values: str = "refuse",
-):
-    """Read the bracket (in parallel threads) and feed each frame to a
-    :class:`pipeline.merge.accumulator.MergeAccumulator` as soon as it is decoded, with the dark strategy
-    ``strategy_for(frame)`` gives it (a strategy, or (strategy, planned frame count of its
-    master dark); default: the one of ``options``) and the dark level ``resolver`` serves it
-    (default: ``dark_paths`` matched by exposure time). With a ``plan``, every plan exposure
-    time must be among the frames. ``bad_values="mask"``: a frame's impossible raw values are
-    masked (:func:`pipeline.io.read_raw`), left out of that frame, and each file with some is
-    warned about in one line (dark frames are always refused). Returns (result, frames, darks,
-    per-frame dark sources).
-
-    Parameters
-    ----------
-    frame_paths, dark_paths : sequence of path
-        The bracket and its dark frames.
-    times : sequence of float, optional
-        Exposure times of the frames, s.
-    calib : Calibration
-        The camera model.
-    options : dict
-        Merge options.
-    master_dark : RawFrame, optional
-        One master dark for the master exposures.
-    progress : bool
-        Show a progress bar.
-
-    Returns
-    -------
-    tuple
-        (MergeResult, frames, dark frames, dark source of each frame).
-    """
-    from hdrcap.pipeline.io import check_frames, release_mapped_pages
-    from hdrcap.pipeline.merge.accumulator import MergeAccumulator
-
-    darks = list(_read_parallel(dark_paths, None, "dark frame", progress)) if dark_paths else []
-    if darks:
-        darks = check_frames(darks, "dark frame")
-    if resolver is None:
-        resolver = DarkResolver(
-            frames_per_dark=options.get("n_dark"), master_dark=None if master_dark is None else str(master_dark.path)
-        )
-    for d in darks:
-        resolver.add_dark(d.data, d.exposure_time, str(d.path))
-    if strategy_for is None:
-        only = options.get("dark_strategy") or default_strategy(bool(darks), master_dark is not None)
-
-        def strategy_for(_fr):
-            return only
-
-    opts = dict(options)
-    if master_dark is not None:
-        opts["dark_strategy"] = DarkStrategy.MASTER
-        opts.setdefault("master_dark_time", master_dark.exposure_time)
-    acc = None
-    frames, used, warned = [], [], set()
-    for fr in _read_parallel(frame_paths, times, "frame", progress, bad_values):
-        if fr.n_masked:
-            warn(
-                f"{fr.path}: {fr.n_masked} photosites with impossible raw values (above the white level's ADC range) "
-                "masked: merged from the other frames there"
-            )
-        if acc is None:
-            # stream=False: the frames are all read here anyway, so the merge does its single
-            # pass at the end (less memory than the first-pass sums of a live capture).
-            acc = MergeAccumulator(
-                calib, fr.shape, master_dark=None if master_dark is None else master_dark.data, stream=False, **opts
-            )
-        strategy = strategy_for(fr)
-        strategy, n_planned = (strategy, None) if isinstance(strategy, str) else strategy
-        strategy = DarkStrategy(strategy)
-        src = resolver.resolve(fr.exposure_time, strategy, camera=fr.camera, iso=fr.iso)
-        if src is None:
-            raise _missing_dark(fr, strategy, resolver)
-        if src.data is not None and np.shape(src.data) != fr.shape:
-            raise InputError(f"{src.source}: dark frame size differs from the bracket's")
-        short = src.origin == "frames" and strategy is DarkStrategy.MASTER and n_planned and src.n_frames < n_planned
-        if short and src.source not in warned:  # once per master dark
-            warned.add(src.source)
-            warn(
-                f"the plan expects a master dark of {n_planned:g} frames at {fr.exposure_time:g} s; --darks gives "
-                f"one of {src.n_frames:g} (set --master-dark-frames if a file averages more)"
-            )
-        acc.add(
-            fr.data,
-            fr.exposure_time,
-            src.data,
-            strategy=strategy,
-            n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None,
-            mask=fr.masked,
-        )
-        frames.append(fr)
-        used.append(f"{strategy}: {src.source}" if strategy is not DarkStrategy.MODEL else "model")
-    check_frames(frames)
-    if plan is not None:
-        _check_plan_covered(plan, frames, warn)
-    # Once merged, memory-mapped frames stop counting in memory (still readable).
-    mapped = [fr.data for fr in (*frames, *darks)]
-    result = acc.result(release_frames=lambda: release_mapped_pages(mapped))
-    return result, frames, darks, used
-
-
-def _read_master_dark(path: Path | None, options: dict) -> RawFrame | None:
-    """The master dark file: a raw file (with its exposure time), or a PNG/TIFF used as is."""
-    if not path:
-        return None
-    from hdrcap.pipeline.io import read_frame
-
-    if path.suffix.lower() in (".png", ".tif", ".tiff"):  # no exposure time: used as is
-        options["master_dark_time"] = None
-        return read_frame(path, 1.0)
-    return read_frame(path)
-
-
-def _plan_strategies(plan: PlanFile, dark_strategy: DarkStrategy | None):
-    """Frame -> (dark strategy, planned master-dark frame count) from the plan (or the one
-    strategy the user gave for every exposure)."""
-
-    def strategy_for(fr):
-        i = plan.group(fr.exposure_time)
-        if i is None:
-            raise InputError(
-                f"{fr.path}: exposure {fr.exposure_time:g} s is not in the plan {plan.path} "
-                f"({', '.join(f'{t:g}' for t in plan.times)} s); leave the frame out or "
-                "merge without --plan"
-            )
-        return (dark_strategy, None) if dark_strategy else (plan.strategies[i], plan.n_dark[i])
-
-    return strategy_for
-
-
-@dataclass
-class FileMerge:
-    """What :func:`merge_files` produced: the merge, the frames (and dark frames) read, and
-    the extra EXR header attributes (weighting, dark sources, master dark file, planner)."""
-
-    result: Any
-    frames: list[RawFrame]
-    darks: list[RawFrame]
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-def merge_files(
-    frame_paths: Sequence[Path],
-    calib,
-    options: dict,
-    *,
-    dark_paths: Sequence[Path] = (),
-    times: Sequence[float] | None = None,
-    weighting: str = "optimal",
-    plan: PlanFile | None = None,
-    plan_file: str | None = None,
-    dark_strategy: str | None = None,
-    master_dark: Path | None = None,
-    master_dark_frames: float | None = None,
-    library: str | None = None,
-    given: Callable[[str], bool] = lambda _name: False,
-    progress: bool = False,
-    warn: Callable[[str], None] = _warn,
-    bad_values: str = "refuse",
-) -> FileMerge:
-    """Merge raw files: the work of ``hdrcap merge`` between its options and the EXR.
-
-    ``options`` are merge options (:func:`merge_options`); ``given(name)`` tells which of them
-    the user set (they win over a plan's). ``weighting`` other than ``optimal`` runs a baseline
-    of :mod:`pipeline.merge.weighting`. Master darks come from ``dark_paths`` of the exposure time
-    (``master_dark_frames`` frames each), else ``master_dark``, else the dark library at
-    ``library``. ``bad_values="mask"`` masks impossible raw values of the frames instead of
-    refusing the files (:func:`streamed_merge`; the optimal weighting only) and records the
-    count per file in ``masked_values``.
-
-    Parameters
-    ----------
-    frame_paths : sequence of Path
-        The bracket.
-    calib : Calibration
-        The camera model.
-    options : dict
-        Merge options (:func:`merge_options`).
-
-    Returns
-    -------
-    FileMerge
-    """
-    extra: dict[str, Any] = {"weighting": weighting}
-    if bad_values == "mask" and weighting != "optimal":
-        raise InputError(f"bad values are masked by the optimal merge only, not --weighting {weighting}")
-    if weighting != "optimal":
-        from hdrcap.pipeline.merge.weighting import merge_weighted
-
-        fr = read_frames(frame_paths, times, "frame", progress)
-        dk = read_frames(dark_paths, None, "dark frame", progress) if dark_paths else []
-        result = merge_weighted(
-            [f.data for f in fr],
-            [f.exposure_time for f in fr],
-            calib,
-            [d.data for d in dk] if dk else None,
-            method=weighting,
-        )
-        return FileMerge(result, fr, dk, extra)
-    start_warm_up()
-    dark_strategy = None if dark_strategy is None else DarkStrategy(dark_strategy)
-    md = _read_master_dark(master_dark, options)
-    strategy_for = taken = overridden = ignored = None
-    if plan is not None:
-        from hdrcap.pipeline.planfile import apply_plan_options
-
-        options, taken, overridden, ignored = apply_plan_options(plan, options, given)
-        for name in ignored:
-            warn(f"{plan.path}: merge option {name!r} is not one hdrcap merge knows; ignored")
-        if dark_strategy:
-            overridden["darks"] = {"plan": plan.data["darks"], "used": dark_strategy.value}
-        strategy_for = _plan_strategies(plan, dark_strategy)
-    resolver = DarkResolver(
-        frames_per_dark=master_dark_frames,
-        master_dark=None if md is None else str(md.path),
-        library=library,
-        temperature=(calib.provenance or {}).get("temperature"),
-    )
-    result, fr, dk, used = streamed_merge(
-        frame_paths,
-        dark_paths,
-        times,
-        calib,
-        options,
-        md,
-        progress,
-        strategy_for=strategy_for,
-        resolver=resolver,
-        plan=plan,
-        warn=warn,
-        bad_values=bad_values,
-    )
-    extra["dark_sources"] = used
-    if bad_values == "mask":
-        extra["masked_values"] = {str(f.path): f.n_masked for f in fr}
-    if master_dark:
-        extra["master_dark_file"] = str(master_dark)
-    if plan is not None:
-        from hdrcap.pipeline.planfile import planner_attribute
-
-        extra["planner"] = planner_attribute(
-            plan.data, plan_file, plan.sha256, taken, overridden, options_ignored=ignored
-        )
-    return FileMerge(result, fr, dk, extra)
-
-
+# --------------------------------------------------------------------------- calibration
 def bracket_calibration(
     calibration: Calibration | None,
-    frame_paths,
-    times=None,
+    frame_paths: Sequence[FrameSource],
+    times: Sequence[float | None] | None = None,
     *,
     darks: bool = False,
-    warn=None,
-    say=None,
+    warn: Callable[[str], None] | None = None,
+    say: Callable[[str], None] | None = None,
     exposure_times: str = "effective",
-):
-    """The camera model of a merge: ``calibration`` when given, else the calibration library's entry for the frames' camera model, ISO and size
-    (:mod:`pipeline.calibration.library`), else a self-calibration from the bracket
-    (:mod:`pipeline.calibration.selfcal`).
+) -> tuple[Calibration, list[float | None] | None, Any]:
+    """The camera model of a merge: ``calibration`` when given, else the calibration library's
+    entry for the frames' camera model, ISO and size (:mod:`pipeline.calibration.library`),
+    else a self-calibration from the bracket (:mod:`pipeline.calibration.selfcal`).
 
     Parameters
     ----------
     calibration : Calibration or None
         The camera model when the user gave one (a file or a preset's).
-    frame_paths : sequence of path
+    frame_paths : sequence of path or RawFrame
         The bracket.
     times : sequence of float, optional
         Exposure times (s) overriding the files'.
@@ -664,6 +341,11 @@ def bracket_calibration(
     """
     if calibration is not None:
         return calibration, (list(times) if times else None), None
+    if any(isinstance(f, RawFrame) and f.path is None for f in frame_paths):
+        raise InputError(
+            "no camera model: give a calibration (a Calibration, a calibration file or a preset name); a "
+            "self-calibration needs the raw files, with their black and white levels"
+        )
     from hdrcap.pipeline.calibration.library import find_calibration, library_dir
     from hdrcap.pipeline.calibration.selfcal import self_calibrate
     from hdrcap.pipeline.times import same_exposure
@@ -691,3 +373,428 @@ def bracket_calibration(
             )
         return sc.calibration, list(sc.nominal_times), sc
     return sc.calibration, list(sc.effective_times), sc
+
+
+def _camera_model(calibration: Calibration | str | os.PathLike[str] | None) -> tuple[Calibration | None, Any]:
+    """The request's calibration and the file it came from (None for an object)."""
+    if calibration is None or isinstance(calibration, Calibration):
+        return calibration, None
+    from hdrcap.pipeline.calibration import load_calibration
+
+    return load_calibration(calibration), calibration
+
+
+# --------------------------------------------------------------------------- preparation
+@dataclass
+class Prepared:
+    """What both merge engines (in memory, tiled) take from a request: the options with the
+    plan's applied, each frame's dark strategy, the dark resolver's settings and the header
+    entries of the merge."""
+
+    options: dict[str, Any]
+    strategy_for: Callable[[RawFrame], tuple[DarkStrategy, float | None]]
+    resolver_args: dict[str, Any]
+    master_dark: FrameSource | None
+    master_plain: bool
+    plan: PlanFile | None
+    entries: dict[str, Any]
+
+    def master_dark_time(self, master: RawFrame) -> None:
+        """Record the master dark's exposure time unless one is set (a PNG/TIFF or an array
+        without one: used as is)."""
+        self.options["dark_strategy"] = DarkStrategy.MASTER
+        if self.options.get("master_dark_time") is None and not self.master_plain:
+            self.options["master_dark_time"] = master.exposure_time
+
+
+def _option_dict(options: MergeOptions) -> dict[str, Any]:
+    """The merge options as keywords of :class:`pipeline.merge.accumulator.MergeAccumulator`."""
+    out = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+    if out["dark_strategy"] is None:
+        del out["dark_strategy"]
+    return out
+
+
+def prepare(req: MergeRequest, calib: Calibration, options: MergeOptions, library: str | None, warn) -> Prepared:
+    """The plan, dark strategies and header entries of a request (both engines take them).
+
+    Parameters
+    ----------
+    req : MergeRequest
+        The request.
+    calib : Calibration
+        The camera model resolved.
+    options : MergeOptions
+        The options to merge with (the request's, exposure times possibly set by a
+        self-calibration).
+    library : str or None
+        The dark library folder.
+    warn : callable
+        Called with one-line warnings.
+
+    Returns
+    -------
+    Prepared
+    """
+    opts = _option_dict(options)
+    if req.master_dark_frames is not None:
+        opts["n_dark"] = req.master_dark_frames
+    one = options.dark_strategy if (req.plan is None or "dark_strategy" in req.given) else None
+    entries: dict[str, Any] = {"weighting": "optimal"}
+    if req.plan is not None:
+        from hdrcap.pipeline.planfile import apply_plan_options, planner_attribute
+
+        opts, taken, overridden, ignored = apply_plan_options(req.plan, opts, lambda name: name in req.given)
+        for name in ignored:
+            warn(f"{req.plan.path}: merge option {name!r} is not one hdrcap merge knows; ignored")
+        if one is not None:
+            overridden["darks"] = {"plan": req.plan.data["darks"], "used": one.value}
+        entries["planner"] = planner_attribute(
+            req.plan.data, req.plan.path, req.plan.sha256, taken, overridden, options_ignored=ignored
+        )
+        strategy_for = _plan_strategies(req.plan, one)
+    else:
+        only = one or default_strategy(bool(req.darks), req.master_dark is not None)
+
+        def strategy_for(_fr: RawFrame) -> tuple[DarkStrategy, float | None]:
+            return only, None
+
+    master = req.master_dark
+    plain = master is not None and _without_time(master)
+    if plain and "master_dark_time" not in req.given:
+        opts["master_dark_time"] = None  # no exposure time: used as is
+    if master is not None:
+        entries["master_dark_file"] = str(master.path if isinstance(master, RawFrame) else master)
+    if (
+        opts.get("dark_strategy") is DarkStrategy.MASTER
+        and "dark_strategy" in req.given
+        and not (req.darks or master is not None or library)
+    ):
+        raise InputError(
+            "--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
+            "or a calibration with a dark library (--calibration)"
+        )
+    resolver_args = {
+        "frames_per_dark": req.master_dark_frames,
+        "master_dark": None if master is None else entries["master_dark_file"],
+        "library": library,
+        "temperature": (calib.provenance or {}).get("temperature"),
+    }
+    return Prepared(opts, strategy_for, resolver_args, master, plain, req.plan, entries)
+
+
+def _without_time(frame: FrameSource) -> bool:
+    """Whether a master dark has no exposure time of its own (PNG/TIFF, or an array)."""
+    if isinstance(frame, RawFrame):
+        return frame.path is None or Path(frame.path).suffix.lower() in IMAGE_EXTENSIONS
+    return Path(frame).suffix.lower() in IMAGE_EXTENSIONS
+
+
+def _plan_strategies(
+    plan: PlanFile, dark_strategy: DarkStrategy | None
+) -> Callable[[RawFrame], tuple[DarkStrategy, float | None]]:
+    """Frame -> (dark strategy, planned master-dark frame count) from the plan (or the one
+    strategy the user gave for every exposure)."""
+
+    def strategy_for(fr: RawFrame) -> tuple[DarkStrategy, float | None]:
+        i = plan.group(fr.exposure_time)
+        if i is None:
+            raise InputError(
+                f"{fr.path}: exposure {fr.exposure_time:g} s is not in the plan {plan.path} "
+                f"({', '.join(f'{t:g}' for t in plan.times)} s); leave the frame out or "
+                "merge without --plan"
+            )
+        return (dark_strategy, None) if dark_strategy else (plan.strategies[i], plan.n_dark[i])
+
+    return strategy_for
+
+
+def missing_dark(fr: RawFrame, strategy: DarkStrategy, resolver: DarkResolver) -> InputError:
+    """The error for a frame no dark level serves.
+
+    Parameters
+    ----------
+    fr : RawFrame
+        The frame.
+    strategy : DarkStrategy
+        Its dark strategy.
+    resolver : DarkResolver
+        What was searched.
+
+    Returns
+    -------
+    InputError
+        A one-line message naming the frame, its time and where a dark frame could come from.
+    """
+    t = fr.exposure_time
+    if strategy is DarkStrategy.MATCHED:
+        return InputError(
+            f"{fr.path}: no dark frame with exposure time {t:g} s for its matched dark strategy; give one with --darks"
+        )
+    root = None if resolver.library is None else resolver.library.root
+    where = f"the dark library {root} holds none for this camera" if root else "the calibration has no dark library"
+    return InputError(f"{fr.path}: no master dark for exposure {t:g} s: none in --darks, no --master-dark, and {where}")
+
+
+def warn_short_master(src: Any, strategy: DarkStrategy, n_planned: float | None, t: float, warned: set, warn) -> None:
+    """Warn once per master dark that averages fewer frames than the plan expects.
+
+    Parameters
+    ----------
+    src : DarkSource
+        What serves the exposure.
+    strategy : DarkStrategy
+        The exposure's strategy.
+    n_planned : float or None
+        Frames the plan expects in its master dark.
+    t : float
+        The exposure time, s.
+    warned : set
+        Sources already warned about (updated).
+    warn : callable
+        Called with the warning.
+    """
+    short = src.origin == "frames" and strategy is DarkStrategy.MASTER and n_planned and src.n_frames < n_planned
+    if short and src.source not in warned:
+        warned.add(src.source)
+        warn(
+            f"the plan expects a master dark of {n_planned:g} frames at {t:g} s; --darks gives "
+            f"one of {src.n_frames:g} (set --master-dark-frames if a file averages more)"
+        )
+
+
+def check_plan_covered(plan: PlanFile, frames: Sequence[RawFrame], warn: Callable[[str], None]) -> None:
+    """Every planned exposure time must be among the frames; fewer frames than planned warn.
+
+    Parameters
+    ----------
+    plan : PlanFile
+        The plan.
+    frames : sequence of RawFrame
+        The bracket.
+    warn : callable
+        Called with a warning for each time with fewer frames than planned.
+
+    Raises
+    ------
+    InputError
+        A planned time matches no frame.
+    """
+    seen = [0] * len(plan.times)
+    for fr in frames:
+        i = plan.group(fr.exposure_time)
+        if i is not None:
+            seen[i] += 1
+    missing = [t for t, k in zip(plan.times, seen) if k == 0]
+    if missing:
+        raise InputError(f"{plan.path}: planned exposure {missing[0]:g} s matches no frame (within 0.1 %)")
+    for t, c, k in zip(plan.times, plan.counts, seen):
+        if k < c:
+            warn(f"the plan has {c} exposures of {t:g} s, the frames {k}")
+
+
+# --------------------------------------------------------------------------- the merge
+def merge_files(
+    request: MergeRequest,
+    *,
+    progress: bool = False,
+    warn: Callable[[str], None] = _warn,
+    say: Callable[[str], None] | None = None,
+) -> HdrResult:
+    """Merge a bracket into irradiance and its uncertainty, with the complete header (Eq. 6,
+    8-13, Fig. 3; the baselines of Table 1).
+
+    Parameters
+    ----------
+    request : MergeRequest
+        The bracket, camera model, options and plan.
+    progress : bool
+        Progress bars on stderr.
+    warn : callable
+        Called with one-line warnings (what was assumed, masked values, short master darks).
+    say : callable, optional
+        Called with one line naming the calibration used when none was given.
+
+    Returns
+    -------
+    HdrResult
+        Irradiance, sigma, sigma_calibration (when the calibration has standard errors), nexp,
+        quality and the header. A tiled merge's channels are memory-mapped files (read them
+        block by block; :func:`pipeline.io.results.write_result` does).
+
+    Raises
+    ------
+    InputError
+        Unreadable or inconsistent frames, a missing dark frame, a bad option or plan.
+    """
+    req = request
+    calib, calibration_file = _camera_model(req.calibration)
+    if req.weighting == "optimal":
+        start_warm_up()  # numba's set-up while the calibration loads and the frames are read
+    options = req.options
+    times_applied = options.exposure_times == "effective"  # as asked (a self-calibration may hand them over)
+    calib, times, selfcal = bracket_calibration(
+        calib,
+        req.frames,
+        req.times,
+        darks=bool(req.darks),
+        warn=warn,
+        say=say,
+        exposure_times=options.exposure_times,
+    )
+    if selfcal is not None and times == list(selfcal.effective_times):
+        # the self-calibration's pairs gave the effective times: not estimated twice
+        options = dataclasses.replace(options, exposure_times="nominal")
+    rows = _tile_rows(req, calib)
+    if req.weighting != "optimal":
+        return _merge_baseline(req, calib, times, progress)
+    prep = prepare(req, calib, options, req.dark_library or library_root(calib, calibration_file), warn)
+    if rows:
+        from hdrcap.pipeline.merge.tiled import merge_tiled
+
+        return merge_tiled(req, prep, calib, times, rows, selfcal, times_applied, progress=progress, warn=warn)
+    result, frames, darks, used = _merge_in_memory(req, prep, calib, times, progress, warn)
+    entries = dict(prep.entries, dark_sources=used)
+    if req.bad_values == "mask":
+        entries["masked_values"] = {str(f.path): f.n_masked for f in frames}
+    result = _finish(result, frames, calib, entries, req.header, selfcal, times_applied, warn)
+    return result
+
+
+def _finish(
+    result: HdrResult,
+    frames: Sequence[RawFrame],
+    calib: Calibration,
+    entries: dict[str, Any],
+    door: Mapping[str, Any],
+    selfcal: Any,
+    times_applied: bool,
+    warn: Callable[[str], None],
+) -> HdrResult:
+    """The merge with its header (the door's entries last) and its self-calibration stated."""
+    from hdrcap.pipeline.header import with_merge_header
+
+    result = with_merge_header(result, frames, calib, warn=warn, **entries, **dict(door))
+    if selfcal is not None:
+        from hdrcap.pipeline.calibration.selfcal import apply_self_calibration
+
+        result = apply_self_calibration(result, selfcal, times_applied=times_applied)
+    return result
+
+
+def _merge_in_memory(
+    req: MergeRequest,
+    prep: Prepared,
+    calib: Calibration,
+    times: Sequence[float | None] | None,
+    progress: bool,
+    warn: Callable[[str], None],
+) -> tuple[HdrResult, list[RawFrame], list[RawFrame], list[str]]:
+    """Read the bracket (in parallel threads) and feed each frame to a
+    :class:`pipeline.merge.accumulator.MergeAccumulator` as soon as it is decoded, with the
+    dark strategy and dark level it is served. Returns (result, frames, darks, per-frame dark
+    sources)."""
+    from hdrcap.pipeline.io.files import release_mapped_pages
+    from hdrcap.pipeline.io.raw import check_frames, read_frame
+    from hdrcap.pipeline.merge.accumulator import MergeAccumulator
+
+    darks = read_frames(req.darks, None, "dark frame", progress) if req.darks else []
+    if darks:
+        darks = check_frames(darks, "dark frame")
+    master = prep.master_dark
+    if master is not None and not isinstance(master, RawFrame):
+        master = read_frame(Path(master), 1.0 if prep.master_plain else None)
+    if master is not None:
+        prep.master_dark_time(master)
+    resolver = DarkResolver(**prep.resolver_args)
+    for d in darks:
+        resolver.add_dark(d.data, d.exposure_time, str(d.path))
+    acc = None
+    frames: list[RawFrame] = []
+    used: list[str] = []
+    warned: set[str] = set()
+    for fr in _frames_in(req.frames, times, "frame", progress, req.bad_values):
+        if fr.n_masked:
+            warn(
+                f"{fr.path}: {fr.n_masked} photosites with impossible raw values (above the white level's ADC range) "
+                "masked: merged from the other frames there"
+            )
+        if acc is None:
+            if master is not None and master.shape != fr.shape:
+                raise InputError(f"{master.path}: master dark size differs from the bracket's")
+            # stream=False: the frames are all read here anyway, so the merge does its single
+            # pass at the end (less memory than the first-pass sums of a live capture).
+            acc = MergeAccumulator(
+                calib, fr.shape, master_dark=None if master is None else master.data, stream=False, **prep.options
+            )
+        strategy, n_planned = prep.strategy_for(fr)
+        src = resolver.resolve(fr.exposure_time, strategy, camera=fr.camera, iso=fr.iso)
+        if src is None:
+            raise missing_dark(fr, strategy, resolver)
+        if src.data is not None and np.shape(src.data) != fr.shape:
+            raise InputError(f"{src.source}: dark frame size differs from the bracket's")
+        warn_short_master(src, strategy, n_planned, fr.exposure_time, warned, warn)
+        acc.add(
+            fr.data,
+            fr.exposure_time,
+            src.data,
+            strategy=strategy,
+            n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None,
+            mask=fr.masked,
+        )
+        frames.append(fr)
+        used.append(f"{strategy}: {src.source}" if strategy is not DarkStrategy.MODEL else "model")
+    check_frames(frames)
+    if prep.plan is not None:
+        check_plan_covered(prep.plan, frames, warn)
+    # Once merged, memory-mapped frames stop counting in memory (still readable).
+    mapped = [fr.data for fr in (*frames, *darks)]
+    assert acc is not None  # the request has frames
+    result = acc.result(release_frames=lambda: release_mapped_pages(mapped))
+    return result, frames, darks, used
+
+
+def _merge_baseline(
+    req: MergeRequest, calib: Calibration, times: Sequence[float | None] | None, progress: bool
+) -> HdrResult:
+    """A weighted average of Table 1 (:func:`pipeline.merge.weighting.merge_weighted`)."""
+    from hdrcap.pipeline.header import with_merge_header
+    from hdrcap.pipeline.merge.weighting import merge_weighted
+
+    fr = read_frames(req.frames, times, "frame", progress)
+    dk = read_frames(req.darks, None, "dark frame", progress) if req.darks else []
+    result = merge_weighted(
+        [f.data for f in fr],
+        [f.exposure_time for f in fr],
+        calib,
+        [d.data for d in dk] if dk else None,
+        method=req.weighting,
+    )
+    return with_merge_header(result, fr, calib, weighting=req.weighting, **dict(req.header))
+
+
+def _tile_rows(req: MergeRequest, calib: Calibration) -> int | None:
+    """Rows per tile (the request's, or chosen when the merge would exceed the memory budget),
+    or None for the in-memory merge."""
+    if req.tiling is None:
+        return None
+    files = [f for f in req.frames if not isinstance(f, RawFrame)]
+    if len(files) < len(req.frames):  # frames already in memory
+        if req.tiling == "auto":
+            return None
+        raise InputError("a tiled merge reads files: give file paths, not frames in memory")
+    from hdrcap.pipeline.merge.tiled import default_memory_budget, tiling_rows
+
+    budget = req.memory_budget or default_memory_budget()
+    chunks = None if req.tiling == "auto" else int(req.tiling)
+    rows = tiling_rows([Path(f) for f in files], len(req.darks), calib, chunks=chunks, budget=budget)
+    if rows is None:
+        return None
+    why = f"--chunks {chunks}" if chunks else f"the merge would need more than --memory-budget {budget / 2**30:.2f} GiB"
+    if req.weighting != "optimal":
+        raise InputError(f"{why}: tiled merges use --weighting optimal, not {req.weighting}")
+    if req.bad_values == "mask":
+        raise InputError(f"{why}: tiled merges refuse bad values; --bad-values mask needs the in-memory merge")
+    if any(isinstance(d, RawFrame) for d in req.darks) or isinstance(req.master_dark, RawFrame):
+        raise InputError(f"{why}: a tiled merge reads its dark frames from files")
+    return rows

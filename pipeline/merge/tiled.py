@@ -6,7 +6,7 @@ Every input is a :class:`RowFile`: rows of a 2-D array at a known place in a fil
 process's resident memory once the tile is done):
 
 * uncompressed DNG frames and dark frames: the image strips in the raw file itself (the file
-  :func:`pipeline.io.read_raw` memory-maps); every other format (LibRaw: NEF, CR2, compressed
+  :func:`pipeline.io.raw.read_raw` memory-maps); every other format (LibRaw: NEF, CR2, compressed
   DNG, ...; PNG/TIFF) is decoded whole once per file and spilled to a temporary file beside
   the output, with a warning;
 * the calibration's maps: the uncompressed members of the calibration archive (memory-mapped
@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io import RawFrame
+from hdrcap.pipeline.io.raw import RawFrame
+from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
     "RowFile",
@@ -53,9 +54,7 @@ __all__ = [
     "chunk_rows_for",
     "in_memory_bytes",
     "tiling_rows",
-    "TiledMerge",
     "merge_tiled",
-    "write_exr_rows",
 ]
 
 #: Resident memory of the process before any pixel is held (interpreter, numpy, numba's
@@ -313,8 +312,8 @@ def chunk_rows_for(budget: int, width: int, n_inputs: int, n_maps: int) -> int:
 
 def _raw_dimensions(path: Path) -> tuple[int, int] | None:
     """(rows, columns) of the largest image in a TIFF-based raw file, without decoding; None
-    for other formats (:func:`pipeline.io.tiff_dimensions`)."""
-    from hdrcap.pipeline.io import tiff_dimensions
+    for other formats (:func:`pipeline.io.raw.tiff_dimensions`)."""
+    from hdrcap.pipeline.io.raw import tiff_dimensions
 
     return tiff_dimensions(path)
 
@@ -390,7 +389,7 @@ class _Inputs:
 
     def open(self, path, t=None) -> tuple[RawFrame, int]:
         """Read one file's metadata and keep its rows as a source; the pixels are not held."""
-        from hdrcap.pipeline.io import read_frame
+        from hdrcap.pipeline.io.raw import read_frame
 
         fr = read_frame(path, t)
         k = self.add(fr.data, str(path), str(path))
@@ -458,23 +457,6 @@ def _combine(extrema: list[dict[str, tuple[float, float]]]) -> dict[str, tuple[f
 
 
 # ------------------------------------------------------------------------------ the merge
-@dataclass
-class TiledMerge:
-    """What :func:`merge_tiled` did: the EXR's header attributes, the summary figures of
-    :func:`pipeline.merge.files.summary`, the rows per tile, the tiles, how many were merged a
-    second time (their float32/float64 choice differed from the whole frame's), the frames and
-    dark frames read, and the inputs spilled to temporary files (not uncompressed DNG)."""
-
-    attrs: dict[str, Any]
-    summary: dict[str, Any]
-    rows: int
-    tiles: int
-    remerged: int
-    n_frames: int
-    n_darks: int
-    spilled: int
-
-
 #: Channels of a tile, in the order of the dask block's first axis.
 _CHANNELS = ("irradiance", "sigma", "nexp", "sigma_calibration", "quality")
 
@@ -510,7 +492,6 @@ class _Plan:
     resolver_args: dict[str, Any] = field(default_factory=dict)
     selfcal: Any = None
     selfcal_times: bool = True
-    extra: dict[str, Any] = field(default_factory=dict)
     tiles: dict[int, dict[str, Any]] = field(default_factory=dict)
 
     def read(self, r0: int, r1: int) -> list[np.ndarray]:
@@ -543,76 +524,38 @@ class _Plan:
         """Merge one tile starting at row ``r0`` (float32/float64 weights as ``forced`` says,
         None: the tile's own choice); returns its channels stacked (C, rows, columns), float32,
         and records its figures in :attr:`tiles`."""
-        from hdrcap.pipeline.merge.files import build_hdr_image
-
         _, _, tile_cls = _accumulator_classes()
         opts = dict(self.options, exposure_times="nominal")  # the times given are the effective ones
         acc = self.accumulate(tile_cls, blocks, self.times, opts)
         acc.forced_single = forced
         result = acc.result()
         result.info.update(self.exposure_info)  # the in-memory merge's (nominal, shutter table, estimate)
-        image = build_hdr_image(result, self.frames, self.calib, self.extra)
         if self.selfcal is not None:
             from hdrcap.pipeline.calibration.selfcal import apply_self_calibration
 
-            apply_self_calibration(image, self.selfcal, times_applied=self.selfcal_times)
+            result = apply_self_calibration(result, self.selfcal, times_applied=self.selfcal_times)
+        channels = result.channels()
         self.tiles[r0] = {
             "info": result.info,
-            "attrs": image.attrs,
             "extrema": acc.extrema,
             "single": acc.own_single if forced is None else forced,
-            "summary": _tile_summary(result, r0, self.shape),
-            "channels": set(image.channels),
+            "size": result.irradiance.size,
+            "channels": set(channels),
         }
-        # a channel the tile's image has not (sigma_calibration when no calibration error
-        # entered) is NaN here and left out of the EXR when no tile has it
+        # a channel the tile has not (sigma_calibration when no calibration error entered) is
+        # NaN here and left out of the result when no tile has it
         out = np.full((len(_CHANNELS),) + result.irradiance.shape, np.nan, np.float32)
         for k, c in enumerate(_CHANNELS):
-            if c in image.channels:
-                out[k] = image.channels[c]
+            if c in channels:
+                out[k] = channels[c]
         return out
-
-
-def _tile_summary(result, r0: int, shape) -> dict[str, Any]:
-    """What :func:`pipeline.merge.files.summary` needs of one tile: extrema, counts and the
-    photosites of the whole frame's regular subsample that lie in it (flat index a multiple of
-    the whole frame's step)."""
-    irr, sig, nexp = result.irradiance, result.sigma, result.nexp
-    step = max(1, shape[0] * shape[1] // 1_000_000)
-    pick = np.arange((-r0 * shape[1]) % step, irr.size, step)
-    return {
-        "size": irr.size,
-        "min": float(irr.min()),
-        "max": float(irr.max()),
-        "unused": int((nexp <= 0).sum()),
-        "defects": int(result.info.get("defects_flagged", 0)),
-        "finite": bool(np.isfinite(irr).all() and np.isfinite(sig).all()),
-        "sample": (irr.ravel()[pick], sig.ravel()[pick], nexp.ravel()[pick] > 0),
-    }
-
-
-def _whole_summary(tiles: list[dict[str, Any]], shape) -> dict[str, Any]:
-    """:func:`pipeline.merge.files.summary` of the whole frame from its tiles' figures."""
-    from hdrcap.pipeline.merge.files import _median_relative_sigma
-
-    i, s, o = (np.concatenate([t["sample"][j] for t in tiles]) for j in range(3))
-    n_defects = sum(t["defects"] for t in tiles)
-    return {
-        "shape": list(shape),
-        "irradiance_min": min(t["min"] for t in tiles),
-        "irradiance_max": max(t["max"] for t in tiles),
-        "median_relative_sigma": _median_relative_sigma(i, s, o, max_samples=max(i.size, 1)),
-        "saturated_everywhere": sum(t["unused"] for t in tiles) - n_defects,
-        "defects_flagged": n_defects,
-        "finite": all(t["finite"] for t in tiles),
-    }
 
 
 def _whole_info(tiles: list[dict[str, Any]], shape, single: bool) -> dict[str, Any]:
     """The merge's ``info`` of the whole frame: the first tile's, with the counts summed (the
     mean iteration count from the exact integer sum of the tiles' counts)."""
     info = dict(tiles[0]["info"])
-    total_iters = sum(round(t["info"]["iterations_used_mean"] * t["summary"]["size"]) for t in tiles)
+    total_iters = sum(round(t["info"]["iterations_used_mean"] * t["size"]) for t in tiles)
     info["saturated_everywhere"] = sum(t["info"]["saturated_everywhere"] for t in tiles)
     info["defects_flagged"] = sum(t["info"]["defects_flagged"] for t in tiles)
     info["iterations_used_mean"] = float(np.float64(total_iters) / max(shape[0] * shape[1], 1))
@@ -681,34 +624,26 @@ def _resolve_darks(plan: _Plan, strategy_for, library, warn) -> list[str]:
     merge's errors and warnings): the strategies, the dark library's masters as row sources;
     returns the per-frame dark sources recorded in the header."""
     from hdrcap.pipeline.merge.darks import DarkResolver
-    from hdrcap.pipeline.merge.files import _missing_dark
-    from hdrcap.pipeline.noise import DarkStrategy
+    from hdrcap.pipeline.merge.files import missing_dark, warn_short_master
 
     resolver = DarkResolver(**plan.resolver_args, library=library)
     for d, k in zip(plan.dark_meta, plan.dark_src):
         resolver.add_dark(np.zeros((1, 1), plan.inputs.sources[k].dtype), d.exposure_time, str(d.path))
-    used, warned = [], set()
+    used: list[str] = []
+    warned: set[str] = set()
     for fr in plan.frames:
-        strategy = strategy_for(fr)
-        strategy, n_planned = (strategy, None) if isinstance(strategy, str) else strategy
-        strategy = DarkStrategy(strategy)
+        strategy, n_planned = strategy_for(fr)
         src = resolver.resolve(fr.exposure_time, strategy, camera=fr.camera, iso=fr.iso)
         if src is None:
-            raise _missing_dark(fr, strategy, resolver)
+            raise missing_dark(fr, strategy, resolver)
         if src.origin == "library" and all(src.source != name for _t, _n, name, _k in plan.library):
             if np.shape(src.data) != fr.shape:
                 raise InputError(f"{src.source}: dark frame size differs from the bracket's")
             k = plan.inputs.add(np.asarray(src.data, np.float32), f"library{len(plan.library)}")
             plan.library.append((fr.exposure_time, float(src.n_frames), src.source, k))
-        short = src.origin == "frames" and strategy is DarkStrategy.MASTER and n_planned and src.n_frames < n_planned
-        if short and src.source not in warned:
-            warned.add(src.source)
-            warn(
-                f"the plan expects a master dark of {n_planned:g} frames at {fr.exposure_time:g} s; --darks gives "
-                f"one of {src.n_frames:g} (set --master-dark-frames if a file averages more)"
-            )
+        warn_short_master(src, strategy, n_planned, fr.exposure_time, warned, warn)
         plan.strategies.append(strategy)
-        used.append(f"{strategy}: {src.source}" if strategy is not DarkStrategy.MODEL else "model")
+        used.append(f"{strategy}: {src.source}" if strategy.value != "model" else "model")
     return used
 
 
@@ -721,7 +656,7 @@ def _no_pixels(frames: list[RawFrame]) -> list[RawFrame]:
 def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths) -> _Plan:
     """Open the bracket and its dark frames (metadata, row sources), checked as the in-memory
     merge checks them; the calibration's maps as row sources."""
-    from hdrcap.pipeline.io import check_frames
+    from hdrcap.pipeline.io.raw import check_frames
 
     if times:
         if len(times) != len(frame_paths):
@@ -740,122 +675,98 @@ def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths) -> _Plan:
 
 
 def merge_tiled(
-    frame_paths: Sequence[Path],
-    calib,
-    options: dict,
-    output: Path,
-    *,
+    req: Any,
+    prep: Any,
+    calib: Any,
+    times: Sequence[float | None] | None,
     rows: int,
-    dark_paths: Sequence[Path] = (),
-    times: Sequence[float] | None = None,
-    plan=None,
-    plan_file: str | None = None,
-    dark_strategy: str | None = None,
-    master_dark: Path | None = None,
-    master_dark_frames: float | None = None,
-    library: str | None = None,
-    given: Callable[[str], bool] = lambda _name: False,
-    selfcal=None,
+    selfcal: Any = None,
     selfcal_times: bool = True,
-    force: bool = False,
-    compression: str = "zip",
-    sigma_precision: str = "auto",
+    *,
     progress: bool = False,
     warn: Callable[[str], None] | None = None,
-) -> TiledMerge:
-    """Merge raw files tile by tile (bands of ``rows`` rows) into the EXR ``output``.
+) -> HdrResult:
+    """Merge raw files tile by tile (bands of ``rows`` rows); the engine of
+    :func:`pipeline.merge.files.merge_files` for frames larger than the memory budget.
 
-    The arguments mean what they mean for :func:`pipeline.merge.files.merge_files` (optimal
-    weighting) and ``hdrcap merge``; ``selfcal`` is the bracket's self-calibration when one was
-    made (applied per tile, as the in-memory merge applies it to the whole image). The EXR
-    equals the in-memory merge's: every channel bit for bit, and the header.
+    The result equals the in-memory merge's: every channel bit for bit, and the header (with
+    the tiling recorded under ``merge.tiling``).
 
     Parameters
     ----------
-    frame_paths : sequence of path
-        The bracket.
+    req : pipeline.merge.files.MergeRequest
+        The request (frames and dark frames are files).
+    prep : pipeline.merge.files.Prepared
+        Its options, dark strategies and header entries.
     calib : Calibration
         The camera model; its maps are read per tile.
-    options : dict
-        Merge options (:func:`pipeline.merge.files.merge_options`).
-    output : pathlib.Path
-        The EXR.
+    times : sequence of float, optional
+        Exposure times of the frames, s (None: the files').
     rows : int
         Rows per tile, even (whole CFA periods).
+    selfcal : SelfCalibration, optional
+        The bracket's self-calibration, applied per tile as the in-memory merge applies it.
+    selfcal_times : bool
+        Whether the merge used the effective exposure times.
+    progress : bool
+        A progress bar on stderr.
+    warn : callable, optional
+        Called with one-line warnings.
 
     Returns
     -------
-    TiledMerge
+    HdrResult
+        Channels memory-mapped from files that are already deleted (the mappings keep them
+        until the arrays are gone; POSIX), and the complete header.
     """
-    from hdrcap.pipeline.merge.darks import default_strategy
-    from hdrcap.pipeline.merge.files import _check_plan_covered, _plan_strategies
-    from hdrcap.pipeline.noise import DarkStrategy
-    from hdrcap.pipeline.planfile import apply_plan_options, planner_attribute
+    from hdrcap.pipeline.merge.files import _finish, check_plan_covered
 
     warn = warn or (lambda m: print(f"hdrcap: warning: {m}", file=sys.stderr))
     if rows < 2 or rows % 2:
         raise InputError(f"--chunks {rows}: give an even number of rows (whole CFA periods), >= 2")
-    options = dict(options)
-    spill_root = output.parent if output.parent.is_dir() else Path(".")
+    spill_root = Path(req.scratch_dir) if req.scratch_dir else Path(tempfile.gettempdir())
     with tempfile.TemporaryDirectory(prefix=".hdrcap-tiles-", dir=spill_root) as spill:
         inputs = _Inputs(spill, warn)
-        p = _open_all(inputs, calib, list(frame_paths), times, list(dark_paths))
-        master_name = None
-        if master_dark:
-            plain = Path(master_dark).suffix.lower() in (".png", ".tif", ".tiff")  # no exposure time: used as is
-            if plain:
-                options["master_dark_time"] = None
-            md, p.master_src = inputs.open(master_dark, 1.0 if plain else None)
+        p = _open_all(inputs, calib, [Path(f) for f in req.frames], times, [Path(d) for d in req.darks])
+        if prep.master_dark is not None:
+            md, p.master_src = inputs.open(Path(prep.master_dark), 1.0 if prep.master_plain else None)
             if md.shape != p.shape:
                 raise InputError(f"{md.path}: master dark size differs from the bracket's")
-            master_name = str(md.path)
-        extra: dict[str, Any] = {"weighting": "optimal"}
-        dark_strategy = None if dark_strategy is None else DarkStrategy(dark_strategy)
-        taken = overridden = ignored = None
-        if plan is not None:
-            options, taken, overridden, ignored = apply_plan_options(plan, options, given)
-            for name in ignored:
-                warn(f"{plan.path}: merge option {name!r} is not one hdrcap merge knows; ignored")
-            if dark_strategy:
-                overridden["darks"] = {"plan": plan.data["darks"], "used": dark_strategy.value}
-            strategy_for = _plan_strategies(plan, dark_strategy)
-        else:
-            only = options.get("dark_strategy") or default_strategy(bool(dark_paths), master_dark is not None)
-
-            def strategy_for(_fr):
-                return only
-
-        if master_dark:
-            options["dark_strategy"] = DarkStrategy.MASTER
-            options.setdefault("master_dark_time", md.exposure_time)
-        p.options = options
-        p.resolver_args = {
-            "frames_per_dark": master_dark_frames,
-            "master_dark": master_name,
-            "temperature": (calib.provenance or {}).get("temperature"),
-        }
-        extra["dark_sources"] = _resolve_darks(p, strategy_for, library, warn)
-        if plan is not None:
-            _check_plan_covered(plan, p.frames, warn)
-        if master_dark:
-            extra["master_dark_file"] = str(master_dark)
-        if plan is not None:
-            extra["planner"] = planner_attribute(
-                plan.data, plan_file, plan.sha256, taken, overridden, options_ignored=ignored
-            )
-        p.extra, p.selfcal, p.selfcal_times = extra, selfcal, selfcal_times
+            prep.master_dark_time(md)
+        p.options = prep.options
+        p.resolver_args = {k: v for k, v in prep.resolver_args.items() if k != "library"}
+        used = _resolve_darks(p, prep.strategy_for, prep.resolver_args.get("library"), warn)
+        if prep.plan is not None:
+            check_plan_covered(prep.plan, p.frames, warn)
+        p.selfcal, p.selfcal_times = selfcal, selfcal_times
         p.times, p.exposure_info = _effective_times(p)
-        return _run_tiles(p, rows, output, spill, force, compression, sigma_precision, progress)
+        channels, info = _run_tiles(p, rows, spill, progress)
+        spilled = sum(1 for s in p.inputs.sources if s.path.startswith(spill))
+        info["tiling"] = {"rows": rows, "tiles": len(p.tiles), "remerged": info.pop("_remerged"), "spilled": spilled}
+        frames = p.frames
+    whole = HdrResult(
+        channels["irradiance"],
+        channels["sigma"],
+        channels["nexp"],
+        quality=channels.get("quality"),
+        sigma_calibration=channels.get("sigma_calibration"),
+        header={"merge": info},
+    )
+    result = _finish(whole, frames, calib, dict(prep.entries, dark_sources=used), req.header, None, True, warn)
+    if selfcal is not None:  # the tiles' arrays hold it already; the header says it
+        from hdrcap.pipeline.calibration.selfcal import self_calibration_header
+
+        result = result.replace(header=self_calibration_header(result.header, selfcal, times_applied=selfcal_times))
+    return result
 
 
-def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression, sigma_precision, progress):
+def _run_tiles(p: _Plan, rows: int, spill: str, progress: bool) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Merge every tile through dask.array (inputs ``from_array`` of the row sources, one
     ``map_blocks`` task per tile, ``store`` into temporary channel files), merge again the tiles
-    whose float32/float64 choice differs from the whole frame's, and write the EXR."""
+    whose float32/float64 choice differs from the whole frame's; returns the channels (read-only
+    maps of their files) and the merge's record of the whole frame."""
     import dask
     import dask.array as da
-
-    from hdrcap.pipeline.merge.files import exr_precision
 
     h, w = p.shape
     token = uuid.uuid4().hex
@@ -865,7 +776,11 @@ def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression
         )
         for k, src in enumerate(p.inputs.sources)
     ]
-    outs = {name: RowFile.create(Path(spill) / f"out-{name}.bin", (h, w), np.float32) for name in _CHANNELS}
+    dtypes = {"quality": np.uint8}
+    outs = {
+        name: RowFile.create(Path(spill) / f"out-{name}.bin", (h, w), dtypes.get(name, np.float32))
+        for name in _CHANNELS
+    }
 
     class Writer:
         """The target of ``dask.array.store``: a tile's channels into their files."""
@@ -873,7 +788,7 @@ def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression
         def __setitem__(self, key, value):
             r0 = key[1].start or 0
             for name, arr in zip(_CHANNELS, value):
-                outs[name].write(r0, arr)
+                outs[name].write(r0, np.nan_to_num(arr) if outs[name].dtype.kind == "u" else arr)
 
     def block(*blocks, block_info=None):
         return p.merge_block(blocks, block_info[None]["array-location"][1][0])
@@ -903,83 +818,7 @@ def _run_tiles(p: _Plan, rows: int, output: Path, spill: str, force, compression
     for r0 in again:
         Writer()[(slice(None), slice(r0, r0 + rows))] = p.merge_block(p.read(r0, r0 + rows), r0, forced=single)
     tiles = [p.tiles[r0] for r0 in sorted(p.tiles)]
-    attrs = dict(tiles[0]["attrs"], merge=_whole_info(tiles, p.shape, single))
-    outs = {name: out for name, out in outs.items() if any(name in t["channels"] for t in tiles)}
-    write_exr_rows(output, outs, attrs, exr_precision(outs, sigma_precision), compression, force, rows)
-    spilled = sum(1 for s in p.inputs.sources if s.path.startswith(spill))
-    summ = _whole_summary([t["summary"] for t in tiles], p.shape)
-    return TiledMerge(attrs, summ, rows, len(tiles), len(again), len(p.frames), len(p.dark_meta), spilled)
-
-
-def _decide_precision(name: str, src: RowFile, want: str, rows: int) -> str:
-    """``auto``/``half`` of a channel decided as :func:`pipeline.io.write_exr` decides it, from
-    the whole channel's extrema (read block by block): ``half``, ``float``, or the refusal."""
-    from hdrcap.pipeline.io import _exr_channel
-
-    if want not in ("auto", "half"):
-        return want
-    lo, hi = math.inf, 0.0
-    for r0 in range(0, src.shape[0], rows):
-        block = src.rows(r0, r0 + rows)
-        mag = np.abs(block[np.isfinite(block) & (block != 0)])
-        if mag.size:
-            lo, hi = min(lo, float(mag.min())), max(hi, float(mag.max()))
-    probe = np.array([lo, hi] if hi > 0 else [], np.float32)
-    return "half" if _exr_channel(name, probe, want).dtype == np.float16 else "float"
-
-
-def write_exr_rows(path: Path, outs: dict[str, Any], attrs, precision, compression, force, rows) -> Path:
-    """:func:`pipeline.io.write_exr` of channels held in files, block of rows by block of rows:
-    the same precisions, header and pixels (OpenEXR's scanline writer).
-
-    Parameters
-    ----------
-    path : pathlib.Path
-        The EXR.
-    outs : dict of str to RowFile (or any object with ``shape`` and ``rows(r0, r1)``)
-        The channels.
-    attrs : dict
-        Header attributes (JSON-ready), as :attr:`pipeline.io.HdrImage.attrs`.
-    precision : dict of str to str
-        Channel precisions as for :func:`pipeline.io.write_exr` (missing: float).
-    compression : str
-        One of :data:`pipeline.io.EXR_COMPRESSIONS`.
-    force : bool
-        Replace an existing file.
-    rows : int
-        Rows per block read and written.
-
-    Returns
-    -------
-    pathlib.Path
-        ``path``.
-    """
-    import json
-
-    import Imath
-    import OpenEXR
-
-    from hdrcap.pipeline.io import _EXR_CODES, _META_KEY, _exr_channel, _json_default, _set_exr_threads, atomic_output
-
-    if compression not in _EXR_CODES or not hasattr(Imath.Compression, _EXR_CODES[compression]):
-        raise InputError(f"EXR compression {compression!r} is not available to the tiled writer")
-    h, w = next(iter(outs.values())).shape
-    decided = {name: _decide_precision(name, src, precision.get(name, "float"), rows) for name, src in outs.items()}
-    kinds = {"float": Imath.PixelType.FLOAT, "half": Imath.PixelType.HALF, "uint": Imath.PixelType.UINT}
-    header = OpenEXR.Header(w, h)
-    header["channels"] = {name: Imath.Channel(Imath.PixelType(kinds[decided[name]])) for name in outs}
-    header["compression"] = Imath.Compression(getattr(Imath.Compression, _EXR_CODES[compression]))
-    header[_META_KEY] = json.dumps(attrs, sort_keys=True, default=_json_default).encode()
-    for key, val in attrs.items():
-        if isinstance(val, str):
-            header[f"{_META_KEY}:{key}"] = val.encode()
-    _set_exr_threads(OpenEXR, None)
-    with atomic_output(path, force=force, suffix=".exr") as tmp:
-        exr = OpenEXR.OutputFile(str(tmp), header)
-        try:
-            for r0 in range(0, h, rows):
-                data = {name: _exr_channel(name, src.rows(r0, r0 + rows), decided[name]) for name, src in outs.items()}
-                exr.writePixels({name: b.tobytes() for name, b in data.items()}, min(rows, h - r0))
-        finally:
-            exr.close()
-    return path
+    info = _whole_info(tiles, p.shape, single)
+    info["_remerged"] = len(again)
+    present = {name: out.mapped() for name, out in outs.items() if any(name in t["channels"] for t in tiles)}
+    return present, info

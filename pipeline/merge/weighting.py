@@ -5,7 +5,7 @@ mu = sum_i w(v_i) x_i / sum_i w(v_i), and differs only in the weight it gives to
 observed output value v_i. This module implements each weight of Table 1 for a **linear**
 raw sensor, registered by name in :data:`WEIGHTING_METHODS` (the style of colour-hdri's
 ``weighting_function_Debevec1997``), and :func:`merge_weighted`, which merges a bracket
-with any of them into the same :class:`pipeline.merge.accumulator.MergeResult` as the optimal merge.
+with any of them into the same :class:`pipeline.result.HdrResult` as the optimal merge.
 
 Linear sensor. All weights take ``v``, the raw value minus the black level (bias) in DN, as
 the camera outputs it. For a linear camera the inverse response of Table 1 is
@@ -30,10 +30,10 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.merge.accumulator import MergeResult
 from hdrcap.pipeline.merge.darks import DarkResolver
 from hdrcap.pipeline.noise import DarkStrategy, exposure_variance
 from hdrcap.pipeline.params import Calibration, SensorParams
+from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
     "WEIGHTING_METHODS",
@@ -457,7 +457,7 @@ def merge_weighted(
     *,
     n_dark: float = 1,
     variance_at: np.ndarray | None = None,
-) -> MergeResult:
+) -> HdrResult:
     """Merge a bracket with a Table 1 weighting (Eq. 1) into irradiance and uncertainty.
 
     Per exposure x_i = (v_i - b_i) / (t_i g a) (Eq. 6, the same estimate the optimal merge
@@ -493,7 +493,7 @@ def merge_weighted(
 
     Returns
     -------
-    MergeResult
+    HdrResult
         float32 irradiance (e-/s), sigma (e-/s) and nexp; saturated-everywhere photosites
         get the lower bound (v_sat - bias)/(t_min g a) with nexp = 0 and sigma = 0.
     """
@@ -522,9 +522,9 @@ def merge_weighted(
         "saturated_everywhere": int(sat.sum()),
         "sigma": "propagated std of the weighted mean: sum w^2 s^2 / (sum w)^2 (pipeline.noise)",
     }
-    return MergeResult(
+    return HdrResult(
         irradiance=irr.astype(np.float32),
         sigma=sigma.astype(np.float32),
         nexp=n_ok.astype(np.float32),
-        info=info,
+        header={"merge": info},
     )

@@ -71,7 +71,7 @@ def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **m
 
     from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
     from hdrcap.pipeline.errors import InputError
-    from hdrcap.pipeline.merge.files import merge_options
+    from hdrcap.pipeline.merge.accumulator import MergeOptions
     from hdrcap.pipeline.merge.weighting import WEIGHTING_METHODS
 
     o = merge_opts
@@ -88,15 +88,14 @@ def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **m
     settings = BatchSettings(
         calibration=calibration,
         camera=o["camera"],
-        options=merge_options(
-            o["iterations"],
-            o["tolerance"],
-            o["saturation"],
-            o["prnu"],
-            o["dark_strategy"],
-            o["master_dark_frames"],
-            o["saturation_sigmas"],
-            o["exposure_times"],
+        options=MergeOptions(
+            iterations=o["iterations"],
+            tolerance=o["tolerance"],
+            saturation=o["saturation"],
+            saturation_sigmas=o["saturation_sigmas"],
+            prnu=o["prnu"],
+            dark_strategy=o["dark_strategy"],
+            exposure_times=o["exposure_times"],
         ),
         given=given,
         weighting=o["weighting"],

@@ -27,7 +27,7 @@ def run_demo(
     from hdrcap.acquire.capture.job import job_from_dict, run_job
     from hdrcap.acquire.capture.manifest import Manifest
     from hdrcap.pipeline.errors import OutputExistsError
-    from hdrcap.pipeline.io import atomic_output
+    from hdrcap.pipeline.io.files import atomic_output
     from hdrcap.pipeline.times import unique_exposures
 
     out = Path(out)

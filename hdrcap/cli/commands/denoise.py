@@ -120,7 +120,7 @@ def command(
         settings_from_options,
     )
     from hdrcap.pipeline.denoise.tiled import exr_pixel_types, median_relative_sigma, output_precision
-    from hdrcap.pipeline.io import HdrImage, read_exr, write_exr
+    from hdrcap.pipeline.io.exr import read_exr, write_exr
 
     t0 = time.perf_counter()
     from hdrcap.pipeline._numba_target import warm_up
@@ -152,7 +152,7 @@ def command(
     if len(set(shapes.values())) > 1:
         sizes = ", ".join(f"{k} {v[1]}x{v[0]}" for k, v in shapes.items())
         raise InputError(f"{input_exr}: channel sizes differ ({sizes})")
-    chosen_layout = layout_from_metadata(image.attrs) if layout == "auto" else layout
+    chosen_layout = layout_from_metadata(image.header) if layout == "auto" else layout
     settings = settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma, chosen_layout)
     result = denoise(
         ch["irradiance"], ch["sigma"], ch.get("nexp"), settings, name=str(input_exr), quality=ch.get("quality")
@@ -160,18 +160,18 @@ def command(
     channels = dict(ch)  # other channels are carried over unchanged
     channels["irradiance"] = result.irradiance
     channels["sigma"] = result.sigma
-    attrs = dict(image.attrs)
+    attrs = dict(image.header)
     attrs["sigma"] = SIGMA_MEANING
     attrs["denoise"] = denoise_header(
         settings,
         result,
         "header cfa_pattern" if layout == "auto" else "--layout",
-        image.attrs.get("sigma", "standard deviation of irradiance"),
+        image.header.get("sigma", "standard deviation of irradiance"),
         __version__,
         source_file=str(input_exr),
     )
     precision = output_precision(exr_pixel_types(input_exr), sigma_precision)
-    write_exr(output, HdrImage(channels, attrs), force=force, compression=exr_compression, precision=precision)
+    write_exr(output, channels, attrs, force=force, compression=exr_compression, precision=precision)
     ok = np.asarray(ch["nexp"]) > 0 if "nexp" in ch else np.ones(result.irradiance.shape, bool)
     if "quality" in ch:  # the photosites the filter changes, as with --chunks
         ok &= np.asarray(ch["quality"]) == 0

@@ -56,14 +56,14 @@ def command(input_exr, output, method, space, preview, force, as_json):
     defective). See docs/develop.md.
     """
     from hdrcap.pipeline.develop import develop_image
-    from hdrcap.pipeline.io import read_exr, write_exr
+    from hdrcap.pipeline.io.exr import write_exr
+    from hdrcap.pipeline.io.results import read_result
 
     _refuse_clobber(output, force, input_exr)
     _refuse_clobber(preview, force, input_exr)
-    image = read_exr(input_exr)
-    out = develop_image(image, method, space, source=str(input_exr))
+    out = develop_image(read_result(input_exr), method, space, source=str(input_exr))
     precision = {name: "uint" for name in ("nexp", "quality") if name in out.channels}
-    write_exr(output, out, force=force, precision=precision)
+    write_exr(output, out.channels, out.header, force=force, precision=precision)
     if preview is not None:
         import numpy as np
 
@@ -71,7 +71,7 @@ def command(input_exr, output, method, space, preview, force, as_json):
 
         rgb = np.stack([out.channels[c] for c in "RGB"], axis=-1)
         write_preview_png(preview, rgb, None, force=force)
-    info = {"output": str(output), "preview": None if preview is None else str(preview), **out.attrs["develop"]}
+    info = {"output": str(output), "preview": None if preview is None else str(preview), **out.header["develop"]}
     info.pop("source_file")
     if as_json:
         echo_json(info)

@@ -20,17 +20,27 @@ import click
     show_default=True,
     help="EXR compression.",
 )
+@click.option(
+    "--sigma-precision",
+    type=click.Choice(["auto", "half", "float"]),
+    default="auto",
+    show_default=True,
+    help="Storage of sigma and sigma_calibration: give the batch's --sigma-precision (the archive holds the values "
+    "as that precision stored them).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
-def command(archive, run, output, exr_compression, force):
-    """Write run RUN of the zarr ARCHIVE (from `hdrcap batch`) as an EXR: the channels
-    the channels and header attributes `hdrcap merge` writes for that run."""
+def command(archive, run, output, exr_compression, sigma_precision, force):
+    """Write run RUN of the zarr ARCHIVE (from `hdrcap batch`) as an EXR: the channels and
+    header `hdrcap merge` writes for that run (the archive holds the channels as they are
+    stored, so the EXR is the merge's bit for bit)."""
     from hdrcap.batch.archive import read_run
-    from hdrcap.pipeline.errors import InputError
-    from hdrcap.pipeline.io import write_exr
+    from hdrcap.pipeline.io.files import check_new_output
+    from hdrcap.pipeline.io.results import write_result
 
-    if output.exists() and not force:
-        raise InputError(f"{output}: exists; use --force to overwrite")
-    img = read_run(archive, run)
-    write_exr(output, img, force=force, compression=exr_compression)
-    h, w = img.shape
+    check_new_output(output, force)
+    result = read_run(archive, run)
+    write_result(
+        result, output, format="exr", force=force, compression=exr_compression, sigma_precision=sigma_precision
+    )
+    h, w = result.shape
     click.echo(f"wrote {output}: run {run} of {archive}, {w}x{h}")

@@ -217,199 +217,124 @@ def command(
 ):
     """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR (or a float DNG).
 
-    The EXR holds float32 channels irradiance (e-/s per photosite), sigma (its standard
-    deviation) and nexp (unsaturated exposures used), and header attributes with the unit, CFA
-    pattern, exposure times, calibration, all merge options, the dark frame of every exposure
-    and, with --plan, the planner's decisions. With --format dng (or OUTPUT.dng) the irradiance
-    alone is written as a linear float CFA DNG for raw developers.
+    The EXR holds irradiance (e-/s per photosite), sigma (its standard uncertainty),
+    sigma_calibration (when the calibration has standard errors), nexp (unsaturated exposures
+    used) and quality, and a header with the unit, CFA pattern, exposure times, calibration,
+    all merge options, the dark frame of every exposure and, with --plan, the planner's
+    decisions (docs/merge.md). With --format dng (or OUTPUT.dng) the irradiance alone is
+    written as a linear float CFA DNG for raw developers.
     """
     from click.core import ParameterSource
 
-    from hdrcap.pipeline.io import write_exr
-    from hdrcap.pipeline.merge.files import (
-        build_hdr_image,
-        exr_precision,
-        library_root,
-        merge_files,
-        merge_options,
-        summary,
-    )
+    from hdrcap.acquire.camera.model import camera_model
+    from hdrcap.pipeline.io.files import check_new_output
+    from hdrcap.pipeline.io.results import output_format, write_result
+    from hdrcap.pipeline.merge.accumulator import MergeOptions
+    from hdrcap.pipeline.merge.files import MergeRequest, merge_files, start_warm_up
+    from hdrcap.pipeline.result import summarise
 
-    def given(name):
-        return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
-
-    out_format = out_format or ("dng" if output.suffix.lower() == ".dng" else "exr")
-    if output.exists() and not force:
-        raise InputError(f"{output}: exists; use --force to overwrite")
+    t0 = time.perf_counter()
+    out_format = output_format(output, out_format)
+    check_new_output(output, force)
+    if weighting == "optimal":
+        start_warm_up()  # numba's set-up while the calibration loads and the frames are read
     plan = None
     if plan_file:
-        from hdrcap.pipeline.planfile import read_plan  # the planner only when a plan is given
+        from hdrcap.pipeline.planfile import read_plan
 
         plan = read_plan(plan_file)
-    if plan is not None and weighting != "optimal":
-        raise InputError(f"--plan works with --weighting optimal, not {weighting}")
-    if dark_strategy == DarkStrategy.MATCHED and not darks:
-        raise InputError("--dark-strategy matched needs dark frames (--darks)")
-    if master_dark and darks and plan is None:
-        raise InputError("give either --darks or --master-dark, not both (both only with --plan)")
-    if master_dark and dark_strategy not in (None, DarkStrategy.MASTER):
-        raise InputError(f"--master-dark needs --dark-strategy master, not {dark_strategy}")
-    _check_bad_values(bad_values, calibration or camera, weighting)
-    if weighting == "optimal":
-        from hdrcap.pipeline.merge.files import start_warm_up
-
-        start_warm_up()  # numba's set-up while the calibration loads and the frames are read
-    t0 = time.perf_counter()
-    warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
-    from hdrcap.acquire.camera.model import camera_model
-    from hdrcap.pipeline.merge.files import bracket_calibration
-
-    given_model = camera_model(calibration, camera) if (calibration or camera) else None
-    calib, times, selfcal = bracket_calibration(
-        given_model,
-        frames,
-        times,
-        darks=bool(darks),
-        warn=warn,
-        say=lambda m: click.echo(m, err=True),
+    options = MergeOptions(
+        iterations=iterations,
+        tolerance=tolerance,
+        saturation=saturation,
+        saturation_sigmas=saturation_sigmas,
+        prnu=prnu,
+        dark_strategy=dark_strategy,
         exposure_times=exposure_times,
     )
-    merge_times = exposure_times
-    if selfcal is not None and times == list(selfcal.effective_times):
-        merge_times = "nominal"  # the self-calibration's pairs gave the effective times: not estimated twice
-    if selfcal is not None:
-        click.echo(f"  {_selfcal_summary(selfcal)}", err=True)
-    lib_root = library_root(calib, calibration)
-    if dark_strategy == DarkStrategy.MASTER and not (darks or master_dark or lib_root):
-        raise InputError(
-            "--dark-strategy master needs --master-dark FILE, per-exposure master darks (--darks) "
-            "or a calibration with a dark library (--calibration)"
-        )
-    if weighting != "optimal" and weighting not in _weighting_methods():
-        raise InputError(f"--weighting {weighting!r}: choose from optimal, {', '.join(_weighting_methods())}")
-    options = merge_options(
-        iterations, tolerance, saturation, prnu, dark_strategy, master_dark_frames, saturation_sigmas, merge_times
+    given = frozenset(
+        name
+        for name in ctx.params
+        if ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)
     )
-    rows = _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format, bad_values)
-    common = dict(  # what the tiled and the in-memory merge are both given
-        dark_paths=darks,
-        times=times,
-        plan=plan,
-        plan_file=str(plan_file) if plan_file else None,
-        dark_strategy=dark_strategy,
+    if chunks is not None and out_format != "exr":
+        raise InputError(f"--chunks {chunks}: tiled merges write EXR, not {out_format}")
+    request = MergeRequest(
+        frames=list(frames),
+        calibration=calibration if calibration else (camera_model(camera=camera) if camera else None),
+        options=options,
+        darks=list(darks),
+        times=list(times) or None,
         master_dark=master_dark,
         master_dark_frames=master_dark_frames,
-        library=lib_root,
+        plan=plan,
         given=given,
-        progress=not as_json,
-        warn=warn,
+        weighting=weighting,
+        bad_values=bad_values,
+        tiling=chunks if chunks is not None else ("auto" if out_format == "exr" else None),
+        memory_budget=_memory_budget(memory_budget),
+        scratch_dir=output.parent if output.parent.is_dir() else None,
     )
-    if rows:  # one frame larger than the memory budget: tile by tile
-        from hdrcap.pipeline.merge.tiled import merge_tiled
-
-        tiled = merge_tiled(
-            frames,
-            calib,
-            options,
-            output,
-            rows=rows,
-            selfcal=selfcal,
-            selfcal_times=exposure_times == "effective",
-            force=force,
-            compression=exr_compression,
-            sigma_precision=sigma_precision,
-            **common,
-        )
-        info = tiled.summary | {"output": str(output), "seconds": round(time.perf_counter() - t0, 3)}
-        info |= {"n_frames": tiled.n_frames, "n_darks": tiled.n_darks, "chunk_rows": rows, "tiles": tiled.tiles}
-        return _report(info, selfcal, as_json)
-    done = merge_files(frames, calib, options, weighting=weighting, bad_values=bad_values, **common)
-    image = build_hdr_image(done.result, done.frames, calib, done.extra)
+    warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
+    result = merge_files(request, progress=not as_json, warn=warn, say=lambda m: click.echo(m, err=True))
+    selfcal = result.header.get("self_calibration")
     if selfcal is not None:
-        from hdrcap.pipeline.calibration.selfcal import apply_self_calibration
-
-        apply_self_calibration(image, selfcal, times_applied=exposure_times == "effective")
-    if out_format == "dng":
-        from hdrcap.pipeline.io.dngwrite import write_float_dng
-
-        write_float_dng(output, image, bits=int(dng_bits), force=force)
-    else:
-        write_exr(
-            output,
-            image,
-            force=force,
-            compression=exr_compression,
-            precision=exr_precision(image.channels, sigma_precision),
-        )
-    info = summary(done.result) | {
+        click.echo(f"  {_selfcal_summary(selfcal)}", err=True)
+    write_result(
+        result,
+        output,
+        format=out_format,
+        force=force,
+        compression=exr_compression,
+        sigma_precision=sigma_precision,
+        dng_bits=int(dng_bits),
+    )
+    info = summarise(result) | {
         "output": str(output),
         "seconds": round(time.perf_counter() - t0, 3),
-        "n_frames": len(done.frames),
-        "n_darks": len(done.darks),
+        "n_frames": result.info.get("n_frames", len(frames)),
+        "n_darks": result.info.get("n_darks", len(darks)),
     }
-    _report(info, selfcal, as_json)
-
-
-def _report(info: dict, selfcal, as_json: bool) -> None:
-    """Print the merge's summary: one JSON line, or one sentence."""
-    output = info["output"]
+    tiling = result.info.get("tiling")
+    if tiling:
+        info |= {"chunk_rows": tiling["rows"], "tiles": tiling["tiles"]}
     if selfcal is not None:
-        info["calibration"] = selfcal.calibration.provenance["source"]
-        info["unit"] = selfcal.unit
+        info["calibration"] = selfcal["source"]
+    _report(info, as_json)
+
+
+def _memory_budget(text: str | None) -> int | None:
+    """Bytes of --memory-budget (None: the default, half of this machine's memory)."""
+    if text is None:
+        return None
+    from hdrcap.pipeline.merge.tiled import parse_memory
+
+    return parse_memory(text)
+
+
+def _report(info: dict, as_json: bool) -> None:
+    """Print the merge's summary: one JSON line, or one sentence in the unit written."""
+    from hdrcap.pipeline.schema import UNIT_ELECTRONS
+
     if as_json:
         echo_json(info)
-    else:
-        click.echo(
-            f"wrote {output}: {info['shape'][1]}x{info['shape'][0]}, irradiance "
-            f"{info['irradiance_min']:.4g}..{info['irradiance_max']:.4g} e-/s, "
-            f"{info['saturated_everywhere']} photosites saturated everywhere, {info['seconds']:.2f} s"
-        )
-
-
-def _check_bad_values(bad_values: str, calibrated, weighting: str) -> None:
-    """``--bad-values mask`` needs a calibration given (a self-calibration or library look-up
-    reads the frames before any mask) and the optimal merge (the baselines take no mask)."""
-    if bad_values != "mask":
         return
-    if not calibrated:
-        raise InputError(
-            "--bad-values mask needs --calibration or --camera (the self-calibration would read the masked values)"
-        )
-    if weighting != "optimal":
-        raise InputError(f"--bad-values mask works with --weighting optimal, not {weighting}")
+    unit = "e-/s" if info.get("unit") in (None, UNIT_ELECTRONS) else "DN/s"
+    click.echo(
+        f"wrote {info['output']}: {info['shape'][1]}x{info['shape'][0]}, irradiance "
+        f"{info['irradiance_min']:.4g}..{info['irradiance_max']:.4g} {unit}, "
+        f"{info['saturated_everywhere']} photosites saturated everywhere, {info['seconds']:.2f} s"
+    )
 
 
-def _tile_rows(frames, darks, calib, chunks, memory_budget, weighting, out_format, bad_values) -> int | None:
-    """Rows per tile (--chunks, or chosen when the merge would exceed --memory-budget), or None."""
-    from hdrcap.pipeline.merge.tiled import default_memory_budget, parse_memory, tiling_rows
-
-    budget = parse_memory(memory_budget) if memory_budget is not None else default_memory_budget()
-    rows = tiling_rows(frames, len(darks), calib, chunks=chunks, budget=budget)
-    if rows is None:
-        return None
-    why = f"--chunks {chunks}" if chunks else f"the merge would need more than --memory-budget {budget / 2**30:.2f} GiB"
-    if weighting != "optimal":
-        raise InputError(f"{why}: tiled merges use --weighting optimal, not {weighting}")
-    if out_format != "exr":
-        raise InputError(f"{why}: tiled merges write EXR, not {out_format}")
-    if bad_values == "mask":
-        raise InputError(f"{why}: tiled merges refuse bad values; --bad-values mask needs the in-memory merge")
-    return rows
-
-
-def _weighting_methods():
-    """The baseline weightings by name (imported only when a baseline is asked for)."""
-    from hdrcap.pipeline.merge.weighting import WEIGHTING_METHODS
-
-    return WEIGHTING_METHODS
-
-
-def _selfcal_summary(sc) -> str:
-    """One line: the estimated gain and read noise with their standard errors."""
-    f = sc.fit
-    if not sc.gain_known:
+def _selfcal_summary(head: dict) -> str:
+    """One line from the header's ``self_calibration``: the gain and read noise with their
+    standard errors."""
+    g, r = head["gain"], head["read_noise_variance"]
+    if not g.get("estimated"):
         return "gain not estimable: irradiance in DN/s, sigma relative"
+    n = head.get("photon_transfer_fit", {}).get("n_photosites")
     return (
-        f"g = {f['g']:.4g} +- {f['g_stderr']:.2g} DN/e-, sigma_R^2 = {f['sigma2_R']:.3g} +- "
-        f"{f['sigma2_R_stderr']:.2g} DN^2, from {f['n_photosites']} photosites in {len(sc.pairs)} pairs"
+        f"g = {g['value']:.4g} +- {g['stderr']:.2g} DN/e-, sigma_R^2 = {r['value']:.3g} +- "
+        f"{r['stderr']:.2g} DN^2, from {n} photosites in {len(head.get('exposure_ratios', []))} pairs"
     )
