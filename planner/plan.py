@@ -702,6 +702,7 @@ def plan_exposures(
     )
     # 2. the first exposure: the longest that does not saturate the scene's bulk (Sec. 8)
     x_bulk = bulk_irradiance(irradiance, times[0], calibration, highlight_fraction, k_sigma)
+    assert x_bulk is not None  # hist.X are pixel values (the bins' extremes), some eligible
     t_first = first_exposure(x_bulk, times, calibration, k_sigma)
     t_seed, seeds = _seeds(ctx, t_first, time_budget, bulk_first)
     # 3. Eq. 18's greedy from each seed, polished; 4. the models of the merge
@@ -955,12 +956,12 @@ def _capture_order(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[i
 def _drop_unneeded(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
     """Remove exposures (longest first, never the first ``n_fixed``) whose absence still meets
     the target."""
-    chosen = list(chosen)
+    kept: list[int | None] = list(chosen)
     for pos in sorted(range(n_fixed, len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
-        rest = [c for k, c in enumerate(chosen) if k != pos and c is not None]
+        rest = [c for k, c in enumerate(kept) if k != pos and c is not None]
         if rest and ctx.reached(ctx.snr(*ctx.sums(rest))):
-            chosen[pos] = None
-    return [c for c in chosen if c is not None]
+            kept[pos] = None
+    return [c for c in kept if c is not None]
 
 
 def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:

@@ -345,17 +345,13 @@ def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k
         delta = np.where(su > 0, np.sqrt(suv) / np.maximum(su, 1e-300) / Xe, 0.0)
     losses = []
     for _ in range(MAX_ITERATIONS):
-        worst_db = None
-        worst_var = None
-        for sgn in (-1.0, 1.0):
-            pred = predict_snr(Xe, exposures, calibration, darks, nd, weight_at=Xe * (1 + sgn * delta), **kw)
-            db = pred.snr_db
-            if worst_db is None:
-                worst_db, worst_var = db, pred.variance
-            else:
-                worse = db < worst_db
-                worst_db = np.where(worse, db, worst_db)
-                worst_var = np.where(worse, pred.variance, worst_var)
+        low, high = (
+            predict_snr(Xe, exposures, calibration, darks, nd, weight_at=Xe * (1 + sgn * delta), **kw)
+            for sgn in (-1.0, 1.0)
+        )
+        worse = high.snr_db < low.snr_db
+        worst_db = np.where(worse, high.snr_db, low.snr_db)
+        worst_var = np.where(worse, high.variance, low.variance)
         fin = np.isfinite(opt)
         losses.append(float(np.max(opt[fin] - worst_db[fin])) if fin.any() else 0.0)
         delta = np.where(np.isfinite(worst_var), np.sqrt(worst_var) / Xe, 0.0)

@@ -197,8 +197,8 @@ class _WorkerState:
         import gphoto2 as gp  # VCAMERADIR (tests) is in the environment this process inherited
 
         self.gp = gp
-        self.cam = None
-        self.tree = None
+        self.cam: Any = None  # a gp.Camera once op_open ran (gphoto2 ships no type information)
+        self.tree: Any = None
         self.reads = {"tree": 0, "single": 0, "set": 0}
 
     # --- connection
@@ -411,6 +411,7 @@ def _worker_main(read_fd: int, write_fd: int) -> None:
             if req is None:
                 break
             op, args = req
+            reply: tuple[Any, ...]
             try:
                 reply = ("ok", getattr(state, "op_" + op)(*args))
             except Exception as err:
@@ -534,7 +535,7 @@ def list_cameras(serials: bool = False, timeout: float = 30.0) -> list[tuple[str
         found = [tuple(x) for x in worker.call("detect", timeout=timeout)]
         if not serials:
             return found
-        out = []
+        out: list[tuple[str, ...]] = []
         for model, port in found:
             try:
                 worker.call("open", model, port, timeout=timeout)
@@ -1098,7 +1099,7 @@ class Gphoto2Camera:
         applied = (
             self.bulb_open_s
             if bulb
-            else parse_exposure_label(self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed"))
+            else parse_exposure_label(self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed") or "")
         )
         settings = dict(self.applied, **({"bulb_open_s": f"{self.bulb_open_s:.4f}"} if bulb else {}))
         return CaptureResult(

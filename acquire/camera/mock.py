@@ -202,7 +202,7 @@ class MockCamera:
         if not (t > 0 and math.isfinite(t)):
             raise ValueError(f"exposure time must be positive, got {t!r}")
         bulb = self.bulb_range()
-        self._bulb = bool(bulb) and bulb[0] < t <= bulb[1]
+        self._bulb = bulb is not None and bulb[0] < t <= bulb[1]
         self._t = t if self._bulb else min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
         return self._t
 

@@ -243,7 +243,7 @@ class DarkLibrary:
             without a master are absent; an absent library gives an empty dict.
         """
         entries = self.entries()
-        out = {}
+        out: dict[float, tuple[np.ndarray | None, int, DarkEntry]] = {}
         for t in sorted(unique_exposures(times, rtol)):
             e = self._find(entries, camera, iso, t, temperature, temperature_tolerance, rtol)
             if e is not None:

@@ -113,10 +113,10 @@ class MapSet(NamedTuple):
 
 class StartSums(NamedTuple):
     """Sums of the starting average from the streaming first pass: ``total`` (float64, e-/s)
-    and ``count`` (int32) per photosite; used instead of the kernel's own when ``use``."""
+    and ``counts`` (int32) per photosite; used instead of the kernel's own when ``use``."""
 
     total: np.ndarray
-    count: np.ndarray
+    counts: np.ndarray  # not "count": that would hide tuple.count
     use: bool
 
 
