@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import logsumexp
 
 from hdrcap.pipeline.blocks import flat_blocks
@@ -95,7 +96,7 @@ class IrradianceHistogram:
     n_nosignal: int
 
 
-def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
+def irradiance_histogram(irradiance: ArrayLike, bins: int = 256) -> IrradianceHistogram:
     """Weighted histogram of log10(irradiance) over the pixels with X > 0.
 
     Parameters
@@ -402,7 +403,7 @@ class _Context:
         return float(sum(m * self.frame_time[i] + (self.cost_time[i] - self.frame_time[i]) for i, m in counts.items()))
 
 
-def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
+def eligible_mask(X: ArrayLike, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
     """Pixels with signal that are usable (not predicted saturated) at the shortest time.
 
     Parameters
@@ -467,7 +468,7 @@ def _usable_limit(usable) -> tuple[float | None, float | None]:
 
 
 def bulk_irradiance(
-    irradiance,
+    irradiance: ArrayLike,
     t_min: float,
     calibration: Calibration,
     highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION,
@@ -570,7 +571,7 @@ def _library_n(dark_library: Mapping[float, int] | None, t: float) -> int:
 
 def plan_exposures(
     calibration: Calibration,
-    irradiance,
+    irradiance: ArrayLike,
     target_snr_db: float,
     allowed_times: Sequence[float] | None = None,
     *,
@@ -873,7 +874,7 @@ def _make_plan(
     )
 
 
-def log_penalty(weights, snr_lin, axis=-1):
+def log_penalty(weights: ArrayLike, snr_lin: ArrayLike, axis: int = -1) -> np.ndarray | float:
     """log sum_j w_j exp(-snr_j) (Eq. 18) by log-sum-exp: finite for any SNR (the direct sum
     underflows to 0 above snr = 745, 57.4 dB, and every plan then looks equally good).
 
@@ -1069,7 +1070,7 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
 
 def plan_exhaustive(
     calibration: Calibration,
-    irradiance,
+    irradiance: ArrayLike,
     target_snr_db: float,
     candidate_times: Sequence[float],
     max_exposures: int,
@@ -1153,7 +1154,7 @@ def plan_exhaustive(
 
 def plan_bracket(
     calibration: Calibration,
-    irradiance,
+    irradiance: ArrayLike,
     target_snr_db: float,
     step_ev: float,
     allowed_times: Sequence[float] | None = None,

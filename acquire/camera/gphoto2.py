@@ -53,7 +53,7 @@ import time
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from hdrcap.acquire.camera import (
     BULB_MAX_S,
@@ -841,10 +841,10 @@ class Gphoto2Camera:
         """Release the camera and end its worker process."""
         self._drop_worker()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ low level
@@ -1066,7 +1066,9 @@ class Gphoto2Camera:
         return free_images(storages)
 
     # ------------------------------------------------------------------ capture
-    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> CaptureResult:
+    def capture(
+        self, dest: str | os.PathLike[str], *, dark: bool = False, timeout: float | None = None
+    ) -> CaptureResult:
         """Expose, download to ``dest`` (suffix taken from the camera's file) and delete the
         file from the camera when ``delete_after_download``."""
         dest = Path(dest)
@@ -1127,7 +1129,7 @@ class Gphoto2Camera:
                     "camera: could not delete %s/%s after the download (%s); it stays on the card", fo, na, err
                 )
 
-    def download(self, camera_path: str, dest, timeout: float | None = None) -> Path:
+    def download(self, camera_path: str, dest: str | os.PathLike[str], timeout: float | None = None) -> Path:
         """Download a file already on the camera (``/store_00010001/DCIM/x.NEF``) to ``dest``."""
         folder, name = camera_path.rsplit("/", 1)
         dest = Path(dest)

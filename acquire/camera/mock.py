@@ -22,6 +22,7 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -144,7 +145,7 @@ class MockCamera:
         spec: SensorSpec | str,
         scene: np.ndarray,
         seed: int = 0,
-        allowed_times=None,
+        allowed_times: Sequence[float] | None = None,
         faults: MockFaults | None = None,
         temperature: float | None = None,
         bulb_max_s: float | None = None,
@@ -250,7 +251,9 @@ class MockCamera:
             raise CameraDisconnectedError("mock camera: not connected (reconnect first)")
 
     # --- capture --------------------------------------------------------------------------
-    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> CaptureResult:
+    def capture(
+        self, dest: str | os.PathLike[str], *, dark: bool = False, timeout: float | None = None
+    ) -> CaptureResult:
         """Expose for the applied time (light blocked when covered) and write a DNG at ``dest``.
 
         ``dark`` is what the caller intends; the light is blocked only by :meth:`cover`, as on

@@ -55,7 +55,7 @@ def _subsample(x: np.ndarray, n: int = _SUBSAMPLE) -> np.ndarray:
     return flat[::step]
 
 
-def as_correction_map(x, shape: tuple[int, ...]) -> np.ndarray:
+def as_correction_map(x: np.ndarray | float | None, shape: tuple[int, ...]) -> np.ndarray:
     """An offset or rate for :meth:`PixelStack.add_corrected`: a map of ``shape`` as it is
     (contiguous), a numpy scalar as a (1, 1) array of its type, a Python number (or None: 0) as
     a (1, 1) float32 array (numpy's float32 arithmetic casts a Python number to float32).
