@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint venv bench clean
+.PHONY: demo test lint typecheck venv bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,13 +19,17 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/hdrcap demo --out out --force
 
-## Lint and format check (ruff, configured in pyproject.toml), then the whole test suite
-test: lint
+## Lint and format check (ruff), type check (mypy; both configured in pyproject.toml), then the whole test suite
+test: lint typecheck
 	$(BIN)/python -m pytest -n 2 -q
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+
+## mypy on the package as installed (hdrcap.*): tools/typecheck.py lays it out under build/typecheck
+typecheck: $(STAMP)
+	$(BIN)/python tools/typecheck.py
 
 ## Benchmarks (install peers themselves; print JSON)
 bench: $(STAMP)
@@ -33,4 +37,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out .pytest_cache build/typecheck

@@ -60,7 +60,7 @@ class SimulatedCamera:
         """Expose for ``t`` seconds (light blocked when ``dark``) and return the uint16 mosaic."""
         return self.sensor.expose(self.scene, self.actual_time(t), dark=dark, temperature=self.temperature)
 
-    def capture_to(self, path, t: float, dark: bool = False, overwrite: bool = False) -> Path:
+    def capture_to(self, path: str | os.PathLike[str], t: float, dark: bool = False, overwrite: bool = False) -> Path:
         """Capture one frame and write it as a DNG to ``path`` (written atomically; an existing
         file is never replaced unless ``overwrite``)."""
         path = Path(path)

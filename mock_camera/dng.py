@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import datetime as _dt
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import BinaryIO
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = ["write_dng", "exposure_rational", "CFA_CODES", "MIN_SIDE"]
 
@@ -162,8 +164,8 @@ def _dng_tags(
     serial: str,
     black_level: float,
     white_level: int,
-    color_matrix=None,
-    as_shot_neutral=None,
+    color_matrix: ArrayLike | None = None,
+    as_shot_neutral: Sequence[float] | None = None,
 ) -> None:
     """DNG 1.4 tags: version, camera model, CFA layout, black and white levels, the colour
     matrix (XYZ to camera, default identity), the white balance (AsShotNeutral, default neutral),
@@ -232,8 +234,8 @@ def write_dng(
     f_number: float = 8.0,
     software: str = "hdrcap",
     description: str = "",
-    color_matrix=None,
-    as_shot_neutral=None,
+    color_matrix: ArrayLike | None = None,
+    as_shot_neutral: Sequence[float] | None = None,
 ) -> None:
     """Write ``mosaic`` (2-D uint16 CFA data) as a DNG to the binary file object ``fileobj``.
 

@@ -14,6 +14,8 @@ as a scene.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
@@ -47,7 +49,9 @@ def _edges(h, w, lo, hi):
     return np.clip(out, lo, hi)
 
 
-def make_scene(name: str = "hdr", shape=(768, 1024), decades: float = 4.0, x_max: float = 2e5) -> np.ndarray:
+def make_scene(
+    name: str = "hdr", shape: tuple[int, int] = (768, 1024), decades: float = 4.0, x_max: float = 2e5
+) -> np.ndarray:
     """Return the irradiance map of scene ``name`` (float64, e-/s per photosite).
 
     Parameters
@@ -87,7 +91,7 @@ def make_scene(name: str = "hdr", shape=(768, 1024), decades: float = 4.0, x_max
     raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)} or an .exr file")
 
 
-def load_scene_exr(path) -> np.ndarray:
+def load_scene_exr(path: str | os.PathLike[str]) -> np.ndarray:
     """Load an irradiance map (e-/s) from an EXR file as a scene (float64)."""
     import OpenEXR  # the simulator reads scenes itself: it imports nothing of pipeline's I/O
 
@@ -104,7 +108,7 @@ def load_scene_exr(path) -> np.ndarray:
     return data
 
 
-def load_scene(scene: str, shape, decades: float, x_max: float) -> np.ndarray:
+def load_scene(scene: str, shape: tuple[int, int], decades: float, x_max: float) -> np.ndarray:
     """The irradiance map (e-/s per photosite) of a scene named on the command line or in a job.
 
     Parameters
@@ -138,7 +142,7 @@ def load_scene(scene: str, shape, decades: float, x_max: float) -> np.ndarray:
     return make_scene(scene, shape, decades=decades, x_max=x_max)
 
 
-def parse_size(text: str | None, default=(768, 1024)) -> tuple[int, int]:
+def parse_size(text: str | None, default: tuple[int, int] = (768, 1024)) -> tuple[int, int]:
     """Mosaic size from ``'WIDTHxHEIGHT'``.
 
     Parameters

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -214,7 +215,7 @@ class SensorSpec:
             name=self.name,
         )
 
-    def replace(self, **changes) -> SensorSpec:
+    def replace(self, **changes: Any) -> SensorSpec:
         return dataclasses.replace(self, **changes)
 
 
@@ -279,7 +280,7 @@ PRESETS["camera-R"] = PRESETS["camera-A"].replace(
 )
 
 
-def preset(name: str, realistic: bool = False, **changes) -> SensorSpec:
+def preset(name: str, realistic: bool = False, **changes: Any) -> SensorSpec:
     """Return the preset ``name``, optionally made realistic and modified.
 
     Parameters

@@ -21,6 +21,7 @@ other programs in the same process see the environment as the user left it.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 
 def configure() -> str | None:
@@ -39,7 +40,9 @@ def configure() -> str | None:
     if "+avx512f" not in features.split(","):
         return None
     features += ",-prefer-256-bit"
-    from numba.core import config  # numba reads the environment once, at import; we never write it
+    from numba.core import config as numba_config  # numba reads the environment once, at import; we never write it
+
+    config: Any = numba_config  # its settings are set through globals() at import: invisible to a type checker
 
     if config.CPU_FEATURES not in (None, features):  # set by the user through numba's own configuration
         return None

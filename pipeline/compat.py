@@ -20,9 +20,12 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hdrcap.pipeline.errors import InputError
+
+if TYPE_CHECKING:  # numpy and the parameters are not needed to compare cameras
+    from hdrcap.pipeline.params import Calibration
 
 __all__ = [
     "CameraProfile",
@@ -67,7 +70,7 @@ class CameraProfile:
     temperature_c: float | None = None
 
     @classmethod
-    def from_calibration(cls, calibration, name: str = "calibration") -> CameraProfile:
+    def from_calibration(cls, calibration: Calibration, name: str = "calibration") -> CameraProfile:
         """The camera a :class:`pipeline.params.Calibration` was made on (its provenance)."""
         prov: dict[str, Any] = dict(getattr(calibration, "provenance", {}) or {})
         return cls(
@@ -79,7 +82,7 @@ class CameraProfile:
         )
 
     @classmethod
-    def from_camera(cls, camera, iso: float | None = None) -> CameraProfile:
+    def from_camera(cls, camera: object, iso: float | None = None) -> CameraProfile:
         """A connected camera: its identity (model, serial) and temperature, and ``iso`` (s)et."""
         ident = getattr(camera, "identity", None)
         try:

@@ -264,7 +264,8 @@ def paired_difference(
         sel = (bins == k) & use
         out["center"].append(float(np.sqrt(edges[k] * edges[k + 1])))
         if sel.sum() * a.shape[0] < 2:
-            out["mean"].append(None), out["se"].append(None), out["ratio"].append(None)
+            for key in ("mean", "se", "ratio"):
+                out[key].append(None)
             continue
         dk = d[:, sel].ravel()
         out["mean"].append(float(dk.mean()))

@@ -17,9 +17,16 @@ Dark strategies (how the dark level b_i of exposure i is obtained):
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hdrcap.pipeline.dark_strategy import DarkStrategy
+
+#: A number or an array of numbers: what the plain-arithmetic formulas take and return (numpy
+#: arrays, Python floats, numpy scalars, and numba's float32/float64 scalars inside the kernels).
+Numeric = float | np.floating | np.ndarray
 
 __all__ = [
     "DarkStrategy",
@@ -62,7 +69,7 @@ def dark_factor(dark: DarkStrategy | str, n_dark: float = 1) -> float:
     return 0.0
 
 
-def variance_of_rate(u, g2t, D, sigma2_R, k):
+def variance_of_rate(u: Numeric, g2t: Numeric, D: Numeric, sigma2_R: Numeric, k: float | np.floating) -> Numeric:
     """Var(v_i - b_i) = g^2 t (u + k D) + sigma_R^2 + k sigma_R^2: the raw value's variance
     (Eq. 3) plus k times the dark level's (Eq. 5), from the light frame's electron rate
     u = a max(mu, 0) + D. The one place the formula is written.
@@ -92,7 +99,9 @@ def variance_of_rate(u, g2t, D, sigma2_R, k):
     return g2t * (u + k * D) + (sigma2_R + k * sigma2_R)
 
 
-def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
+def difference_variance(
+    mu_pos: Numeric, t: Numeric, g: float, sigma2_R: Numeric, D: Numeric, a: Numeric, k: float | np.floating
+) -> Numeric:
     """Var(v_i - b_i) (Eq. 3, 5) of :func:`variance_of_rate` at the irradiance ``mu_pos``;
     scalar- and array-compatible.
 
@@ -117,7 +126,9 @@ def difference_variance(mu_pos, t, g, sigma2_R, D, a, k):
     return variance_of_rate(a * mu_pos + D, g * g * t, D, sigma2_R, k)
 
 
-def variance_core(mu_pos, t, g, sigma2_R, D, a, k):
+def variance_core(
+    mu_pos: Numeric, t: Numeric, g: float, sigma2_R: Numeric, D: Numeric, a: Numeric, k: float | np.floating
+) -> Numeric:
     """Var(x_i) = Var(v_i - b_i) / (t g a)^2 (Eq. 6); scalar- and array-compatible like
     :func:`difference_variance`.
 
@@ -135,7 +146,16 @@ def variance_core(mu_pos, t, g, sigma2_R, D, a, k):
     return difference_variance(mu_pos, t, g, sigma2_R, D, a, k) / (tga * tga)
 
 
-def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1):
+def exposure_variance(
+    mu: ArrayLike,
+    t: ArrayLike,
+    g: float,
+    sigma2_R: float | np.ndarray,
+    D: ArrayLike = 0.0,
+    a: ArrayLike = 1.0,
+    dark: DarkStrategy | str = DarkStrategy.MATCHED,
+    n_dark: float = 1,
+) -> np.ndarray:
     """Variance of the single-exposure estimate x_i, (e-/s)^2 (Eq. 3, 5, 6, 13).
 
     Var(x_i) = [g^2 t (a mu + D) + s_R^2 + k (g^2 t D + s_R^2)] / (t g a)^2, with k = 1 for a
@@ -175,7 +195,16 @@ def exposure_variance(mu, t, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHE
     return np.asarray(variance_core(mu, t, g, sigma2_R, D, a, k), dtype=np.float64)
 
 
-def exposure_weight(mu, t, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1):
+def exposure_weight(
+    mu: ArrayLike,
+    t: ArrayLike,
+    g: float,
+    sigma2_R: float | np.ndarray,
+    D: ArrayLike = 0.0,
+    a: ArrayLike = 1.0,
+    dark: DarkStrategy | str = DarkStrategy.MATCHED,
+    n_dark: float = 1,
+) -> np.ndarray:
     """Optimal weight w_i = 1 / Var(x_i) (Eq. 13).
 
     Parameters
@@ -191,7 +220,17 @@ def exposure_weight(mu, t, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED,
     return 1.0 / exposure_variance(mu, t, g, sigma2_R, D, a, dark, n_dark)
 
 
-def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1, usable=None):
+def merged_variance(
+    mu: ArrayLike,
+    times: ArrayLike,
+    g: float,
+    sigma2_R: float | np.ndarray,
+    D: ArrayLike = 0.0,
+    a: ArrayLike = 1.0,
+    dark: DarkStrategy | str = DarkStrategy.MATCHED,
+    n_dark: float = 1,
+    usable: ArrayLike | None = None,
+) -> np.ndarray:
     """Variance of the ML estimate, 1 / sum_i w_i over the usable exposures (Eq. 12).
 
     Parameters
@@ -221,7 +260,17 @@ def merged_variance(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATC
         return np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), np.inf)
 
 
-def snr(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=1, usable=None):
+def snr(
+    mu: ArrayLike,
+    times: ArrayLike,
+    g: float,
+    sigma2_R: float | np.ndarray,
+    D: ArrayLike = 0.0,
+    a: ArrayLike = 1.0,
+    dark: DarkStrategy | str = DarkStrategy.MATCHED,
+    n_dark: float = 1,
+    usable: ArrayLike | None = None,
+) -> np.ndarray:
     """SNR(X) = X sqrt(sum_i w_i(X)) (Sec. 8).
 
     Parameters
@@ -239,7 +288,7 @@ def snr(mu, times, g, sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MATCHED, n_dark=
     return np.where(np.isfinite(var), mu / np.sqrt(var), 0.0)
 
 
-def snr_db(*args, **kwargs):
+def snr_db(*args: Any, **kwargs: Any) -> np.ndarray:
     """SNR in decibels, 20 log10(SNR).
 
     Parameters
@@ -257,7 +306,9 @@ def snr_db(*args, **kwargs):
         return 20.0 * np.log10(s)
 
 
-def fisher_information(X, t, g, sigma2_R, D=0.0, a=1.0):
+def fisher_information(
+    X: ArrayLike, t: ArrayLike, g: float, sigma2_R: float | np.ndarray, D: Numeric = 0.0, a: Numeric = 1.0
+) -> np.ndarray:
     """Fisher information of one unsaturated exposure about X.
 
     With s^2 = g^2 t (a X + D) + s_R^2 (dark level known exactly):
@@ -289,7 +340,9 @@ def fisher_information(X, t, g, sigma2_R, D=0.0, a=1.0):
     return (g * t * a) ** 2 / s2 + 0.5 * (g * g * t * a) ** 2 / s2**2
 
 
-def cramer_rao_bound(X, times, g, sigma2_R, D=0.0, a=1.0):
+def cramer_rao_bound(
+    X: ArrayLike, times: ArrayLike, g: float, sigma2_R: float | np.ndarray, D: Numeric = 0.0, a: Numeric = 1.0
+) -> np.ndarray:
     """Cramér-Rao lower bound 1 / sum_i I_i(X) on Var(X_hat) for unsaturated exposures.
 
     Parameters

@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -153,7 +154,7 @@ def decided_merge_options(
     return out
 
 
-def read_plan(path) -> PlanFile:
+def read_plan(path: str | os.PathLike[str]) -> PlanFile:
     """Read and check a plan JSON (``hdrcap plan --json``).
 
     Parameters
@@ -208,7 +209,7 @@ def _check_exposures(d: dict, where: str) -> tuple[list, list, list]:
     return exp, [DarkStrategy(s) for s in darks], nd
 
 
-def check_plan(d, where: str | None = None, sha256: str | None = None) -> PlanFile:
+def check_plan(d: object, where: str | None = None, sha256: str | None = None) -> PlanFile:
     """A :class:`PlanFile` from a plan's JSON object.
 
     Parameters
@@ -261,7 +262,7 @@ def planner_attribute(
     sha256: str | None = None,
     from_plan: dict | None = None,
     overridden: dict | None = None,
-    **more,
+    **more: Any,
 ) -> dict:
     """The ``planner`` attribute of the EXR header.
 

@@ -9,8 +9,12 @@ hdrcap.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # matplotlib is imported when a figure is made
+    from matplotlib.figure import Figure
 
 __all__ = ["new_figure", "save_figure"]
 
@@ -22,7 +26,7 @@ def new_figure(
     figsize: tuple[float, float] = (6.4, 4.8),
     squeeze: bool = True,
     **subplot_kw: Any,
-):
+) -> tuple[Figure, Any]:
     """A new figure with a grid of axes, drawn on its own Agg canvas.
 
     Parameters
@@ -49,7 +53,7 @@ def new_figure(
     return fig, axes
 
 
-def save_figure(fig, path, force: bool = False, dpi: int = 110) -> Path:
+def save_figure(fig: Figure, path: str | os.PathLike[str], force: bool = False, dpi: int = 110) -> Path:
     """Write ``fig`` as PNG to ``path`` atomically (never over an existing file unless ``force``).
 
     Parameters

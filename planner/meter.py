@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal, overload
 
 import numpy as np
 
@@ -160,6 +161,34 @@ def _combine(frames, calibration, bias, D, a):
     return X, t_used, dark, gap, float(3.0 * np.sqrt(p.sigma2_R) / (t_long * p.g * np.mean(a)))
 
 
+@overload
+def meter(
+    capture_fn: Callable[[float], np.ndarray],
+    calibration: Calibration,
+    allowed_times: Sequence[float] | None = ...,
+    *,
+    max_time: float = ...,
+    meter_snr: float = ...,
+    k_sigma: float = ...,
+    max_frames: int = ...,
+    return_report: Literal[False] = ...,
+) -> np.ndarray: ...
+
+
+@overload
+def meter(
+    capture_fn: Callable[[float], np.ndarray],
+    calibration: Calibration,
+    allowed_times: Sequence[float] | None = ...,
+    *,
+    max_time: float = ...,
+    meter_snr: float = ...,
+    k_sigma: float = ...,
+    max_frames: int = ...,
+    return_report: Literal[True],
+) -> tuple[np.ndarray, MeterReport]: ...
+
+
 def meter(
     capture_fn: Callable[[float], np.ndarray],
     calibration: Calibration,
@@ -170,7 +199,7 @@ def meter(
     k_sigma: float = K_SIGMA,
     max_frames: int = 2,
     return_report: bool = False,
-):
+) -> np.ndarray | tuple[np.ndarray, MeterReport]:
     """Estimate the irradiance map (e-/s per photosite) from one or two quick frames.
 
     Parameters

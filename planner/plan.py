@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import logsumexp
 
 from hdrcap.pipeline.blocks import flat_blocks
@@ -95,7 +96,7 @@ class IrradianceHistogram:
     n_nosignal: int
 
 
-def irradiance_histogram(irradiance, bins: int = 256) -> IrradianceHistogram:
+def irradiance_histogram(irradiance: ArrayLike, bins: int = 256) -> IrradianceHistogram:
     """Weighted histogram of log10(irradiance) over the pixels with X > 0.
 
     Parameters
@@ -402,7 +403,7 @@ class _Context:
         return float(sum(m * self.frame_time[i] + (self.cost_time[i] - self.frame_time[i]) for i, m in counts.items()))
 
 
-def eligible_mask(X, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
+def eligible_mask(X: ArrayLike, t_min: float, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
     """Pixels with signal that are usable (not predicted saturated) at the shortest time.
 
     Parameters
@@ -467,7 +468,7 @@ def _usable_limit(usable) -> tuple[float | None, float | None]:
 
 
 def bulk_irradiance(
-    irradiance,
+    irradiance: ArrayLike,
     t_min: float,
     calibration: Calibration,
     highlight_fraction: float = DEFAULT_HIGHLIGHT_FRACTION,
@@ -570,7 +571,7 @@ def _library_n(dark_library: Mapping[float, int] | None, t: float) -> int:
 
 def plan_exposures(
     calibration: Calibration,
-    irradiance,
+    irradiance: ArrayLike,
     target_snr_db: float,
     allowed_times: Sequence[float] | None = None,
     *,
@@ -702,6 +703,7 @@ def plan_exposures(
     )
     # 2. the first exposure: the longest that does not saturate the scene's bulk (Sec. 8)
     x_bulk = bulk_irradiance(irradiance, times[0], calibration, highlight_fraction, k_sigma)
+    assert x_bulk is not None  # hist.X are pixel values (the bins' extremes), some eligible
     t_first = first_exposure(x_bulk, times, calibration, k_sigma)
     t_seed, seeds = _seeds(ctx, t_first, time_budget, bulk_first)
     # 3. Eq. 18's greedy from each seed, polished; 4. the models of the merge
@@ -872,7 +874,7 @@ def _make_plan(
     )
 
 
-def log_penalty(weights, snr_lin, axis=-1):
+def log_penalty(weights: ArrayLike, snr_lin: ArrayLike, axis: int = -1) -> np.ndarray | float:
     """log sum_j w_j exp(-snr_j) (Eq. 18) by log-sum-exp: finite for any SNR (the direct sum
     underflows to 0 above snr = 745, 57.4 dB, and every plan then looks equally good).
 
@@ -955,12 +957,12 @@ def _capture_order(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[i
 def _drop_unneeded(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
     """Remove exposures (longest first, never the first ``n_fixed``) whose absence still meets
     the target."""
-    chosen = list(chosen)
+    kept: list[int | None] = list(chosen)
     for pos in sorted(range(n_fixed, len(chosen)), key=lambda k: -ctx.cost_time[chosen[k]]):
-        rest = [c for k, c in enumerate(chosen) if k != pos and c is not None]
+        rest = [c for k, c in enumerate(kept) if k != pos and c is not None]
         if rest and ctx.reached(ctx.snr(*ctx.sums(rest))):
-            chosen[pos] = None
-    return [c for c in chosen if c is not None]
+            kept[pos] = None
+    return [c for c in kept if c is not None]
 
 
 def _polish(ctx: _Context, chosen: list[int], n_fixed: int = 0) -> list[int]:
@@ -1068,7 +1070,7 @@ def _message(ok, target, q, min_db, chosen, darks, total, limit, decisions, max_
 
 def plan_exhaustive(
     calibration: Calibration,
-    irradiance,
+    irradiance: ArrayLike,
     target_snr_db: float,
     candidate_times: Sequence[float],
     max_exposures: int,
@@ -1152,7 +1154,7 @@ def plan_exhaustive(
 
 def plan_bracket(
     calibration: Calibration,
-    irradiance,
+    irradiance: ArrayLike,
     target_snr_db: float,
     step_ev: float,
     allowed_times: Sequence[float] | None = None,

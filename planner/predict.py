@@ -20,14 +20,16 @@ Units: X in e-/s per photosite, t in s, values in DN.
 from __future__ import annotations
 
 import weakref
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import log_ndtr, ndtr
 
 from hdrcap.pipeline.blocks import flat_blocks
-from hdrcap.pipeline.noise import dark_factor, exposure_variance, exposure_weight, variance_core
+from hdrcap.pipeline.noise import Numeric, dark_factor, exposure_variance, exposure_weight, variance_core
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.times import same_exposure
 
@@ -53,7 +55,7 @@ __all__ = [
 K_SIGMA = 3.0
 
 
-def to_db(snr_linear):
+def to_db(snr_linear: ArrayLike) -> np.ndarray:
     """20 log10(SNR); -inf where the SNR is 0.
 
     Parameters
@@ -201,7 +203,7 @@ def systematic_errors_from_calibration(
     return SystematicErrors(dark_current=dark, bias=bias, prnu=prnu, prnu_map=prnu_map)
 
 
-def predicted_value(X, t, calibration: Calibration):
+def predicted_value(X: Numeric, t: ArrayLike, calibration: Calibration) -> np.ndarray:
     """Mean raw value mu_R + g t (X + D) of a photosite of irradiance X at time t, DN (Eq. 2).
 
     Parameters
@@ -232,7 +234,7 @@ def _value_sigma(X, t, calibration: Calibration):
     return np.sqrt(var_x) * t * p.g
 
 
-def censored_information_fraction(z):
+def censored_information_fraction(z: ArrayLike) -> np.ndarray:
     """Expected Fisher information about the mean of one Gaussian sample censored from above
     (Tobit), in units of the uncensored sample's 1/s^2:
 
@@ -259,7 +261,9 @@ def censored_information_fraction(z):
     return np.clip(ndtr(z) - z * phi + phi_lam, 0.0, 1.0)
 
 
-def usable_fraction(X, t, calibration: Calibration, saturation: str = "threshold", k_sigma: float = K_SIGMA):
+def usable_fraction(
+    X: Numeric, t: ArrayLike, calibration: Calibration, saturation: str = "threshold", k_sigma: float = K_SIGMA
+) -> np.ndarray:
     """Fraction of a sample's information the merge keeps, in [0, 1].
 
     ``"threshold"``: 1 where the predicted value plus ``k_sigma`` of its standard deviation is
@@ -314,14 +318,14 @@ class ExposureTerms:
 
 
 def exposure_terms(
-    X,
-    t,
+    X: Numeric,
+    t: float,
     calibration: Calibration,
     dark: str = "model",
     n_dark: float = 1,
     saturation: str = "threshold",
     k_sigma: float = K_SIGMA,
-    weight_at=None,
+    weight_at: ArrayLike | None = None,
     copies: int = 1,
 ) -> ExposureTerms:
     """Per-irradiance contribution of one exposure of ``t`` seconds with dark strategy ``dark``.
@@ -370,7 +374,7 @@ def exposure_terms(
         w = exposure_weight(mu_w, t, p.g, p.sigma2_R, D, 1.0, dark, n_dark) * u
     else:
         k = dark_factor(dark, n_dark) * copies
-        var = variance_core(np.maximum(X, 0.0), t, p.g, p.sigma2_R, D, 1.0, k)
+        var = np.asarray(variance_core(np.maximum(X, 0.0), t, p.g, p.sigma2_R, D, 1.0, k), dtype=np.float64)
         w = u / variance_core(np.maximum(mu_w, 0.0), t, p.g, p.sigma2_R, D, 1.0, k)
     is_model = 1.0 if str(getattr(dark, "value", dark)) == "model" else 0.0
     return ExposureTerms(weight=w, c_dark=w * is_model, c_bias=w * is_model / (t * p.g), usable=u, variance=var)
@@ -398,7 +402,15 @@ class SnrPrediction:
         return to_db(self.snr)
 
 
-def combine_terms(X, sum_w, sum_cd, sum_cb, errors: SystematicErrors, prnu: str = "map", sum_w2v=None) -> SnrPrediction:
+def combine_terms(
+    X: Numeric,
+    sum_w: np.ndarray,
+    sum_cd: np.ndarray,
+    sum_cb: np.ndarray,
+    errors: SystematicErrors,
+    prnu: str = "map",
+    sum_w2v: np.ndarray | None = None,
+) -> SnrPrediction:
     """Merged variance 1/sum W (Eq. 12), or sum W^2 Var / (sum W)^2 when the weights are
     not the inverse variances (``sum_w2v``), the systematic error of the weighted mean, and the
     total-error SNR.
@@ -444,13 +456,13 @@ def combine_terms(X, sum_w, sum_cd, sum_cb, errors: SystematicErrors, prnu: str 
     return SnrPrediction(X=X, snr=snr, variance=var, bias=np.sqrt(bias2), n_usable=np.zeros_like(X))
 
 
-def _per_exposure(values, n, name):
+def _per_exposure(values: str | float | Iterable[Any] | None, n: int, name: str) -> list[Any]:
     if values is None or isinstance(values, (str, int, float)):
         return [values] * n
-    values = list(values)
-    if len(values) != n:
-        raise ValueError(f"{name} has {len(values)} entries for {n} exposures")
-    return values
+    each = list(values)
+    if len(each) != n:
+        raise ValueError(f"{name} has {len(each)} entries for {n} exposures")
+    return each
 
 
 def shared_dark_copies(times: Sequence[float], darks: Sequence[str], n_dark: Sequence[float]) -> list[int]:
@@ -481,17 +493,17 @@ def shared_dark_copies(times: Sequence[float], darks: Sequence[str], n_dark: Seq
 
 
 def predict_snr(
-    X,
+    X: Numeric,
     times: Sequence[float],
     calibration: Calibration,
-    darks="model",
-    n_dark=1,
+    darks: str | Sequence[str] = "model",
+    n_dark: float | Sequence[float] = 1,
     *,
     errors: SystematicErrors | None = None,
     prnu: str = "map",
     saturation: str = "threshold",
     k_sigma: float = K_SIGMA,
-    weight_at=None,
+    weight_at: ArrayLike | None = None,
 ) -> SnrPrediction:
     """Predicted SNR of the merge of exposures ``times`` at irradiance ``X`` (Eq. 12, 13; Sec. 8).
 
@@ -527,15 +539,15 @@ def predict_snr(
     X = np.asarray(X, dtype=np.float64)
     times = [float(t) for t in times]
     errors = errors or SystematicErrors()
-    darks = _per_exposure(darks, len(times), "darks")
-    n_dark = _per_exposure(n_dark, len(times), "n_dark")
+    dark_each = _per_exposure(darks, len(times), "darks")
+    n_dark_each = _per_exposure(n_dark, len(times), "n_dark")
     sw = np.zeros_like(X)
     scd = np.zeros_like(X)
     scb = np.zeros_like(X)
     sw2v = np.zeros_like(X) if weight_at is not None else None
     nu = np.zeros_like(X)
-    copies = shared_dark_copies(times, darks, n_dark)
-    for t, d, n, m in zip(times, darks, n_dark, copies):
+    copies = shared_dark_copies(times, dark_each, n_dark_each)
+    for t, d, n, m in zip(times, dark_each, n_dark_each, copies):
         term = exposure_terms(X, t, calibration, d, n if n else 1, saturation, k_sigma, weight_at, m)
         sw += term.weight
         scd += term.c_dark

@@ -25,10 +25,17 @@ when it costs at most ``tolerance_db`` at every eligible irradiance bin:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hdrcap.pipeline.params import Calibration
 from hdrcap.planner.predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
+
+if TYPE_CHECKING:  # planner.plan imports this module
+    from hdrcap.planner.plan import IrradianceHistogram
 
 __all__ = [
     "target_loss_db",
@@ -52,7 +59,7 @@ MAX_ITERATIONS = 8
 CONVERGED_ITERATIONS = 20
 
 
-def target_loss_db(bias, X, target_lin: float):
+def target_loss_db(bias: ArrayLike, X: ArrayLike, target_lin: float) -> np.ndarray:
     """SNR lost at the target level by a systematic error ``bias`` (e-/s) at irradiance X, dB:
     10 log10(1 + T^2 bias^2 / X^2).
 
@@ -80,7 +87,9 @@ def target_loss_db(bias, X, target_lin: float):
 RELEVANCE_FACTOR = 8.0
 
 
-def longest_usable_time(Xe, times, calibration: Calibration, k_sigma: float = K_SIGMA) -> np.ndarray:
+def longest_usable_time(
+    Xe: np.ndarray, times: Sequence[float], calibration: Calibration, k_sigma: float = K_SIGMA
+) -> np.ndarray:
     """For each irradiance, the longest of ``times`` at which it is not predicted saturated
     (0 where none is).
 
@@ -108,7 +117,7 @@ def longest_usable_time(Xe, times, calibration: Calibration, k_sigma: float = K_
 
 
 def dark_decision_for_time(
-    Xe,
+    Xe: np.ndarray,
     t: float,
     calibration: Calibration,
     errors: SystematicErrors,
@@ -117,7 +126,7 @@ def dark_decision_for_time(
     overhead: float,
     tolerance_db: float,
     k_sigma: float = K_SIGMA,
-    t_best=None,
+    t_best: np.ndarray | None = None,
 ) -> dict:
     """Dark strategy for an exposure of ``t`` s on the eligible irradiances ``Xe`` (e-/s).
 
@@ -257,7 +266,17 @@ def full_well_clips_first(calibration: Calibration) -> bool:
     return bool(p.white_level - p.v_sat > 3.0 * np.sqrt(p.sigma2_R))
 
 
-def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu, tolerance_db, k_sigma=K_SIGMA) -> dict:
+def saturation_decision(
+    Xe: np.ndarray,
+    exposures: Sequence[float],
+    darks: Sequence[str],
+    n_dark: Sequence[int],
+    calibration: Calibration,
+    errors: SystematicErrors,
+    prnu: str,
+    tolerance_db: float,
+    k_sigma: float = K_SIGMA,
+) -> dict:
     """The saturation model: the threshold rule; the probabilistic model's predicted SNR gain
     is reported but it is not chosen automatically.
 
@@ -301,7 +320,7 @@ def saturation_decision(Xe, exposures, darks, n_dark, calibration, errors, prnu,
     dict
         The decision: ``choice``, ``reason`` (text), ``figure`` and its ``unit``.
     """
-    kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
+    kw: dict[str, Any] = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
     thr = predict_snr(Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="threshold", **kw).snr_db
     prob = predict_snr(
         Xe, exposures, calibration, darks, [n or 1 for n in n_dark], saturation="probabilistic", **kw
@@ -332,7 +351,7 @@ def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k
     """Worst SNR loss (dB over bins) after k = 1..MAX_ITERATIONS re-weighting steps."""
     Xe = np.asarray(Xe, dtype=np.float64)
     nd = [n or 1 for n in n_dark]
-    kw = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
+    kw: dict[str, Any] = dict(errors=errors, prnu=prnu, k_sigma=k_sigma)
     opt = predict_snr(Xe, exposures, calibration, darks, nd, **kw).snr_db
     # start: the non-saturated average (uniform weights over usable samples)
     su = np.zeros_like(Xe)
@@ -345,17 +364,13 @@ def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k
         delta = np.where(su > 0, np.sqrt(suv) / np.maximum(su, 1e-300) / Xe, 0.0)
     losses = []
     for _ in range(MAX_ITERATIONS):
-        worst_db = None
-        worst_var = None
-        for sgn in (-1.0, 1.0):
-            pred = predict_snr(Xe, exposures, calibration, darks, nd, weight_at=Xe * (1 + sgn * delta), **kw)
-            db = pred.snr_db
-            if worst_db is None:
-                worst_db, worst_var = db, pred.variance
-            else:
-                worse = db < worst_db
-                worst_db = np.where(worse, db, worst_db)
-                worst_var = np.where(worse, pred.variance, worst_var)
+        low, high = (
+            predict_snr(Xe, exposures, calibration, darks, nd, weight_at=Xe * (1 + sgn * delta), **kw)
+            for sgn in (-1.0, 1.0)
+        )
+        worse = high.snr_db < low.snr_db
+        worst_db = np.where(worse, high.snr_db, low.snr_db)
+        worst_var = np.where(worse, high.variance, low.variance)
         fin = np.isfinite(opt)
         losses.append(float(np.max(opt[fin] - worst_db[fin])) if fin.any() else 0.0)
         delta = np.where(np.isfinite(worst_var), np.sqrt(worst_var) / Xe, 0.0)
@@ -363,15 +378,15 @@ def _iteration_losses(Xe, exposures, darks, n_dark, calibration, errors, prnu, k
 
 
 def iterations_decision(
-    Xe,
-    exposures,
-    darks,
-    n_dark,
-    calibration,
-    errors,
-    prnu,
-    tolerance_db,
-    k_sigma=K_SIGMA,
+    Xe: np.ndarray,
+    exposures: Sequence[float],
+    darks: Sequence[str],
+    n_dark: Sequence[int],
+    calibration: Calibration,
+    errors: SystematicErrors,
+    prnu: str,
+    tolerance_db: float,
+    k_sigma: float = K_SIGMA,
     saturation: str = "threshold",
 ) -> dict:
     """Number of merge re-weighting steps (Fig. 3) needed to be within the tolerance.
@@ -442,7 +457,7 @@ def iterations_decision(
     return {"choice": k, "reason": why, "figure": figure, "unit": "dB lost against the converged merge"}
 
 
-def eligibility_decision(hist, elig, t_min: float, calibration: Calibration) -> dict:
+def eligibility_decision(hist: IrradianceHistogram, elig: np.ndarray, t_min: float, calibration: Calibration) -> dict:
     """Which pixels the target applies to, and which the camera cannot measure.
 
     Parameters

@@ -15,6 +15,7 @@ same classes) and are re-exported here.
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Sequence
 from fractions import Fraction
@@ -164,7 +165,7 @@ def nearest_allowed(t: float, allowed: Sequence[float]) -> float:
 BULB_MAX_S: float = 3600.0
 
 
-def exposure_ladder(camera) -> list[float]:
+def exposure_ladder(camera: Camera) -> list[float]:
     """Every exposure time a plan may use on ``camera``, s, ascending: its timed shutter speeds
     and, when it has bulb (``camera.bulb_range()``), a 1/3-stop ladder above the longest timed
     speed up to the longest bulb time (each bulb time is timed around the release).
@@ -192,7 +193,7 @@ def exposure_ladder(camera) -> list[float]:
     return out
 
 
-def dark_level(path) -> float:
+def dark_level(path: str | os.PathLike[str]) -> float:
     """How much light a frame saw: its median above black as a fraction of the range
     (raw files via :func:`pipeline.io.raw.read_frame`, JPEG/PNG previews via Pillow)."""
     import numpy as np
@@ -212,7 +213,7 @@ def dark_level(path) -> float:
     return float((np.median(fr.data) - black) / max(white - black, 1.0))
 
 
-def frame_is_dark(path, threshold: float = 0.05) -> bool:
+def frame_is_dark(path: str | os.PathLike[str], threshold: float = 0.05) -> bool:
     """Cover detection: True when the frame's median is below ``threshold`` of the range,
     i.e. the light was blocked (a frame of a scene lit for the exposure is far above it)."""
     return dark_level(path) < threshold

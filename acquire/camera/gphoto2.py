@@ -53,7 +53,7 @@ import time
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from hdrcap.acquire.camera import (
     BULB_MAX_S,
@@ -197,8 +197,8 @@ class _WorkerState:
         import gphoto2 as gp  # VCAMERADIR (tests) is in the environment this process inherited
 
         self.gp = gp
-        self.cam = None
-        self.tree = None
+        self.cam: Any = None  # a gp.Camera once op_open ran (gphoto2 ships no type information)
+        self.tree: Any = None
         self.reads = {"tree": 0, "single": 0, "set": 0}
 
     # --- connection
@@ -411,6 +411,7 @@ def _worker_main(read_fd: int, write_fd: int) -> None:
             if req is None:
                 break
             op, args = req
+            reply: tuple[Any, ...]
             try:
                 reply = ("ok", getattr(state, "op_" + op)(*args))
             except Exception as err:
@@ -534,7 +535,7 @@ def list_cameras(serials: bool = False, timeout: float = 30.0) -> list[tuple[str
         found = [tuple(x) for x in worker.call("detect", timeout=timeout)]
         if not serials:
             return found
-        out = []
+        out: list[tuple[str, ...]] = []
         for model, port in found:
             try:
                 worker.call("open", model, port, timeout=timeout)
@@ -840,10 +841,10 @@ class Gphoto2Camera:
         """Release the camera and end its worker process."""
         self._drop_worker()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ low level
@@ -1065,7 +1066,9 @@ class Gphoto2Camera:
         return free_images(storages)
 
     # ------------------------------------------------------------------ capture
-    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> CaptureResult:
+    def capture(
+        self, dest: str | os.PathLike[str], *, dark: bool = False, timeout: float | None = None
+    ) -> CaptureResult:
         """Expose, download to ``dest`` (suffix taken from the camera's file) and delete the
         file from the camera when ``delete_after_download``."""
         dest = Path(dest)
@@ -1098,7 +1101,7 @@ class Gphoto2Camera:
         applied = (
             self.bulb_open_s
             if bulb
-            else parse_exposure_label(self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed"))
+            else parse_exposure_label(self.applied.get("shutterspeed", "") or self.get_setting("shutterspeed") or "")
         )
         settings = dict(self.applied, **({"bulb_open_s": f"{self.bulb_open_s:.4f}"} if bulb else {}))
         return CaptureResult(
@@ -1126,7 +1129,7 @@ class Gphoto2Camera:
                     "camera: could not delete %s/%s after the download (%s); it stays on the card", fo, na, err
                 )
 
-    def download(self, camera_path: str, dest, timeout: float | None = None) -> Path:
+    def download(self, camera_path: str, dest: str | os.PathLike[str], timeout: float | None = None) -> Path:
         """Download a file already on the camera (``/store_00010001/DCIM/x.NEF``) to ``dest``."""
         folder, name = camera_path.rsplit("/", 1)
         dest = Path(dest)

@@ -22,6 +22,7 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -144,7 +145,7 @@ class MockCamera:
         spec: SensorSpec | str,
         scene: np.ndarray,
         seed: int = 0,
-        allowed_times=None,
+        allowed_times: Sequence[float] | None = None,
         faults: MockFaults | None = None,
         temperature: float | None = None,
         bulb_max_s: float | None = None,
@@ -202,7 +203,7 @@ class MockCamera:
         if not (t > 0 and math.isfinite(t)):
             raise ValueError(f"exposure time must be positive, got {t!r}")
         bulb = self.bulb_range()
-        self._bulb = bool(bulb) and bulb[0] < t <= bulb[1]
+        self._bulb = bulb is not None and bulb[0] < t <= bulb[1]
         self._t = t if self._bulb else min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
         return self._t
 
@@ -250,7 +251,9 @@ class MockCamera:
             raise CameraDisconnectedError("mock camera: not connected (reconnect first)")
 
     # --- capture --------------------------------------------------------------------------
-    def capture(self, dest, *, dark: bool = False, timeout: float | None = None) -> CaptureResult:
+    def capture(
+        self, dest: str | os.PathLike[str], *, dark: bool = False, timeout: float | None = None
+    ) -> CaptureResult:
         """Expose for the applied time (light blocked when covered) and write a DNG at ``dest``.
 
         ``dark`` is what the caller intends; the light is blocked only by :meth:`cover`, as on

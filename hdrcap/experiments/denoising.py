@@ -154,13 +154,15 @@ def denoise_scene(name: str, truth: np.ndarray, merged: HdrResult, n_bandwidths:
     ok = merged.nexp > 0
     irr, sig, nexp = merged.irradiance, merged.sigma, merged.nexp
     bandwidths = _bandwidth_sweep(sig[ok], n_bandwidths)
-    const, best = [], None
+    const: list[float] = []
+    best: tuple[float, float, np.ndarray] | None = None
     for b in list(bandwidths) + [np.inf]:
         r = bilateral_constant(irr, sig, nexp, bandwidth=float(b))
         e = normalised_mse(r.irradiance, truth, ok)
         const.append(e)
         if best is None or e < best[0]:
             best = (e, float(b), r.irradiance)
+    assert best is not None  # the sweep holds at least the infinite bandwidth
     by_k = {}
     for k in sorted(set(RANGE_SCALES) | {DEFAULT_RANGE_SCALE}):
         r = bilateral_adaptive(irr, sig, nexp, range_scale=k)

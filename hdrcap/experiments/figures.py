@@ -72,11 +72,11 @@ def _plot_snr(ax, res: dict, title: str, key: str = "snr_db") -> None:
 def _snr_figures(snr: dict, out: Path, force: bool) -> list[str]:
     written = []
     for fname, keys, titles, key in _SNR_FIGURES:
-        keys = [k for k in keys if k in snr]
-        if not keys:
+        present = [k for k in keys if k in snr]
+        if not present:
             continue
-        fig, axes = new_figure(1, len(keys), figsize=(5.2 * len(keys), 3.8), squeeze=False)
-        for ax, k, tt in zip(axes[0], keys, titles):
+        fig, axes = new_figure(1, len(present), figsize=(5.2 * len(present), 3.8), squeeze=False)
+        for ax, k, tt in zip(axes[0], present, titles):
             _plot_snr(ax, snr[k], tt, key)
             if key == "efficiency":
                 ax.set_ylim(0, 1.1)

@@ -351,7 +351,8 @@ def snr_experiment(
     truth = setup.scene
     stacks, seconds = _monte_carlo(setup, reps, seed, curves, dict(OPTIMAL_OPTIONS if options is None else options))
     edges = log_bins(truth, n_bins)
-    bound = bound_variance(truth, setup.times, p, a=calib.prnu, D=calib.dark_current_map, dark="matched")
+    prnu = 1.0 if calib.prnu is None else calib.prnu  # None: a_j = 1 everywhere
+    bound = bound_variance(truth, setup.times, p, a=prnu, D=calib.dark_current_map, dark="matched")
     valid = np.isfinite(bound)
     mp = truth.size * reps / 1e6
     out = {
@@ -432,12 +433,13 @@ def qq_experiment(
     if levels_e is None:
         levels_e = _qq_levels(p)
     sensor = SimulatedSensor(spec.replace(dark_current=0.0, prnu=0.0), (1, n_pixels), seed=seed)
-    out = {"camera": spec.name, "sigma2_R": p.sigma2_R, "g": p.g, "n_frames": n_frames, "levels": {}}
+    levels: dict[str, dict] = {}
+    out = {"camera": spec.name, "sigma2_R": p.sigma2_R, "g": p.g, "n_frames": n_frames, "levels": levels}
     t = 1.0
     for k, (name, e) in enumerate(levels_e.items()):
         rng = np.random.default_rng([seed, 77, k])
         s = np.stack([sensor.expose(e / t, t, rng=rng)[0].astype(np.float64) for _ in range(n_frames)], axis=1)
-        out["levels"][name] = {
+        levels[name] = {
             "electrons": float(e),
             "mean_dn": float(s.mean()),
             "qq": qq_data(s[0]),

@@ -36,6 +36,7 @@ Modules:
 from __future__ import annotations
 
 import importlib
+from typing import Any
 
 #: Where each public name lives. The submodules are imported on first use of a name (PEP 562),
 #: so that loading a calibration file (``archive``) does not import the estimators and their
@@ -76,7 +77,7 @@ _HOME = {
 __all__ = list(_HOME)
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     home = _HOME.get(name)
     if home is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

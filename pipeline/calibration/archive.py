@@ -119,7 +119,8 @@ def save_calibration(path: str | os.PathLike[str], calibration: Calibration, for
     arrays["metadata"] = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
     path = Path(path)
     with atomic_output(path, force=force, suffix=".tmp") as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)  # a file object: no ".npz" added to the name, no copy in memory
+        # a file object: no ".npz" added to the name, no copy in memory; no pickles (the reader refuses them)
+        np.savez(fh, allow_pickle=False, **arrays)
     return path
 
 
@@ -209,8 +210,8 @@ def _read_archive(path: Path) -> tuple[Any, dict[str, np.ndarray]]:
             _member_header(zf, "metadata", ndim=1)
             meta = json.loads(bytes(z["metadata"]).decode("utf-8"))
             names = [name for name in (*_MAP_FIELDS, *_INT_MAPS) if name in z.files]
-            maps = {name: _memmap_member(path, zf, name) for name in names}
-            maps = {name: z[name] if arr is None else arr for name, arr in maps.items()}
+            mapped = {name: _memmap_member(path, zf, name) for name in names}
+            maps = {name: z[name] if arr is None else arr for name, arr in mapped.items()}
     except InputError:
         raise
     except _ARCHIVE_ERRORS as err:

@@ -169,9 +169,10 @@ def stream_master_darks(darks: Iterable, clip: float | None, shape: tuple[int, .
                     stack.reset()
                 else:
                     stack = PixelStack(data.shape)
-            stack.add(data)
+                current = stack  # this exposure time's stack (a group is never empty)
+            current.add(data)
             idx += 1
-        yield _master(stack, t, clip)
+        yield _master(current, t, clip)
 
 
 @dataclass
@@ -220,6 +221,12 @@ class DarkSeries:
         self._st += w * master.exposure_time
         self._stt += w * master.exposure_time**2
 
+    def _sums(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fit's sum maps sy, sty, syy (a series holds them from its first master on)."""
+        if self._sy is None or self._sty is None or self._syy is None:
+            raise ValueError("the dark series holds no master dark yet")
+        return self._sy, self._sty, self._syy
+
     def n_times(self) -> int:
         """Distinct exposure times in the series.
 
@@ -254,13 +261,14 @@ class DarkSeries:
         -------
         numpy.ndarray
         """
+        sy_map, sty_map, _ = self._sums()
         if rows == slice(None):  # row blocks: no full-size float64 temporaries
-            out = np.empty(self._sy.shape, np.float32)
-            for blk in _row_blocks(self._sy.shape):
+            out = np.empty(sy_map.shape, np.float32)
+            for blk in _row_blocks(sy_map.shape):
                 out[blk] = self.slope_map(blk)
             return out
         den = self._sn * self._stt - self._st * self._st
-        return ((self._sn * self._sty[rows] - self._st * self._sy[rows]) / den).astype(np.float32)
+        return ((self._sn * sty_map[rows] - self._st * sy_map[rows]) / den).astype(np.float32)
 
     def residual_map(self, rows: slice = slice(None)) -> np.ndarray:
         """Per-photosite weighted residual sum of squares of the straight-line fit, DN^2
@@ -275,9 +283,10 @@ class DarkSeries:
         -------
         numpy.ndarray
         """
-        sy = self._sy[rows]
-        syy_c = self._syy[rows] - sy**2 / self._sn
-        sty_c = self._sty[rows] - self._st * sy / self._sn
+        sy_map, sty_map, syy_map = self._sums()
+        sy = sy_map[rows]
+        syy_c = syy_map[rows] - sy**2 / self._sn
+        sty_c = sty_map[rows] - self._st * sy / self._sn
         stt_c = self._stt - self._st**2 / self._sn
         return np.maximum(syy_c - sty_c**2 / stt_c, 0.0)
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import io as _io
 import json
+import os
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,7 +67,7 @@ def _slug(text: str) -> str:
 class DarkLibrary:
     """A folder of master darks with an ``index.json`` (created on first :meth:`add`)."""
 
-    def __init__(self, root):
+    def __init__(self, root: str | os.PathLike[str]) -> None:
         self.root = Path(root)
 
     @property
@@ -215,7 +217,7 @@ class DarkLibrary:
 
     def masters(
         self,
-        times,
+        times: Iterable[float],
         *,
         camera: str | None = None,
         iso: float | None = None,
@@ -243,7 +245,7 @@ class DarkLibrary:
             without a master are absent; an absent library gives an empty dict.
         """
         entries = self.entries()
-        out = {}
+        out: dict[float, tuple[np.ndarray | None, int, DarkEntry]] = {}
         for t in sorted(unique_exposures(times, rtol)):
             e = self._find(entries, camera, iso, t, temperature, temperature_tolerance, rtol)
             if e is not None:

@@ -295,11 +295,12 @@ class _DarkSums:
 
     def __init__(self, shape: tuple[int, int]) -> None:
         self.shape = shape
-        self.sy = self.sty = None
+        self.sy: np.ndarray | None = None
+        self.sty: np.ndarray | None = None
         self.sn = self.st = self.stt = 0.0
 
     def add(self, m: np.ndarray, t: float) -> None:
-        if self.sy is None:
+        if self.sy is None or self.sty is None:
             self.sy = np.zeros(self.shape)
             self.sty = np.zeros(self.shape)
         self.sy += m
@@ -310,7 +311,7 @@ class _DarkSums:
 
     def slope_map(self) -> np.ndarray | None:
         """Slope per photosite, DN/s (float32), or None with fewer than 3 dark pairs."""
-        if self.sy is None or self.sn < 3:
+        if self.sy is None or self.sty is None or self.sn < 3:
             return None
         return ((self.sn * self.sty - self.st * self.sy) / (self.sn * self.stt - self.st * self.st)).astype(np.float32)
 
@@ -330,6 +331,7 @@ def _stack(step: Any, shape: tuple[int, int], progress: Callable[[int], Any] | N
         if progress:
             progress(1)
     L = len(step.images)
+    assert ref is not None  # the caller's stacks hold > 2 images
     mean_map = s / L + ref
     var_map = (q - s * s / L) / (L - 1)
     return {"L": L, "texp": step.exposure_time, "mean_map": mean_map, "var_map": var_map, "photons": step.photons}

@@ -230,10 +230,11 @@ def calibrate_files(
     for what, paths in groups.items():
         _check_paths(paths, what)
     split = _split_times(groups, times)
-    if split["dark"]:  # darks are streamed one exposure time after the other
-        order = sorted(range(len(groups["dark"])), key=lambda k: split["dark"][k])
+    dark_times = split["dark"]
+    if dark_times:  # darks are streamed one exposure time after the other
+        order = sorted(range(len(groups["dark"])), key=lambda k: dark_times[k])
         groups["dark"] = [groups["dark"][k] for k in order]
-        split["dark"] = [split["dark"][k] for k in order]
+        split["dark"] = [dark_times[k] for k in order]
     meta: dict[str, Any] = {}
     lazy = {w: FileFrames(groups[w], split[w], meta) if groups[w] else None for w in _KINDS if w != "shutter"}
     sink = None if dark_library is None else _dark_library_sink(dark_library, meta, provenance, force)

@@ -269,7 +269,7 @@ def estimate_flats(
             else:
                 pending = (data, t, name)
             n += 1
-    if n == 0:
+    if stack is None:  # made at the first flat
         raise InputError("no flat fields given")
     if stack.n == 0:
         raise InputError(f"every flat field is above {prnu_max_fraction:.0%} of saturation; none can give the PRNU map")

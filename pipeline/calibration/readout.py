@@ -227,12 +227,12 @@ def quantiser_errors(measured: float, spatial_variance: float = 0.0) -> tuple[fl
         from a read noise of 0.6 DN.
     """
     grid = np.linspace(0.0, max(1.5 * measured, 1.0), 301)
-    ok = []
+    inside = []
     for s2 in grid:
         _dm, dv = _rounded_moments(s2, spatial_variance)
         base = s2 + QUANTISATION_VARIANCE
-        ok.append(base + dv.min() <= measured <= base + dv.max())
-    ok = np.asarray(ok)
+        inside.append(base + dv.min() <= measured <= base + dv.max())
+    ok = np.asarray(inside)
     if not ok.any():  # measured between two grid points' ranges: the nearest dithered value
         ok = np.abs(grid + QUANTISATION_VARIANCE - measured) == np.min(np.abs(grid + QUANTISATION_VARIANCE - measured))
     lo, hi = float(grid[ok].min()), float(grid[ok].max())

@@ -80,7 +80,7 @@ def estimate_saturation(
         else:
             pair_vars.append(pair_statistics(pending, data, clip).variance)
             pending = None
-    if not ms:
+    if stack is None:  # made at the first frame
         raise InputError("no saturation frame given")
     sat_map = None
     if stack.n >= 3:

@@ -155,6 +155,7 @@ def estimate_shutter_table(
     counts = np.array([int(np.count_nonzero(row)) for row in M])
     logs = np.log(np.asarray(est.factors))
     anchor = M - M[ref]  # L_k - L_ref
+    assert est.covariance is not None  # estimate_exposure_ratios always computes it
     cov = anchor @ est.covariance @ anchor.T
     jitter = _jitter(logs, est.covariance, M, counts)
     var = np.diag(cov).copy()

@@ -55,7 +55,7 @@ def _subsample(x: np.ndarray, n: int = _SUBSAMPLE) -> np.ndarray:
     return flat[::step]
 
 
-def as_correction_map(x, shape: tuple[int, ...]) -> np.ndarray:
+def as_correction_map(x: np.ndarray | float | None, shape: tuple[int, ...]) -> np.ndarray:
     """An offset or rate for :meth:`PixelStack.add_corrected`: a map of ``shape`` as it is
     (contiguous), a numpy scalar as a (1, 1) array of its type, a Python number (or None: 0) as
     a (1, 1) float32 array (numpy's float32 arithmetic casts a Python number to float32).
@@ -517,13 +517,21 @@ class PixelStack:
             return
         frames = [entry[0] for entry in self._queue]
         frames += [np.zeros((1, 1), frames[0].dtype)] * (BATCH - len(frames))
+        f0, f1, f2, f3, f4, f5, f6, f7 = frames  # BATCH frames, the kernel's f0 ... f7
         corrected, _dtype, offset = self._queue_key
         none = np.zeros((1, 1))
         none32 = np.zeros((1, 1), np.float32)
         rate = none32 if self._queue_rate is None else self._queue_rate
         cols = list(zip(*self._queue))
         _k.stack_add_batch(
-            *frames,
+            f0,
+            f1,
+            f2,
+            f3,
+            f4,
+            f5,
+            f6,
+            f7,
             len(self._queue),
             corrected,
             offset,
@@ -589,7 +597,7 @@ class PixelStack:
         n_rejected : int
             Samples rejected over the whole stack.
         """
-        if self.n == 0:
+        if self.n == 0 or self._ref is None or self._w0 is None:  # the first frame sets both
             raise ValueError("empty stack")
         self._flush()
         if self.n == 1:

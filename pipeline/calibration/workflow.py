@@ -256,7 +256,9 @@ def _gain_step(
     dark_dn = dark_fit.slope * t_flat if dark_fit is not None else 0.0
     k = prnu_correction_factor(fl.mean_level, fl.prnu_std**2, max(dark_dn, 0.0))
     sat_span = v_sat - ro.mu_R
-    g_pairs, g_pairs_se, per_pair = None, None, []
+    g_pairs: float | None = None
+    g_pairs_se: float | None = None
+    per_pair: list[float] = []
     ok_pairs, pair_log = usable_pairs(fl.pairs, ro.mu_R, sat_span)
     if ok_pairs:
         g_pairs, g_pairs_se, per_pair = gain_from_pairs(ok_pairs, ro.mu_R, ro.sigma2_R, k, ro.sigma2_R_stderr)
@@ -271,9 +273,9 @@ def _gain_step(
             f"the photon-transfer regression needs flat pairs at >= 3 levels within "
             f"{fit_fraction:.0%} of saturation; got {n_levels}"
         )
-    if g_pairs is None:
+    if g_pairs is None or g_pairs_se is None:  # gain_from_pairs gives both
         raise InputError(f"no usable flat pair for the gain (Eq. 16): {pair_log[0]['reason']}")
-    if gain_method == "ptc" or (gain_method == "auto" and ptc is not None):
+    if ptc is not None and gain_method in ("ptc", "auto"):  # "ptc" without a fit raised above
         g, g_se, g_method = ptc.g, ptc.g_stderr, _PTC_METHOD
     else:
         g, g_se, g_method = g_pairs, g_pairs_se, f"flat pairs, Eq. 16-17 (k = {k:.6f}), {len(ok_pairs)} pairs"
@@ -318,7 +320,7 @@ def _dark_current_step(
 ) -> tuple[float, Any]:
     """D in electrons per second (clipped at 0) and the per-photosite map with its standard
     error, shrunk toward D (:func:`~.dark.shrink_dark_current_map`), from the DN/s fit."""
-    if dark_fit is None:
+    if dark_fit is None or series is None:  # _dark_step returns both or neither
         return 0.0, None
     D = max(dark_fit.slope / g, 0.0)
     rec.stderr["dark_current"] = float(np.hypot(dark_fit.slope_stderr / g, D * g_se / g))

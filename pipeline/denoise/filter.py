@@ -184,6 +184,7 @@ class DenoiseSettings:
         if self.method == "adaptive":
             d.pop("bandwidth")
         else:
+            assert self.bandwidth is not None  # __post_init__: the constant method has one
             d.pop("range_scale")
             d["bandwidth"] = float(self.bandwidth) if np.isfinite(self.bandwidth) else "inf"
         return d
@@ -471,7 +472,7 @@ def denoise(
         2 if settings.layout == "cfa" else 1,
         adaptive,
         float(settings.range_scale),
-        float(settings.bandwidth) if not adaptive else 1.0,
+        1.0 if adaptive or settings.bandwidth is None else float(settings.bandwidth),
         out,
         out_sig,
     )

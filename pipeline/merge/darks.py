@@ -101,8 +101,8 @@ class _Darks:
 
     def average(self) -> np.ndarray:
         if self.mean is None:
-            self.mean = self.first if self.count == 1 else (self.total / self.count).astype(np.float32)
-            self.total = None
+            total, self.total = self.total, None  # no sum: a single frame (add() makes it)
+            self.mean = self.first if total is None else (total / self.count).astype(np.float32)
         return self.mean
 
 
@@ -204,14 +204,14 @@ class DarkResolver:
             return DarkSource(strategy, None, None, self.master_dark, "single master")
         found = self._masters.get(t)
         if found is None and self.library is not None:
-            found = self._from_library(t, camera, iso)
+            found = self._from_library(self.library, t, camera, iso)
         return found
 
-    def _from_library(self, t: float, camera: str | None, iso: float | None) -> DarkSource | None:
-        masters = self.library.masters([t], camera=camera, iso=iso, temperature=self.temperature)
+    def _from_library(self, library: DarkLibrary, t: float, camera: str | None, iso: float | None) -> DarkSource | None:
+        masters = library.masters([t], camera=camera, iso=iso, temperature=self.temperature)
         if not masters:
             return None
         data, n, entry = next(iter(masters.values()))
-        found = DarkSource(DarkStrategy.MASTER, data, float(n), str(self.library.root / entry.file), "library")
+        found = DarkSource(DarkStrategy.MASTER, data, float(n), str(library.root / entry.file), "library")
         self._masters[t] = found
         return found

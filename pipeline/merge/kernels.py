@@ -113,10 +113,10 @@ class MapSet(NamedTuple):
 
 class StartSums(NamedTuple):
     """Sums of the starting average from the streaming first pass: ``total`` (float64, e-/s)
-    and ``count`` (int32) per photosite; used instead of the kernel's own when ``use``."""
+    and ``counts`` (int32) per photosite; used instead of the kernel's own when ``use``."""
 
     total: np.ndarray
-    count: np.ndarray
+    counts: np.ndarray  # not "count": that would hide tuple.count
     use: bool
 
 
@@ -681,7 +681,20 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
 
 # ------------------------------------------------------------------------------- kernels
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FM)
-def first_pass_kernel(v_arr, d_arr, kind, base, coef, t, g, v_sat, dark_current, prnu, init_sum, init_cnt):
+def first_pass_kernel(
+    v_arr: np.ndarray,
+    d_arr: np.ndarray,
+    kind: int,
+    base: MapArg,
+    coef: float,
+    t: float,
+    g: float,
+    v_sat: float,
+    dark_current: MapArg,
+    prnu: MapArg,
+    init_sum: np.ndarray,
+    init_cnt: np.ndarray,
+) -> None:
     """Streaming first pass: add one frame's usable x_i to the non-saturated average.
 
     Computes x_i exactly as :func:`merge_kernel` does, so that a merge started from these
@@ -702,7 +715,7 @@ def first_pass_kernel(v_arr, d_arr, kind, base, coef, t, g, v_sat, dark_current,
     init_sum, init_cnt : 2-D arrays
         Sums (float64, e-/s) and counts (int32) of the starting average, added to in place.
     """
-    base, base_is_map, base_scalar = base
+    base_map, base_is_map, base_scalar = base
     D_map, D_is_map, D_scalar = dark_current
     a_map, a_is_map, _a_scalar = prnu
     H, W = v_arr.shape
@@ -713,7 +726,7 @@ def first_pass_kernel(v_arr, d_arr, kind, base, coef, t, g, v_sat, dark_current,
             if kind == 0:
                 b = float(d_arr[r, c])
             else:
-                b = _pick(base, base_is_map, base_scalar, r, c) + coef * _pick(D_map, D_is_map, D_scalar, r, c)
+                b = _pick(base_map, base_is_map, base_scalar, r, c) + coef * _pick(D_map, D_is_map, D_scalar, r, c)
             x, ok = _sample(float(v_arr[r, c]), b, inv_tg, 1.0 / a, v_sat)
             if ok:
                 init_sum[r, c] += x
@@ -721,7 +734,17 @@ def first_pass_kernel(v_arr, d_arr, kind, base, coef, t, g, v_sat, dark_current,
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=_FM)
-def merge_kernel(values, darks, frames, camera, maps, start, options, out, proto):
+def merge_kernel(
+    values: list[np.ndarray],
+    darks: list[np.ndarray],
+    frames: FrameTable,
+    camera: CameraConstants,
+    maps: MapSet,
+    start: StartSums,
+    options: IterationOptions,
+    out: MergeOutputs,
+    proto: np.ndarray,
+) -> None:
     """The ML merge of every photosite (Eq. 6, 8-13, Fig. 3); results into ``out``.
 
     Per photosite: x_i (Eq. 6); start from the non-saturated average (Eq. 11 usable set);
@@ -1040,7 +1063,19 @@ def _terms_sums_row(WROW, inv_tg, ub, ud, um, WS, NB, ND, NM):  # pragma: no cov
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def calibration_terms_kernel(values, darks, frames, camera, maps, errors, terms, irr, nexp, out, out_m):
+def calibration_terms_kernel(
+    values: list[np.ndarray],
+    darks: list[np.ndarray],
+    frames: FrameTable,
+    camera: CameraConstants,
+    maps: MapSet,
+    errors: ErrorMaps,
+    terms: SharedTerms,
+    irr: np.ndarray,
+    nexp: np.ndarray,
+    out: np.ndarray,
+    out_m: np.ndarray,
+) -> None:
     """The errors common to all exposures of a photosite (:meth:`pipeline.merge.accumulator.
     MergeAccumulator._shared_terms`), parallel over rows, a row of each frame at a time (row
     buffers, no full-size temporaries).
