@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from hdrcap.acquire.camera.mock import MockCamera
-from hdrcap.acquire.capture.job import load_job, run_job
+from hdrcap.acquire.capture.job import load_job
+from hdrcap.acquire.capture.run import run_job
 from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RetryPolicy, RunConflictError, VerificationError
 from hdrcap.pipeline.compat import (
     CameraProfile,

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrcap.acquire.capture.job import load_job
+from hdrcap.acquire.capture.job import JobError, job_from_dict, load_job
 from hdrcap.pipeline.errors import InputError
 
 GOOD = """\
@@ -84,6 +84,60 @@ def test_bad_jobs_name_the_line(tmp_path, change, line, words):
     assert words in msg and msg.startswith(f"{p}:"), msg
     if line:
         assert f"{p}:{line}:" in msg, msg
+
+
+_SERIES_WITHOUT_KIND = ("[output]", "[calibration]\nseries = [{times = [0.001]}]\n\n[output]")
+
+
+@pytest.mark.parametrize(
+    "change, line, label, words",
+    [
+        # a wrong type
+        (("seed = 3", "seed = true"), 8, "camera.seed", "expected an integer, got True"),
+        (("x_max = 2e4", 'x_max = "2e4"'), 13, "scene.x_max", "expected a number, got '2e4'"),
+        # a value out of range
+        (("seed = 3", "seed = -1"), 8, "camera.seed", "must be >= 0, got -1"),
+        (("decades = 3.0", "decades = inf"), 12, "scene.decades", "must be a finite number, got inf"),
+        (("[0.001, 0.004,", "[0.001, -0.004,"), 17, "exposure.times", "item 2: must be > 0, got -0.004"),
+        # an unknown key
+        (("x_max = 2e4", "x_max = 2e4\nxmax = 1"), 14, "scene.xmax", "unknown key; known: decades, name, x_max"),
+        # a missing required key (the table's line when the key is not in the file)
+        (('mode = "bracket"', 'mode = "snr"'), 15, "exposure.target_snr_db", 'mode = "snr" needs target_snr_db'),
+        (_SERIES_WITHOUT_KIND, 24, "calibration.series", "item 1: kind: required, not given"),
+    ],
+)
+def test_schema_errors_are_one_line_with_the_keys_line(tmp_path, change, line, label, words):
+    p = _write(tmp_path, GOOD.replace(*change))
+    with pytest.raises(JobError) as e:
+        load_job(p)
+    assert str(e.value) == f"{p}:{line}: {label}: {words}"
+
+
+def test_the_first_problem_in_the_file_is_reported(tmp_path):
+    # [schedule] comes after [camera] in the schema but first in this file
+    p = _write(tmp_path, "[schedule]\nrepeat = 0\n\n" + GOOD.replace("seed = 3", "seed = -1"))
+    with pytest.raises(JobError) as e:
+        load_job(p)
+    assert str(e.value) == f"{p}:2: schedule.repeat: must be >= 1, got 0"
+    p = _write(tmp_path, "stray = 1\n" + GOOD)  # a key before any table stands where a table would
+    with pytest.raises(JobError, match=r"job.toml:1: \[stray\]: unknown section; known: job, camera"):
+        load_job(p)
+
+
+def test_a_table_not_given_keeps_its_rules(tmp_path):
+    p = _write(tmp_path, "")  # no [exposure]: its default, a fixed bracket, still needs times
+    with pytest.raises(JobError) as e:
+        load_job(p)
+    assert str(e.value) == f"{p}: exposure.times: a fixed bracket needs times = [...] (seconds)"
+
+
+def test_a_job_given_as_a_dict_has_no_line():
+    with pytest.raises(JobError) as e:
+        job_from_dict({"camera": {"seed": -1}, "exposure": {"times": [0.01]}})
+    assert str(e.value) == "<job>: camera.seed: must be >= 0, got -1"
+    job = job_from_dict({"exposure": {"times": [0.01]}, "darks": {"count": 2}})
+    assert job["darks"]["count"] == 2 and "iso" not in job["camera"] and job.spec.camera.iso is None
+    assert job.spec.darks.model_fields_set == {"count"}
 
 
 def test_toml_syntax_error_names_the_line(tmp_path):
@@ -241,7 +295,7 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
     frame merged with its own strategy and the planner's merge options, the decisions in the
     EXR header, and the result within its stated uncertainty of the truth."""
     from hdrcap import planner
-    from hdrcap.acquire.capture.job import run_job
+    from hdrcap.acquire.capture.run import run_job
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.scenes import make_scene
     from hdrcap.mock_camera.sensor import SimulatedSensor

@@ -10,7 +10,7 @@ import threading
 
 import pytest
 
-import hdrcap.acquire.capture.job as job_mod
+import hdrcap.acquire.capture.run as run_mod
 from hdrcap.acquire.capture.manifest import EventLog, Manifest
 from hdrcap.cli import main
 from tests.test_unattended import _StoppingCamera
@@ -52,14 +52,14 @@ def sigterm_guard():
 
 def test_capture_ends_cleanly_on_sigterm_and_resume_completes(tmp_path, monkeypatch, capsys, sigterm_guard):
     opened = []
-    real_open = job_mod.open_camera
+    real_open = run_mod.open_camera
 
     def open_signalling(job, n=0):
         cam = _SignallingCamera(real_open(job, n), after=3) if not opened else real_open(job, n)
         opened.append(cam)
         return cam
 
-    monkeypatch.setattr(job_mod, "open_camera", open_signalling)
+    monkeypatch.setattr(run_mod, "open_camera", open_signalling)
     out = tmp_path / "c"
     args = [
         "capture",

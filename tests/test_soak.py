@@ -26,10 +26,10 @@ REPO = Path(__file__).resolve().parents[1]
 #: disk full once, at capture call ENOSPC_AT (0: never) - the fixture's ENOSPC.
 SCRIPT = r"""
 import errno, sys
-import hdrcap.acquire.capture.job as job
+import hdrcap.acquire.capture.run as run
 
 at = int(sys.argv[1])
-real_open = job.open_camera
+real_open = run.open_camera
 
 
 class DiskFullOnce:
@@ -46,7 +46,7 @@ class DiskFullOnce:
         return self._cam.capture(dest, **kw)
 
 
-job.open_camera = lambda j, n=0: DiskFullOnce(real_open(j, n))
+run.open_camera = lambda j, n=0: DiskFullOnce(real_open(j, n))
 from hdrcap.cli import main
 
 sys.exit(main(sys.argv[2:]))

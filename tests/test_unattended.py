@@ -14,8 +14,10 @@ from pathlib import Path
 import pytest
 
 from hdrcap.acquire.camera.mock import MockCamera
-from hdrcap.acquire.capture.job import ScheduleError, job_from_dict, load_job, run_job, run_schedule
+from hdrcap.acquire.capture.job import job_from_dict, load_job
 from hdrcap.acquire.capture.manifest import EventLog, Manifest
+from hdrcap.acquire.capture.run import run_job
+from hdrcap.acquire.capture.schedule import ScheduleError, run_schedule
 from hdrcap.acquire.capture.session import (
     EXIT_CODES,
     CapturePlan,
@@ -319,7 +321,7 @@ def test_notification_hooks_get_the_summary(tmp_path):
 def test_a_failing_hook_is_only_a_warning(tmp_path):
     warnings = []
     job = job_from_dict({"notify": {"on_done": "exit 3"}, "exposure": {"times": [0.01]}})
-    from hdrcap.acquire.capture.job import notify
+    from hdrcap.acquire.capture.notify import notify
 
     notify(job, {"status": "done"}, warnings.append)
     assert len(warnings) == 1 and "exit 3" in warnings[0]
@@ -375,13 +377,14 @@ def test_metering_retries_busy_and_disconnects(tmp_path):
 def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
     from filelock import FileLock
 
-    import hdrcap.acquire.capture.job as job_mod
+    import hdrcap.acquire.capture.run as run_mod
+    from hdrcap.acquire.capture.camera_setup import job_camera_key
     from hdrcap.acquire.capture.session import hold_run_locks, lock_dir
 
     monkeypatch.setenv("HDRCAP_LOCK_DIR", str(tmp_path / "locks"))
     opened = []
-    real_open = job_mod.open_camera
-    monkeypatch.setattr(job_mod, "open_camera", lambda *a, **kw: opened.append(1) or real_open(*a, **kw))
+    real_open = run_mod.open_camera
+    monkeypatch.setattr(run_mod, "open_camera", lambda *a, **kw: opened.append(1) or real_open(*a, **kw))
     job = load_job(_job(tmp_path, folder="runs/{job}-{n}"))
     with hold_run_locks(tmp_path / "runs" / "u-0"):
         with pytest.raises(RunConflictError, match="another hdrcap session") as info:
@@ -396,7 +399,7 @@ def test_locks_are_taken_before_the_camera_is_opened(tmp_path, monkeypatch):
             "calibration": {"preset": "camera-B"},
         }
     )
-    assert job_mod.job_camera_key(gp) == "gphoto2-serial-300123"
+    assert job_camera_key(gp) == "gphoto2-serial-300123"
     with FileLock(str(lock_dir() / "open-gphoto2-serial-300123.lock")):
         with pytest.raises(RunConflictError, match="300123 is in use"):
             run_job(gp, run_dir=tmp_path / "gp", progress=False, echo=_quiet)

@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["Manifest", "EventLog", "utc_now", "MANIFEST_NAME", "EVENTS_NAME"]
+__all__ = ["Manifest", "EventLog", "utc_now", "jsonable", "MANIFEST_NAME", "EVENTS_NAME"]
 
 MANIFEST_NAME = "manifest.jsonl"
 EVENTS_NAME = "events.jsonl"
@@ -32,6 +32,16 @@ EVENTS_NAME = "events.jsonl"
 def utc_now() -> str:
     """Current UTC time, ISO 8601 with microseconds."""
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="microseconds")
+
+
+def jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON types: numpy scalars as Python numbers, anything else unknown as
+    its ``str``.
+
+    >>> jsonable({"n": 2, "path": Path("a")})
+    {'n': 2, 'path': 'a'}
+    """
+    return json.loads(json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
 def _json(obj: Any) -> str:

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from hdrcap.acquire.camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
-from hdrcap.acquire.capture.manifest import EventLog, Manifest, utc_now
+from hdrcap.acquire.capture.manifest import EventLog, Manifest, jsonable, utc_now
 from hdrcap.pipeline.compat import CameraProfile, CompatibilityError, check_compatible
 from hdrcap.pipeline.errors import HdrcapError, InputError
 from hdrcap.pipeline.merge.darks import DarkResolver
@@ -717,7 +717,7 @@ class CaptureSession:
         result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
         if merger is not None:
             result.merge = merger.result()
-            log.emit("merged", streamed=merger.streamed, info=_jsonable(result.merge.info))
+            log.emit("merged", streamed=merger.streamed, info=jsonable(result.merge.info))
         shutil.rmtree(partial_dir, ignore_errors=True)
         result.elapsed_s = time.monotonic() - t0
         log.emit(
@@ -1028,7 +1028,7 @@ class CaptureSession:
             "iso": frame.iso,
             "shape": list(frame.shape),
             "temperature_c": getattr(res, "temperature_c", None) if res is not None else _temp(self.camera),
-            "settings": _jsonable(getattr(res, "settings", {}) if res is not None else {}),
+            "settings": jsonable(getattr(res, "settings", {}) if res is not None else {}),
             "camera_file": getattr(res, "camera_file", "") if res is not None else "",
         }
         return rec, frame.data
@@ -1267,7 +1267,3 @@ def _lock_key(ident: dict) -> str:
     # a real camera is one device whatever port it is on (serial); a simulated one is one object (port)
     who = ident["serial"] if ident["serial"] and ident["backend"] != "mock" else ident["port"]
     return _safe(f"{ident['backend']}-{ident['model']}-{who}")
-
-
-def _jsonable(obj):
-    return json.loads(json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)))

@@ -3,7 +3,7 @@
 Commands live in :mod:`hdrcap.cli.commands` (one module each, discovered at start-up). Errors
 the user can fix (:class:`pipeline.errors.HdrcapError`) are printed as one line
 ``hdrcap: error: ...`` with the error's exit status (:data:`acquire.capture.session.EXIT_CODES`), and
-with ``--json`` also as a JSON object on stdout (:func:`acquire.capture.job.error_summary`); a
+with ``--json`` also as a JSON object on stdout (:func:`acquire.capture.notify.error_summary`); a
 local I/O error (disk full, permissions) exits 6; an unexpected exception is reported in
 one line too (exit 70), with its traceback only when ``HDRCAP_DEBUG=1``.
 """
@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     except HdrcapError as err:
         args = sys.argv[1:] if argv is None else list(map(str, argv))
         if "--json" in args and not getattr(err, "reported", False):  # the error as JSON too
-            from hdrcap.acquire.capture.job import error_summary
+            from hdrcap.acquire.capture.notify import error_summary
             from hdrcap.cli.util import echo_json
 
             echo_json(error_summary(err))

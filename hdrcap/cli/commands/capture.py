@@ -107,7 +107,8 @@ def command(
     SIGTERM or Ctrl-C ends the capture cleanly before the next frame (exit 143 / 130, camera
     closed); --resume continues it. Exit status: see docs/acquisition.md.
     """
-    from hdrcap.acquire.capture.job import job_from_dict, run_job
+    from hdrcap.acquire.capture.job import job_from_dict
+    from hdrcap.acquire.capture.run import run_job
     from hdrcap.acquire.capture.session import stop_on_signals
     from hdrcap.cli.commands.run import _describe
     from hdrcap.mock_camera import PRESETS

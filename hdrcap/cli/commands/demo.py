@@ -24,8 +24,9 @@ def run_demo(
     target_snr: float | None = None,
 ) -> dict:
     """Capture, merge and summarise the demo into ``out``; returns the summary text and paths."""
-    from hdrcap.acquire.capture.job import job_from_dict, run_job
+    from hdrcap.acquire.capture.job import job_from_dict
     from hdrcap.acquire.capture.manifest import Manifest
+    from hdrcap.acquire.capture.run import run_job
     from hdrcap.pipeline.errors import OutputExistsError
     from hdrcap.pipeline.io.files import atomic_output
     from hdrcap.pipeline.times import unique_exposures

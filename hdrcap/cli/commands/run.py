@@ -66,14 +66,10 @@ def command(job_file, resume, repeat, every, keep_going, run_dir, force, check, 
 
 
 def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json) -> None:
-    from hdrcap.acquire.capture.job import (
-        check_free_space,
-        check_job_against_camera,
-        load_job,
-        open_camera,
-        run_folder,
-        run_schedule,
-    )
+    from hdrcap.acquire.capture.camera_setup import check_free_space, check_job_against_camera, open_camera
+    from hdrcap.acquire.capture.job import load_job
+    from hdrcap.acquire.capture.runfolder import run_folder
+    from hdrcap.acquire.capture.schedule import run_schedule
     from hdrcap.acquire.capture.session import stop_on_signals
 
     job = load_job(job_file)

@@ -1,0 +1,64 @@
+"""The outputs of a run: the merged EXR (with the planner's decisions in its header), the
+preview PNG and, on the simulated camera, the error against the scene's truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from hdrcap.acquire.capture.job import Job
+
+
+def _plan_merge_options(planned: dict) -> dict:
+    """The merge options the planner decided (recorded in the manifest's planning record)."""
+    if not planned:
+        return {}
+    from hdrcap.pipeline.planfile import PLAN_OPTIONS, check_plan
+
+    decided = check_plan(planned, "planner").merge_options()
+    return {k: v for k, v in decided.items() if k in PLAN_OPTIONS}
+
+
+def _write_outputs(
+    job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force, planner_header: dict | None = None
+) -> dict:
+    """The run's outputs: the merge's EXR (the one header builder and writer every door uses),
+    the preview PNG, and the error against the truth when the camera is simulated."""
+    from hdrcap.pipeline.header import with_merge_header
+    from hdrcap.pipeline.io.raw import RawFrame
+    from hdrcap.pipeline.io.results import write_result
+    from hdrcap.pipeline.preview import write_preview_png
+
+    out: dict[str, Any] = {}
+    merge = result.merge
+    if merge is None:
+        return out
+    lights = sorted((r for r in result.frames.values() if r["kind"] == "light"), key=lambda r: r["index"])
+    cfa = getattr(getattr(camera, "spec", None), "cfa", None)
+    # the files by their path (the colour metadata is read from the first one); the header lists
+    # them relative to the run folder, as the manifest does
+    frames = [
+        RawFrame(data=None, exposure_time=r["file_exposure_s"], path=str(run_dir / r["file"]), cfa_pattern=cfa)
+        for r in lights
+    ]
+    run = {
+        "run_dir": str(run_dir),
+        "job": job.name,
+        "camera": lights[0]["camera"] if lights else {},
+        "manifest": "manifest.jsonl",
+    }
+    merge = with_merge_header(
+        merge, frames, calibration, source_files=[r["file"] for r in lights], run=run, planner=planner_header
+    )
+    if exr_path is not None:
+        write_result(merge, exr_path, format="exr", force=force)
+        out["exr"] = str(exr_path)
+    if png_path is not None:
+        write_preview_png(png_path, merge.irradiance, cfa, force=force)
+        out["png"] = str(png_path)
+    truth = getattr(getattr(camera, "sim", None), "scene", None)
+    if truth is not None:  # the simulator knows the truth: report the error against it
+        from hdrcap.pipeline.evaluation import error_against_truth
+
+        out["error_vs_truth"] = error_against_truth(merge.irradiance, merge.sigma, merge.nexp, truth)
+    return out

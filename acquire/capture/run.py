@@ -1,0 +1,266 @@
+"""One run of a job: meter -> plan -> capture -> merge -> outputs, in its run folder under
+its locks, resumable after any interruption (:func:`run_job`)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from hdrcap.acquire.capture.camera_setup import (
+    check_compatibility,
+    check_job_against_camera,
+    job_calibration,
+    job_camera_key,
+    open_camera,
+    run_iso,
+)
+from hdrcap.acquire.capture.job import Job
+from hdrcap.acquire.capture.manifest import Manifest, jsonable
+from hdrcap.acquire.capture.outputs import _plan_merge_options, _write_outputs
+from hdrcap.acquire.capture.planning import library_masters, library_root, plan_for
+from hdrcap.acquire.capture.runfolder import NothingToResume, run_folder, run_state
+
+__all__ = ["run_job"]
+
+
+def run_job(
+    job: Job,
+    *,
+    resume: bool = False,
+    n: int = 0,
+    run_dir: Path | None = None,
+    progress: bool | None = None,
+    echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
+    camera=None,
+    force: bool = False,
+    exr_path: Path | None = None,
+    png_path: Path | None = None,
+    return_result: bool = False,
+    stop=None,
+):
+    """Run one repetition of ``job``.
+
+    With ``resume`` the newest incomplete run of the job is continued; on a complete run
+    nothing is done and its recorded summary is returned (``status`` ``"already_complete"``),
+    with no run at all ``status`` is ``"nothing_to_resume"``.
+
+    Parameters
+    ----------
+    job : Job
+    resume : bool
+        Continue an interrupted run (see :func:`acquire.capture.runfolder.resume_folder`).
+    n : int
+        Repetition number (seed offset of the simulated camera, ``{n}`` of the folder).
+    run_dir : Path, optional
+        The run folder (default: the job's ``[output] folder``).
+    camera : Camera, optional
+        An open camera (default: :func:`acquire.capture.camera_setup.open_camera`, closed at
+        the end).
+    exr_path, png_path : Path, optional
+        Override the job's outputs (which lie inside the run folder).
+    return_result : bool
+        Also return the :class:`acquire.capture.session.SessionResult` (None for a no-op).
+    stop : threading.Event, optional
+        Ends the capture cleanly when set (:func:`acquire.capture.session.stop_on_signals`).
+
+    Returns
+    -------
+    dict
+        Summary: ``status``, run folder, frames, captured/resumed/adopted counts, retries,
+        outputs (and the SessionResult when ``return_result``).
+
+    Raises
+    ------
+    HdrcapError
+        With the exit status of what stopped the run; ``err.run_dir`` names the run folder.
+    """
+    from hdrcap.acquire.capture.session import hold_run_locks
+    from hdrcap.pipeline.errors import HdrcapError
+
+    try:
+        run_dir = Path(run_dir) if run_dir else run_folder(job, n, resume)
+    except NothingToResume as err:
+        echo(f"hdrcap: {err}; nothing to do")
+        summary = {"status": "nothing_to_resume", "run_dir": None, "message": str(err)}
+        return (summary, None) if return_result else summary
+    if resume and Manifest(run_dir).exists() and run_state(job, run_dir)[0] == "complete":
+        done = Manifest(run_dir).completion()
+        summary = dict(done["summary"]) if done else {"run_dir": str(run_dir)}
+        summary["status"] = "already_complete"
+        echo(f"hdrcap: {run_dir}: the run is complete; nothing to resume")
+        return (summary, None) if return_result else summary
+    try:
+        with hold_run_locks(run_dir, job_camera_key(job) if camera is None else None):
+            summary, result = _run_one(job, resume, n, run_dir, progress, echo, camera, force, exr_path, png_path, stop)
+    except HdrcapError as err:
+        err.run_dir = str(run_dir)
+        raise
+    except OSError as err:  # our side outside the session: metering files, outputs, disk full
+        raise _local_io_error(err, run_dir) from None
+    _record_complete(run_dir, summary, echo)
+    return (summary, result) if return_result else summary
+
+
+def _local_io_error(err: OSError, run_dir: Path):
+    """The LocalIOError (exit status 6) of a failure on our side of the run."""
+    from hdrcap.acquire.capture.session import LocalIOError
+
+    stop_err = LocalIOError(
+        f"{err.filename or run_dir}: {err.strerror or err}; free space or fix permissions, then run again with --resume"
+    )
+    stop_err.run_dir = str(run_dir)
+    return stop_err
+
+
+def _record_complete(run_dir: Path, summary: dict, echo: Callable[[str], None]) -> None:
+    """The manifest's last record, ``complete`` with the summary (a failure is a warning)."""
+    try:
+        Manifest(run_dir).append(
+            {"type": "complete", "time": _dt.datetime.now(_dt.UTC).isoformat(), "summary": jsonable(summary)}
+        )
+    except OSError as err:
+        echo(f"hdrcap: warning: {run_dir}: could not record the run as complete ({err.strerror or err})")
+
+
+def _run_one(
+    job: Job, resume: bool, n: int, run_dir: Path, progress, echo, camera, force, exr_path, png_path, stop
+) -> tuple[dict, Any]:
+    """Open the camera, plan (or read the plan of the run resumed), capture, merge and write the
+    outputs; returns (summary, SessionResult)."""
+    own = camera is None
+    camera = camera or open_camera(job, n)
+    try:
+        check_job_against_camera(job, camera)
+        calibration = job_calibration(job)
+        expect = check_compatibility(job, camera, calibration, echo)
+        retry = _retry_policy(job)
+        force = force or job["output"]["force"]
+        exr_path, png_path = _output_paths(job, run_dir, exr_path, png_path)
+        _refuse_to_overwrite(run_dir, resume, force, (exr_path, png_path))
+        plan, info = _recorded_or_new_plan(job, camera, calibration, run_dir, resume, echo, retry, stop)
+        planned = info.get("plan") or {}
+        options = _plan_merge_options(planned)
+        result = _capture(
+            job, camera, calibration, run_dir, plan, info, options, n, resume, progress, retry, stop, expect
+        )
+        header = _planner_header(planned, options, info)
+        outputs = _write_outputs(job, run_dir, result, calibration, camera, exr_path, png_path, force, header)
+    finally:
+        if own:
+            try:
+                camera.close()
+            except Exception:
+                pass
+    return _summary(run_dir, result, outputs), result
+
+
+def _retry_policy(job: Job):
+    from hdrcap.acquire.capture.session import RetryPolicy
+
+    sess = job["session"]
+    return RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
+
+
+def _output_paths(job: Job, run_dir: Path, exr_path: Path | None, png_path: Path | None):
+    """The EXR and PNG outputs: as given, else the job's inside the run folder (None: none)."""
+    if exr_path is None and job["output"]["exr"]:
+        exr_path = run_dir / job["output"]["exr"]
+    if png_path is None and job["output"]["png"]:
+        png_path = run_dir / job["output"]["png"]
+    return exr_path, png_path
+
+
+def _refuse_to_overwrite(run_dir: Path, resume: bool, force: bool, outputs) -> None:
+    """RunConflictError for a new run in a folder with a run; OutputExistsError for an output
+    that exists (without ``force``)."""
+    from hdrcap.acquire.capture.session import RunConflictError
+    from hdrcap.pipeline.errors import OutputExistsError
+
+    if not resume and Manifest(run_dir).exists():
+        raise RunConflictError(
+            f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it or choose another run folder"
+        )
+    for p in outputs:
+        if p is not None and p.exists() and not force:
+            raise OutputExistsError(f"{p}: exists; use --force to overwrite (or another run folder)")
+
+
+def _recorded_or_new_plan(job: Job, camera, calibration, run_dir: Path, resume: bool, echo, retry, stop):
+    """(plan, planning info): the plan recorded at the start of the run resumed, else a new one."""
+    from hdrcap.acquire.capture.session import CapturePlan
+
+    head = Manifest(run_dir).header() if resume else None
+    if head is not None:
+        return CapturePlan.from_dict(head["plan"]), head.get("planning", {})
+    if resume and Manifest(run_dir).exists() is False and run_dir.exists():
+        echo(f"hdrcap: {run_dir}: stopped before its plan was recorded; starting the run again")
+    return plan_for(job, camera, calibration, run_dir, echo, retry, stop)
+
+
+def _capture(
+    job: Job, camera, calibration, run_dir: Path, plan, info, options, n, resume, progress, retry, stop, expect
+):
+    """Capture ``plan`` in a :class:`acquire.capture.session.CaptureSession` (master darks
+    from the dark library, the job's light blocking and dark check); returns its result."""
+    from hdrcap.acquire.capture.session import CaptureSession, LightBlocker
+
+    masters = None
+    if plan.library_times:
+        masters = library_masters(
+            library_root(job, calibration), camera, plan.library_times, iso=run_iso(job, calibration), strict=True
+        )
+    d = job["darks"]
+    light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
+    meta = {
+        "job": str(job.path) if job.path else None,
+        "job_name": job.name,
+        "repetition": n,
+        "planning": info,
+        "calibration": calibration.provenance,
+    }
+    session = CaptureSession(
+        camera,
+        run_dir,
+        plan,
+        calibration=calibration,
+        light=light,
+        retry=retry,
+        resume=resume,
+        progress=progress,
+        meta=meta,
+        check_dark=d["check"],
+        master_darks=masters,
+        merge_options=options,
+        stop=stop,
+        expect=expect,
+    )
+    return session.run()
+
+
+def _planner_header(planned: dict, options: dict, info: dict) -> dict | None:
+    """The EXR header's planner attribute of a planned run (None for a fixed bracket)."""
+    if not planned:
+        return None
+    from hdrcap.pipeline.planfile import planner_attribute
+
+    return planner_attribute(
+        planned, None, None, options, info.get("plan_overridden"), source="hdrcap run (planned from metering)"
+    )
+
+
+def _summary(run_dir: Path, result, outputs: dict) -> dict:
+    return {
+        "status": "done",
+        "run_dir": str(run_dir),
+        "frames": len(result.frames),
+        "captured": result.captured,
+        "resumed": result.resumed,
+        "adopted": result.adopted,
+        "retries": result.retries,
+        "elapsed_s": round(result.elapsed_s, 3),
+        "streamed_merge": result.merge is not None,
+        **outputs,
+    }
