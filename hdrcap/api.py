@@ -175,6 +175,12 @@ def camera_calibration(camera: str, temperature: float | None = None) -> Calibra
     -------
     Calibration
         g (DN/e-), mu_R (DN), sigma2_R (DN^2), v_sat (DN), dark current (e-/s).
+
+    Examples
+    --------
+    >>> cal = camera_calibration("camera-B")
+    >>> cal.params.g, cal.params.v_sat  # DN/e-, DN
+    (0.92, 1023.0)
     """
     from hdrcap.mock_camera.sensor import preset_calibration
 
@@ -218,6 +224,13 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     ------
     InputError
         Missing, unreadable or not a calibration file; unsupported version; bad map shape.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> path = save_calibration(Path(tempfile.mkdtemp()) / "cam.cal", camera_calibration("camera-A"))
+    >>> load_calibration(path).params == camera_calibration("camera-A").params
+    True
     """
     from hdrcap.pipeline.calibration import load_calibration as _load
 
@@ -531,6 +544,14 @@ def plan(
     ------
     InputError
         A non-finite irradiance map or target, an impossible request.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> scene = np.geomspace(300.0, 1e5, 1000)  # e-/s
+    >>> p = plan("camera-B", scene, target_snr_db=20, allowed_times=[0.001, 0.01, 0.1, 1.0], overhead=0)
+    >>> p.feasible, p.predicted_min_snr_db >= 20, sorted(set(p.exposures))
+    (True, True, [0.001, 0.01, 0.1])
     """
     from hdrcap.planner import plan_exposures
 
@@ -686,6 +707,12 @@ def simulate(
     ------
     InputError
         Unknown preset or scene, non-positive exposure times, a bad scene array.
+
+    Examples
+    --------
+    >>> sim = simulate("camera-A", times=[0.01, 0.1], shape=(16, 24), seed=3, darks=True)
+    >>> len(sim.frames), sim.frames[0].dtype, sim.frames[0].shape, sim.cfa_pattern
+    (2, dtype('uint16'), (16, 24), 'RGGB')
     """
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
@@ -800,6 +827,16 @@ def write_exr(
         The file exists and ``force`` is false.
     InputError
         The output folder does not exist or is not writable; a bad option.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> sim = simulate("camera-B", times=[0.01, 0.1, 1.0], shape=(16, 24), seed=2)
+    >>> hdr = merge(sim.frames, sim.times, calibration=sim.calibration)
+    >>> path = write_exr(Path(tempfile.mkdtemp()) / "m.exr", hdr)
+    >>> back = read_exr(path)
+    >>> sorted(back.channels()), bool((back.irradiance == hdr.irradiance).all())
+    (['irradiance', 'nexp', 'quality', 'sigma'], True)
     """
     from hdrcap.pipeline.io.results import write_result
 

@@ -8,8 +8,7 @@ Capture sessions (:mod:`hdrcap.acquire.capture.session`) drive it and decide wha
 gone or hung: reconnect, then retry), ``"recapture"`` (the file is bad: take it again) or
 ``"fatal"`` (card full, camera gone: stop with a clear message). Errors carry their kind in
 the attribute ``camera_fault``. The identity, capture-result and error classes live in
-:mod:`hdrcap.acquire.camera.types` (the simulator, which may not import acquire, raises the
-same classes) and are re-exported here.
+:mod:`hdrcap.acquire.camera.types` and are re-exported here.
 """
 
 from __future__ import annotations

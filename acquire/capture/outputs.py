@@ -25,7 +25,7 @@ def _write_outputs(
     """The run's outputs: the merge's EXR (the one header builder and writer every door uses),
     the preview PNG, and the error against the truth when the camera is simulated."""
     from hdrcap.pipeline.header import with_merge_header
-    from hdrcap.pipeline.io.raw import RawFrame
+    from hdrcap.pipeline.io.raw import read_frame
     from hdrcap.pipeline.io.results import write_result
     from hdrcap.pipeline.preview import write_preview_png
 
@@ -35,12 +35,11 @@ def _write_outputs(
         return out
     lights = sorted((r for r in result.frames.values() if r["kind"] == "light"), key=lambda r: r["index"])
     cfa = getattr(getattr(camera, "spec", None), "cfa", None)
-    # the files by their path (the colour metadata is read from the first one); the header lists
-    # them relative to the run folder, as the manifest does
-    frames = [
-        RawFrame(data=None, exposure_time=r["file_exposure_s"], path=str(run_dir / r["file"]), cfa_pattern=cfa)
-        for r in lights
-    ]
+    # the files' own metadata (exposure time, CFA pattern, capture time; the colour metadata is
+    # read from the first one), as hdrcap merge reads it; the header lists them relative to the
+    # run folder, as the manifest does
+    frames = [read_frame(run_dir / r["file"], r["file_exposure_s"]) for r in lights]
+    cfa = cfa or (frames[0].cfa_pattern if frames else None)
     run = {
         "run_dir": str(run_dir),
         "job": job.name,
@@ -48,7 +47,13 @@ def _write_outputs(
         "manifest": "manifest.jsonl",
     }
     merge = with_merge_header(
-        merge, frames, calibration, source_files=[r["file"] for r in lights], run=run, planner=planner_header
+        merge,
+        frames,
+        calibration,
+        source_files=[r["file"] for r in lights],
+        dark_sources=merge.header.get("dark_sources"),
+        run=run,
+        planner=planner_header,
     )
     if exr_path is not None:
         write_result(merge, exr_path, format="exr", force=force)

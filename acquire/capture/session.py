@@ -543,17 +543,18 @@ class StreamingMerge:
         opts.setdefault("exposure_times", "effective")  # estimated by the accumulator at the end
         uniform = strategy_for if isinstance(strategy_for, str) and strategy_for != "mixed" else None
         self._acc = MergeAccumulator(calibration, self.shape, dark_strategy=uniform, **opts)
+        self.dark_sources: list[str] = []  # per light frame, what served its dark level (as merge_files says)
 
-    def add_dark(self, values: np.ndarray, t: float) -> None:
-        """A dark frame (DN) of exposure ``t`` (s)."""
+    def add_dark(self, values: np.ndarray, t: float, name: str = "") -> None:
+        """A dark frame (DN) of exposure ``t`` (s); ``name``: its file, for the header."""
         try:
-            self._darks.add_dark(values, t)
+            self._darks.add_dark(values, t, name)
         except InputError as err:  # after its light frames
             raise SessionError(str(err)) from None
 
-    def add_master(self, values: np.ndarray, t: float, n_frames: int = 1) -> None:
+    def add_master(self, values: np.ndarray, t: float, n_frames: int = 1, name: str = "") -> None:
         """A master dark (DN) for exposure ``t`` from the dark library, averaged from ``n_frames``."""
-        self._darks.add_master(values, t, int(n_frames))
+        self._darks.add_master(values, t, int(n_frames), name)
 
     def add_light(self, values: np.ndarray, t: float) -> None:
         """A light frame (DN) of exposure ``t`` (s), merged with the dark level that serves it."""
@@ -564,12 +565,15 @@ class StreamingMerge:
         self._acc.add(
             values, t, src.data, strategy=strategy, n_dark=src.n_frames if strategy is DarkStrategy.MASTER else None
         )
+        self.dark_sources.append("model" if strategy is DarkStrategy.MODEL else f"{strategy}: {src.source}")
 
     def result(self):
-        """The :class:`pipeline.result.HdrResult` of everything added."""
+        """The :class:`pipeline.result.HdrResult` of everything added; its header also names the
+        dark level of every light frame (``dark_sources``)."""
         if not len(self._acc):
             raise SessionError("no light frames to merge")
-        return self._acc.result()
+        res = self._acc.result()
+        return res.replace(header={**res.header, "dark_sources": list(self.dark_sources)})
 
 
 @dataclass
@@ -902,7 +906,7 @@ class CaptureSession:
             for t, (data, n) in self.master_darks.items():
                 merger.add_master(data, t, n)
         if rec["kind"] == "dark":
-            merger.add_dark(values, rec["file_exposure_s"])
+            merger.add_dark(values, rec["file_exposure_s"], rec["file"])
         else:
             merger.add_light(values, rec["file_exposure_s"])
         return merger

@@ -1,1 +1,3 @@
-"""merge."""
+"""The optimal merge (Sec. 4-5, Fig. 3): options and accumulator, compiled kernels, which dark
+level serves an exposure, the baselines of Table 1, and ``files``: the one path from a bracket
+of files to a result (in memory or tiled)."""
