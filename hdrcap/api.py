@@ -484,8 +484,10 @@ def merge(
         else:
             dts = _times(dark_times, len(ditems), "dark frame")
         dk = [_frame(x, t, "dark frame", i) for i, (x, t) in enumerate(zip(ditems, dts))]
-    md: FrameLike | None = master_dark
-    if master_dark is not None and not isinstance(master_dark, (str, os.PathLike, RawFrame)):
+    md: str | os.PathLike[str] | RawFrame | None
+    if master_dark is None or isinstance(master_dark, (str, os.PathLike, RawFrame)):
+        md = master_dark
+    else:
         md = _frame(master_dark, None, "master dark", 0, need_time=False)  # an array: no exposure time
     defaults = MergeOptions(exposure_times="effective")
     given = frozenset(f.name for f in dataclasses.fields(opts) if getattr(opts, f.name) != getattr(defaults, f.name))
