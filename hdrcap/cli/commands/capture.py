@@ -4,6 +4,7 @@ with dark frames, verification, manifest and resume; the job-file-free form of `
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -79,28 +80,28 @@ from hdrcap.pipeline.dark_strategy import DarkStrategy
 @click.option("--progress/--no-progress", default=None, help="Progress bar (default: on a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary.")
 def command(
-    camera,
-    port,
-    serial,
-    iso,
-    enforce,
-    times,
-    target_snr,
-    dark_strategy,
-    dark_count,
-    block_light,
-    cover_command,
-    uncover_command,
-    calibration,
-    scene,
-    size,
-    seed,
-    out,
-    resume,
-    force,
-    progress,
-    as_json,
-):
+    camera: str,
+    port: str | None,
+    serial: str | None,
+    iso: int | None,
+    enforce: bool,
+    times: tuple[float, ...],
+    target_snr: float | None,
+    dark_strategy: str | None,
+    dark_count: int,
+    block_light: str | None,
+    cover_command: str | None,
+    uncover_command: str | None,
+    calibration: str | None,
+    scene: str,
+    size: str,
+    seed: int,
+    out: Path,
+    resume: bool,
+    force: bool,
+    progress: bool | None,
+    as_json: bool,
+) -> None:
     """Capture one bracket (or a plan for --target-snr) with dark frames into --out, verify and
     hash every frame into manifest.jsonl, and merge it to --run-dir/hdr.exr.
 
@@ -119,7 +120,7 @@ def command(
         raise InputError(
             f"--camera must be mock:PRESET, PRESET ({', '.join(PRESETS)}) or gphoto2[:MODEL], got {camera!r}"
         )
-    cam: dict = {"backend": backend}
+    cam: dict[str, Any] = {"backend": backend}
     if backend == "mock":
         cam.update(preset=name or "camera-B", size=size, seed=seed)
     else:
@@ -129,17 +130,22 @@ def command(
         cam["iso"] = iso
     if not times and target_snr is None:
         raise InputError("give --times (a fixed bracket) or --target-snr-db")
-    exposure = {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}
+    exposure: dict[str, Any] = (
+        {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}
+    )
     if times:
         exposure["times"] = list(times)
-    darks = {"count": dark_count, "block_light": block_light or ("mock" if backend == "mock" else "prompt")}
+    darks: dict[str, Any] = {
+        "count": dark_count,
+        "block_light": block_light or ("mock" if backend == "mock" else "prompt"),
+    }
     if dark_strategy:
         darks["strategy"] = dark_strategy
     if cover_command:
         darks["cover_command"] = cover_command
     if uncover_command:
         darks["uncover_command"] = uncover_command
-    data = {
+    data: dict[str, Any] = {
         "job": {"name": "capture"},
         "camera": cam,
         "exposure": exposure,

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
 from hdrcap.cli.util import echo_json
 from hdrcap.pipeline.errors import InputError
+
+#: The filter options as given: (method, range_scale, bandwidth, radius, spatial_sigma, layout).
+FilterOptions = tuple[str, float | None, float | None, int | None, float | None, str]
 
 __all__ = ["command"]
 
@@ -86,20 +91,20 @@ __all__ = ["command"]
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 def command(
-    input_exr,
-    output,
-    method,
-    range_scale,
-    bandwidth,
-    radius,
-    spatial_sigma,
-    layout,
-    chunks,
-    sigma_precision,
-    exr_compression,
-    force,
-    as_json,
-):
+    input_exr: Path,
+    output: Path,
+    method: str,
+    range_scale: float | None,
+    bandwidth: float | None,
+    radius: int | None,
+    spatial_sigma: float | None,
+    layout: str,
+    chunks: int | None,
+    sigma_precision: str,
+    exr_compression: str,
+    force: bool,
+    as_json: bool,
+) -> None:
     """Denoise a merged EXR (channels irradiance, sigma, optional nexp) with a bilateral filter
     whose range bandwidth follows each photosite's predicted sigma (Sec. 9).
 
@@ -121,6 +126,7 @@ def command(
     )
     from hdrcap.pipeline.denoise.tiled import exr_pixel_types, median_relative_sigma, output_precision
     from hdrcap.pipeline.io.exr import read_exr, write_exr
+    from hdrcap.pipeline.io.files import check_new_output
 
     t0 = time.perf_counter()
     from hdrcap.pipeline._numba_target import warm_up
@@ -131,12 +137,11 @@ def command(
         raise InputError("--bandwidth is for --method constant; the adaptive method uses --range-scale")
     if method == "constant" and range_scale is not None:
         raise InputError("--range-scale is for --method adaptive; the constant method uses --bandwidth")
-    if output.exists() and not force:
-        raise InputError(f"{output}: exists; use --force to overwrite")
+    check_new_output(output, force)
     if input_exr.exists() and output.exists() and input_exr.resolve() == output.resolve():
         raise InputError(f"{output}: is the input file; inputs are never modified, choose another output")
     if chunks:  # tile by tile: the same result without holding the image
-        filter_options = (method, range_scale, bandwidth, radius, spatial_sigma, layout)
+        filter_options: FilterOptions = (method, range_scale, bandwidth, radius, spatial_sigma, layout)
         return _denoise_tiled(input_exr, output, filter_options, chunks, (sigma_precision, exr_compression))(
             force, as_json, t0
         )
@@ -195,19 +200,26 @@ def command(
         )
 
 
-def _g(value) -> str:
+def _g(value: float | None) -> str:
     """A figure of the summary line: 3 significant digits, or "n/a" where no photosite had one."""
     return "n/a" if value is None else f"{value:.3g}"
 
 
-def _denoise_tiled(input_exr, output, filter_options, chunks, storage):
+def _denoise_tiled(
+    input_exr: Path, output: Path, filter_options: FilterOptions, chunks: int, storage: tuple[str, str]
+) -> Callable[[bool, bool, float], None]:
     """``hdrcap denoise --chunks``: returns the step that filters and reports (force, as_json, t0).
     ``filter_options``: (method, range_scale, bandwidth, radius, spatial_sigma, layout) as given;
     ``storage``: (sigma precision, EXR compression)."""
-    from types import SimpleNamespace
+    import numpy as np
 
     from hdrcap import __version__
-    from hdrcap.pipeline.denoise.filter import denoise_header, layout_from_metadata, settings_from_options
+    from hdrcap.pipeline.denoise.filter import (
+        DenoiseResult,
+        denoise_header,
+        layout_from_metadata,
+        settings_from_options,
+    )
     from hdrcap.pipeline.denoise.tiled import denoise_tiled, exr_layout, exr_pixel_types, output_precision
 
     method, range_scale, bandwidth, radius, spatial_sigma, layout = filter_options
@@ -222,17 +234,19 @@ def _denoise_tiled(input_exr, output, filter_options, chunks, storage):
     chosen_layout = layout_from_metadata(attrs) if layout == "auto" else layout
     settings = settings_from_options(method, range_scale, bandwidth, radius, spatial_sigma, chosen_layout)
 
-    def entry(unchanged):
+    def entry(unchanged: int) -> dict[str, Any]:
+        # the header needs the count only; the filtered tiles are already in the output file
+        empty = np.empty((0, 0), np.float32)
         return denoise_header(
             settings,
-            SimpleNamespace(info={"unchanged_nexp0": unchanged}),
+            DenoiseResult(empty, empty, empty, info={"unchanged_nexp0": unchanged}),
             "header cfa_pattern" if layout == "auto" else "--layout",
             attrs.get("sigma", "standard deviation of irradiance"),
             __version__,
             source_file=str(input_exr),
         )
 
-    def run(force, as_json, t0):
+    def run(force: bool, as_json: bool, t0: float) -> None:
         done = denoise_tiled(
             input_exr,
             output,
