@@ -19,8 +19,9 @@ _SPACES = ", ".join(OUTPUT_SPACES)
 def _refuse_clobber(path: Path | None, force: bool, input_exr: Path) -> None:
     if path is None:
         return
-    if path.exists() and not force:
-        raise InputError(f"{path}: exists; use --force to overwrite")
+    from hdrcap.pipeline.io.files import check_new_output
+
+    check_new_output(path, force)
     if input_exr.exists() and path.exists() and input_exr.resolve() == path.resolve():
         raise InputError(f"{path}: is the input file; inputs are never modified, choose another output")
 
