@@ -412,7 +412,8 @@ def _calibration_sources(calib, inputs: _Inputs, shape) -> dict[str, int]:
 @functools.cache
 def _accumulator_classes():
     """(MergeAccumulator, its subsample variant, its tile variant), imported on first use."""
-    from hdrcap.pipeline.merge.accumulator import MergeAccumulator, _extrema
+    from hdrcap.pipeline.merge.accumulator import MergeAccumulator
+    from hdrcap.pipeline.merge.precision import extrema
 
     class SampleAccumulator(MergeAccumulator):
         """Merges the regular subsample itself: its subsample is everything it holds."""
@@ -429,12 +430,13 @@ def _accumulator_classes():
         own_single: bool | None = None
 
         def _single_precision_safe(self, values, darks, master) -> bool:
-            ext = {"a": _extrema(self._a), "D": _extrema(self._D), "bias": _extrema(self._bias)}
+            maps = self.maps
+            ext = {"a": extrema(maps.prnu), "D": extrema(maps.dark_current), "bias": extrema(maps.bias)}
             if self.master_dark is not None:
-                ext["master"] = _extrema((master, True, 0.0))
-            for i, (d, kind) in enumerate(zip(darks, self._kinds)):
+                ext["master"] = extrema((master, True, 0.0))
+            for i, (d, kind) in enumerate(zip(darks, self.frames.kinds)):
                 if kind == 0 and d.dtype != np.uint16:
-                    ext[f"dark{i}"] = _extrema((d, True, 0.0))
+                    ext[f"dark{i}"] = extrema((d, True, 0.0))
             self.extrema = ext
             self.own_single = super()._single_precision_safe(values, darks, master)
             return self.own_single if self.forced_single is None else self.forced_single
@@ -592,11 +594,7 @@ def _global_single(plan: _Plan, extrema: dict[str, tuple[float, float]]) -> bool
     full_cls, _, _ = _accumulator_classes()
     opts = dict(plan.options, exposure_times="nominal")
     probe = probe_plan.accumulate(full_cls, blocks, plan.times, opts, dark_for=dark_for)
-    own = [d for d in probe._darks if d is not None]
-    hold = np.zeros((1, 1), own[0].dtype if own else np.float32)
-    darks = [hold if d is None else d for d in probe._darks]
-    m = np.zeros((1, 1), np.float32) if probe.master_dark is None else probe.master_dark.astype(np.float32)
-    return bool(probe._single_precision_safe(list(probe._values), darks, m))
+    return bool(probe._single_precision_safe(*probe._kernel_frames()))
 
 
 def _effective_times(plan: _Plan) -> tuple[list[float], dict[str, Any]]:
@@ -616,7 +614,7 @@ def _effective_times(plan: _Plan) -> tuple[list[float], dict[str, Any]]:
     blocks = [src.take(index)[:, win_c] for src in plan.inputs.sources]
     acc = plan.accumulate(sample_cls, blocks, [fr.exposure_time for fr in plan.frames], plan.options)
     acc.apply_exposure_times()
-    return list(acc._times), acc._exposure_info()
+    return list(acc.frames.times), acc._exposure_info()
 
 
 def _resolve_darks(plan: _Plan, strategy_for, library, warn) -> list[str]:
