@@ -457,16 +457,7 @@ def merge_arrays(
     if len(shape) != 2:
         raise InputError(f"frame 1: expected a 2-D mosaic, got shape {shape}")
     strategies = [as_strategy(s) for s in _per_frame(dark_strategies, len(values), "dark strategies")]
-    master = None
-    per_frame: list[Any] = [None] * len(values)
-    if darks is not None:
-        if isinstance(darks, np.ndarray) and darks.ndim == 2:
-            master = darks
-            options.setdefault("dark_strategy", DarkStrategy.MASTER)
-        else:
-            per_frame = list(darks)
-            if len(per_frame) != len(values):
-                raise InputError(f"{len(per_frame)} dark frames for {len(values)} frames")
+    master, per_frame = _dark_arrays(darks, len(values), options)
     default = as_strategy(options.get("dark_strategy"))
     if darks is None and default in (DarkStrategy.MATCHED, DarkStrategy.MASTER) and not all(strategies):
         raise InputError(f"the {default} dark strategy needs dark frames")
@@ -476,6 +467,22 @@ def merge_arrays(
     masks_per_frame = _per_frame(masks, len(values), "masks")
     acc = MergeAccumulator(calibration, shape, master_dark=master, stream=False, **options)
     return _accumulate(acc, values, times, per_frame, strategies, n_per_frame, masks_per_frame)
+
+
+def _dark_arrays(
+    darks: np.ndarray | Sequence[ArrayLike | None] | None, n: int, options: dict[str, Any]
+) -> tuple[np.ndarray | None, list[Any]]:
+    """The single master dark and the per-frame dark levels of :func:`merge_arrays`' ``darks``
+    for ``n`` frames; one master dark makes ``master`` the default strategy in ``options``."""
+    if darks is None:
+        return None, [None] * n
+    if isinstance(darks, np.ndarray) and darks.ndim == 2:
+        options.setdefault("dark_strategy", DarkStrategy.MASTER)
+        return darks, [None] * n
+    per_frame = list(darks)
+    if len(per_frame) != n:
+        raise InputError(f"{len(per_frame)} dark frames for {n} frames")
+    return None, per_frame
 
 
 def _accumulate(acc: MergeAccumulator, *per_frame: Sequence[Any]) -> HdrResult:

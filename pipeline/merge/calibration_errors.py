@@ -144,6 +144,24 @@ def shared_terms(
     out_m = np.zeros(irr.shape, np.float32) if master_used.any() else None
     if out is None and out_m is None:
         return out, out_m, desc
+    _run_terms_kernel(irr, nexp, inputs, (s_b, s_d, s_a), master_used, options, out, out_m)
+    return out, out_m, desc
+
+
+def _run_terms_kernel(
+    irr: np.ndarray,
+    nexp: np.ndarray,
+    inputs: KernelInputs,
+    errors: tuple[ErrorTerm, ErrorTerm, ErrorTerm],
+    master_used: np.ndarray,
+    options: MergeOptions,
+    out: np.ndarray | None,
+    out_m: np.ndarray | None,
+) -> None:
+    """Fill ``out`` (sigma_calibration) and ``out_m`` (the master dark's term), those not None,
+    with :func:`pipeline.merge.kernels.calibration_terms_kernel` from the calibration's
+    standard ``errors`` (bias, dark current, PRNU) and the frames sharing the timed master dark
+    (``master_used``, 1.0 per such frame)."""
     from hdrcap.pipeline.merge.kernels import (
         ErrorMaps,
         MapArg,
@@ -158,13 +176,17 @@ def shared_terms(
     needs_weights = bool(np.any(bias_used > 0) or np.any(frames.coefs != 0) or master_used.any())
     t_ref = options.master_dark_time
 
+    # the output not asked for gets a placeholder: the other one
+    first, second = (out if out is not None else out_m), (out_m if out_m is not None else out)
+    assert first is not None and second is not None  # at least one is asked for (shared_terms)
+
     def err_arg(e: ErrorTerm) -> MapArg:
         return MapArg(e, True, 0.0) if isinstance(e, np.ndarray) else MapArg(np.zeros((1, 1), np.float32), False, e)
 
     with reflected_lists_quiet():
         calibration_terms_kernel(
             *inputs,
-            ErrorMaps(err_arg(s_b), err_arg(s_d), err_arg(s_a)),
+            ErrorMaps(*(err_arg(e) for e in errors)),
             SharedTerms(
                 np.ascontiguousarray(np.stack([bias_used, master_used], axis=1)),
                 float(options.saturation_sigmas) ** 2,
@@ -177,10 +199,9 @@ def shared_terms(
             ),
             irr,
             nexp,
-            out if out is not None else out_m,  # a placeholder for the output not asked for
-            out_m if out_m is not None else out,
+            first,
+            second,
         )
-    return out, out_m, desc
 
 
 def add_in_quadrature(sigma: np.ndarray, *terms: np.ndarray | None, rows: int = 256) -> None:
