@@ -99,7 +99,7 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
         return np.ascontiguousarray(arr)  # already half: stored as it is, nothing to lose or check
     if precision in ("half", "auto"):
         lo, hi = _magnitude_range(arr)
-        fits = lo is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
+        fits = lo is None or hi is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
         if precision == "auto":
             precision = "half" if fits else "float"
         elif not fits:
@@ -144,7 +144,7 @@ def _whole_uint32(arr: np.ndarray) -> bool:
     return True
 
 
-def as_stored(channels, precision: dict[str, str] | None = None) -> dict[str, np.ndarray]:
+def as_stored(channels: dict[str, Any], precision: dict[str, str] | None = None) -> dict[str, np.ndarray]:
     """The channels as :func:`write_exr` stores and :func:`read_exr` returns them: float32,
     rounded through each channel's storage precision (half keeps 11 significant bits).
 
