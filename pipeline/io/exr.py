@@ -11,6 +11,7 @@ import json
 import math
 import os
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -26,6 +27,7 @@ __all__ = [
     "HALF_RANGE",
     "HALF_RELATIVE_ERROR",
     "ExrContent",
+    "ExrRows",
     "as_stored",
     "read_exr",
     "ExrLayout",
@@ -395,6 +397,81 @@ def read_exr(
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
     return ExrContent(data, _parse_header(path, meta))
+
+
+@dataclass(frozen=True)
+class ExrRows:
+    """Rows of one channel of a scanline EXR, as float32, decoded only when asked for (OpenEXR's
+    scanline reader decodes just those rows): what ``dask.array.from_array`` and
+    :func:`write_exr` (``block_rows``) read.
+
+    Attributes
+    ----------
+    path : str
+        The EXR.
+    name : str
+        The channel.
+    shape : (int, int)
+        Rows, columns of the data window (:func:`read_exr_layout`).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> path = Path(tempfile.mkdtemp()) / "a.exr"
+    >>> _ = write_exr(path, {"x": np.arange(12, dtype=np.float32).reshape(4, 3)})
+    >>> ExrRows(str(path), "x", (4, 3)).rows(1, 3).tolist()
+    [[3.0, 4.0, 5.0], [6.0, 7.0, 8.0]]
+    """
+
+    path: str
+    name: str
+    shape: tuple[int, int]
+    dtype: np.dtype = np.dtype(np.float32)
+    ndim: int = 2
+
+    def rows(self, r0: int, r1: int) -> np.ndarray:
+        """Rows ``r0:r1`` (clipped to the channel), float32 (half and uint converted exactly).
+
+        Parameters
+        ----------
+        r0, r1 : int
+            First row and one past the last.
+
+        Returns
+        -------
+        numpy.ndarray
+            (rows, columns), float32, a new array.
+
+        Raises
+        ------
+        InputError
+            The file is no longer a readable EXR with this channel.
+        """
+        import Imath
+        import OpenEXR
+
+        h, w = self.shape
+        r0, r1 = max(0, min(r0, h)), max(0, min(r1, h))
+        if r1 <= r0:
+            return np.empty((0, w), np.float32)
+        try:
+            f = OpenEXR.InputFile(self.path)
+            try:
+                y0 = f.header()["dataWindow"].min.y
+                raw = f.channel(self.name, Imath.PixelType(Imath.PixelType.FLOAT), y0 + r0, y0 + r1 - 1)
+            finally:
+                f.close()
+        except Exception as err:
+            raise InputError(f"{self.path}: rows {r0}..{r1 - 1} of channel {self.name!r} unreadable ({err})") from None
+        return np.frombuffer(raw, np.float32).reshape(r1 - r0, w).copy()
+
+    def __getitem__(self, key: slice | tuple[slice, ...]) -> np.ndarray:
+        """``self[rows, cols]`` with slices, rows with step 1 (what ``dask.array.from_array`` asks)."""
+        keys = key if isinstance(key, tuple) else (key,)
+        r0, r1, step = keys[0].indices(self.shape[0])
+        if step != 1:
+            raise IndexError("rows of an EXR channel are read with step 1")
+        return self.rows(r0, r1)[(slice(None), *keys[1:])]
 
 
 class ExrLayout(NamedTuple):
