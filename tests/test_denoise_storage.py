@@ -11,7 +11,7 @@ import pytest
 
 from hdrcap.cli import main
 from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
-from hdrcap.pipeline.io.exr import HALF_RELATIVE_ERROR, read_exr, read_exr_layout, write_exr
+from hdrcap.pipeline.io.exr import HALF_RELATIVE_ERROR, read_exr, stored_precisions, write_exr
 
 SHAPE = (40, 36)
 
@@ -43,7 +43,7 @@ def _cli(src, dst, *args):
 
 def exr_pixel_types(path):
     """Channel name -> "float", "half" or "uint", as the file stores it."""
-    return read_exr_layout(path).channels
+    return stored_precisions(path)
 
 
 @pytest.mark.parametrize("chunks", [[], ["--chunks", 8]])

@@ -32,6 +32,7 @@ __all__ = [
     "read_exr",
     "ExrLayout",
     "read_exr_layout",
+    "stored_precisions",
     "write_exr",
 ]
 
@@ -475,29 +476,26 @@ class ExrRows:
 
 
 class ExrLayout(NamedTuple):
-    """An EXR's header, channels and size, read without its pixels.
+    """An EXR's header, channel names and size, read without its pixels.
 
     Attributes
     ----------
     header : dict
         The JSON metadata hdrcap wrote (empty for other files).
-    channels : dict of str to str
-        Channel name -> how it is stored: ``"float"``, ``"half"`` or ``"uint"``.
+    channels : tuple of str
+        The channel names.
     shape : (int, int)
         Rows, columns.
     """
 
     header: dict[str, Any]
-    channels: dict[str, str]
+    channels: tuple[str, ...]
     shape: tuple[int, int]
 
 
-#: EXR pixel types by the precision names of :func:`write_exr`.
-_PRECISION_OF_TYPE = {"FLOAT": "float", "HALF": "half", "UINT": "uint"}
-
-
 def read_exr_layout(path: str | os.PathLike[str]) -> ExrLayout:
-    """An EXR's header, channel storage types and size, without reading its pixels.
+    """An EXR's header, channel names and size, without reading its pixels (OpenEXR's
+    header-only reader, which refuses a corrupt file with an error rather than a crash).
 
     Parameters
     ----------
@@ -518,18 +516,37 @@ def read_exr_layout(path: str | os.PathLike[str]) -> ExrLayout:
     path = Path(path)
     check_readable(path)
     try:
-        with quiet_stderr():
-            f = OpenEXR.InputFile(str(path))
-            try:
-                head = f.header()
-            finally:
-                f.close()
-        meta = head.get(_META_KEY)
-        box = head["dataWindow"]
-        shape = (int(box.max.y - box.min.y + 1), int(box.max.x - box.min.x + 1))
-        kinds = {name: _PRECISION_OF_TYPE.get(str(ch.type), "float") for name, ch in head["channels"].items()}
+        with quiet_stderr(), OpenEXR.File(str(path), header_only=True) as exr:
+            head = exr.header()
+            meta = head.get(_META_KEY)
+            (x0, y0), (x1, y1) = head["dataWindow"]
+            names = tuple(str(c.name) for c in head["channels"])
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
-    if isinstance(meta, bytes):
-        meta = meta.decode()
-    return ExrLayout(_parse_header(path, meta), kinds, shape)
+    return ExrLayout(_parse_header(path, meta), names, (int(y1 - y0 + 1), int(x1 - x0 + 1)))
+
+
+#: numpy types of the stored channels by the precision names of :func:`write_exr`.
+_PRECISION_OF_DTYPE = {"float32": "float", "float16": "half", "uint32": "uint"}
+
+
+def stored_precisions(path: str | os.PathLike[str]) -> dict[str, str]:
+    """How each channel of an EXR is stored (reads the pixels: for checks, not for pipelines).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The EXR file.
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> ``"float"``, ``"half"`` or ``"uint"``.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file.
+    """
+    content = read_exr(path, native=True)
+    return {name: _PRECISION_OF_DTYPE[str(arr.dtype)] for name, arr in content.channels.items()}
