@@ -251,11 +251,13 @@ def run_status(run_dir: Path, held: frozenset[tuple[int, int, int]] | None = Non
         message = "no stop event (whether a process still runs it cannot be told on this system)"
     else:
         state = "failed"
+        captured_all = ev["done"] or (planned is not None and len(scan.keys) >= planned)
         message = (
             "stopped before its plan was recorded (metering or planning failed, or the process was killed)"
             if scan.header is None
-            else "every frame captured, but the outputs were not written"
-            if ev["done"]
+            else "every frame captured, but the run ended before its outputs were written (no stop event: "
+            "hdrcap's own output tells why)"
+            if captured_all
             else "ended without a stop event (the process was killed or the machine lost power)"
         )
     planning = head.get("planning") or {}

@@ -74,12 +74,12 @@ class RunIndex:
             for entry in it:
                 if entry.name.startswith(".") or not entry.is_dir():
                     continue
+                if entry.is_symlink():
+                    try:
+                        child_path(self.root, entry.name)
+                    except Refused:
+                        continue  # a run folder elsewhere: not served, not listed
                 if entry.name not in self._runs:
-                    if entry.is_symlink():
-                        try:
-                            child_path(self.root, entry.name)
-                        except Refused:
-                            continue
                     if not is_run_folder(Path(entry.path)):
                         continue
                     self._runs.add(entry.name)

@@ -45,8 +45,9 @@ SECURITY_HEADERS = {
 
 
 class Refused(Exception):
-    """A request for a path the server does not serve: ``status`` 404 (no such thing, or a name
-    that cannot be one) or 403 (it exists but lies outside the served folders)."""
+    """A request the server does not answer with content: ``status`` 404 (no such thing, or a
+    name that cannot be one), 403 (it exists but lies outside the served folders) or 503 (too
+    many event streams open)."""
 
     def __init__(self, status: int, message: str):
         super().__init__(message)

@@ -147,8 +147,11 @@ class ArchiveSet:
         mean: list[float | None] = []
         sigma: list[float | None] = []
         used: list[int] = []
+        from hdrcap.serve.runs import RENDER_LOCK
+
         for r0 in range(0, n_runs, RUNS_PER_READ):
-            part = region.isel(run=slice(r0, r0 + RUNS_PER_READ)).compute()
+            with RENDER_LOCK:  # one batch of runs decoded at a time, whatever the requests
+                part = region.isel(run=slice(r0, r0 + RUNS_PER_READ)).compute()
             irr, sig = part["irradiance"].values.astype(np.float64), part["sigma"].values.astype(np.float64)
             ok = (part["nexp"].values > 0) & (part["quality"].values == 0) & np.isfinite(irr) & np.isfinite(sig)
             for k in range(irr.shape[0]):

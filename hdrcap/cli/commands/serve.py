@@ -17,7 +17,7 @@ import click
     help="A zarr archive of `hdrcap batch` to show (repeat for several).",
 )
 @click.option(
-    "--host", default="127.0.0.1", show_default=True, help="Address to listen on; others than loopback need a token."
+    "--host", default="127.0.0.1", show_default=True, help="Address to listen on; any but loopback needs a token."
 )
 @click.option(
     "--port", type=click.IntRange(0, 65535), default=8765, show_default=True, help="TCP port (0: any free one)."
