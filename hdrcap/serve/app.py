@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+import anyio.to_thread
 from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
 from starlette.requests import Request
@@ -144,7 +145,7 @@ def create_app(root: Path, archives: Sequence[Path] = (), token: str | None = No
         start = _int(request.headers.get("last-event-id"), "Last-Event-ID", 0, None, None)
         if start is None:
             tail = _int(request.query_params.get("tail"), "tail", 0, 100_000, None)
-            start = 0 if tail is None else tail_offset(events, tail)
+            start = 0 if tail is None else await anyio.to_thread.run_sync(tail_offset, events, tail)
         return _stream(
             state,
             follow_events(events, start, lambda: run_is_active(folder), lambda: state.runs.summary(name)),
