@@ -187,7 +187,9 @@ class Manifest:
         -------
         ManifestScan
         """
-        head, done, keys = None, None, {}
+        head: dict | None = None
+        done: dict | None = None
+        keys: dict[str, dict] = {}
         for rec in self.iter_records():
             if rec["type"] == "run" and head is None:
                 head = rec

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hdrcap.acquire.capture.job import Job, JobError
+from hdrcap.acquire.capture.manifest import EventLog, ManifestScan
 
 __all__ = [
     "run_folder",
@@ -127,7 +128,7 @@ def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
     return ("complete" if _is_complete(scan, run_dir, job["output"]["exr"]) else "incomplete"), started
 
 
-def _is_complete(scan, run_dir: Path, exr: str | None) -> bool:
+def _is_complete(scan: ManifestScan, run_dir: Path, exr: str | None) -> bool:
     """Complete: a ``complete`` record, or (runs recorded before it existed) every planned frame
     recorded and the EXR output ``exr`` (a name in the run folder) there."""
     if scan.completion is not None:
@@ -305,7 +306,7 @@ def run_is_active(run_dir: Path, held: frozenset[tuple[int, int, int]] | None = 
     return any(lock_is_held(f, held) for f in run_lock_files(run_dir))
 
 
-def _scan_events(log) -> dict:
+def _scan_events(log: EventLog) -> dict:
     """One pass over the event log: the last event, its time, and (since the last start or
     resume) the stop event, whether the session finished, and the last frame's ETA."""
     out: dict = {"last": None, "time": None, "stop": None, "done": False, "eta_s": None}

@@ -508,7 +508,7 @@ def hold_run_locks(run_dir: str | os.PathLike[str], camera_key: str | None = Non
             lock.release()
 
 
-def _run_lock_name(run_dir) -> str:
+def _run_lock_name(run_dir: str | os.PathLike[str]) -> str:
     """Name of the run folder's lock in :func:`lock_dir` (from its absolute path)."""
     return "run-" + hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
 
@@ -517,7 +517,7 @@ def _run_lock_name(run_dir) -> str:
 SESSION_LOCK_NAME = ".hdrcap.lock"
 
 
-def run_lock_files(run_dir) -> list[Path]:
+def run_lock_files(run_dir: str | os.PathLike[str]) -> list[Path]:
     """The lock files held while a run is going on in ``run_dir``: the one in the run folder
     (held by the session while it captures) and the one in :func:`lock_dir` (held by ``hdrcap
     run``/``capture`` from before metering until the outputs are written). Nothing is created.

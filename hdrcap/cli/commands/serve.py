@@ -28,7 +28,7 @@ import click
     default=None,
     help="Require this token (16+ characters) on every request; also from HDRCAP_SERVE_TOKEN.",
 )
-def command(root, archives, host, port, token):
+def command(root: Path, archives: tuple[Path, ...], host: str, port: int, token: str | None) -> None:
     """Serve a read-only web page over the run folders in ROOT (its subfolders, as `hdrcap run`
     writes them) and the archives: runs and their state, live; each run's preview, SNR, sigma
     and quality maps, plan, events and files; a region's irradiance over an archive's runs.
