@@ -278,3 +278,26 @@ def test_the_slurm_example_runs_with_a_stand_in_for_dask_jobqueue(runs, tmp_path
     # the calibration file's identity, parameters and provenance, once, for both runs
     ((cid, record),) = json.loads(ds.attrs["hdrcap_calibrations"]).items()
     assert set(map(str, ds["calibration"].values)) == {cid} and record["file"] == str(calibration.resolve())
+
+
+def test_a_task_that_raised_is_recorded_with_its_error(tmp_path):
+    """What Dask gives for a task that raised (not bad input: any exception), or was cancelled,
+    is recorded as the run's failure with a one-line error; the others land."""
+    from concurrent.futures import CancelledError
+
+    from hdrcap.batch.archive import Archive
+    from hdrcap.batch.driver import BatchReport, RunOutcome, RunSource, _Committer
+    from tests.test_archive import _run
+
+    store = Archive(tmp_path / "e.zarr")
+    report = BatchReport(str(store.path))
+    with store.writer() as session:
+        committer = _Committer(session, report, force=False)
+        boom = RuntimeError("boom\nsecond line")
+        committer.take(RunSource("/runs/001", ("f",)), "error", (RuntimeError, boom, None))
+        committer.take(RunSource("/runs/002", ("f",)), "cancelled", CancelledError("lost"))
+        committer.take(RunSource("/runs/000", ("f",)), "finished", RunOutcome(None, _run(0), ("w",), 1.0))
+        assert committer.commit() == 1
+    assert report.failed == {"/runs/001": "RuntimeError: boom", "/runs/002": "CancelledError: lost"}
+    assert report.committed == {"/runs/000": 0} and report.warnings == ["/runs/000: w"]
+    assert set(store.failed()) == {"/runs/001", "/runs/002"}

@@ -478,11 +478,13 @@ class _Committer:
         self.session, self.report, self.force = session, report, force
         self.warnings: dict[str, tuple[str, ...]] = {}
 
-    def take(self, source: RunSource, result: Any) -> None:
-        """One finished task: its :class:`RunOutcome`, or the exception it raised."""
+    def take(self, source: RunSource, status: str, result: Any) -> None:
+        """One finished task: its status and its :class:`RunOutcome`, or what
+        ``as_completed(..., raise_errors=False)`` gives for a task that raised (``(type,
+        exception, traceback)``) or was cancelled (the exception)."""
         try:
-            if isinstance(result, BaseException):
-                raise result
+            if status != "finished":
+                raise result[1] if isinstance(result, tuple) else result
             out: RunOutcome = result
             self.report.merge_seconds += out.seconds
             self.report.merge_cpu_seconds += out.cpu_seconds
@@ -543,7 +545,7 @@ def _run_tasks(
             # the runs reported while the previous commit was made are committed together
             for done in as_completed(futures, with_results=True, raise_errors=False).batches():
                 for fut, result in done:
-                    committer.take(sources[fut.key], result)
+                    committer.take(sources[fut.key], fut.status, result)
                     fut.release()
                 committer.commit()
                 bar.update(len(done))
