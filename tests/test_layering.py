@@ -1,6 +1,6 @@
 """The import rules of the layering hold: imports point downward only.
 
-Faces (``hdrcap.api``, ``hdrcap.cli``, ``hdrcap.batch``, ``hdrcap.experiments``) -> ``acquire``
+Faces (``hdrcap.api``, ``hdrcap.cli``, ``hdrcap.batch``, ``hdrcap.bluesky``, ``hdrcap.experiments``) -> ``acquire``
 (cameras and capture) -> ``planner`` -> ``pipeline``; ``acquire`` -> ``mock_camera`` (the
 simulated camera backend) -> pipeline's shared types and file formats. ``pipeline`` imports
 nothing of ours above it; no library module imports the command line, and the command line is
@@ -24,7 +24,7 @@ SUBPACKAGES = {
     for name in ("pipeline", "planner", "mock_camera", "acquire")
 }
 #: Face packages inside the ``hdrcap`` folder itself.
-FACES = ("cli", "batch", "experiments")
+FACES = ("cli", "batch", "bluesky", "experiments")
 
 _ABOVE_PIPELINE = (
     "hdrcap.planner",
@@ -57,6 +57,8 @@ FORBIDDEN = {
     "acquire": ("hdrcap.experiments", "hdrcap.api", "hdrcap.cli", "hdrcap.batch"),
     "api": ("hdrcap.cli", "hdrcap.batch", "hdrcap.experiments"),
     "batch": ("hdrcap.cli", "hdrcap.api"),
+    # the Bluesky detector drives acquire (the capture session and merge), never a command
+    "bluesky": ("hdrcap.cli", "hdrcap.api", "hdrcap.batch", "hdrcap.experiments"),
     "experiments": ("hdrcap.cli", "hdrcap.batch", "hdrcap.api", "hdrcap.acquire"),
 }
 #: The only modules of pipeline the simulator may read: shared parameter and error types, the
@@ -151,6 +153,9 @@ def test_the_rule_test_can_fail(tmp_path):
     assert _violations("acquire", "hdrcap.acquire.capture.job", {"hdrcap.cli.commands.merge"})
     assert _violations("api", "hdrcap.api", {"hdrcap.cli.util"})
     assert _violations("api", "hdrcap.api", {"click"})
+    assert _violations("bluesky", "hdrcap.bluesky.detector", {"hdrcap.cli.commands.capture"})
+    assert _violations("bluesky", "hdrcap.bluesky.detector", {"click"})
+    assert not _violations("bluesky", "hdrcap.bluesky.detector", {"hdrcap.acquire.capture.run", "ophyd_async.core"})
     assert _violations("pipeline", "hdrcap.pipeline.merge.files", {"click.core"})
     assert not _violations("cli", "hdrcap.cli", {"click", "hdrcap.cli.commands.merge"})
     assert _violations("mock_camera", "hdrcap.mock_camera.dng", {"hdrcap.pipeline.merge.accumulator"})
@@ -161,6 +166,17 @@ def test_the_rule_test_can_fail(tmp_path):
 def test_every_module_is_seen():
     """The walk covers every layer (a moved folder would silently check nothing)."""
     layers = {m[0] for m in MODULES}
-    assert {"pipeline", "planner", "mock_camera", "acquire", "hdrcap", "api", "cli", "batch", "experiments"} <= layers
+    assert {
+        "pipeline",
+        "planner",
+        "mock_camera",
+        "acquire",
+        "hdrcap",
+        "api",
+        "cli",
+        "batch",
+        "bluesky",
+        "experiments",
+    } <= layers
     assert sum(1 for m in MODULES if m[0] == "pipeline") >= 10
     assert sum(1 for m in MODULES if m[0] == "cli") >= 10
