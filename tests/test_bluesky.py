@@ -346,6 +346,22 @@ def test_tiled_reads_the_run_back(tmp_path):
         server.close()
 
 
+def test_the_docs_example_runs(tmp_path, monkeypatch):
+    """docs/bluesky.md's first example, as written (count, a motor scan, a target-SNR list_scan)."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "bluesky.md").read_text()
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(code, "docs/bluesky.md", "exec"), namespace)
+    files = sorted((tmp_path / "hdr-data").glob("*.h5"))
+    assert len(files) == 3
+    counts = {}
+    for path in files:
+        with h5py.File(path, "r") as f:
+            counts[path.name.split("-")[0]] = f["irradiance"].shape
+    assert counts == {"hdr": (2, 96, 128), "dimmed": (4, 32, 48), "planned": (2, 32, 48)}
+
+
 def _connected(plan, *devices):
     yield from ensure_connected(*devices)
     return (yield from plan)

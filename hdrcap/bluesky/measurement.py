@@ -180,8 +180,8 @@ class Measurer:
         options = dataclasses.asdict(MergeOptions(exposure_times="effective"))  # the capture's streamed merge
         for key in ("dark_strategy", "n_dark", "master_dark_time"):  # per exposure, from the plan
             options.pop(key)
-        if self.job["exposure"]["mode"] == "snr" or self.target_snr_db is not None:
-            options["planner"] = "a planned measurement takes the planner's saturation, prnu and iterations"
+        # a measurement planned for a target SNR takes the planner's choices instead (its hdr.exr says)
+        options["planned_measurements"] = "the planner's saturation, prnu and iterations (RUN/hdr.exr: planner)"
         return jsonable(
             {
                 "camera": self.camera_name,
