@@ -218,10 +218,9 @@ def test_a_camera_fault_fails_the_status_with_the_sessions_message(tmp_path):
     assert [r["type"] for r in recs].count("frame") == 2 and recs[-1]["type"] != "complete"
 
 
-def test_a_stopped_plan_leaves_a_run_folder_capture_resume_finishes(tmp_path, monkeypatch):
-    """RE.request_pause + RE.stop() in the middle of a measurement: the session stops between
-    two frames (a stop event, exit 130), the RunEngine's stop is clean, and `hdrcap capture
-    --resume` with the same options finishes the run from the frames it has."""
+@pytest.fixture
+def slow_camera(monkeypatch):
+    """The simulated camera takes 0.25 s per frame (time to pause the RunEngine mid-measurement)."""
     from hdrcap.acquire.camera.mock import MockCamera
 
     capture = MockCamera.capture
@@ -231,22 +230,37 @@ def test_a_stopped_plan_leaves_a_run_folder_capture_resume_finishes(tmp_path, mo
         return capture(self, *args, **kwargs)
 
     monkeypatch.setattr(MockCamera, "capture", slow_capture)
+    yield
+    monkeypatch.setattr(MockCamera, "capture", capture)
+
+
+def pause_mid_measurement(RE: RunEngine, folder: Path, run: str = "0000") -> threading.Thread:
+    """Ctrl-C twice, from another thread: an immediate pause once run ``run`` has two frames."""
+
+    def frames() -> int:
+        found = list(folder.glob(f"*/{run}/manifest.jsonl"))
+        return found[0].read_text().count('"type":"frame"') if found else 0
+
+    def pause():
+        deadline = time.monotonic() + 60
+        while frames() < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        RE.request_pause(defer=False)
+
+    thread = threading.Thread(target=pause, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_stopped_plan_leaves_a_run_folder_capture_resume_finishes(tmp_path, slow_camera):
+    """A pause in the middle of a measurement, then RE.stop(): the session stops between two
+    frames (a stop event, exit 130), the RunEngine's stop is clean, and `hdrcap capture --resume`
+    with the same options finishes the run from the frames it has."""
     det = HdrDetector(path=tmp_path, times=TIMES, size=SMALL)
     RE = RunEngine({}, context_managers=[])
     docs: list = []
     RE.subscribe(lambda name, doc: docs.append((name, copy.deepcopy(doc))))
-
-    def frames_recorded() -> int:
-        found = list(tmp_path.glob("*/0000/manifest.jsonl"))
-        return found[0].read_text().count('"type":"frame"') if found else 0
-
-    def pause_after_two_frames():
-        deadline = time.monotonic() + 60
-        while frames_recorded() < 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        RE.request_pause(defer=False)
-
-    threading.Thread(target=pause_after_two_frames, daemon=True).start()
+    pause_mid_measurement(RE, tmp_path)
     with pytest.raises(RunEngineInterrupted):
         RE(_connected(bp.count([det], num=1), det))
     RE.stop()
@@ -258,12 +272,36 @@ def test_a_stopped_plan_leaves_a_run_folder_capture_resume_finishes(tmp_path, mo
     assert 2 <= done < 2 * len(TIMES) and recs[-1]["type"] != "complete"
     last = json.loads((run / "events.jsonl").read_text().splitlines()[-1])
     assert last["event"] == "stop" and last["exit_code"] == 130 and "RunEngine" in last["reason"]
-    monkeypatch.setattr(MockCamera, "capture", capture)
     args = ["capture", "--camera", "mock:camera-B", "--times", *TIMES, "--size", SMALL, "--run-dir", run, "--resume"]
-    assert main([str(a) for a in args + ["--json"]]) == 0
+    assert main([str(a) for a in args + ["--json", "--no-progress"]]) == 0
     recs = [json.loads(line) for line in (run / "manifest.jsonl").read_text().splitlines()]
     assert recs[-1]["type"] == "complete" and recs[-1]["summary"]["resumed"] == done
     assert (run / "hdr.exr").is_file()
+
+
+def test_pause_and_resume_measure_the_point_again(tmp_path, slow_camera):
+    """Paused mid-measurement, then RE.resume(): the interrupted run folder stays aside, the point
+    is measured again in a new one, and each event's datum points at its own row."""
+    det = HdrDetector(path=tmp_path, times=TIMES, size=SMALL)
+    RE = RunEngine({}, context_managers=[])
+    docs: list = []
+    RE.subscribe(lambda name, doc: docs.append((name, copy.deepcopy(doc))))
+    pause_mid_measurement(RE, tmp_path)
+    with pytest.raises(RunEngineInterrupted):
+        RE(_connected(bp.count([det], num=2), det))
+    RE.resume()
+    validate(docs)
+    events = of(docs, "event")
+    assert [Path(ev["data"]["hdr-run_dir"]).name for ev in events] == ["0001", "0002"]
+    assert [(d["indices"]["start"], d["seq_nums"]["start"]) for d in of(docs, "stream_datum")][::4] == [(0, 1), (1, 2)]
+    (path,) = {h5_path(r) for r in of(docs, "stream_resource")}
+    with h5py.File(path, "r") as f:
+        irr = f["irradiance"][:]
+    assert irr.shape[0] == 2
+    for row, ev in zip(irr, events):
+        assert np.array_equal(row, read_exr(Path(ev["data"]["hdr-run_dir"]) / "hdr.exr").channels["irradiance"])
+    (interrupted,) = tmp_path.glob("*/0000")
+    assert not (interrupted / "hdr.exr").exists()
 
 
 def test_bad_options_are_refused_before_anything_runs(tmp_path):

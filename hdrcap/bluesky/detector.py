@@ -7,8 +7,9 @@ the files and the documents that point into them). Here one trigger is one hdrca
 
 * :class:`HdrAcquireLogic` runs it in a worker thread in a new run folder, appends its maps to
   the HDF5 file and sets the scalar readings; a camera fault fails the trigger's status with
-  the session's message; unstaging (the end of a plan, ``RE.stop()``, ``RE.abort()``) stops a
-  measurement before its next frame, leaving a resumable run folder.
+  the session's message; a pause (``HdrDetector.pause``) or unstaging (``RE.stop()``,
+  ``RE.abort()``) stops a measurement before its next frame, leaving a resumable run folder, and
+  ends its trigger without data.
 * :class:`HdrMapsLogic` writes ``DIR/NAME-DATE.h5`` (:class:`hdrcap.bluesky.hdf5.MapFile`) and
   emits its ``stream_resource`` / ``stream_datum`` documents; run folders are ``DIR/NAME-DATE/0000``, ...
 * :class:`HdrReadingsLogic` puts the scalars (:data:`hdrcap.bluesky.measurement.READINGS`) in
@@ -82,19 +83,26 @@ class FolderPathProvider(PathProvider):
 
 
 class _MapsProvider(StreamableDataProvider):
-    """The maps in one HDF5 file: their data keys, ``stream_resource`` and ``stream_datum``."""
+    """The maps in one HDF5 file: their data keys, ``stream_resource`` and ``stream_datum``.
+
+    ``collections_written_signal`` counts finished triggers, the rows of the file only those
+    whose measurement is in it: a trigger the RunEngine gave up on (a pause, a stop) finishes
+    without a row, and every event's ``stream_datum`` points at the one row written for it.
+    """
 
     def __init__(self, name: str, file: MapFile, uri: str, shape: Callable[[], tuple[int, int] | None]) -> None:
-        self.collections_written_signal, self._set_written = soft_signal_r_and_setter(int, 0)
+        self.collections_written_signal, self._set_triggers = soft_signal_r_and_setter(int, 0)
         self.name, self.file, self.uri, self._shape = name, file, uri, shape
-        self.written = 0
+        self.rows = 0
+        self._triggers = 0
         self._bundles: list[ComposeStreamResourceBundle] = []
         self._emitted = 0
 
-    def announce(self) -> None:
-        """One more measurement is in the file."""
-        self.written += 1
-        self._set_written(self.written)
+    def finish_trigger(self, row: bool) -> None:
+        """A trigger finished, with a new row in the file or (abandoned) without one."""
+        self.rows += int(row)
+        self._triggers += 1
+        self._set_triggers(self._triggers)
 
     def key(self, map_name: str) -> str:
         return f"{self.name}-{map_name}"
@@ -123,12 +131,11 @@ class _MapsProvider(StreamableDataProvider):
     async def make_stream_docs(
         self, collections_written: int, collections_per_event: int
     ) -> AsyncIterator[StreamAsset]:
-        indices = collections_written // collections_per_event
-        if indices and not self._bundles:
-            if self.file.shape is None:
-                raise RuntimeError(f"{self.name}: no measurement in {self.file.path}")
+        # the rows written since the last event (one per event in a step scan), whatever the
+        # count of triggers says (collections_written)
+        if self.rows and not self._bundles:
             compose = ComposeStreamResource()
-            h, w = self.file.shape
+            h, w = self.file.shape or (0, 0)
             self._bundles = [
                 compose(
                     mimetype="application/x-hdf5",
@@ -148,9 +155,9 @@ class _MapsProvider(StreamableDataProvider):
             ]
             for bundle in self._bundles:
                 yield "stream_resource", bundle.stream_resource_doc
-        if indices > self._emitted:
-            span: StreamRange = {"start": self._emitted, "stop": indices}
-            self._emitted = indices
+        if self.rows > self._emitted:
+            span: StreamRange = {"start": self._emitted, "stop": self.rows}
+            self._emitted = self.rows
             for bundle in self._bundles:
                 yield "stream_datum", bundle.compose_stream_datum(span)
 
@@ -249,7 +256,6 @@ class HdrAcquireLogic(DetectorAcquireLogic):
 
     async def ensure_ready(self) -> None:
         await self._finish_inflight()
-        self.stop_event = StopEvent()
         await asyncio.get_running_loop().run_in_executor(None, self.measurer.open)
 
     async def start_acquiring(self) -> None:
@@ -259,37 +265,45 @@ class HdrAcquireLogic(DetectorAcquireLogic):
         provider = self.maps.provider
         if provider is None:
             raise RuntimeError("the detector was not prepared")
+        stop = self.stop_event = StopEvent()
         measure = functools.partial(
-            self.measurer.measure,
-            self.maps.next_run_dir(),
-            target_snr_db=target,
-            scene_scale=float(scale),
-            stop=self.stop_event,
+            self.measurer.measure, self.maps.next_run_dir(), target_snr_db=target, scene_scale=float(scale), stop=stop
         )
         loop = asyncio.get_running_loop()
         self._inflight = loop.run_in_executor(None, measure)
         try:
             done = await asyncio.shield(self._inflight)
         except RunInterrupted as err:
-            if not self.stop_event.is_set():
+            if not stop.is_set():
                 raise
-            # Unstaged while measuring (RE.stop(), RE.abort(), the plan failed): the run folder
-            # is left resumable and the plan is being torn down. The status is not failed now,
-            # which the RunEngine would report as an error of its cleanup: no data is announced,
-            # so it times out after the RunEngine is done, as any stopped ophyd-async detector.
-            log.warning("%s", err)
+            self._abandon(provider, str(err))
             return
         self._inflight = None
-        await loop.run_in_executor(None, provider.file.append, done.result, provider.written)
+        if stop.is_set():  # finished after the RunEngine paused or stopped: it re-triggers or tears down
+            self._abandon(provider, f"{done.run_dir}: complete, but the RunEngine gave up on its trigger")
+            return
+        await loop.run_in_executor(None, provider.file.append, done.result, provider.rows)
         for name, setter in self.setters.items():
             setter(done.readings[name])
-        provider.announce()
+        provider.finish_trigger(row=True)
+
+    @staticmethod
+    def _abandon(provider: _MapsProvider, why: str) -> None:
+        """End a trigger the RunEngine gave up on (a pause, a stop) without a row. Its status
+        succeeds: a failure now would be an error of the RunEngine's cleanup, or of the run it
+        resumes; no event reads it (a resumed plan triggers again, a stopped one reads nothing)."""
+        log.warning("%s; not in the HDF5 file", why)
+        provider.finish_trigger(row=False)
 
     async def wait_for_idle(self) -> None:
         return None  # a trigger returns once its measurement is written
 
+    def interrupt(self, by: str) -> None:
+        """Stop the measurement in progress before its next frame (its run folder resumable)."""
+        self.stop_event.stop(signal.SIGINT, by=by)
+
     async def ensure_stopped(self) -> None:
-        self.stop_event.stop(signal.SIGINT, by="the RunEngine (the detector was unstaged)")
+        self.interrupt("the RunEngine (the detector was unstaged)")
         await self._finish_inflight()
         await asyncio.get_running_loop().run_in_executor(None, self.measurer.close)
 
@@ -383,11 +397,21 @@ class HdrDetector(StandardDetector):
             config.append(sig)
         paths = FolderPathProvider(path) if isinstance(path, (str, os.PathLike)) else path
         maps = HdrMapsLogic(paths, self.measurer, settings)
+        acquire = HdrAcquireLogic(self.measurer, maps, self.target_snr_db, scene_scale, setters)
         self.add_detector_logics(
             HdrTriggerLogic(),
-            HdrAcquireLogic(self.measurer, maps, self.target_snr_db, scene_scale, setters),
+            acquire,
             maps,
             HdrReadingsLogic(readings),
         )
         self.add_config_signals(*config)
+        self._acquire = acquire
         super().__init__(name=name)
+
+    def pause(self) -> None:
+        """The RunEngine paused (Ctrl-C): the measurement in progress stops before its next frame,
+        its run folder resumable; ``RE.resume()`` triggers the point again, in a new run folder."""
+        self._acquire.interrupt("the RunEngine (paused)")
+
+    def resume(self) -> None:
+        """The RunEngine resumes: the next trigger measures (nothing to restore)."""
