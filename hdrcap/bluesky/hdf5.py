@@ -4,6 +4,7 @@ measurement index first, each measurement appended whole or not at all."""
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,23 +74,28 @@ class MapFile:
         self.shape: tuple[int, int] | None = None
         self._file: Any = None
         self._closed = False
+        self._lock = threading.Lock()  # append (a worker thread) and close (the event loop)
 
     def append(self, result: HdrResult, index: int) -> None:
-        """Write ``result``'s maps as measurement ``index`` (rows from ``index`` on are dropped
-        first: a measurement never announced to Bluesky does not stay). On any failure the file
-        is left with ``index`` measurements.
+        """Write ``result``'s maps as measurement ``index`` (a row from ``index`` on that was left
+        by an earlier failure is replaced). On any failure the file is left with ``index``
+        measurements.
 
         Parameters
         ----------
         result : HdrResult
         index : int
-            Measurements already announced.
+            Measurements already in the file (and in the documents).
 
         Raises
         ------
         ValueError
             A result of another size than the file's, or whose nexp or quality is missing.
         """
+        with self._lock:
+            self._append(result, index)
+
+    def _append(self, result: HdrResult, index: int) -> None:
         maps = {m.name: getattr(result, m.name) for m in MAPS}
         missing = [name for name, arr in maps.items() if arr is None]
         if missing:
@@ -152,8 +158,9 @@ class MapFile:
         self._file.flush()
 
     def close(self) -> None:
-        """Close the file (nothing to do before the first measurement)."""
-        f, self._file = self._file, None
-        self._closed = True
-        if f is not None:
-            f.close()
+        """Close the file (after an append in progress; nothing to do before the first measurement)."""
+        with self._lock:
+            f, self._file = self._file, None
+            self._closed = True
+            if f is not None:
+                f.close()
