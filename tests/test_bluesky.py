@@ -313,6 +313,10 @@ def test_bad_options_are_refused_before_anything_runs(tmp_path):
         HdrDetector(camera="gphoto2", path=tmp_path, times=TIMES, calibration="camera-B", size=SMALL)
     with pytest.raises(InputError, match="simulated camera"):
         HdrDetector(camera="gphoto2", path=tmp_path, times=TIMES, calibration="camera-B", scene_scale=2.0)
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(InputError, match="not a writable folder"):
+        HdrDetector(path=tmp_path / "a-file", times=TIMES)
+    (tmp_path / "a-file").unlink()
     det = HdrDetector(path=tmp_path, times=TIMES, size=SMALL)
     with pytest.raises(FailedStatus, match="livetime"):
         run_plan(_connected(bps.prepare(det, TriggerInfo(livetime=0.5), wait=True), det))

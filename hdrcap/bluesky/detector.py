@@ -25,6 +25,7 @@ import json
 import math
 import os
 import signal
+import tempfile
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import suppress
 from pathlib import Path
@@ -367,8 +368,15 @@ class HdrDetector(StandardDetector):
         scene_scale: float | SignalR[float] = 1.0,
         **options: Any,
     ) -> None:
+        folder = path if isinstance(path, (str, os.PathLike)) else tempfile.gettempdir()
         self.measurer = Measurer(
-            camera, times=times, target_snr_db=target_snr_db, calibration=calibration, size=size, **options
+            camera,
+            times=times,
+            target_snr_db=target_snr_db,
+            calibration=calibration,
+            size=size,
+            folder=folder,
+            **options,
         )
         if not isinstance(scene_scale, SignalR):
             scene_scale = float(scene_scale)

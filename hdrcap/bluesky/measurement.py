@@ -100,6 +100,8 @@ class Measurer:
         camera needs one).
     size : str, optional
         Simulated camera only: mosaic ``WIDTHxHEIGHT`` (default 256x192).
+    folder : str or path-like
+        Where the run folders will be (checked now: it must be, or be creatable in, a writable folder).
     **options
         Further options of :func:`hdrcap.acquire.capture.job.capture_job` (``dark_strategy``,
         ``dark_count``, ``block_light``, ``cover_command``, ``uncover_command``, ``max_exposures``,
@@ -119,6 +121,7 @@ class Measurer:
         target_snr_db: float | None = None,
         calibration: str | os.PathLike[str] | None = None,
         size: str | None = None,
+        folder: str | os.PathLike[str] = ".",
         **options: Any,
     ) -> None:
         from hdrcap.acquire.capture.camera_setup import job_calibration
@@ -129,7 +132,7 @@ class Measurer:
         self._options: dict[str, Any] = dict(options, calibration=calibration, png=False)
         if size is not None:
             self._options["size"] = size
-        self.job = self.job_for(Path("."), target_snr_db)
+        self.job = self.job_for(Path(folder), target_snr_db)
         self.simulated = self.job["camera"]["backend"] == "mock"
         if size is not None and not self.simulated:
             raise InputError("size is for the simulated camera; a real camera's mosaic is its own")
