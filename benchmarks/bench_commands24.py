@@ -174,24 +174,19 @@ def bench_calibrate(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
 
 def bench_denoise(desc: dict, work: Path, repeats: int, envs: dict) -> dict:
     """The denoise command (each variant), then its parts in this process (EXR read, filter, EXR write
-    with the command's channel precisions)."""
-    from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
-    from hdrcap.pipeline.denoise.tiled import exr_pixel_types, output_precision
-    from hdrcap.pipeline.io.exr import read_exr, write_exr
+    by the one writer's storage rules)."""
+    from hdrcap.pipeline.denoise.files import denoise_result
+    from hdrcap.pipeline.io.results import read_result, write_result
 
     cmd = [hdrcap_exe(), "denoise", desc["merged"], "-o", work / "denoised.exr", "--force"]
     out = {"command": time_alternating(cmd, envs, repeats)}
     out["command"].pop("last_stdout")
-    read_s, image = _best(lambda: read_exr(desc["merged"]), repeats)
-    ch = image.channels
-    settings = DenoiseSettings(layout="cfa")
-    filt_s, res = _best(lambda: denoise(ch["irradiance"], ch["sigma"], ch.get("nexp"), settings), repeats)
-    outimg = (dict(ch, irradiance=res.irradiance, sigma=res.sigma), image.header)
-    precision = output_precision(exr_pixel_types(Path(desc["merged"])))
+    read_s, image = _best(lambda: read_result(desc["merged"]), repeats)
+    filt_s, res = _best(lambda: denoise_result(image), repeats)
     write_s = {}
     for comp in ("zip", "zstd", "rle"):  # the default first; the others are --exr-compression
         write_s[comp], _ = _best(
-            lambda: write_exr(work / "parts.exr", *outimg, force=True, compression=comp, precision=precision),  # noqa: B023
+            lambda: write_result(res, work / "parts.exr", force=True, compression=comp),  # noqa: B023
             repeats,
         )
     (work / "parts.exr").unlink(missing_ok=True)

@@ -623,36 +623,19 @@ def denoise(
     HdrResult
         Filtered irradiance (e-/s) and its propagated sigma (e-/s; it does not include the
         bias the filter introduces); ``nexp`` and other channels unchanged (photosites with
-        ``nexp == 0`` are not filtered); the settings under ``metadata["denoise"]``.
+        ``nexp == 0`` are not filtered); the settings under ``header["denoise"]``
+        (:func:`hdrcap.pipeline.denoise.files.denoise_result`, which ``hdrcap denoise`` uses too).
 
     Raises
     ------
     InputError
         Bad settings, or sigma not finite and > 0 where nexp > 0.
     """
-    from hdrcap import __version__
-    from hdrcap.pipeline.denoise import filter as _dn
+    from hdrcap.pipeline.denoise.files import DenoiseOptions, denoise_result
 
     if not isinstance(hdr, HdrResult):
         raise InputError(f"denoise: expected an HdrResult (from merge or read_exr), got {type(hdr).__name__}")
-    if layout not in ("auto", "cfa", "mono"):
-        raise InputError(f"layout must be auto, cfa or mono, got {layout!r}")
-    settings = _dn.settings_from_options(
-        method,
-        range_scale,
-        bandwidth,
-        radius,
-        spatial_sigma,
-        _dn.layout_from_metadata(hdr.header) if layout == "auto" else layout,
-    )
-    res = _dn.denoise(hdr.irradiance, hdr.sigma, hdr.nexp, settings, name="denoise input", quality=hdr.quality)
-    header = dict(hdr.header)
-    header["sigma"] = _dn.SIGMA_MEANING
-    source = "metadata cfa_pattern" if layout == "auto" else "layout argument"
-    header["denoise"] = _dn.denoise_header(
-        settings, res, source, hdr.header.get("sigma") or "standard deviation of irradiance", __version__
-    )
-    return hdr.replace(irradiance=res.irradiance, sigma=res.sigma, header=header)
+    return denoise_result(hdr, DenoiseOptions(method, range_scale, bandwidth, radius, spatial_sigma, layout))
 
 
 # --------------------------------------------------------------------------- simulation

@@ -5,12 +5,14 @@ true irradiance (``truth.exr``) and a JSON description."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hdrcap.mock_camera.scenes import load_scene
-from hdrcap.pipeline.errors import HdrcapError, InputError
+from hdrcap.pipeline.errors import InputError
 
 __all__ = ["frame_name", "simulate_bracket", "simulate_calibration_set", "DEFAULT_TIMES", "CALIBRATION_SET"]
 
@@ -23,17 +25,17 @@ def frame_name(index: int, t: float, dark: bool) -> str:
 def simulate_bracket(
     camera_name: str,
     scene: str,
-    times,
+    times: Sequence[float],
     out: Path,
     darks: bool,
-    shape,
-    decades,
-    x_max,
+    shape: tuple[int, int],
+    decades: float,
+    x_max: float,
     seed: int,
-    temperature,
+    temperature: float | None,
     force: bool,
     progress: bool = True,
-) -> dict:
+) -> dict[str, Any]:
     """Simulate a bracket into ``out``; return a description of what was written."""
     from tqdm import tqdm
 
@@ -41,7 +43,7 @@ def simulate_bracket(
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
     from hdrcap.pipeline.io.exr import write_exr
-    from hdrcap.pipeline.io.files import atomic_output
+    from hdrcap.pipeline.io.files import atomic_output, check_new_output
     from hdrcap.pipeline.schema import UNIT_ELECTRONS
 
     if camera_name not in PRESETS:
@@ -61,10 +63,9 @@ def simulate_bracket(
     if darks:
         plan += [(i, t, True) for i, t in enumerate(times)]
     targets = [out / frame_name(i, t, d) for i, t, d in plan]
-    clash = [p for p in targets + [out / "truth.exr", out / "simulation.json"] if p.exists()]
-    if clash and not force:
-        raise HdrcapError(f"{clash[0]}: exists; use --force to overwrite (or choose another --out)")
-    written = {"frames": [], "darks": []}
+    for p in targets + [out / "truth.exr", out / "simulation.json"]:
+        check_new_output(p, force)
+    written: dict[str, list[str]] = {"frames": [], "darks": []}
     for (_i, t, d), path in tqdm(
         list(zip(plan, targets)), desc="simulate", unit="frame", disable=None if progress else True
     ):
@@ -117,20 +118,20 @@ CALIBRATION_SET = {
 def simulate_calibration_set(
     camera_name: str,
     out: Path,
-    shape,
+    shape: tuple[int, int],
     seed: int,
-    temperature,
+    temperature: float | None,
     force: bool,
     progress: bool = True,
-    plan: dict | None = None,
-) -> dict:
+    plan: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Write a full calibration series of the simulated camera into ``out`` (DNG files) and
     ``calibration_set.json`` (file lists per kind and the true parameters)."""
     from tqdm import tqdm
 
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
-    from hdrcap.pipeline.io.files import atomic_output
+    from hdrcap.pipeline.io.files import atomic_output, check_new_output
 
     if camera_name not in PRESETS:
         raise InputError(f"unknown camera preset {camera_name!r}; choose from {', '.join(PRESETS)}")
@@ -149,9 +150,8 @@ def simulate_calibration_set(
         shots += [("dark", t, True) for _ in range(cfg["n_darks"])]
     names = [out / f"{kind}_{i:03d}_{t:.6g}s.dng" for i, (kind, t, _) in enumerate(shots)]
     manifest = out / "calibration_set.json"
-    clash = [p for p in names + [manifest] if p.exists()]
-    if clash and not force:
-        raise HdrcapError(f"{clash[0]}: exists; use --force to overwrite (or choose another --out)")
+    for p in names + [manifest]:
+        check_new_output(p, force)
     out.mkdir(parents=True, exist_ok=True)
     cam = SimulatedCamera(spec, np.full(shape, X), seed=seed, temperature=temperature)
     files: dict[str, list[str]] = {"bias": [], "saturation": [], "flat": [], "dark": []}

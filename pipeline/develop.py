@@ -97,7 +97,7 @@ def _check_method(method: str) -> None:
         raise InputError(f"unknown demosaicing method {method!r}; choose one of {', '.join(DEMOSAIC_METHODS)}")
 
 
-def _check_cfa(cfa) -> str:
+def _check_cfa(cfa: object) -> str:
     cfa = str(cfa or "none").upper()
     if cfa not in _BAYER:
         raise InputError(
@@ -364,13 +364,13 @@ def _dng_arguments(colour: CameraColour) -> tuple:
     """colour_hdri's DNG arguments: CCT 1 and 2 (K), CM1, CM2, CC1, CC2, AB, FM1, FM2."""
     from colour_hdri.models.datasets.dng import CCT_ILLUMINANTS_ADOBEDNG, LIGHT_SOURCE_TAG_TO_DNG_ILLUMINANTS
 
-    def cct(code):
+    def cct(code: int | None) -> float:
         name = LIGHT_SOURCE_TAG_TO_DNG_ILLUMINANTS.get(code)
         if name not in CCT_ILLUMINANTS_ADOBEDNG:
             raise InputError(f"calibration illuminant {code} has no known colour temperature")
         return float(CCT_ILLUMINANTS_ADOBEDNG[name])
 
-    def mat(v):
+    def mat(v: Any) -> np.ndarray:
         return np.eye(3) if v is None else np.reshape(np.asarray(v, dtype=np.float64), (3, 3))
 
     two = colour.color_matrix_2 is not None and colour.illuminant_2 is not None
@@ -404,6 +404,7 @@ def camera_to_xyz(colour: CameraColour) -> np.ndarray:
     xy = white_xy(colour)
     args = _dng_arguments(colour)
     m = np.asarray(matrix_camera_space_to_XYZ(xy, *args), dtype=np.float64)
+    neutral: np.ndarray
     if colour.as_shot_neutral is not None:
         neutral = np.asarray(colour.as_shot_neutral, dtype=np.float64)
     else:

@@ -9,9 +9,18 @@ __all__ = ["HdrcapError", "InputError", "OutputExistsError"]
 
 
 class HdrcapError(Exception):
-    """A problem the user can fix; ``str(err)`` is a complete one-line message."""
+    """A problem the user can fix; ``str(err)`` is a complete one-line message.
+
+    The code that catches an error on its way up may add where it happened, for the reports
+    (the JSON error object, notifications): ``run_dir`` the run folder of the capture it
+    stopped, ``repetition`` the repetition of a scheduled job, ``reported`` true once it was
+    printed as JSON (the command line then prints no second object).
+    """
 
     exit_code = 2
+    run_dir: str | None = None
+    repetition: int | None = None
+    reported: bool = False
 
 
 class InputError(HdrcapError):

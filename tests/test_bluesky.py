@@ -30,7 +30,7 @@ from ophyd_async.sim import SimMotor
 from hdrcap.bluesky import MAPS, HdrDetector, MapFile
 from hdrcap.cli import main
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.io.exr import read_exr, read_exr_layout
+from hdrcap.pipeline.io.exr import read_exr, stored_precisions
 from hdrcap.pipeline.result import HdrResult
 from hdrcap.pipeline.schema import UNIT_ELECTRONS
 
@@ -148,7 +148,7 @@ def test_maps_are_hdrcap_merge_of_the_recorded_frames_bit_for_bit(counted, tmp_p
         ref = tmp_path / f"merge{i}.exr"
         args = ["merge", *lights, "--darks", *darks, "--camera", "camera-B", "--sigma-precision", "float", "-o", ref]
         assert main([str(a) for a in args]) == 0
-        layout = read_exr_layout(ref).channels
+        layout = stored_precisions(ref)
         assert layout == {"irradiance": "float", "sigma": "float", "nexp": "uint", "quality": "uint"}
         channels = read_exr(ref).channels  # the uint channels read back as float32 whole numbers
         with h5py.File(path, "r") as f:

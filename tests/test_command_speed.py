@@ -14,7 +14,7 @@ from hypothesis.extra import numpy as hnp
 from hdrcap.pipeline.io import exr as pexr
 from hdrcap.pipeline.io import files as pfiles
 from hdrcap.pipeline.io import raw as praw
-from hdrcap.pipeline.merge.accumulator import _add_in_quadrature
+from hdrcap.pipeline.merge.calibration_errors import add_in_quadrature
 from tests.test_io import _dng
 
 _FLOATS = hnp.arrays(
@@ -87,7 +87,7 @@ def test_add_in_quadrature_by_blocks_equals_the_full_array_formula(sig, n_terms,
         expected = expected + np.square(t, dtype=np.float64)
     expected = np.sqrt(expected).astype(np.float32)
     got = sig.copy()
-    _add_in_quadrature(got, *terms, None, rows=rows)
+    add_in_quadrature(got, *terms, None, rows=rows)
     assert got.tobytes() == expected.tobytes()  # bit-identical, not merely close
 
 

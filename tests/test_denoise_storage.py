@@ -1,6 +1,7 @@
-"""What ``hdrcap denoise`` stores: the filtered irradiance bit for bit as float32, the filtered sigma
-by the merge's precision rule (half: at most 2**-11 relative), every other channel exactly as the
-input stored it; in memory and tile by tile alike."""
+"""What ``hdrcap denoise`` stores, by the merge's storage rules (``pipeline.schema``, the one writer
+``write_result``): the filtered irradiance bit for bit as float32, the sigma channels by
+``--sigma-precision`` (half: at most 2**-11 relative; a half channel stays half, bit for bit), nexp
+and quality as uint with their values exact; in memory and tile by tile alike."""
 
 from __future__ import annotations
 
@@ -10,8 +11,7 @@ import pytest
 
 from hdrcap.cli import main
 from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
-from hdrcap.pipeline.denoise.tiled import exr_pixel_types
-from hdrcap.pipeline.io.exr import HALF_RELATIVE_ERROR, read_exr, write_exr
+from hdrcap.pipeline.io.exr import HALF_RELATIVE_ERROR, read_exr, stored_precisions, write_exr
 
 SHAPE = (40, 36)
 
@@ -39,6 +39,11 @@ def merged(tmp_path_factory):
 
 def _cli(src, dst, *args):
     assert main(["denoise", str(src), "-o", str(dst), "--json", *map(str, args)]) == 0
+
+
+def exr_pixel_types(path):
+    """Channel name -> "float", "half" or "uint", as the file stores it."""
+    return stored_precisions(path)
 
 
 @pytest.mark.parametrize("chunks", [[], ["--chunks", 8]])
@@ -76,19 +81,51 @@ def test_stored_channels(merged, tmp_path, capsys, chunks):
         assert f.header()["compression"] == OpenEXR.RLE_COMPRESSION
 
 
-def test_float_input_stays_float(tmp_path, capsys):
-    """A file whose channels are all float (an old merge, a foreign file): the carried channels stay
-    float; a filtered sigma above half's range (>= 1e6 / 5 e-/s here) stays float under auto."""
+def test_float_input_by_the_schema(tmp_path, capsys):
+    """A file whose channels are all float (an old merge, a foreign file): irradiance stays float, a
+    filtered sigma above half's range (>= 1e6 / 5 e-/s here) stays float under auto, nexp is stored
+    as uint with its whole values exact. (Before the one writer the carried channels kept the
+    input's float storage; the schema stores nexp as uint, so a non-whole nexp is refused.)"""
     rng = np.random.default_rng(2)
     irr = rng.uniform(1e5, 2e5, SHAPE).astype(np.float32)
-    ch = {"irradiance": irr, "sigma": np.full(SHAPE, 1e6, np.float32), "nexp": np.full(SHAPE, 2.5, np.float32)}
+    ch = {"irradiance": irr, "sigma": np.full(SHAPE, 1e6, np.float32), "nexp": np.full(SHAPE, 2.0, np.float32)}
     src = tmp_path / "in.exr"
     write_exr(src, ch, {"cfa_pattern": "RGGB"})
     dst = tmp_path / "out.exr"
     _cli(src, dst)
     capsys.readouterr()
-    assert set(exr_pixel_types(dst).values()) == {"float"}
-    np.testing.assert_array_equal(read_exr(dst).channels["nexp"], 2.5)
+    assert exr_pixel_types(dst) == {"irradiance": "float", "sigma": "float", "nexp": "uint"}
+    np.testing.assert_array_equal(read_exr(dst).channels["nexp"], 2.0)
+    ch["nexp"][3, 4] = 2.5
+    write_exr(src, ch, {"cfa_pattern": "RGGB"}, force=True)
+    code = main(["denoise", str(src), "-o", str(tmp_path / "bad.exr")])
+    err = capsys.readouterr().err
+    assert code == 2 and "nexp" in err and "whole numbers" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "bad.exr").exists()
+
+
+@pytest.mark.parametrize("chunks", [[], ["--chunks", 8]])
+def test_half_sigma_calibration_stays_half(tmp_path, capsys, chunks):
+    """A half sigma_calibration (what `hdrcap merge` writes where it fits) stays half, bit for bit,
+    under auto and half; --sigma-precision float stores both sigma channels as float, values exact."""
+    rng = np.random.default_rng(7)
+    irr = rng.uniform(100.0, 1e4, SHAPE).astype(np.float32)
+    ch = {
+        "irradiance": irr,
+        "sigma": np.sqrt(irr + 25.0),
+        "sigma_calibration": (0.01 * irr).astype(np.float16),
+        "nexp": np.full(SHAPE, 3.0, np.float32),
+    }
+    src = tmp_path / "in.exr"
+    write_exr(src, ch, {"cfa_pattern": "RGGB"}, precision={"sigma": "half", "sigma_calibration": "half"})
+    stored = read_exr(src, native=True).channels["sigma_calibration"]
+    for precision, kind in (("auto", "half"), ("half", "half"), ("float", "float")):
+        dst = tmp_path / f"{precision}.exr"
+        _cli(src, dst, "--sigma-precision", precision, *chunks)
+        capsys.readouterr()
+        assert exr_pixel_types(dst)["sigma_calibration"] == kind, precision
+        out = read_exr(dst, native=True).channels["sigma_calibration"]
+        assert out.astype(np.float16).tobytes() == stored.tobytes(), precision
 
 
 def test_read_exr_float_channels_not_copied_and_exact(merged):
@@ -108,9 +145,9 @@ def test_median_subsample_same_in_memory_and_tiled(merged, tmp_path, capsys, mon
     the same regular subsample, and it is the subsample's median computed independently."""
     import json
 
-    import hdrcap.pipeline.denoise.tiled as td
+    import hdrcap.pipeline.denoise.files as df
 
-    monkeypatch.setattr(td, "MEDIAN_SAMPLES", 100)
+    monkeypatch.setattr(df, "MEDIAN_SAMPLES", 100)
     infos = []
     for extra in ([], ["--chunks", 8]):
         _cli(merged, tmp_path / f"o{len(infos)}.exr", *extra)

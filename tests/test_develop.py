@@ -307,7 +307,7 @@ def test_bad_input_is_a_one_line_error_with_exit_2(tmp_path, capsys):
     capsys.readouterr()
     assert main(["develop", str(tmp_path / "d.exr"), "-o", str(tmp_path / "e.exr")]) == 2  # not a mosaic
     assert "no irradiance channel" in capsys.readouterr().err
-    assert main(["develop", str(good), "-o", str(tmp_path / "d.exr")]) == 2  # exists
+    assert main(["develop", str(good), "-o", str(tmp_path / "d.exr")]) == 3  # exists: OutputExistsError
     assert not any((tmp_path / n).exists() for n in ("a.exr", "b.exr", "c.exr", "e.exr"))
 
 

@@ -308,3 +308,28 @@ def test_exr_auto_precision_is_half_only_where_it_fits(tmp_path):
         path = write_exr(tmp_path / f"{expect}.exr", dict(ch, sigma=sigma), precision={"sigma": "auto"})
         with OpenEXR.File(str(path)) as exr:
             assert str(exr.channels()["sigma"].type()) == expect
+
+
+def test_exr_layout_survives_corrupt_files(tmp_path):
+    """Random byte changes to an EXR never crash the layout reader (an error, not a signal):
+    OpenEXR's old InputFile binding crashed on some of these."""
+    import subprocess
+    import sys
+
+    ch = {"irradiance": np.arange(64 * 48, dtype=np.float32).reshape(48, 64), "sigma": np.ones((48, 64), np.float32)}
+    good = write_exr(tmp_path / "good.exr", ch, {"unit": "e-/s"})
+    raw = bytearray(good.read_bytes())
+    rng = np.random.default_rng(5)
+    paths = []
+    for k in range(40):
+        data = bytearray(raw)
+        for pos in rng.integers(0, 400, size=3):  # the header and the offset table
+            data[pos] = int(rng.integers(0, 256))
+        (tmp_path / f"{k}.exr").write_bytes(bytes(data))
+        paths.append(str(tmp_path / f"{k}.exr"))
+    code = (
+        "import sys\nfrom hdrcap.pipeline.errors import InputError\nfrom hdrcap.pipeline.io.exr import read_exr_layout\n"
+        "for p in sys.argv[1:]:\n    try:\n        read_exr_layout(p)\n    except InputError:\n        pass\nprint('ok')"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, *paths], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-500:]

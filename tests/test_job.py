@@ -124,6 +124,15 @@ def test_the_first_problem_in_the_file_is_reported(tmp_path):
         load_job(p)
 
 
+def test_the_schema_names_every_dark_strategy_in_order():
+    from typing import get_args
+
+    from hdrcap.acquire.capture.schema import DarkStrategyName
+    from hdrcap.pipeline.dark_strategy import DarkStrategy
+
+    assert get_args(DarkStrategyName) == tuple(s.value for s in DarkStrategy)
+
+
 def test_a_table_not_given_keeps_its_rules(tmp_path):
     p = _write(tmp_path, "")  # no [exposure]: its default, a fixed bracket, still needs times
     with pytest.raises(JobError) as e:

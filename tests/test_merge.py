@@ -540,17 +540,17 @@ def test_shared_division_equals_one_division_per_sample():
 def test_map_extrema_follow_in_place_changes():
     """The float32-weights check sees a map as it is now: a map changed in place gives its new
     extrema (no stale cache), non-finite maps give NaN, scalars their value."""
-    import hdrcap.pipeline.merge.accumulator as pm
+    from hdrcap.pipeline.merge.precision import extrema
 
     maps = [np.full((4, 4), float(i), np.float32) for i in range(5)]
-    assert [pm._extrema((m, True, 0.0)) for m in maps] == [(float(i), float(i)) for i in range(5)]
+    assert [extrema((m, True, 0.0)) for m in maps] == [(float(i), float(i)) for i in range(5)]
     maps[0][0, 0] = 100.0  # changed in place: the new extrema
-    assert pm._extrema((maps[0], True, 0.0)) == (0.0, 100.0)
+    assert extrema((maps[0], True, 0.0)) == (0.0, 100.0)
     maps[0][1, 1] = -1.0
-    assert pm._extrema((maps[0], True, 0.0)) == (-1.0, 100.0)
+    assert extrema((maps[0], True, 0.0)) == (-1.0, 100.0)
     fresh = np.array([[np.inf]], np.float32)
-    assert all(np.isnan(pm._extrema((fresh, True, 0.0))))
-    assert pm._extrema((None, False, 2.5)) == (2.5, 2.5)
+    assert all(np.isnan(extrema((fresh, True, 0.0))))
+    assert extrema((None, False, 2.5)) == (2.5, 2.5)
 
 
 def test_weights_precision_follows_a_calibration_map_changed_in_place():

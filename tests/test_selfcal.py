@@ -202,3 +202,15 @@ def test_snr_at_least_hdrmerge_in_every_decade(tmp_path):
     diff = res["hdrcap_minus_hdrmerge_db"]
     assert len(diff) >= 5 and min(diff.values()) >= -0.05, diff
     assert abs(res["hdrcap (no calibration)"]["gain"]["relative_error"]) < 0.05
+
+
+def test_frames_without_a_black_level_count_as_0_dn():
+    """A bracket where one frame carries no black level (within the spread allowed of the others):
+    that frame's level is taken as 0 DN (as the note says), and the levels' difference noted."""
+    spec = spec14(prnu=0.0, mu_R=100.0)
+    X = np.geomspace(10, 1e5, 64 * 64).reshape(64, 64)
+    frames = arrays(spec, X, (0.01, 0.04, 0.16), seed=1)
+    frames[1] = RawFrame(**{**frames[1].__dict__, "black_level": None})
+    notes: list[str] = []
+    self_calibrate(frames, warn=notes.append)
+    assert any("black levels differ between frames (0, 100 DN)" in n for n in notes)

@@ -12,8 +12,7 @@ import pytest
 from hdrcap.cli import main
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.denoise.filter import DenoiseSettings, support_depth
-from hdrcap.pipeline.denoise.tiled import ExrRows, exr_layout
-from hdrcap.pipeline.io.exr import read_exr, write_exr
+from hdrcap.pipeline.io.exr import ExrRows, read_exr, read_exr_layout, write_exr
 
 SHAPE = (90, 64)
 
@@ -76,7 +75,7 @@ def test_support_depth():
 
 
 def test_exr_rows_read_bands(merged):
-    attrs, names, shape = exr_layout(merged)
+    attrs, names, shape = read_exr_layout(merged)
     ref = read_exr(merged)
     assert shape == SHAPE and set(names) == set(ref.channels) and attrs["cfa_pattern"] == "RGGB"
     for name in names:

@@ -151,9 +151,10 @@ def test_weight_precision_is_chosen_for_the_whole_frame(bracket, tmp_path, capsy
     merged again with the whole frame's choice (here: a rule on the bias map's maximum that
     half of the tiles pass)."""
     from hdrcap.pipeline.merge import accumulator as pm
+    from hdrcap.pipeline.merge.precision import extrema
 
     def rule(self, values, darks, master):
-        return pm._extrema(self._bias)[1] < limit
+        return extrema(self.maps.bias)[1] < limit
 
     from hdrcap.pipeline.calibration import load_calibration
 

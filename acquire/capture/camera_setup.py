@@ -6,9 +6,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from hdrcap.acquire.camera import exposure_ladder
+from hdrcap.acquire.camera import Camera, exposure_ladder
 from hdrcap.acquire.capture.job import Job
+
+if TYPE_CHECKING:
+    from hdrcap.acquire.camera.gphoto2 import Gphoto2Camera
+    from hdrcap.acquire.camera.mock import MockCamera
+    from hdrcap.pipeline.compat import CameraProfile
+    from hdrcap.pipeline.params import Calibration
 
 __all__ = [
     "open_camera",
@@ -21,7 +28,7 @@ __all__ = [
 ]
 
 
-def open_camera(job: Job, n: int = 0):
+def open_camera(job: Job, n: int = 0) -> Camera:
     """The job's camera (for the mock backend: with the job's scene; seed + n per repetition).
 
     Parameters
@@ -41,18 +48,22 @@ def open_camera(job: Job, n: int = 0):
     JobError
         The camera applied another ISO than the job's.
     """
-    camera = _open_simulator(job, n) if job["camera"]["backend"] == "mock" else _open_gphoto2(job)
+    camera: Camera
+    if job["camera"]["backend"] == "mock":
+        camera, real = _open_simulator(job, n), None
+    else:
+        camera = real = _open_gphoto2(job)
     try:
         _apply_iso(job, camera)
-        if job["camera"]["backend"] != "mock":  # changes nothing unless enforce
-            camera.preflight(enforce=job["camera"].get("enforce", False), iso=job["camera"].get("iso"))
+        if real is not None:  # changes nothing unless enforce
+            real.preflight(enforce=job["camera"].get("enforce", False), iso=job["camera"].get("iso"))
     except BaseException:
         camera.close()
         raise
     return camera
 
 
-def _open_simulator(job: Job, n: int):
+def _open_simulator(job: Job, n: int) -> MockCamera:
     from hdrcap.acquire.camera.mock import MockCamera, MockFaults
     from hdrcap.mock_camera.scenes import load_scene, parse_size
 
@@ -70,7 +81,7 @@ def _open_simulator(job: Job, n: int):
     )
 
 
-def _open_gphoto2(job: Job):
+def _open_gphoto2(job: Job) -> Gphoto2Camera:
     from hdrcap.acquire.camera.gphoto2 import Gphoto2Camera
 
     cam = job["camera"]
@@ -84,7 +95,7 @@ def _open_gphoto2(job: Job):
     )
 
 
-def _apply_iso(job: Job, camera):
+def _apply_iso(job: Job, camera: Camera) -> Camera:
     """Set the job's ``[camera] iso`` and refuse (JobError) a camera that silently applies
     another one; returns the camera."""
     cam = job["camera"]
@@ -126,7 +137,7 @@ def job_camera_key(job: Job) -> str | None:
     return f"gphoto2-port-{cam['port']}" if cam.get("port") else "gphoto2-any"
 
 
-def check_job_against_camera(job: Job, camera) -> None:
+def check_job_against_camera(job: Job, camera: Camera) -> None:
     """Checks that need the camera (still before any frame): exposure times in its range.
 
     Parameters
@@ -151,7 +162,7 @@ def check_job_against_camera(job: Job, camera) -> None:
         raise job.error("exposure", "times", f"exposure {bad[0]:g} s is outside the camera's range {lo:g} .. {hi:g} s")
 
 
-def check_free_space(job: Job, camera, run_dir: Path, repetitions: int = 1) -> dict:
+def check_free_space(job: Job, camera: Camera, run_dir: Path, repetitions: int = 1) -> dict[str, Any]:
     """The disk space the job's run needs against the room on the run folder's file system
     (still before any frame): the planned frames and outputs (:func:`acquire.capture.session.estimate_run_bytes`).
 
@@ -201,7 +212,7 @@ def check_free_space(job: Job, camera, run_dir: Path, repetitions: int = 1) -> d
     return {"frames": frames, "need_bytes": need, "free_bytes": free, "folder": str(folder)}
 
 
-def _planned_frames(job: Job, camera) -> int | None:
+def _planned_frames(job: Job, camera: Camera) -> int | None:
     """Frames of one run: counted from a fixed bracket's plan, bounded by ``max_exposures``
     for a target SNR, None when only metering can tell."""
     from hdrcap.acquire.capture.session import CapturePlan
@@ -218,12 +229,12 @@ def _planned_frames(job: Job, camera) -> int | None:
         )
         return len(plan.frames)
     if exp.get("max_exposures"):
-        per_dark = {"matched": 1, "master": darks["count"]}.get(darks.get("strategy"), darks["count"])
+        per_dark = {"matched": 1, "master": darks["count"]}.get(darks["strategy"], darks["count"])
         return int(exp["max_exposures"]) * (exp["repeats"] + per_dark)
     return None
 
 
-def job_calibration(job: Job):
+def job_calibration(job: Job) -> Calibration:
     """The job's calibration: ``[calibration] file``, else its preset, else (simulated camera)
     the camera's preset.
 
@@ -244,7 +255,7 @@ def job_calibration(job: Job):
     return camera_model(camera=preset, temperature=job["camera"].get("temperature"))
 
 
-def run_iso(job: Job, calibration) -> float | None:
+def run_iso(job: Job, calibration: Calibration) -> float | None:
     """The run's ISO speed: the job's ``[camera] iso``, else the calibration's, else None (then
     the first frame's ISO is the run's).
 
@@ -264,7 +275,9 @@ def run_iso(job: Job, calibration) -> float | None:
     return CameraProfile.from_calibration(calibration).iso
 
 
-def check_compatibility(job: Job, camera, calibration, echo: Callable[[str], None]):
+def check_compatibility(
+    job: Job, camera: Camera, calibration: Calibration, echo: Callable[[str], None]
+) -> CameraProfile:
     """Plan-time check: the calibration must belong to the connected camera (serial, else the
     normalised model) and the run's ISO (:func:`pipeline.compat.check_compatible`); temperature
     differences are warnings. Returns the profile every frame is then checked against.

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, get_args
 
 from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 
 from hdrcap.acquire.capture.schema import JobFile, Problem
 from hdrcap.pipeline.errors import InputError
@@ -66,18 +67,20 @@ class Job:
         return p
 
 
-def _line(lines: dict, section: str, key: str | None) -> int | None:
+def _line(lines: dict[tuple[str, str], int], section: str, key: str | None) -> int | None:
     """The line of ``key`` in ``[section]``, else of the section's header, else None."""
     return lines.get((section, key or "")) or lines.get((section, ""))
 
 
-def _where(path: Path | None, lines: dict, section: str, key: str | None) -> str:
+def _where(path: Path | None, lines: dict[tuple[str, str], int], section: str, key: str | None) -> str:
     name = str(path) if path else "<job>"
     line = _line(lines, section, key)
     return f"{name}:{line}" if line else name
 
 
-def _error(path: Path | None, lines: dict, section: str, key: str | None, message: str) -> JobError:
+def _error(
+    path: Path | None, lines: dict[tuple[str, str], int], section: str, key: str | None, message: str
+) -> JobError:
     label = f"{section}.{key}" if key else f"[{section}]"
     return JobError(f"{_where(path, lines, section, key)}: {label}: {message}")
 
@@ -104,7 +107,7 @@ def _key_lines(text: str) -> dict[tuple[str, str], int]:
     return out
 
 
-def load_job(path) -> Job:
+def load_job(path: str | os.PathLike[str]) -> Job:
     """Read and validate a job file (syntax, keys, types and values that need no camera).
 
     Parameters
@@ -121,21 +124,21 @@ def load_job(path) -> Job:
     JobError
         The first problem, as ``FILE:LINE: section.key: message`` (one line).
     """
-    path = Path(path)
+    file = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise JobError(f"{path}: no such job file") from None
+        raise JobError(f"{file}: no such job file") from None
     except (OSError, UnicodeDecodeError) as err:
-        raise JobError(f"{path}: cannot read the job file ({err})") from None
+        raise JobError(f"{file}: cannot read the job file ({err})") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
-        raise JobError(f"{path}: not valid TOML: {err}") from None
-    return job_from_dict(data, path=path, text=text)
+        raise JobError(f"{file}: not valid TOML: {err}") from None
+    return job_from_dict(data, path=file, text=text)
 
 
-def job_from_dict(data: dict, path: Path | None = None, text: str = "") -> Job:
+def job_from_dict(data: dict[str, Any], path: Path | None = None, text: str = "") -> Job:
     """Validate a job given as a dict (``hdrcap capture`` builds one from its options).
 
     Parameters
@@ -316,7 +319,7 @@ _EXPECTED = {
 }
 
 
-def _problem(error: dict) -> tuple[str, str | None, str]:
+def _problem(error: ErrorDetails) -> tuple[str, str | None, str]:
     """(section, key, message) of one pydantic error; deeper places (a list item, a key of an
     inline table) lead the message: ``item 2: kind: ...``."""
     loc, kind, ctx = error["loc"], error["type"], error.get("ctx") or {}
@@ -340,7 +343,7 @@ def _problem(error: dict) -> tuple[str, str | None, str]:
     return section, str(loc[1]), ": ".join([*inner, message])
 
 
-def _message(error: dict) -> str:
+def _message(error: ErrorDetails) -> str:
     """The message of one pydantic error in the job file's words."""
     kind, ctx, value = error["type"], error.get("ctx") or {}, error.get("input")
     if kind in _EXPECTED:
@@ -361,7 +364,7 @@ def _message(error: dict) -> str:
     return error["msg"]
 
 
-def _model_at(loc: tuple) -> type[BaseModel]:
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel]:
     """The table model at ``loc`` (field names and list indices from :class:`JobFile`)."""
     model: Any = JobFile
     for part in loc:

@@ -5,14 +5,28 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from hdrcap.pipeline.errors import InputError
+
+if TYPE_CHECKING:
+    from hdrcap.acquire.camera import Camera
+    from hdrcap.acquire.capture.session import RetryPolicy, StopEvent
 
 __all__ = ["meter_fn"]
 
 
-def meter_fn(camera, run_dir: Path, retry=None, stop=None, sleep=time.sleep):
+def meter_fn(
+    camera: Camera,
+    run_dir: Path,
+    retry: RetryPolicy | None = None,
+    stop: StopEvent | None = None,
+    sleep: Callable[[float], object] = time.sleep,
+) -> Callable[[float], np.ndarray]:
     """``capture_fn(t)`` for :func:`planner.meter`: one metering frame into ``RUN/meter/``, with
     the session's retries (busy: wait; disconnect or hang: reconnect; a bad file: capture again).
     Files of an earlier, interrupted metering stay; new ones never reuse their names.
@@ -37,33 +51,33 @@ def meter_fn(camera, run_dir: Path, retry=None, stop=None, sleep=time.sleep):
     from hdrcap.acquire.camera import fault_kind
     from hdrcap.acquire.capture.session import RetryPolicy, SessionError
 
-    retry = retry or RetryPolicy()
+    policy = retry or RetryPolicy()
     meter_dir = run_dir / "meter"
     meter_dir.mkdir(parents=True, exist_ok=True)
     counter = itertools.count(1)
 
-    def capture(t: float):
+    def capture(t: float) -> np.ndarray:
         stem = f"meter_{next(counter):02d}_{t:.6g}s"
         last = None
-        for attempt in range(1, retry.max_attempts + 1):
+        for attempt in range(1, policy.max_attempts + 1):
             _stop_if_asked(stop, run_dir)
             try:
-                return _meter_frame(camera, _free_name(meter_dir, stem, ".dng"), t, retry)
+                return _meter_frame(camera, _free_name(meter_dir, stem, ".dng"), t, policy)
             except Exception as err:
                 kind = fault_kind(err)
                 if kind is None or kind == "fatal":
                     raise
                 last = err
-                if attempt < retry.max_attempts:
-                    _recover(camera, kind, attempt, retry, sleep)
+                if attempt < policy.max_attempts:
+                    _recover(camera, kind, attempt, policy, sleep)
         raise SessionError(
-            f"metering at {t:g} s: gave up after {retry.max_attempts} attempts (last: {last}); run again with --resume"
+            f"metering at {t:g} s: gave up after {policy.max_attempts} attempts (last: {last}); run again with --resume"
         )
 
     return capture
 
 
-def _stop_if_asked(stop, run_dir: Path) -> None:
+def _stop_if_asked(stop: StopEvent | None, run_dir: Path) -> None:
     if stop is not None and stop.is_set():
         from hdrcap.acquire.capture.session import RunInterrupted
 
@@ -71,7 +85,7 @@ def _stop_if_asked(stop, run_dir: Path) -> None:
         raise RunInterrupted(f"{run_dir}: {reason} while metering; run again with --resume", stop.signum)
 
 
-def _meter_frame(camera, dest: Path, t: float, retry):
+def _meter_frame(camera: Camera, dest: Path, t: float, retry: RetryPolicy) -> np.ndarray:
     """One metering frame at ``t`` s into ``dest``: its raw values (a bad file: CorruptFrameError)."""
     from hdrcap.pipeline.io.raw import read_frame
 
@@ -86,7 +100,7 @@ def _meter_frame(camera, dest: Path, t: float, retry):
         raise CorruptFrameError(f"metering frame {Path(res.path).name}: {err}") from None
 
 
-def _recover(camera, kind: str, attempt: int, retry, sleep) -> None:
+def _recover(camera: Camera, kind: str, attempt: int, retry: RetryPolicy, sleep: Callable[[float], object]) -> None:
     """Before the next attempt: wait when the camera was busy, wait and reconnect when it was lost."""
     if kind in ("busy", "reconnect"):
         sleep(retry.wait(attempt))
@@ -94,7 +108,7 @@ def _recover(camera, kind: str, attempt: int, retry, sleep) -> None:
         _reconnect_quietly(camera)
 
 
-def _reconnect_quietly(camera) -> None:
+def _reconnect_quietly(camera: Camera) -> None:
     """Reconnect after a metering fault; a failed reconnect is one more fault for the retry loop
     (a fatal one stops)."""
     from hdrcap.acquire.camera import fault_kind

@@ -4,12 +4,17 @@ preview PNG and, on the simulated camera, the error against the scene's truth.""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from hdrcap.acquire.camera import Camera
 from hdrcap.acquire.capture.job import Job
 
+if TYPE_CHECKING:
+    from hdrcap.acquire.capture.session import SessionResult
+    from hdrcap.pipeline.params import Calibration
 
-def _plan_merge_options(planned: dict) -> dict:
+
+def _plan_merge_options(planned: dict[str, Any]) -> dict[str, Any]:
     """The merge options the planner decided (recorded in the manifest's planning record)."""
     if not planned:
         return {}
@@ -20,8 +25,16 @@ def _plan_merge_options(planned: dict) -> dict:
 
 
 def _write_outputs(
-    job: Job, run_dir: Path, result, calibration, camera, exr_path, png_path, force, planner_header: dict | None = None
-) -> dict:
+    job: Job,
+    run_dir: Path,
+    result: SessionResult,
+    calibration: Calibration,
+    camera: Camera,
+    exr_path: Path | None,
+    png_path: Path | None,
+    force: bool,
+    planner_header: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """The run's outputs: the merge's EXR (the one header builder and writer every door uses),
     the preview PNG, and the error against the truth when the camera is simulated."""
     from hdrcap.pipeline.header import with_merge_header

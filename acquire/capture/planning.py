@@ -3,21 +3,37 @@ with the master darks a dark library already holds left out of the frames to tak
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from hdrcap.acquire.camera import exposure_ladder, nearest_allowed
+import numpy as np
+
+from hdrcap.acquire.camera import Camera, exposure_ladder, nearest_allowed
 from hdrcap.acquire.capture.camera_setup import run_iso
 from hdrcap.acquire.capture.job import Job
 from hdrcap.acquire.capture.manifest import jsonable
 from hdrcap.acquire.capture.metering import meter_fn
 from hdrcap.pipeline.noise import DarkStrategy
 
+if TYPE_CHECKING:
+    from hdrcap.acquire.capture.session import CapturePlan, RetryPolicy, StopEvent
+    from hdrcap.pipeline.calibration.darklibrary import DarkEntry
+    from hdrcap.pipeline.params import Calibration
+    from hdrcap.planner.plan import Plan
+
 __all__ = ["plan_for", "library_masters", "library_root"]
 
 
-def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str], None], retry=None, stop=None):
+def plan_for(
+    job: Job,
+    camera: Camera,
+    calibration: Calibration,
+    run_dir: Path,
+    echo: Callable[[str], None],
+    retry: RetryPolicy | None = None,
+    stop: StopEvent | None = None,
+) -> tuple[CapturePlan, dict[str, Any]]:
     """The capture plan: a fixed bracket, or meter + planner for a target SNR.
 
     The planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
@@ -85,7 +101,16 @@ def plan_for(job: Job, camera, calibration, run_dir: Path, echo: Callable[[str],
     return plan, info
 
 
-def _plan_for_snr(job: Job, camera, calibration, run_dir: Path, echo, retry, stop, info: dict):
+def _plan_for_snr(
+    job: Job,
+    camera: Camera,
+    calibration: Calibration,
+    run_dir: Path,
+    echo: Callable[[str], None],
+    retry: RetryPolicy | None,
+    stop: StopEvent | None,
+    info: dict[str, Any],
+) -> tuple[list[float], str | list[str]]:
     """Meter the scene and plan for ``[exposure] target_snr_db``: (times, dark strategy or one
     per time); the planner's decisions go into ``info``."""
     from hdrcap import planner
@@ -123,7 +148,7 @@ def _plan_for_snr(job: Job, camera, calibration, run_dir: Path, echo, retry, sto
     return list(plan.exposures), strategy
 
 
-def _plan_record(plan) -> dict:
+def _plan_record(plan: Plan) -> dict[str, Any]:
     """What the manifest keeps of a planner's plan (JSON): the plan without its SNR curve, and
     the merge options that follow its decisions."""
     d = plan.to_dict()
@@ -132,7 +157,7 @@ def _plan_record(plan) -> dict:
     return jsonable(d)
 
 
-def library_root(job: Job, calibration) -> str | None:
+def library_root(job: Job, calibration: Calibration) -> str | None:
     """The dark library of the run: ``[calibration] dark_library``, else the calibration's.
 
     Parameters
@@ -150,14 +175,14 @@ def library_root(job: Job, calibration) -> str | None:
 
 
 def library_masters(
-    root,
-    camera,
-    times,
+    root: str | None,
+    camera: Camera,
+    times: Sequence[float],
     load: bool = True,
     iso: float | None = None,
     strict: bool = False,
     echo: Callable[[str], None] | None = None,
-) -> dict[float, tuple]:
+) -> dict[float, tuple[np.ndarray | None, int]]:
     """Master darks of the dark library at ``root`` for ``times`` (s): t -> (data, N), matched
     by :meth:`pipeline.calibration.darklibrary.DarkLibrary.masters` to the camera's model (normalised,
     :func:`pipeline.compat.same_model`), ``iso`` and temperature (data None unless ``load``).
@@ -169,7 +194,7 @@ def library_masters(
         The dark library folder.
     camera : Camera
         The connected camera (identity, temperature).
-    times : iterable of float
+    times : sequence of float
         Exposure times, s.
     load : bool
         Load the master darks.
@@ -216,7 +241,7 @@ def library_masters(
     return {t: (data, n) for t, (data, n, _e) in found.items()}
 
 
-def _refuse_other_iso(root, entries, times, iso: float) -> None:
+def _refuse_other_iso(root: str, entries: list[DarkEntry], times: Sequence[float], iso: float) -> None:
     """CompatibilityError when the library's masters for one of ``times`` are all of another ISO."""
     from hdrcap.pipeline.compat import CompatibilityError
     from hdrcap.pipeline.times import same_exposure

@@ -7,7 +7,7 @@ import datetime as _dt
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 from hdrcap.acquire.capture.camera_setup import (
     check_compatibility,
@@ -23,7 +23,55 @@ from hdrcap.acquire.capture.outputs import _plan_merge_options, _write_outputs
 from hdrcap.acquire.capture.planning import library_masters, library_root, plan_for
 from hdrcap.acquire.capture.runfolder import NothingToResume, run_folder, run_state
 
+if TYPE_CHECKING:
+    from hdrcap.acquire.camera import Camera
+    from hdrcap.acquire.capture.session import (
+        CapturePlan,
+        LocalIOError,
+        RetryPolicy,
+        SessionResult,
+        StopEvent,
+    )
+    from hdrcap.pipeline.compat import CameraProfile
+    from hdrcap.pipeline.params import Calibration
+
 __all__ = ["run_job"]
+
+
+@overload
+def run_job(
+    job: Job,
+    *,
+    resume: bool = ...,
+    n: int = ...,
+    run_dir: Path | None = ...,
+    progress: bool | None = ...,
+    echo: Callable[[str], None] = ...,
+    camera: Camera | None = ...,
+    force: bool = ...,
+    exr_path: Path | None = ...,
+    png_path: Path | None = ...,
+    return_result: Literal[False] = ...,
+    stop: StopEvent | None = ...,
+) -> dict[str, Any]: ...
+
+
+@overload
+def run_job(
+    job: Job,
+    *,
+    resume: bool = ...,
+    n: int = ...,
+    run_dir: Path | None = ...,
+    progress: bool | None = ...,
+    echo: Callable[[str], None] = ...,
+    camera: Camera | None = ...,
+    force: bool = ...,
+    exr_path: Path | None = ...,
+    png_path: Path | None = ...,
+    return_result: Literal[True],
+    stop: StopEvent | None = ...,
+) -> tuple[dict[str, Any], SessionResult | None]: ...
 
 
 def run_job(
@@ -34,13 +82,13 @@ def run_job(
     run_dir: Path | None = None,
     progress: bool | None = None,
     echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
-    camera=None,
+    camera: Camera | None = None,
     force: bool = False,
     exr_path: Path | None = None,
     png_path: Path | None = None,
     return_result: bool = False,
-    stop=None,
-):
+    stop: StopEvent | None = None,
+) -> dict[str, Any] | tuple[dict[str, Any], SessionResult | None]:
     """Run one repetition of ``job``.
 
     With ``resume`` the newest incomplete run of the job is continued; on a complete run
@@ -84,7 +132,7 @@ def run_job(
         run_dir = Path(run_dir) if run_dir else run_folder(job, n, resume)
     except NothingToResume as err:
         echo(f"hdrcap: {err}; nothing to do")
-        summary = {"status": "nothing_to_resume", "run_dir": None, "message": str(err)}
+        summary: dict[str, Any] = {"status": "nothing_to_resume", "run_dir": None, "message": str(err)}
         return (summary, None) if return_result else summary
     if resume and Manifest(run_dir).exists() and run_state(job, run_dir)[0] == "complete":
         done = Manifest(run_dir).completion()
@@ -104,7 +152,7 @@ def run_job(
     return (summary, result) if return_result else summary
 
 
-def _local_io_error(err: OSError, run_dir: Path):
+def _local_io_error(err: OSError, run_dir: Path) -> LocalIOError:
     """The LocalIOError (exit status 6) of a failure on our side of the run."""
     from hdrcap.acquire.capture.session import LocalIOError
 
@@ -115,7 +163,7 @@ def _local_io_error(err: OSError, run_dir: Path):
     return stop_err
 
 
-def _record_complete(run_dir: Path, summary: dict, echo: Callable[[str], None]) -> None:
+def _record_complete(run_dir: Path, summary: dict[str, Any], echo: Callable[[str], None]) -> None:
     """The manifest's last record, ``complete`` with the summary (a failure is a warning)."""
     try:
         Manifest(run_dir).append(
@@ -126,45 +174,55 @@ def _record_complete(run_dir: Path, summary: dict, echo: Callable[[str], None]) 
 
 
 def _run_one(
-    job: Job, resume: bool, n: int, run_dir: Path, progress, echo, camera, force, exr_path, png_path, stop
-) -> tuple[dict, Any]:
+    job: Job,
+    resume: bool,
+    n: int,
+    run_dir: Path,
+    progress: bool | None,
+    echo: Callable[[str], None],
+    camera: Camera | None,
+    force: bool,
+    exr_path: Path | None,
+    png_path: Path | None,
+    stop: StopEvent | None,
+) -> tuple[dict[str, Any], SessionResult]:
     """Open the camera, plan (or read the plan of the run resumed), capture, merge and write the
     outputs; returns (summary, SessionResult)."""
     own = camera is None
-    camera = camera or open_camera(job, n)
+    cam = camera or open_camera(job, n)
     try:
-        check_job_against_camera(job, camera)
+        check_job_against_camera(job, cam)
         calibration = job_calibration(job)
-        expect = check_compatibility(job, camera, calibration, echo)
+        expect = check_compatibility(job, cam, calibration, echo)
         retry = _retry_policy(job)
         force = force or job["output"]["force"]
         exr_path, png_path = _output_paths(job, run_dir, exr_path, png_path)
         _refuse_to_overwrite(run_dir, resume, force, (exr_path, png_path))
-        plan, info = _recorded_or_new_plan(job, camera, calibration, run_dir, resume, echo, retry, stop)
+        plan, info = _recorded_or_new_plan(job, cam, calibration, run_dir, resume, echo, retry, stop)
         planned = info.get("plan") or {}
         options = _plan_merge_options(planned)
-        result = _capture(
-            job, camera, calibration, run_dir, plan, info, options, n, resume, progress, retry, stop, expect
-        )
+        result = _capture(job, cam, calibration, run_dir, plan, info, options, n, resume, progress, retry, stop, expect)
         header = _planner_header(planned, options, info)
-        outputs = _write_outputs(job, run_dir, result, calibration, camera, exr_path, png_path, force, header)
+        outputs = _write_outputs(job, run_dir, result, calibration, cam, exr_path, png_path, force, header)
     finally:
         if own:
             try:
-                camera.close()
+                cam.close()
             except Exception:
                 pass
     return _summary(run_dir, result, outputs), result
 
 
-def _retry_policy(job: Job):
+def _retry_policy(job: Job) -> RetryPolicy:
     from hdrcap.acquire.capture.session import RetryPolicy
 
     sess = job["session"]
     return RetryPolicy(sess["max_attempts"], sess["backoff_s"], sess["max_backoff_s"], sess["timeout_s"])
 
 
-def _output_paths(job: Job, run_dir: Path, exr_path: Path | None, png_path: Path | None):
+def _output_paths(
+    job: Job, run_dir: Path, exr_path: Path | None, png_path: Path | None
+) -> tuple[Path | None, Path | None]:
     """The EXR and PNG outputs: as given, else the job's inside the run folder (None: none)."""
     if exr_path is None and job["output"]["exr"]:
         exr_path = run_dir / job["output"]["exr"]
@@ -173,22 +231,31 @@ def _output_paths(job: Job, run_dir: Path, exr_path: Path | None, png_path: Path
     return exr_path, png_path
 
 
-def _refuse_to_overwrite(run_dir: Path, resume: bool, force: bool, outputs) -> None:
+def _refuse_to_overwrite(run_dir: Path, resume: bool, force: bool, outputs: tuple[Path | None, ...]) -> None:
     """RunConflictError for a new run in a folder with a run; OutputExistsError for an output
     that exists (without ``force``)."""
     from hdrcap.acquire.capture.session import RunConflictError
-    from hdrcap.pipeline.errors import OutputExistsError
+    from hdrcap.pipeline.io.files import check_new_output
 
     if not resume and Manifest(run_dir).exists():
         raise RunConflictError(
             f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it or choose another run folder"
         )
     for p in outputs:
-        if p is not None and p.exists() and not force:
-            raise OutputExistsError(f"{p}: exists; use --force to overwrite (or another run folder)")
+        if p is not None:
+            check_new_output(p, force)
 
 
-def _recorded_or_new_plan(job: Job, camera, calibration, run_dir: Path, resume: bool, echo, retry, stop):
+def _recorded_or_new_plan(
+    job: Job,
+    camera: Camera,
+    calibration: Calibration,
+    run_dir: Path,
+    resume: bool,
+    echo: Callable[[str], None],
+    retry: RetryPolicy,
+    stop: StopEvent | None,
+) -> tuple[CapturePlan, dict[str, Any]]:
     """(plan, planning info): the plan recorded at the start of the run resumed, else a new one."""
     from hdrcap.acquire.capture.session import CapturePlan
 
@@ -201,17 +268,30 @@ def _recorded_or_new_plan(job: Job, camera, calibration, run_dir: Path, resume: 
 
 
 def _capture(
-    job: Job, camera, calibration, run_dir: Path, plan, info, options, n, resume, progress, retry, stop, expect
-):
+    job: Job,
+    camera: Camera,
+    calibration: Calibration,
+    run_dir: Path,
+    plan: CapturePlan,
+    info: dict[str, Any],
+    options: dict[str, Any],
+    n: int,
+    resume: bool,
+    progress: bool | None,
+    retry: RetryPolicy,
+    stop: StopEvent | None,
+    expect: CameraProfile,
+) -> SessionResult:
     """Capture ``plan`` in a :class:`acquire.capture.session.CaptureSession` (master darks
     from the dark library, the job's light blocking and dark check); returns its result."""
     from hdrcap.acquire.capture.session import CaptureSession, LightBlocker
 
     masters = None
     if plan.library_times:
-        masters = library_masters(
+        found = library_masters(
             library_root(job, calibration), camera, plan.library_times, iso=run_iso(job, calibration), strict=True
         )
+        masters = {t: (data, n_frames) for t, (data, n_frames) in found.items() if data is not None}  # all: loaded
     d = job["darks"]
     light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
     meta = {
@@ -240,7 +320,7 @@ def _capture(
     return session.run()
 
 
-def _planner_header(planned: dict, options: dict, info: dict) -> dict | None:
+def _planner_header(planned: dict[str, Any], options: dict[str, Any], info: dict[str, Any]) -> dict[str, Any] | None:
     """The EXR header's planner attribute of a planned run (None for a fixed bracket)."""
     if not planned:
         return None
@@ -251,7 +331,7 @@ def _planner_header(planned: dict, options: dict, info: dict) -> dict | None:
     )
 
 
-def _summary(run_dir: Path, result, outputs: dict) -> dict:
+def _summary(run_dir: Path, result: SessionResult, outputs: dict[str, Any]) -> dict[str, Any]:
     return {
         "status": "done",
         "run_dir": str(run_dir),

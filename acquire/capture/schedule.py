@@ -7,10 +7,15 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from hdrcap.acquire.capture.job import Job, JobError
 from hdrcap.acquire.capture.notify import error_summary, notify
 from hdrcap.acquire.capture.run import run_job
+
+if TYPE_CHECKING:
+    from hdrcap.acquire.capture.session import StopEvent
+    from hdrcap.pipeline.errors import HdrcapError
 
 __all__ = ["run_schedule", "ScheduleError"]
 
@@ -19,7 +24,7 @@ class ScheduleError(JobError):
     """Some repetitions of a ``--keep-going`` schedule failed (each already reported); the exit
     status is the first failure's."""
 
-    def __init__(self, message: str, exit_code: int):
+    def __init__(self, message: str, exit_code: int) -> None:
         super().__init__(message)
         self.exit_code = exit_code
         self.reported = True
@@ -35,11 +40,11 @@ def run_schedule(
     echo: Callable[[str], None] = lambda s: print(s, file=sys.stderr),
     run_dir: Path | None = None,
     force: bool = False,
-    sleep=time.sleep,
+    sleep: Callable[[float], object] = time.sleep,
     keep_going: bool = False,
-    on_result: Callable[[dict], None] | None = None,
-    stop=None,
-) -> list[dict]:
+    on_result: Callable[[dict[str, Any]], None] | None = None,
+    stop: StopEvent | None = None,
+) -> list[dict[str, Any]]:
     """Run the job ``repeat`` times, starting one every ``every_s`` seconds (a slow run delays
     the next start rather than overlapping it).
 
@@ -81,9 +86,9 @@ def run_schedule(
     every_s = every_s if every_s is not None else job["schedule"]["every_s"]
     if repeat > 1 and run_dir is not None and "{n" not in str(run_dir):
         raise JobError("--run-dir with --repeat needs {n} in the folder name")
-    wait = stop.wait if stop is not None and sleep is time.sleep else sleep
+    wait: Callable[[float], object] = stop.wait if stop is not None and sleep is time.sleep else sleep
     t0 = time.monotonic()
-    results: list[dict] = []
+    results: list[dict[str, Any]] = []
     failures: list[HdrcapError] = []
     for n in range(repeat):
         _wait_for_start(t0 + n * every_s, wait, stop, f"before repetition {n + 1} of {repeat}")
@@ -109,7 +114,7 @@ def run_schedule(
     return results
 
 
-def _wait_for_start(start: float, wait, stop, when: str) -> None:
+def _wait_for_start(start: float, wait: Callable[[float], object], stop: StopEvent | None, when: str) -> None:
     """Wait until ``start`` (``time.monotonic``); RunInterrupted when ``stop`` is set by then."""
     from hdrcap.acquire.capture.session import RunInterrupted
 
@@ -120,7 +125,13 @@ def _wait_for_start(start: float, wait, stop, when: str) -> None:
         raise RunInterrupted(f"stopped by signal {stop.signum} {when}", stop.signum)
 
 
-def _report_failure(job: Job, err, n: int, echo, on_result) -> dict:
+def _report_failure(
+    job: Job,
+    err: HdrcapError,
+    n: int,
+    echo: Callable[[str], None],
+    on_result: Callable[[dict[str, Any]], None] | None,
+) -> dict[str, Any]:
     """The error summary of failed repetition ``n``, notified (and passed to ``on_result``)."""
     err.repetition = n
     res = error_summary(err, n)

@@ -36,17 +36,24 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hdrcap.acquire.camera import CameraError, CorruptFrameError, fault_kind, nearest_allowed
+from hdrcap.acquire.camera import Camera, CameraError, CorruptFrameError, fault_kind, nearest_allowed
 from hdrcap.acquire.capture.manifest import EventLog, Manifest, jsonable, utc_now
 from hdrcap.pipeline.compat import CameraProfile, CompatibilityError, check_compatible
 from hdrcap.pipeline.errors import HdrcapError, InputError
 from hdrcap.pipeline.merge.darks import DarkResolver
 from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.times import ExposureMap, find_exposure, same_bulb_exposure, same_exposure
+
+if TYPE_CHECKING:
+    from hdrcap.acquire.camera import CaptureResult
+    from hdrcap.pipeline.io.raw import RawFrame
+    from hdrcap.pipeline.params import Calibration, SensorParams
+    from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
     "FrameSpec",
@@ -66,6 +73,10 @@ __all__ = [
     "lock_dir",
     "stop_on_signals",
     "hold_run_locks",
+    "run_lock_files",
+    "held_locks",
+    "lock_is_held",
+    "SESSION_LOCK_NAME",
 ]
 
 #: Frame kinds; the first two feed the HDR merge, the rest are calibration series.
@@ -150,7 +161,7 @@ def frame_stem(index: int, spec: FrameSpec) -> str:
     return f"{index:04d}_{spec.kind}_{spec.exposure_s:.6g}s"
 
 
-def _strategies_by_time(times: list[float], dark_strategy) -> ExposureMap[DarkStrategy]:
+def _strategies_by_time(times: list[float], dark_strategy: str | Sequence[str]) -> ExposureMap[DarkStrategy]:
     """Exposure time (s) -> its dark strategy, from one strategy for all or one per time."""
     per = [dark_strategy] * len(times) if isinstance(dark_strategy, str) else list(dark_strategy)
     if len(per) != len(times):
@@ -165,7 +176,8 @@ def _strategies_by_time(times: list[float], dark_strategy) -> ExposureMap[DarkSt
 
 def _frame_specs(frames: list[tuple[str, float, int]]) -> tuple[FrameSpec, ...]:
     """FrameSpecs of (kind, exposure time, repetition) in order, keyed ``kind-time-n``."""
-    out, seen = [], {}
+    out: list[FrameSpec] = []
+    seen: dict[str, int] = {}
     for kind, t, _j in frames:
         base = f"{kind}-{t:.6g}"
         n = seen.get(base, 0)
@@ -174,7 +186,7 @@ def _frame_specs(frames: list[tuple[str, float, int]]) -> tuple[FrameSpec, ...]:
     return tuple(out)
 
 
-def _strategy(value) -> DarkStrategy:
+def _strategy(value: str) -> DarkStrategy:
     try:
         return DarkStrategy(value)
     except ValueError:
@@ -214,7 +226,7 @@ class CapturePlan:
         dark_strategy: str | Sequence[str] = DarkStrategy.MATCHED,
         n_dark: int = 1,
         repeats: int = 1,
-        series: Sequence[dict] = (),
+        series: Sequence[dict[str, Any]] = (),
         library_times: Sequence[float] = (),
     ) -> CapturePlan:
         """A bracket of ``times`` (each snapped to the nearest ``allowed`` time), ``repeats``
@@ -229,7 +241,7 @@ class CapturePlan:
         by_time = _strategies_by_time(times, dark_strategy)
         uniq = sorted(by_time)
         lib = [t for t in uniq if by_time[t] is DarkStrategy.MASTER and find_exposure(t, library_times) is not None]
-        per_time = dict(_DARK_FRAMES, **{DarkStrategy.MASTER: max(1, int(n_dark))})
+        per_time = {**_DARK_FRAMES, DarkStrategy.MASTER: max(1, int(n_dark))}
         dark_frames = [("dark", t, j) for t in uniq if t not in lib for j in range(per_time[by_time[t]])]
         light_frames = [("light", t, j) for j in range(max(1, int(repeats))) for t in times]
         for sr in series:
@@ -266,7 +278,7 @@ class CapturePlan:
         return {f.exposure_s: self.strategy_for(f.exposure_s) for f in self.frames if f.kind == "light"}
 
     @classmethod
-    def from_dict(cls, d: dict) -> CapturePlan:
+    def from_dict(cls, d: dict[str, Any]) -> CapturePlan:
         """The plan recorded in a manifest (:meth:`to_dict`; also manifests written before
         per-exposure strategies)."""
         return cls(
@@ -286,8 +298,8 @@ class CapturePlan:
         )
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
-    def to_dict(self) -> dict:
-        out = {
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
             "dark_strategy": self.dark_strategy,
             "n_dark": self.n_dark,
             "library_times": list(self.library_times),
@@ -341,7 +353,7 @@ class LightBlocker:
         uncover_command: str | None = None,
         prompt: Callable[[str], Any] | None = None,
         settle_s: float = 0.0,
-    ):
+    ) -> None:
         if method not in ("mock", "prompt", "command", "none"):
             raise InputError(f"light blocking must be mock, prompt, command or none, got {method!r}")
         if method == "command" and not (cover_command and uncover_command):
@@ -353,7 +365,7 @@ class LightBlocker:
         self.settle_s = settle_s
         self.covered: bool | None = None
 
-    def set(self, camera, covered: bool, log: EventLog | None = None) -> None:
+    def set(self, camera: Camera, covered: bool, log: EventLog | None = None) -> None:
         if self.covered is covered:
             return
         if self.method == "prompt":
@@ -364,6 +376,7 @@ class LightBlocker:
             )
         elif self.method == "command":
             cmd = self.cover_command if covered else self.uncover_command
+            assert cmd is not None  # __init__ refuses the command method without both commands
             proc = subprocess.run(cmd, shell=True, capture_output=True, text=True)
             if proc.returncode != 0:
                 raise SessionError(
@@ -424,7 +437,7 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM, signal.SIGINT)) ->
         yield event
         return
 
-    def handler(signum, _frame):
+    def handler(signum: int, _frame: FrameType | None) -> None:
         if event.is_set():
             raise RunInterrupted(f"stopped by signal {signum} (second signal); run again with --resume", signum)
         event.stop(signum)
@@ -437,16 +450,21 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM, signal.SIGINT)) ->
             signal.signal(sig, old)
 
 
-def lock_dir() -> Path:
+def lock_dir(create: bool = True) -> Path:
     """Folder of the lock files: ``$HDRCAP_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/hdrcap/locks``
     (per user, emptied at boot), else the user's state folder
     (``${XDG_STATE_HOME:-~/.local/state}/hdrcap/locks``). Not the shared /tmp: another user's
     lock there would be unwritable, and systemd's PrivateTmp gives each service its own /tmp.
 
+    Parameters
+    ----------
+    create : bool
+        Create the folder (False: only name it, for a reader that must not write).
+
     Returns
     -------
     Path
-        The folder (created, private to the user).
+        The folder (created, private to the user, unless ``create`` is false).
     """
     if os.environ.get("HDRCAP_LOCK_DIR"):
         d = Path(os.environ["HDRCAP_LOCK_DIR"])
@@ -455,6 +473,8 @@ def lock_dir() -> Path:
     else:
         state = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
         d = Path(state) / "hdrcap" / "locks"
+    if not create:
+        return d
     try:
         d.mkdir(parents=True, exist_ok=True, mode=0o700)
     except OSError as err:
@@ -463,7 +483,7 @@ def lock_dir() -> Path:
 
 
 @contextmanager
-def hold_run_locks(run_dir, camera_key: str | None = None) -> Iterator[None]:
+def hold_run_locks(run_dir: str | os.PathLike[str], camera_key: str | None = None) -> Iterator[None]:
     """Locks taken before the camera is opened and metering runs: one for the run folder and,
     when ``camera_key`` is given (a real camera named by the job), one for that camera. Both
     live in :func:`lock_dir` (the run folder need not exist yet); a held one is a
@@ -478,8 +498,7 @@ def hold_run_locks(run_dir, camera_key: str | None = None) -> Iterator[None]:
     """
     from filelock import FileLock, Timeout
 
-    folder = hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
-    wanted = [(f"run-{folder}", f"{run_dir}: another hdrcap session is using this run folder")]
+    wanted = [(_run_lock_name(run_dir), f"{run_dir}: another hdrcap session is using this run folder")]
     if camera_key:
         wanted.append((f"open-{_safe(camera_key)}", f"camera {camera_key} is in use by another hdrcap session"))
     held = []
@@ -497,13 +516,76 @@ def hold_run_locks(run_dir, camera_key: str | None = None) -> Iterator[None]:
             lock.release()
 
 
+def _run_lock_name(run_dir: str | os.PathLike[str]) -> str:
+    """Name of the run folder's lock in :func:`lock_dir` (from its absolute path)."""
+    return "run-" + hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
+
+
+#: The lock file a session holds inside its run folder while it captures.
+SESSION_LOCK_NAME = ".hdrcap.lock"
+
+
+def run_lock_files(run_dir: str | os.PathLike[str]) -> list[Path]:
+    """The lock files held while a run is going on in ``run_dir``: the one in the run folder
+    (held by the session while it captures) and the one in :func:`lock_dir` (held by ``hdrcap
+    run``/``capture`` from before metering until the outputs are written). Nothing is created.
+
+    Parameters
+    ----------
+    run_dir : path
+        The run folder.
+
+    Returns
+    -------
+    list of Path
+    """
+    return [Path(run_dir) / SESSION_LOCK_NAME, lock_dir(create=False) / f"{_run_lock_name(run_dir)}.lock"]
+
+
+def held_locks() -> frozenset[tuple[int, int, int]] | None:
+    """The files some process holds a lock on, as (device major, device minor, inode), read from
+    Linux's ``/proc/locks``: a look that takes no lock itself, so it can never make a starting
+    run fail on a held lock.
+
+    Returns
+    -------
+    frozenset of (int, int, int) or None
+        None where ``/proc/locks`` cannot be read (not Linux).
+    """
+    try:
+        text = Path("/proc/locks").read_text()
+    except OSError:
+        return None
+    out = set()
+    for line in text.splitlines():
+        fields = line.replace("->", " ").split()
+        for word in fields[4:7]:  # "MAJ:MIN:INODE" (hex, hex, decimal) after the pid
+            parts = word.split(":")
+            if len(parts) == 3:
+                try:
+                    out.add((int(parts[0], 16), int(parts[1], 16), int(parts[2])))
+                except ValueError:
+                    pass
+                break
+    return frozenset(out)
+
+
+def lock_is_held(path: Path, held: frozenset[tuple[int, int, int]]) -> bool:
+    """Whether some process holds a lock on the file ``path`` (``held``: :func:`held_locks`)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino) in held
+
+
 def _safe(text: str) -> str:
     import re
 
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
 
 
-def _identity(camera) -> dict:
+def _identity(camera: Camera) -> dict[str, str]:
     ident = getattr(camera, "identity", None)
     if ident is None:
         return {"backend": type(camera).__name__, "model": "", "serial": "", "port": ""}
@@ -535,11 +617,11 @@ class StreamingMerge:
 
     def __init__(
         self,
-        calibration,
-        shape,
+        calibration: Calibration,
+        shape: Sequence[int],
         strategy_for: Callable[[float], str] | str = DarkStrategy.MATCHED,
-        options: dict | None = None,
-    ):
+        options: dict[str, Any] | None = None,
+    ) -> None:
         from hdrcap.pipeline.merge.accumulator import MergeAccumulator
 
         self.calibration = calibration
@@ -575,7 +657,7 @@ class StreamingMerge:
         )
         self.dark_sources.append("model" if strategy is DarkStrategy.MODEL else f"{strategy}: {src.source}")
 
-    def result(self):
+    def result(self) -> HdrResult:
         """The :class:`pipeline.result.HdrResult` of everything added; its header also names the
         dark level of every light frame (``dark_sources``)."""
         if not len(self._acc):
@@ -589,12 +671,12 @@ class SessionResult:
     """What a session produced."""
 
     run_dir: Path
-    frames: dict[str, dict]
+    frames: dict[str, dict[str, Any]]
     captured: int
     resumed: int
     adopted: int
     retries: dict[str, int] = field(default_factory=dict)
-    merge: Any = None
+    merge: HdrResult | None = None
     elapsed_s: float = 0.0
 
 
@@ -640,22 +722,22 @@ class CaptureSession:
 
     def __init__(
         self,
-        camera,
-        run_dir,
+        camera: Camera,
+        run_dir: str | os.PathLike[str],
         plan: CapturePlan,
-        calibration=None,
+        calibration: Calibration | None = None,
         light: LightBlocker | None = None,
         retry: RetryPolicy | None = None,
         resume: bool = False,
         progress: bool | None = None,
-        meta: dict | None = None,
-        sleep: Callable[[float], None] = time.sleep,
+        meta: dict[str, Any] | None = None,
+        sleep: Callable[[float], object] = time.sleep,
         check_dark: float = 0.05,
-        master_darks: dict | None = None,
-        merge_options: dict | None = None,
-        stop=None,
+        master_darks: dict[float, tuple[np.ndarray, int]] | None = None,
+        merge_options: dict[str, Any] | None = None,
+        stop: threading.Event | None = None,
         expect: CameraProfile | None = None,
-    ):
+    ) -> None:
         self.camera = camera
         self.stop = stop
         self.expect = expect
@@ -667,15 +749,17 @@ class CaptureSession:
         self.resume = resume
         self.progress = progress
         self.meta = meta or {}
-        self.sleep = stop.wait if stop is not None and sleep is time.sleep else sleep
+        self.sleep: Callable[[float], object] = stop.wait if stop is not None and sleep is time.sleep else sleep
         self.check_dark = check_dark
-        self.master_darks: ExposureMap[tuple] = ExposureMap((float(t), v) for t, v in (master_darks or {}).items())
+        self.master_darks: ExposureMap[tuple[np.ndarray, int]] = ExposureMap(
+            (float(t), v) for t, v in (master_darks or {}).items()
+        )
         self.merge_options = dict(merge_options or {})
         missing = [t for t in plan.library_times if t not in self.master_darks]
         if missing:
             raise InputError(f"no master dark for {missing[0]:g} s in the dark library the plan relies on")
         self.retries: dict[str, int] = {}
-        self.shape = tuple(getattr(camera, "shape", ()) or ()) or None
+        self.shape: tuple[int, ...] | None = tuple(getattr(camera, "shape", ()) or ()) or None
         self._frame_bytes = 0
         self._camera_events_seen = len(getattr(camera, "events", None) or [])  # earlier runs' events: not ours
 
@@ -691,7 +775,7 @@ class CaptureSession:
         if not os.access(self.run_dir, os.W_OK):
             raise InputError(f"{self.run_dir}: run folder is not writable")
         ident = _identity(self.camera)
-        run_lock = FileLock(str(self.run_dir / ".hdrcap.lock"))
+        run_lock = FileLock(str(self.run_dir / SESSION_LOCK_NAME))
         cam_lock = FileLock(str(lock_dir() / (_lock_key(ident) + ".lock")))
         try:
             run_lock.acquire(timeout=0)
@@ -712,7 +796,7 @@ class CaptureSession:
             run_lock.release()
 
     # ------------------------------------------------------------------ internals
-    def _run_locked(self, ident: dict, t0: float) -> SessionResult:
+    def _run_locked(self, ident: dict[str, str], t0: float) -> SessionResult:
         manifest = Manifest(self.run_dir)
         log = EventLog(self.run_dir)
         frames_dir = self.run_dir / "frames"
@@ -742,7 +826,9 @@ class CaptureSession:
         )
         return result
 
-    def _open_manifest(self, manifest: Manifest, log: EventLog, ident: dict) -> tuple[dict[str, dict], int]:
+    def _open_manifest(
+        self, manifest: Manifest, log: EventLog, ident: dict[str, str]
+    ) -> tuple[dict[str, dict[str, Any]], int]:
         """Start the manifest, or (resume) check it was made from this plan and void the frames
         whose file is missing or changed. Returns (frames recorded by key, their number)."""
         fp = self.plan.fingerprint()
@@ -792,12 +878,19 @@ class CaptureSession:
             manifest.append({"type": "void", "key": key, "reason": "file missing or hash mismatch", "time": utc_now()})
             log.emit("void", key=key, file=rec["file"])
         log.emit("resume", frames_done=len(done), torn_manifest_lines=manifest.torn_lines, voided=len(bad))
-        isos = {r.get("iso") for r in done.values() if r.get("iso") is not None}
+        isos = {float(r["iso"]) for r in done.values() if r.get("iso") is not None}
         if self.expect is not None and self.expect.iso is None and len(isos) == 1:
-            self.expect = replace(self.expect, iso=float(isos.pop()))
+            self.expect = replace(self.expect, iso=isos.pop())
         return done, len(done)
 
-    def _adopt_landed(self, done: dict, frames_dir: Path, ident: dict, manifest: Manifest, log: EventLog) -> int:
+    def _adopt_landed(
+        self,
+        done: dict[str, dict[str, Any]],
+        frames_dir: Path,
+        ident: dict[str, str],
+        manifest: Manifest,
+        log: EventLog,
+    ) -> int:
         """Verify and record the frames whose file landed but whose manifest line was never
         written (bad ones are quarantined); returns how many were adopted."""
         adopted = 0
@@ -816,7 +909,7 @@ class CaptureSession:
                 log.emit("adopt", key=spec.key, file=rec["file"])
         return adopted
 
-    def _replay(self, done: dict) -> StreamingMerge | None:
+    def _replay(self, done: dict[str, dict[str, Any]]) -> StreamingMerge | None:
         """The merge of the frames recorded before a resume, in capture order."""
         from hdrcap.pipeline.io.raw import read_frame
 
@@ -824,14 +917,14 @@ class CaptureSession:
         if self.calibration is not None:
             for rec in sorted(done.values(), key=lambda r: r["index"]):
                 if rec["kind"] in ("light", "dark"):
-                    merger = self._feed(merger, rec, read_frame(self.run_dir / rec["file"]).data)
+                    merger = self._feed(self.calibration, merger, rec, read_frame(self.run_dir / rec["file"]).data)
         return merger
 
     def _capture_missing(
         self,
-        done: dict,
+        done: dict[str, dict[str, Any]],
         merger: StreamingMerge | None,
-        ident: dict,
+        ident: dict[str, str],
         manifest: Manifest,
         log: EventLog,
         partial_dir: Path,
@@ -862,7 +955,7 @@ class CaptureSession:
                 done[spec.key] = rec
                 captured += 1
                 if self.calibration is not None:
-                    merger = self._feed(merger, rec, values)
+                    merger = self._feed(self.calibration, merger, rec, values)
                 eta.frame_done(spec.exposure_s)
                 log.emit(
                     "frame",
@@ -903,13 +996,16 @@ class CaptureSession:
             reason = getattr(self.stop, "reason", f"stopped by signal {signum}")
             raise RunInterrupted(f"{self.run_dir}: {reason} between two frames; run again with --resume", signum)
 
-    def _feed(self, merger: StreamingMerge | None, rec: dict, values: np.ndarray) -> StreamingMerge | None:
-        """Hand a verified frame to the merge (created with the first frame: its size)."""
+    def _feed(
+        self, calibration: Calibration, merger: StreamingMerge | None, rec: dict[str, Any], values: np.ndarray
+    ) -> StreamingMerge | None:
+        """Hand a verified frame to the merge (created with the first frame: its size, and the
+        session's ``calibration``)."""
         if rec["kind"] not in ("light", "dark"):
             return merger
         if merger is None:
             strategy = self.plan.dark_strategy if not self.plan.time_strategies else self.plan.strategy_for
-            merger = StreamingMerge(self.calibration, values.shape, strategy, self.merge_options)
+            merger = StreamingMerge(calibration, values.shape, strategy, self.merge_options)
             for t, (data, n) in self.master_darks.items():
                 merger.add_master(data, t, n)
         if rec["kind"] == "dark":
@@ -922,12 +1018,12 @@ class CaptureSession:
         self,
         i: int,
         spec: FrameSpec,
-        ident: dict,
+        ident: dict[str, str],
         manifest: Manifest,
         log: EventLog,
         partial_dir: Path,
         frames_dir: Path,
-    ):
+    ) -> tuple[dict[str, Any], np.ndarray]:
         last = None
         for attempt in range(1, self.retry.max_attempts + 1):
             self._check_stop()
@@ -1003,7 +1099,9 @@ class CaptureSession:
             if fault_kind(err) == "fatal":
                 raise SessionError(f"camera lost: {err}") from None
 
-    def _verify(self, path: Path, spec: FrameSpec, applied: float, res) -> tuple[dict, np.ndarray]:
+    def _verify(
+        self, path: Path, spec: FrameSpec, applied: float, res: CaptureResult | None
+    ) -> tuple[dict[str, Any], np.ndarray]:
         """Open the file and check its size and exposure time (CorruptFrameError if not)."""
         from hdrcap.pipeline.io.raw import IMAGE_EXTENSIONS, RAW_EXTENSIONS, read_frame
 
@@ -1044,7 +1142,7 @@ class CaptureSession:
         }
         return rec, frame.data
 
-    def _check_dark(self, spec: FrameSpec, frame) -> None:
+    def _check_dark(self, spec: FrameSpec, frame: RawFrame) -> None:
         """A dark frame must be dark: its median below ``check_dark`` of the raw range and, with a
         calibration, within :func:`dark_excess_limit` of the level the calibration predicts
         (which catches a light leak at short exposures, far below a fraction of the range)."""
@@ -1068,7 +1166,7 @@ class CaptureSession:
                 f"({self.light.method}) and run again with --resume"
             )
 
-    def _check_frame_camera(self, path: Path, frame) -> None:
+    def _check_frame_camera(self, path: Path, frame: RawFrame) -> None:
         """The frame's EXIF camera and ISO against :attr:`expect` (the first frame fixes the
         run's ISO when nothing else did); VerificationError on a mismatch."""
         if self.expect is None:
@@ -1083,7 +1181,7 @@ class CaptureSession:
         if self.expect.iso is None and frame.iso is not None:
             self.expect = replace(self.expect, iso=float(frame.iso))
 
-    def _check_free_space(self, done: dict, log: EventLog) -> None:
+    def _check_free_space(self, done: dict[str, dict[str, Any]], log: EventLog) -> None:
         """Refuse to start (LocalIOError, exit 6) when the run folder's file system has no room
         for the frames still to take and the outputs (:func:`estimate_run_bytes`)."""
         todo = sum(1 for f in self.plan.frames if f.key not in done)
@@ -1100,7 +1198,7 @@ class CaptureSession:
             _emit_stop(log, stop, kind="local_io")
             raise stop
 
-    def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict) -> dict:
+    def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict[str, str]) -> dict[str, Any]:
         from hdrcap.pipeline.io.files import sha256_file
 
         self._frame_bytes = max(self._frame_bytes, final.stat().st_size)
@@ -1113,8 +1211,15 @@ class CaptureSession:
         }
 
     def _verify_and_record(
-        self, path: Path, i: int, spec: FrameSpec, res, ident, manifest: Manifest, adopted: bool = False
-    ) -> dict:
+        self,
+        path: Path,
+        i: int,
+        spec: FrameSpec,
+        res: CaptureResult | None,
+        ident: dict[str, str],
+        manifest: Manifest,
+        adopted: bool = False,
+    ) -> dict[str, Any]:
         rec, _values = self._verify(path, spec, spec.exposure_s, res)
         now = utc_now()
         rec.update(started=None, finished=now, attempts=None, adopted=adopted)
@@ -1134,7 +1239,7 @@ class CaptureSession:
 class _Eta:
     """Time left in a run: the exposures still to take plus the mean overhead per frame so far, s."""
 
-    def __init__(self, exposures: list[float]):
+    def __init__(self, exposures: list[float]) -> None:
         self.left = float(sum(exposures))
         self.t0 = time.monotonic()
         self.n = 0
@@ -1163,7 +1268,7 @@ LOCAL_IO_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACC
 
 
 def estimate_run_bytes(
-    n_frames: int, shape: tuple[int, int] | None = None, frame_bytes: int | None = None, merge: bool = True
+    n_frames: int, shape: tuple[int, ...] | None = None, frame_bytes: int | None = None, merge: bool = True
 ) -> int:
     """Disk space a run still needs, bytes: its raw files and (``merge``) the EXR and PNG outputs.
 
@@ -1190,7 +1295,7 @@ def estimate_run_bytes(
     return int(n_frames * per + outputs + FREE_SPACE_MARGIN)
 
 
-def dark_excess_limit(params, t: float, n_pixels: int) -> float:
+def dark_excess_limit(params: SensorParams, t: float, n_pixels: int) -> float:
     """How far a dark frame's median may lie above the calibrated dark level ``mu_R + g D t``
     before the light counts as not blocked, DN: 2 DN (bias drift, quantisation of the median),
     plus the dark signal itself (the dark current may double with a few degrees C), plus five
@@ -1218,7 +1323,8 @@ def dark_excess_limit(params, t: float, n_pixels: int) -> float:
 def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> None:
     """A failed download whose cause is our disk (ENOSPC and its kin anywhere in the exception
     chain, or less room left than one frame) is a LocalIOError, not the camera's fault."""
-    seen, e = set(), err
+    seen: set[int] = set()
+    e: BaseException | None = err
     while e is not None and id(e) not in seen:
         seen.add(id(e))
         if isinstance(e, OSError) and e.errno in LOCAL_IO_ERRNOS:
@@ -1243,7 +1349,7 @@ def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> No
 def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
     """The ``stop`` event: reason and exit code. A failing event log (disk full) does not hide
     the error that stopped the run."""
-    fields = {
+    fields: dict[str, Any] = {
         "reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
         "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130),
     }
@@ -1267,14 +1373,14 @@ def _link_new(src: Path, dst: Path) -> None:
         raise VerificationError(f"{dst}: exists already; the run folder is inconsistent") from None
 
 
-def _temp(camera) -> float | None:
+def _temp(camera: Camera) -> float | None:
     try:
         return camera.temperature()
     except Exception:
         return None
 
 
-def _lock_key(ident: dict) -> str:
+def _lock_key(ident: dict[str, str]) -> str:
     # a real camera is one device whatever port it is on (serial); a simulated one is one object (port)
     who = ident["serial"] if ident["serial"] and ident["backend"] != "mock" else ident["port"]
     return _safe(f"{ident['backend']}-{ident['model']}-{who}")

@@ -36,17 +36,23 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.result import HdrResult
 from hdrcap.pipeline.schema import CHANNEL_NAMES
+
+if TYPE_CHECKING:
+    import xarray as xr
+    import zarr
+    from numcodecs import Blosc
 
 __all__ = [
     "ArchiveRun",
@@ -71,7 +77,7 @@ OPTIONAL_FILL = {"quality": 0.0, "sigma_calibration": float("nan")}
 _JSON_COORDS = ("exposure_times", "plan", "merge_options", "calibration", "header")
 #: Every coordinate along ``run`` (besides ``run`` itself).
 RUN_COORDS = ("start_time", "folder", "n_frames") + _JSON_COORDS
-_FORMAT = 2
+_FORMAT: Literal[2] = 2
 _TIME_UNITS = "microseconds since 1970-01-01T00:00:00"
 _FAILED_ATTR = "hdrcap_failed_runs"
 
@@ -167,7 +173,7 @@ class ArchiveRun:
     channels: dict[str, np.ndarray]
     header: dict[str, Any]
     exposure_times: list[float]
-    plan: dict | None = None
+    plan: dict[str, Any] | None = None
     merge_options: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
     staged: dict[str, str] = field(default_factory=dict)
@@ -179,7 +185,8 @@ class ArchiveRun:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return tuple(self.staged_shape) if self.staged else self.channels["irradiance"].shape
+        h, w = self.staged_shape if self.staged else self.channels["irradiance"].shape
+        return h, w
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The channels, decoded from the staged chunk files if the run was staged."""
@@ -205,7 +212,7 @@ def _utc_datetime64(iso: str) -> np.datetime64:
     return np.datetime64(t, "us")
 
 
-def _coords(run: ArchiveRun, index: int) -> dict[str, tuple]:
+def _coords(run: ArchiveRun, index: int) -> dict[str, tuple[str, np.ndarray, dict[str, str]]]:
     """The coordinates along ``run`` of ``run`` at position ``index``."""
     values = {
         "run": np.array([index], dtype=np.int64),
@@ -221,7 +228,7 @@ def _coords(run: ArchiveRun, index: int) -> dict[str, tuple]:
     return {name: ("run", v, _COORD_ATTRS[name]) for name, v in values.items()}
 
 
-def _dataset(run: ArchiveRun, index: int):
+def _dataset(run: ArchiveRun, index: int) -> xr.Dataset:
     """The one-run xarray Dataset of ``run`` at position ``index``."""
     import xarray as xr
 
@@ -233,7 +240,7 @@ def _dataset(run: ArchiveRun, index: int):
     return xr.Dataset(data, coords=_coords(run, index))
 
 
-def _dataset_coords(run: ArchiveRun, index: int):
+def _dataset_coords(run: ArchiveRun, index: int) -> xr.Dataset:
     """The one-run Dataset of ``run``'s coordinates only (its arrays are staged), as variables:
     the per-photosite arrays' ``coordinates`` attribute already makes them coordinates."""
     import xarray as xr
@@ -241,15 +248,15 @@ def _dataset_coords(run: ArchiveRun, index: int):
     return xr.Dataset(coords=_coords(run, index)).reset_coords()
 
 
-def _codec():
+def _codec() -> Blosc:
     """The compressor of the per-photosite chunks (workers encode staged chunks with it)."""
     from numcodecs import Blosc
 
     return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
 
 
-def _encoding(shape: tuple[int, int]) -> dict[str, dict]:
-    enc: dict[str, dict] = {name: {"chunks": (1, *shape), "compressors": (_codec(),)} for name in CHANNELS}
+def _encoding(shape: tuple[int, int]) -> dict[str, dict[str, Any]]:
+    enc: dict[str, dict[str, Any]] = {name: {"chunks": (1, *shape), "compressors": (_codec(),)} for name in CHANNELS}
     enc.update({name: {"chunks": (1,)} for name in ("run", *RUN_COORDS)})
     enc["start_time"].update(units=_TIME_UNITS, dtype="int64")
     return enc
@@ -268,7 +275,22 @@ def _global_attrs() -> dict[str, str]:
     }
 
 
-def open_archive(path):
+def _array(group: zarr.Group, name: str) -> zarr.Array:
+    """The array ``name`` of an archive's zarr group (InputError when it is a group: not an archive)."""
+    import zarr
+
+    arr = group[name]
+    if not isinstance(arr, zarr.Array):
+        raise InputError(f"{group.store_path}: {name} is a group, not an array; not an hdrcap archive")
+    return arr
+
+
+def _folders(group: zarr.Group) -> list[str]:
+    """The ``folder`` coordinate of an archive's zarr group: the run folders, in run order."""
+    return [str(f) for f in np.asarray(_array(group, "folder")[:])]
+
+
+def open_archive(path: str | os.PathLike[str]) -> xr.Dataset:
     """The archive at ``path`` as an xarray Dataset of its committed runs (lazy, dask-backed).
 
     Parameters
@@ -283,10 +305,10 @@ def open_archive(path):
     """
     import xarray as xr
 
-    path = Path(path)
-    if not (path / ".zmetadata").is_file():
-        raise InputError(f"{path}: not an hdrcap archive (no consolidated zarr metadata)")
-    return xr.open_zarr(path, consolidated=True)
+    folder = Path(path)
+    if not (folder / ".zmetadata").is_file():
+        raise InputError(f"{folder}: not an hdrcap archive (no consolidated zarr metadata)")
+    return xr.open_zarr(folder, consolidated=True)
 
 
 def read_run(path: str | Path, index: int) -> HdrResult:
@@ -349,7 +371,7 @@ class Archive:
         The ``.zarr`` folder; created by the first :meth:`commit`.
     """
 
-    def __init__(self, path):
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.lock_path = self.path.with_name(self.path.name + ".lock")
 
@@ -366,7 +388,7 @@ class Archive:
             return {}
         return {str(f): int(r) for f, r in zip(ds["folder"].values, ds["run"].values)}
 
-    def failed(self) -> dict[str, dict]:
+    def failed(self) -> dict[str, dict[str, str]]:
         """Folder -> {"error", "time"} of the runs whose last attempt failed."""
         if not self.exists():
             return {}
@@ -388,7 +410,7 @@ class Archive:
         import zarr
 
         committed = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
-        n = committed["run"].shape[0]
+        n = _array(committed, "run").shape[0]
         group = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
         for _name, arr in group.arrays():
             if arr.shape[0] > n:
@@ -455,18 +477,18 @@ class Archive:
                 and "irradiance" in group
                 and len({r.folder for r in runs}) == len(runs)
                 and all(r.staged for r in runs)
-                and all(tuple(r.shape) == tuple(group["irradiance"].shape[1:]) for r in runs)
-                and not {r.folder for r in runs} & {str(f) for f in group["folder"][:]}
+                and all(tuple(r.shape) == tuple(_array(group, "irradiance").shape[1:]) for r in runs)
+                and not {r.folder for r in runs} & set(_folders(group))
                 and self._chunks_compatible(group)
             )
-            if together:
+            if together and group is not None:
                 attrs = dict(group.attrs)
                 attrs.pop("coordinates", None)
-                failed = json.loads(attrs.get(_FAILED_ATTR, "{}"))
+                failed = json.loads(str(attrs.get(_FAILED_ATTR, "{}")))
                 for r in runs:
                     failed.pop(r.folder, None)
                 attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
-                numbers = self._append_staged_many(runs, group["run"].shape[0], attrs)
+                numbers = self._append_staged_many(runs, _array(group, "run").shape[0], attrs)
             else:
                 numbers = [self._commit(r, replace) for r in runs]
         for r in runs:
@@ -482,9 +504,9 @@ class Archive:
         if self.exists():
             self._repair()
             group = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
-        attrs = _global_attrs() if group is None else dict(group.attrs)
+        attrs: dict[str, Any] = _global_attrs() if group is None else dict(group.attrs)
         attrs.pop("coordinates", None)
-        failed = json.loads(attrs.get(_FAILED_ATTR, "{}"))
+        failed = json.loads(str(attrs.get(_FAILED_ATTR, "{}")))
         failed.pop(run.folder, None)
         attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
         if group is None or "irradiance" not in group:  # the first run (perhaps after failures only)
@@ -492,14 +514,14 @@ class Archive:
             ds.attrs.update(attrs)
             ds.to_zarr(self.path, mode="w", consolidated=True, zarr_format=_FORMAT, encoding=_encoding(run.shape))
             return 0
-        n = group["run"].shape[0]
-        shape = tuple(group["irradiance"].shape[1:])
+        n = _array(group, "run").shape[0]
+        shape = tuple(_array(group, "irradiance").shape[1:])
         if tuple(run.shape) != shape:
             raise InputError(
                 f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
                 f"archive's {shape[1]}x{shape[0]}"
             )
-        folders = [str(f) for f in group["folder"][:]]
+        folders = _folders(group)
         if run.folder in folders:
             if not replace:
                 raise InputError(f"{run.folder}: already in {self.path} as run {folders.index(run.folder)}")
@@ -516,10 +538,14 @@ class Archive:
         return n
 
     @staticmethod
-    def _chunks_compatible(group) -> bool:
+    def _chunks_compatible(group: zarr.Group) -> bool:
         """Whether staged chunk files can be moved in as they are (same codec, dtype, layout)."""
+        from zarr.core.metadata import ArrayV2Metadata
+
         for name in CHANNELS:
-            meta = group[name].metadata
+            meta = _array(group, name).metadata
+            if not isinstance(meta, ArrayV2Metadata):  # the archive is zarr format 2
+                return False
             if (
                 meta.compressor != _codec()
                 or meta.filters
@@ -530,16 +556,14 @@ class Archive:
                 return False
         return True
 
-    def _append_staged(self, run: ArchiveRun, n: int, attrs: dict) -> int:
+    def _append_staged(self, run: ArchiveRun, n: int, attrs: dict[str, Any]) -> int:
         """Append a staged run (:meth:`_append_staged_many` of one run)."""
         return self._append_staged_many([run], n, attrs)[0]
 
-    def _append_staged_many(self, runs: list[ArchiveRun], n: int, attrs: dict) -> list[int]:
+    def _append_staged_many(self, runs: list[ArchiveRun], n: int, attrs: dict[str, Any]) -> list[int]:
         """Append staged runs as runs n, n+1, ...: their coordinates (xarray, one append), the
         per-photosite arrays grown by that many runs and the chunk files renamed into place,
         then the commit (consolidated metadata)."""
-        import os
-
         import xarray as xr
         import zarr
 
@@ -549,7 +573,7 @@ class Archive:
         ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=False, zarr_format=_FORMAT)
         group = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
         for name in CHANNELS:
-            arr = group[name]
+            arr = _array(group, name)
             arr.resize((n + len(runs), *arr.shape[1:]))
             for i, run in enumerate(runs):
                 os.replace(run.staged[name], self.path / name / arr.metadata.encode_chunk_key((n + i, 0, 0)))
@@ -594,7 +618,7 @@ class Archive:
                 self._repair()
             self._set_failed(folder, error)
 
-    def _init_empty(self, root) -> None:
+    def _init_empty(self, root: zarr.Group) -> None:
         import zarr
 
         arr = root.create_array("run", shape=(0,), chunks=(1,), dtype="int64")
@@ -605,7 +629,7 @@ class Archive:
         import zarr
 
         root = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
-        failed = json.loads(root.attrs.get(_FAILED_ATTR, "{}"))
+        failed = json.loads(str(root.attrs.get(_FAILED_ATTR, "{}")))
         if error is None:
             if folder not in failed:
                 return
@@ -637,8 +661,6 @@ def stage_channels(staging: tuple[str, str] | None, key: str, channels: dict[str
         Channel name -> staged file; empty when the worker does not see the staging folder
         (no shared file system): then the arrays go to the client.
     """
-    import os
-
     if staging is None:
         return {}
     folder, token = Path(staging[0]), staging[1]

@@ -28,10 +28,17 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.merge.accumulator import MergeOptions
+from hdrcap.pipeline.merge.accumulator import MergeOptions, as_strategy
+
+if TYPE_CHECKING:
+    from distributed import Client, Future
+
+    from hdrcap.batch.archive import Archive
+    from hdrcap.pipeline.params import Calibration
+    from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
     "RunSource",
@@ -69,7 +76,7 @@ class RunSource:
     frames: tuple[str, ...]
     darks: tuple[str, ...] = ()
     start_time: str | None = None
-    plan: dict | None = None
+    plan: dict[str, Any] | None = None
     dark_strategy: str | None = None
 
 
@@ -145,7 +152,7 @@ class BatchReport:
     client_cpu_seconds: float = 0.0
     startup_seconds: float = 0.0
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "archive": self.archive,
             "committed": len(self.committed),
@@ -208,7 +215,8 @@ def find_runs(paths: Sequence[Path]) -> list[RunSource]:
     """
     from hdrcap.acquire.capture.manifest import MANIFEST_NAME
 
-    out, seen = [], set()
+    out: list[RunSource] = []
+    seen: set[str] = set()
     for p in paths:
         folder = Path(p).resolve()
         if not folder.is_dir():
@@ -237,14 +245,14 @@ def calibration_identity(calibration: str | None, camera: str | None) -> dict[st
 
 # --------------------------------------------------------------------------- the task
 @functools.lru_cache(maxsize=4)
-def _calibration(calibration: str | None, camera: str | None):
+def _calibration(calibration: str | None, camera: str | None) -> Calibration:
     """The calibration, loaded once per worker process."""
     from hdrcap.acquire.camera.model import camera_model
 
     return camera_model(calibration, camera)
 
 
-def _start_time(source: RunSource, result: Any) -> str:
+def _start_time(source: RunSource, result: HdrResult) -> str:
     if source.start_time:
         return source.start_time
     stamps = result.header.get("capture_times") or [None]
@@ -307,7 +315,7 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
     strategy = settings.dark_strategy or (None if plan is not None else source.dark_strategy)
     options, given = settings.options, settings.given
     if strategy and options.dark_strategy is None:
-        options = dataclasses.replace(options, dark_strategy=strategy)
+        options = dataclasses.replace(options, dark_strategy=as_strategy(strategy))
         given = given | {"dark_strategy"} if settings.dark_strategy else given
     warnings: list[str] = []
     result = merge_files(
@@ -346,7 +354,7 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
 
 # --------------------------------------------------------------------------- the driver
 @contextmanager
-def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Any]:
+def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Client]:
     """A dask.distributed client: of the scheduler at ``scheduler``, or of a local cluster of
     ``workers`` worker processes running one task at a time, each with ``threads`` threads for
     the merge kernel (default: its share of the cores). Results are fetched from the workers
@@ -358,8 +366,8 @@ def _client(workers: int | None, scheduler: str | None, threads: int | None = No
             yield client
         return
     n = workers or max(1, (os.cpu_count() or 1))
-    threads = str(threads or max(1, (os.cpu_count() or 1) // n))
-    env = {"NUMBA_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
+    per_worker = str(threads or max(1, (os.cpu_count() or 1) // n))
+    env = {"NUMBA_NUM_THREADS": per_worker, "OMP_NUM_THREADS": per_worker}
     with (
         LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=env) as cluster,
         Client(cluster, direct_to_workers=True) as client,
@@ -380,7 +388,7 @@ def _task_key(source: RunSource) -> str:
 
 def run_batch(
     paths: Sequence[Path],
-    archive,
+    archive: str | os.PathLike[str],
     settings: BatchSettings,
     *,
     workers: int | None = None,
@@ -388,7 +396,7 @@ def run_batch(
     threads: int | None = None,
     force: bool = False,
     progress: bool | None = None,
-    on_submit: Callable[[Any], None] | None = None,
+    on_submit: Callable[[Client], None] | None = None,
 ) -> BatchReport:
     """Merge the runs of ``paths`` on dask.distributed and commit each to ``archive``.
 
@@ -441,7 +449,19 @@ def run_batch(
     return report
 
 
-def _run_tasks(todo, settings, staging, store, report, workers, scheduler, threads, force, progress, on_submit):
+def _run_tasks(
+    todo: list[RunSource],
+    settings: BatchSettings,
+    staging: tuple[str, str],
+    store: Archive,
+    report: BatchReport,
+    workers: int | None,
+    scheduler: str | None,
+    threads: int | None,
+    force: bool,
+    progress: bool | None,
+    on_submit: Callable[[Client], None] | None,
+) -> None:
     """Submit one task per run and commit (or record the failure of) each as it finishes."""
     from distributed import as_completed
     from tqdm import tqdm
@@ -462,10 +482,10 @@ def _run_tasks(todo, settings, staging, store, report, workers, scheduler, threa
                 bar.update(len(done))
 
 
-def _land_many(finished, store, force: bool, report: BatchReport) -> None:
+def _land_many(finished: list[tuple[Future, RunSource]], store: Archive, force: bool, report: BatchReport) -> None:
     """Commit finished tasks' runs to the archive (together when they can be, see
     :meth:`hdrcap.batch.archive.Archive.commit_many`), or record each failure."""
-    good = []
+    good: list[tuple[RunSource, RunOutcome]] = []
     for fut, source in finished:
         try:
             out = fut.result()
@@ -493,13 +513,13 @@ def _land_many(finished, store, force: bool, report: BatchReport) -> None:
         _land(source, out, store, force, report)
 
 
-def _record_failure(store, source: RunSource, err: BaseException, report: BatchReport) -> None:
+def _record_failure(store: Archive, source: RunSource, err: BaseException, report: BatchReport) -> None:
     message = _describe(err)
     store.record_failure(source.folder, message)
     report.failed[source.folder] = message
 
 
-def _land(source: RunSource, out: RunOutcome, store, force: bool, report: BatchReport) -> None:
+def _land(source: RunSource, out: RunOutcome, store: Archive, force: bool, report: BatchReport) -> None:
     """Commit one finished task's run to the archive, or record its failure."""
     try:
         t0 = time.perf_counter()

@@ -14,7 +14,6 @@ import dataclasses
 import logging
 import math
 import os
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from hdrcap.acquire.capture.job import Job, capture_job
+from hdrcap.acquire.capture.session import StopEvent
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.result import HdrResult
 
@@ -218,7 +218,7 @@ class Measurer:
         *,
         target_snr_db: float | None = None,
         scene_scale: float = 1.0,
-        stop: threading.Event | None = None,
+        stop: StopEvent | None = None,
     ) -> Measurement:
         """One measurement into the new run folder ``run_dir``.
 
@@ -230,7 +230,7 @@ class Measurer:
             Plan for this SNR, dB; None or NaN: the fixed bracket.
         scene_scale : float
             Simulated camera: the factor on the scene's irradiance (1 for a real camera).
-        stop : threading.Event, optional
+        stop : hdrcap.acquire.capture.session.StopEvent, optional
             Set to stop before the next frame (:class:`hdrcap.acquire.capture.session.RunInterrupted`;
             the run folder stays resumable).
 
@@ -263,6 +263,8 @@ class Measurer:
             stop=stop,
             return_result=True,
         )
+        if session is None or session.merge is None:  # not for a new run with a calibration
+            raise RuntimeError(f"{run_dir}: the run produced no merge")
         self.count += 1
         result = session.merge
         readings = self._readings(session, result, job, time.monotonic() - t0, scene_scale, run_dir)

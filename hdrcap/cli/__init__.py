@@ -24,7 +24,7 @@ __all__ = ["cli", "main"]
 
 
 class _Group(click.Group):
-    def list_commands(self, ctx):
+    def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(super().list_commands(ctx))
 
 
@@ -44,6 +44,10 @@ def cli(verbose: int, quiet: int) -> None:
     setup_logging(verbose - quiet)
 
 
+#: The name of the stderr handler :func:`setup_logging` adds (once) to the ``hdrcap`` logger.
+_HANDLER_NAME = "hdrcap.cli"
+
+
 def setup_logging(level: int = 0) -> None:
     """Log messages of the ``hdrcap`` loggers (the run's events, warnings) to stderr through
     the standard :mod:`logging` module: ``level`` 0 warnings (faults, stops), 1 (-v) every
@@ -58,10 +62,10 @@ def setup_logging(level: int = 0) -> None:
 
     logger = logging.getLogger("hdrcap")
     logger.setLevel({-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(max(-1, min(level, 2)), logging.DEBUG))
-    if not any(getattr(h, "_hdrcap", False) for h in logger.handlers):
+    if not any(h.get_name() == _HANDLER_NAME for h in logger.handlers):
         handler = logging.StreamHandler()
         handler.setFormatter(logging.Formatter("hdrcap: %(levelname)s: %(message)s"))
-        handler._hdrcap = True
+        handler.set_name(_HANDLER_NAME)
         logger.addHandler(handler)
         logger.propagate = False
 
@@ -88,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except HdrcapError as err:
         args = sys.argv[1:] if argv is None else list(map(str, argv))
-        if "--json" in args and not getattr(err, "reported", False):  # the error as JSON too
+        if "--json" in args and not err.reported:  # the error as JSON too
             from hdrcap.acquire.capture.notify import error_summary
             from hdrcap.cli.util import echo_json
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,10 +22,10 @@ class ManyValuesCommand(click.Command):
 
     many_value_options: tuple[str, ...] = ()
 
-    def parse_args(self, ctx, args):
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         opts = set(getattr(self, "many_value_options", ()))
         out: list[str] = []
-        current = None
+        current: str | None = None
         for tok in args:
             if tok == "--":
                 current = None
@@ -50,12 +51,12 @@ def _is_number(tok: str) -> bool:
         return False
 
 
-def many_values(*names: str):
+def many_values(*names: str) -> Callable[[click.Command], click.Command]:
     """Decorator: make a command parse ``names`` as multi-value options."""
 
     def deco(cmd: click.Command) -> click.Command:
-        cmd.__class__ = type("ManyValues" + type(cmd).__name__, (ManyValuesCommand, type(cmd)), {})
-        cmd.many_value_options = tuple(names)
+        bases = (ManyValuesCommand, type(cmd))
+        cmd.__class__ = type("ManyValues" + type(cmd).__name__, bases, {"many_value_options": tuple(names)})
         return cmd
 
     return deco
@@ -66,7 +67,7 @@ def echo_json(obj: Any) -> None:
     click.echo(json.dumps(obj, sort_keys=True, default=_default))
 
 
-def _default(obj):
+def _default(obj: object) -> object:
     import numpy as np
 
     if isinstance(obj, (np.floating, np.integer)):

@@ -456,17 +456,20 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate]) -> dict[str, Any] | None:
         the reduced chi^2 when it exceeds 1), ``reduced_chi2``, ``n_bins``, ``n_photosites``;
         None with fewer than 3 bins or a signal range under a factor 4.
     """
-    x1, x2, y, n = [], [], [], []
+    x1s: list[np.ndarray] = []
+    x2s: list[np.ndarray] = []
+    ys: list[np.ndarray] = []
+    ns: list[np.ndarray] = []
     for q in pairs:
         if not q.overlap or not q.count.size:
             continue
-        x1.append(q.signal * (1.0 + q.ratio))
-        x2.append(np.full(q.signal.size, 1.0 + q.ratio**2))
-        y.append(q.variance)
-        n.append(q.count)
-    if not y:
+        x1s.append(q.signal * (1.0 + q.ratio))
+        x2s.append(np.full(q.signal.size, 1.0 + q.ratio**2))
+        ys.append(q.variance)
+        ns.append(q.count)
+    if not ys:
         return None
-    x1, x2, y, n = (np.concatenate(c) for c in (x1, x2, y, n))
+    x1, x2, y, n = (np.concatenate(c) for c in (x1s, x2s, ys, ns))
     sig = x1 / np.maximum(x2, 1)
     if y.size < 3 or sig.max() < 4 * max(sig.min(), 1e-12):
         return None
@@ -564,10 +567,10 @@ def self_calibrate(
         note(f"{first.path}: no white level in the file; 65535 DN assumed")
     white = float(first.white_level or 65535.0)
     tile = cfa_black_tile(first)
-    levels = {fr.black_level for fr in frames}
+    levels = {0.0 if fr.black_level is None else fr.black_level for fr in frames}  # None: 0 DN assumed
     if len(levels) > 1:
         note(
-            f"black levels differ between frames ({', '.join(f'{b:g}' for b in sorted(levels, key=float))} DN); "
+            f"black levels differ between frames ({', '.join(f'{b:g}' for b in sorted(levels))} DN); "
             f"{first.path}'s used"
         )
     nominal = np.array([fr.exposure_time for fr in frames], float)
@@ -598,7 +601,7 @@ def self_calibrate(
         )
     eff, rel_t = _chain_times(nominal, order, pairs)
     gain_known = bool(fit and fit["g"] > 0 and fit["g_stderr"] < MAX_GAIN_RELATIVE_ERROR * fit["g"])
-    if not gain_known:
+    if fit is None or not gain_known:
         note(
             "too few photosites or signal levels to estimate the gain: irradiance in DN/s (g = 1 DN/e- assumed), "
             "sigma relative only"

@@ -71,7 +71,6 @@ accumulating in float64.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -97,9 +96,6 @@ __all__ = [
     "bilateral_constant",
     "denoise",
     "normalised_mse",
-    "layout_from_metadata",
-    "settings_from_options",
-    "denoise_header",
 ]
 
 #: Range bandwidth as a multiple of the predicted sigma (Sec. 9: "according to the predicted
@@ -597,111 +593,3 @@ def normalised_mse(estimate: ArrayLike, truth: ArrayLike, mask: ArrayLike | None
     if not ok.any():
         raise ValueError("no photosite with truth > 0 to compare")
     return float(np.mean(((est[ok] - tru[ok]) / tru[ok]) ** 2))
-
-
-# --------------------------------------------------------------------------- settings and header
-
-
-def layout_from_metadata(metadata: Mapping[str, Any]) -> str:
-    """The layout a merge's metadata implies.
-
-    Parameters
-    ----------
-    metadata : mapping
-        EXR header attributes or :class:`hdrcap.api.HdrResult` metadata.
-
-    Returns
-    -------
-    str
-        ``"cfa"`` when ``cfa_pattern`` names a 2x2 Bayer pattern, else ``"mono"``.
-    """
-    cfa = metadata.get("cfa_pattern")
-    if isinstance(cfa, str) and len(cfa) == 4 and set(cfa) <= set("RGBE") and len(set(cfa)) > 1:
-        return "cfa"
-    return "mono"
-
-
-def settings_from_options(
-    method: str,
-    range_scale: float | None,
-    bandwidth: float | None,
-    radius: int | None,
-    spatial_sigma: float | None,
-    layout: str,
-) -> DenoiseSettings:
-    """Filter settings from optional values (None: the default).
-
-    Parameters
-    ----------
-    method : {"adaptive", "constant"}
-        Bandwidth rule.
-    range_scale : float or None
-        K, multiple of the predicted sigma (default :data:`DEFAULT_RANGE_SCALE`).
-    bandwidth : float or None
-        Constant range bandwidth, e-/s (the constant method needs it).
-    radius : int or None
-        Half-width of the support, same-colour steps (default :data:`DEFAULT_RADIUS`).
-    spatial_sigma : float or None
-        Spatial standard deviation, same-colour steps (default :data:`DEFAULT_SPATIAL_SIGMA`).
-    layout : {"cfa", "mono"}
-        Layout of the image.
-
-    Returns
-    -------
-    DenoiseSettings
-
-    Raises
-    ------
-    InputError
-        Invalid settings.
-    """
-    return DenoiseSettings(
-        method=method,
-        range_scale=DEFAULT_RANGE_SCALE if range_scale is None else range_scale,
-        bandwidth=bandwidth,
-        radius=DEFAULT_RADIUS if radius is None else radius,
-        spatial_sigma=DEFAULT_SPATIAL_SIGMA if spatial_sigma is None else spatial_sigma,
-        layout=layout,
-    )
-
-
-def denoise_header(
-    settings: DenoiseSettings,
-    result: DenoiseResult,
-    layout_source: str,
-    input_sigma: str,
-    version: str,
-    source_file: str | None = None,
-) -> dict[str, Any]:
-    """The ``denoise`` entry of a filtered image's header: what was done, with which settings.
-
-    Parameters
-    ----------
-    settings : DenoiseSettings
-        The filter settings.
-    result : DenoiseResult
-        The filter's result.
-    layout_source : str
-        Where the layout came from (metadata or an explicit choice).
-    input_sigma : str
-        What the input's sigma meant.
-    version : str
-        hdrcap version.
-    source_file : str, optional
-        The input file.
-
-    Returns
-    -------
-    dict
-        ``filter``, ``settings``, ``layout_source``, ``source_file`` (when given),
-        ``input_sigma``, ``unchanged_nexp0`` (photosites), ``hdrcap_version``.
-    """
-    head: dict[str, Any] = {
-        "filter": "bilateral, range bandwidth from the predicted uncertainty (Granados et al., Sec. 9)",
-        "settings": settings.to_dict(),
-        "layout_source": layout_source,
-    }
-    if source_file is not None:
-        head["source_file"] = source_file
-    head.update(input_sigma=input_sigma, unchanged_nexp0=result.info["unchanged_nexp0"], hdrcap_version=version)
-    return head

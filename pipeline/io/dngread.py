@@ -19,10 +19,14 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
+
+if TYPE_CHECKING:
+    import tifffile
 
 __all__ = ["DngPixels", "decode_dng", "raw_page"]
 
@@ -61,7 +65,7 @@ class DngPixels:
     white_level: float
 
 
-def raw_page(tif):
+def raw_page(tif: tifffile.TiffFile) -> tifffile.TiffPage | None:
     """The one full-resolution CFA image of an open :class:`tifffile.TiffFile`, or None.
 
     Looks at IFD0 and its SubIFDs (where DNG converters put the raw image behind a preview).
@@ -82,7 +86,7 @@ def raw_page(tif):
     return raws[0] if len(raws) == 1 else None
 
 
-def decode_dng(path: Path, tif, mmap: bool = True) -> DngPixels | None:
+def decode_dng(path: Path, tif: tifffile.TiffFile, mmap: bool = True) -> DngPixels | None:
     """Decode the raw image of a simple DNG, or return None when LibRaw has to.
 
     Parameters
@@ -104,7 +108,10 @@ def decode_dng(path: Path, tif, mmap: bool = True) -> DngPixels | None:
     InputError
         The image data runs past the end of the file or does not match the dimensions.
     """
-    if 50706 not in tif.pages[0].tags:  # DNGVersion: not a DNG
+    import tifffile
+
+    first = tif.pages[0]
+    if not isinstance(first, tifffile.TiffPage) or 50706 not in first.tags:  # DNGVersion: not a DNG
         return None
     page = raw_page(tif)
     if page is None or not _is_simple(page):

@@ -24,10 +24,14 @@ A DNG carries no uncertainty: sigma, sigma_calibration, nexp and quality stay in
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.files import atomic_output
@@ -153,7 +157,7 @@ def _tag_entry(tag) -> tuple | None:
     return (tag.code, int(tag.dtype), len(value), value, True)
 
 
-def source_colour_tags(path) -> list[tuple]:
+def source_colour_tags(path: str | os.PathLike[str]) -> list[tuple]:
     """The :data:`COPIED_TAGS` of a DNG's IFD0, as tifffile extratags.
 
     Parameters
@@ -170,7 +174,10 @@ def source_colour_tags(path) -> list[tuple]:
 
     try:
         with tifffile.TiffFile(path) as tif:
-            tags = tif.pages[0].tags
+            page = tif.pages[0]
+            if not isinstance(page, tifffile.TiffPage):  # tifffile reads the first IFD as a page
+                return []
+            tags = page.tags
             entries = [_tag_entry(tags[code]) for code in COPIED_TAGS if code in tags]
     except (OSError, ValueError, tifffile.TiffFileError):
         return []
@@ -254,7 +261,7 @@ class CameraColour:
     as_shot_white_xy: tuple[float, ...] | None = None
     source: str = ""
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in _MATRIX_TAGS:
             object.__setattr__(self, name, _floats(getattr(self, name), 9, name))
         for name, (_, n) in _VECTOR_TAGS.items():
@@ -305,14 +312,16 @@ def colour_from_dng_tags(tags: dict, source: str = "") -> CameraColour | None:
     """
     if 50721 not in tags:
         return None
-    fields = {name: tags.get(code) for name, code in _MATRIX_TAGS.items()}
+    fields: dict[str, Any] = {name: tags.get(code) for name, code in _MATRIX_TAGS.items()}
     fields.update({name: tags.get(code) for name, (code, _) in _VECTOR_TAGS.items()})
     fields.update({name: tags[code] for name, code in _ILLUMINANT_TAGS.items() if code in tags})
     fields.setdefault("illuminant_1", D65_LIGHT_SOURCE)
     return CameraColour(**fields, source=source)
 
 
-def colour_from_libraw(rgb_xyz_matrix, camera_whitebalance, color_desc, source: str = "") -> CameraColour | None:
+def colour_from_libraw(
+    rgb_xyz_matrix: ArrayLike, camera_whitebalance: Sequence[float], color_desc: bytes | str, source: str = ""
+) -> CameraColour | None:
     """The :class:`CameraColour` of LibRaw's metadata (rawpy's attributes of the same names).
 
     LibRaw's ``rgb_xyz_matrix`` is Adobe's XYZ-to-camera matrix for D65 (one row per camera
@@ -355,7 +364,7 @@ def colour_from_libraw(rgb_xyz_matrix, camera_whitebalance, color_desc, source: 
     return CameraColour(color_matrix_1=tuple(cm.ravel()), as_shot_neutral=neutral, source=source)
 
 
-def camera_colour(path) -> CameraColour | None:
+def camera_colour(path: str | os.PathLike[str]) -> CameraColour | None:
     """The colour metadata of a raw file: its DNG colour tags, else LibRaw's camera matrix.
 
     Parameters
@@ -375,7 +384,10 @@ def camera_colour(path) -> CameraColour | None:
     path = Path(path)
     try:
         with _tiff_complaints(), tifffile.TiffFile(path) as tif:  # what tifffile logs stays off the terminal
-            tags = {code: tag.value for code, tag in tif.pages[0].tags.items() if code in COPIED_TAGS}
+            page = tif.pages[0]
+            if not isinstance(page, tifffile.TiffPage):  # tifffile reads the first IFD as a page
+                raise TypeError("the first IFD is not a TIFF page")
+            tags = {code: tag.value for code, tag in page.tags.items() if code in COPIED_TAGS}
         found = colour_from_dng_tags(tags, source=f"{path.name}: DNG colour tags")
     except InputError as err:
         raise InputError(f"{path}: {err}") from None
@@ -437,13 +449,14 @@ def _cfa_codes(cfa: str) -> tuple[int, int, int, int]:
     """CFAPattern bytes of a 2x2 Bayer tile such as ``"RGGB"``."""
     if len(cfa) != 4 or any(c not in _CFA_CODES for c in cfa):
         raise InputError(f"float DNG: needs a 2x2 Bayer CFA pattern, the merge has {cfa!r}")
-    return tuple(_CFA_CODES[c] for c in cfa)
+    codes = [_CFA_CODES[c] for c in cfa]
+    return codes[0], codes[1], codes[2], codes[3]
 
 
 def _dng_tags(cfa: str, layout: DngFloatLayout, colour: list[tuple]) -> list[tuple]:
     """CFA layout, DNG version, levels and colour tags (tifffile extratags)."""
     have = {e[0] for e in colour}
-    tags = [
+    tags: list[tuple] = [
         (33421, 3, 2, (2, 2), True),  # CFARepeatPatternDim
         (33422, 1, 4, _cfa_codes(cfa), True),  # CFAPattern
         (50706, 1, 4, (1, 4, 0, 0), True),  # DNGVersion
@@ -471,7 +484,12 @@ def _libraw_colour_tags(source, have: set[int]) -> list[tuple]:
 
 
 def write_float_dng(
-    path, result: HdrResult, *, bits: int = 32, force: bool = False, source: str | Path | None = None
+    path: str | os.PathLike[str],
+    result: HdrResult,
+    *,
+    bits: int = 32,
+    force: bool = False,
+    source: str | Path | None = None,
 ) -> DngFloatLayout:
     """Write the irradiance of a merge as a linear float CFA DNG.
 
@@ -515,8 +533,8 @@ def write_float_dng(
         colour += _libraw_colour_tags(source, {e[0] for e in colour})
     unit = result.header.get("unit") or UNIT_ELECTRONS
     # A power of two scales a float32 exactly: the only rounding is float16's, when bits is 16.
-    stored = irr if layout.exponent == 0 else irr * np.float32(2.0**-layout.exponent)
-    stored = stored.astype(np.float32 if bits == 32 else np.float16, copy=False)
+    scaled = irr if layout.exponent == 0 else irr * np.float32(2.0**-layout.exponent)
+    stored = scaled.astype(np.float32 if bits == 32 else np.float16, copy=False)
     from hdrcap import __version__
 
     description = f"hdrcap merged irradiance: value * 2^{layout.exponent} = irradiance in {unit}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,7 +41,7 @@ class EmvaDataset:
         return [s for s in self.steps if s.kind == "d"]
 
 
-def read_emva_descriptor(path) -> EmvaDataset:
+def read_emva_descriptor(path: str | os.PathLike[str]) -> EmvaDataset:
     """Parse an EMVA 1288 descriptor (``EMVA1288_Data.txt``).
 
     Lines: ``v`` version, ``n bits width height``, ``b <t ns> <photons>`` and ``d <t ns>`` open
@@ -99,7 +100,7 @@ def read_emva_descriptor(path) -> EmvaDataset:
             except (ValueError, IndexError) as err:
                 raise InputError(f"{path}:{lineno}: bad EMVA 1288 descriptor line ({err})") from None
     close()
-    if bits is None:
+    if bits is None or width is None or height is None:  # set together
         raise InputError(f"{path}: no 'n bits width height' line; not an EMVA 1288 descriptor")
     if not steps:
         raise InputError(f"{path}: no b/d steps")

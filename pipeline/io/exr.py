@@ -11,6 +11,7 @@ import json
 import math
 import os
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -26,10 +27,12 @@ __all__ = [
     "HALF_RANGE",
     "HALF_RELATIVE_ERROR",
     "ExrContent",
+    "ExrRows",
     "as_stored",
     "read_exr",
     "ExrLayout",
     "read_exr_layout",
+    "stored_precisions",
     "write_exr",
 ]
 
@@ -99,7 +102,7 @@ def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
         return np.ascontiguousarray(arr)  # already half: stored as it is, nothing to lose or check
     if precision in ("half", "auto"):
         lo, hi = _magnitude_range(arr)
-        fits = lo is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
+        fits = lo is None or hi is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
         if precision == "auto":
             precision = "half" if fits else "float"
         elif not fits:
@@ -144,7 +147,7 @@ def _whole_uint32(arr: np.ndarray) -> bool:
     return True
 
 
-def as_stored(channels, precision: dict[str, str] | None = None) -> dict[str, np.ndarray]:
+def as_stored(channels: dict[str, Any], precision: dict[str, str] | None = None) -> dict[str, np.ndarray]:
     """The channels as :func:`write_exr` stores and :func:`read_exr` returns them: float32,
     rounded through each channel's storage precision (half keeps 11 significant bits).
 
@@ -397,30 +400,102 @@ def read_exr(
     return ExrContent(data, _parse_header(path, meta))
 
 
+@dataclass(frozen=True)
+class ExrRows:
+    """Rows of one channel of a scanline EXR, as float32, decoded only when asked for (OpenEXR's
+    scanline reader decodes just those rows): what ``dask.array.from_array`` and
+    :func:`write_exr` (``block_rows``) read.
+
+    Attributes
+    ----------
+    path : str
+        The EXR.
+    name : str
+        The channel.
+    shape : (int, int)
+        Rows, columns of the data window (:func:`read_exr_layout`).
+
+    Examples
+    --------
+    >>> import tempfile, numpy as np
+    >>> path = Path(tempfile.mkdtemp()) / "a.exr"
+    >>> _ = write_exr(path, {"x": np.arange(12, dtype=np.float32).reshape(4, 3)})
+    >>> ExrRows(str(path), "x", (4, 3)).rows(1, 3).tolist()
+    [[3.0, 4.0, 5.0], [6.0, 7.0, 8.0]]
+    """
+
+    path: str
+    name: str
+    shape: tuple[int, int]
+    dtype: np.dtype = np.dtype(np.float32)
+    ndim: int = 2
+
+    def rows(self, r0: int, r1: int) -> np.ndarray:
+        """Rows ``r0:r1`` (clipped to the channel), float32 (half and uint converted exactly).
+
+        Parameters
+        ----------
+        r0, r1 : int
+            First row and one past the last.
+
+        Returns
+        -------
+        numpy.ndarray
+            (rows, columns), float32, a new array.
+
+        Raises
+        ------
+        InputError
+            The file is no longer a readable EXR with this channel.
+        """
+        import Imath
+        import OpenEXR
+
+        h, w = self.shape
+        r0, r1 = max(0, min(r0, h)), max(0, min(r1, h))
+        if r1 <= r0:
+            return np.empty((0, w), np.float32)
+        try:
+            f = OpenEXR.InputFile(self.path)
+            try:
+                y0 = f.header()["dataWindow"].min.y
+                raw = f.channel(self.name, Imath.PixelType(Imath.PixelType.FLOAT), y0 + r0, y0 + r1 - 1)
+            finally:
+                f.close()
+        except Exception as err:
+            raise InputError(f"{self.path}: rows {r0}..{r1 - 1} of channel {self.name!r} unreadable ({err})") from None
+        return np.frombuffer(raw, np.float32).reshape(r1 - r0, w).copy()
+
+    def __getitem__(self, key: slice | tuple[slice, ...]) -> np.ndarray:
+        """``self[rows, cols]`` with slices, rows with step 1 (what ``dask.array.from_array`` asks)."""
+        keys = key if isinstance(key, tuple) else (key,)
+        r0, r1, step = keys[0].indices(self.shape[0])
+        if step != 1:
+            raise IndexError("rows of an EXR channel are read with step 1")
+        return self.rows(r0, r1)[(slice(None), *keys[1:])]
+
+
 class ExrLayout(NamedTuple):
-    """An EXR's header, channels and size, read without its pixels.
+    """An EXR's header, channel names and size, read without its pixels.
 
     Attributes
     ----------
     header : dict
         The JSON metadata hdrcap wrote (empty for other files).
-    channels : dict of str to str
-        Channel name -> how it is stored: ``"float"``, ``"half"`` or ``"uint"``.
+    channels : tuple of str
+        The channel names.
     shape : (int, int)
         Rows, columns.
     """
 
     header: dict[str, Any]
-    channels: dict[str, str]
+    channels: tuple[str, ...]
     shape: tuple[int, int]
 
 
-#: EXR pixel types by the precision names of :func:`write_exr`.
-_PRECISION_OF_TYPE = {"FLOAT": "float", "HALF": "half", "UINT": "uint"}
-
-
 def read_exr_layout(path: str | os.PathLike[str]) -> ExrLayout:
-    """An EXR's header, channel storage types and size, without reading its pixels.
+    """An EXR's header, channel names and size, without reading its pixels (OpenEXR's
+    header-only reader, which refuses a corrupt file with an error rather than a crash).
 
     Parameters
     ----------
@@ -441,18 +516,37 @@ def read_exr_layout(path: str | os.PathLike[str]) -> ExrLayout:
     path = Path(path)
     check_readable(path)
     try:
-        with quiet_stderr():
-            f = OpenEXR.InputFile(str(path))
-            try:
-                head = f.header()
-            finally:
-                f.close()
-        meta = head.get(_META_KEY)
-        box = head["dataWindow"]
-        shape = (int(box.max.y - box.min.y + 1), int(box.max.x - box.min.x + 1))
-        kinds = {name: _PRECISION_OF_TYPE.get(str(ch.type), "float") for name, ch in head["channels"].items()}
+        with quiet_stderr(), OpenEXR.File(str(path), header_only=True) as exr:
+            head = exr.header()
+            meta = head.get(_META_KEY)
+            (x0, y0), (x1, y1) = head["dataWindow"]
+            names = tuple(str(c.name) for c in head["channels"])
     except Exception as err:
         raise InputError(f"{path}: not a readable EXR file ({err})") from None
-    if isinstance(meta, bytes):
-        meta = meta.decode()
-    return ExrLayout(_parse_header(path, meta), kinds, shape)
+    return ExrLayout(_parse_header(path, meta), names, (int(y1 - y0 + 1), int(x1 - x0 + 1)))
+
+
+#: numpy types of the stored channels by the precision names of :func:`write_exr`.
+_PRECISION_OF_DTYPE = {"float32": "float", "float16": "half", "uint32": "uint"}
+
+
+def stored_precisions(path: str | os.PathLike[str]) -> dict[str, str]:
+    """How each channel of an EXR is stored (reads the pixels: for checks, not for pipelines).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The EXR file.
+
+    Returns
+    -------
+    dict of str to str
+        Channel name -> ``"float"``, ``"half"`` or ``"uint"``.
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file.
+    """
+    content = read_exr(path, native=True)
+    return {name: _PRECISION_OF_DTYPE[str(arr.dtype)] for name, arr in content.channels.items()}

@@ -99,7 +99,7 @@ _STDERR_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def quiet_stderr():
+def quiet_stderr() -> Iterator[None]:
     """Silence C libraries' own messages on file descriptor 2 (LibRaw, OpenEXR: our one-line
     error says it all), for the duration of a ``with`` block; one thread at a time.
 
@@ -144,12 +144,13 @@ def release_mapped_pages(arrays: Iterable[np.ndarray]) -> int:
     """
     import mmap
 
-    done, released = set(), 0
+    done: set[int] = set()
+    released = 0
     for arr in arrays:
-        base = arr
+        base: object = arr
         while base is not None and not isinstance(base, mmap.mmap):
             base = getattr(base, "base", None)
-        if base is None or id(base) in done or not hasattr(base, "madvise") or base.closed:
+        if not isinstance(base, mmap.mmap) or id(base) in done or not hasattr(base, "madvise") or base.closed:
             continue
         done.add(id(base))
         with contextlib.suppress(OSError, ValueError):
@@ -158,7 +159,7 @@ def release_mapped_pages(arrays: Iterable[np.ndarray]) -> int:
     return released
 
 
-def sha256_file(path, chunk: int = 1 << 20) -> str:
+def sha256_file(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
     """Hex sha256 of a file, read in chunks.
 
     Parameters
@@ -195,7 +196,7 @@ NO_HARD_LINKS = frozenset(
 )
 
 
-def place_new(src, dst) -> None:
+def place_new(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
     """Move ``src`` to ``dst`` without ever replacing an existing ``dst``.
 
     A hard link (``os.link`` fails when ``dst`` exists), then ``src`` is removed. Where the
@@ -229,7 +230,7 @@ def place_new(src, dst) -> None:
 
 
 @contextlib.contextmanager
-def atomic_output(path, force: bool = False, suffix: str | None = None) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike[str], force: bool = False, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it into place atomically.
 
     Without ``force`` an existing ``path`` is never replaced (checked up front and again at
@@ -265,9 +266,9 @@ def atomic_output(path, force: bool = False, suffix: str | None = None) -> Itera
         raise InputError(f"{path}: output folder {parent} does not exist")
     if not os.access(parent, os.W_OK):
         raise InputError(f"{path}: output folder {parent} is not writable")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=parent)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix or ".tmp", dir=parent)
     os.close(fd)
-    tmp = Path(tmp)
+    tmp = Path(name)
     try:
         yield tmp
         # mkstemp creates the file private (0600); the output gets the permissions any new

@@ -101,7 +101,7 @@ class RawFrame:
         return self.data.shape
 
 
-def check_exposure_time(t, where=None) -> float:
+def check_exposure_time(t: Any, where: object = None) -> float:
     """Check an exposure time: a finite number of seconds > 0.
 
     Parameters
@@ -260,7 +260,7 @@ def _refuse_oversized_page(path: Path, page) -> None:
         )
 
 
-def tiff_dimensions(path) -> tuple[int, int] | None:
+def tiff_dimensions(path: str | os.PathLike[str]) -> tuple[int, int] | None:
     """(rows, columns) of the largest image of a TIFF-based file (DNG, TIFF), from its tags
     without decoding; None for other formats or a file tifffile cannot parse. What tifffile
     logs about a damaged file is kept off the terminal (the reader refuses such a file later).
@@ -282,7 +282,7 @@ def tiff_dimensions(path) -> tuple[int, int] | None:
             pages = list(tif.pages)
             for page in list(pages):
                 pages.extend(getattr(page, "pages", None) or [])
-            dims = [(int(p.imagelength), int(p.imagewidth)) for p in pages if hasattr(p, "imagelength")]
+            dims = [(int(p.imagelength), int(p.imagewidth)) for p in pages if isinstance(p, tifffile.TiffPage)]
     except Exception:  # noqa: BLE001  (not a TIFF: the caller decides)
         return None
     return max(dims, key=lambda d: d[0] * d[1]) if dims else None
@@ -366,6 +366,8 @@ def _tiff_raw(path: Path, mmap: bool) -> tuple[dict[str, Any], Any]:
         with tif:
             try:
                 page = tif.pages[0]
+                if not isinstance(page, tifffile.TiffPage):  # tifffile reads the first IFD as a page
+                    raise TypeError("the first IFD is not a TIFF page")
                 exif_tag = page.tags.get(34665)
                 if exif_tag is not None:
                     exif_tag.value  # noqa: B018  (parse the EXIF IFD now, inside the complaint log)
@@ -543,7 +545,9 @@ def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bo
     return has_time and bool(exif.get("ISOSpeedRatings")) and bool(exif.get("DateTimeOriginal"))
 
 
-def read_raw(path, exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse") -> RawFrame:
+def read_raw(
+    path: str | os.PathLike[str], exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse"
+) -> RawFrame:
     """Read a camera raw file (DNG, NEF, CR2, ...).
 
     An uncompressed DNG (8/16-bit strips or tiles, Bayer CFA, single black and white level) is
@@ -616,20 +620,25 @@ def _first_tiff_page(path: Path) -> np.ndarray:
         return page.asarray()
 
 
-def read_image16(path, exposure_time: float) -> RawFrame:
+def read_image16(path: str | os.PathLike[str], exposure_time: float | None) -> RawFrame:
     """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time.
 
     Parameters
     ----------
     path : str or os.PathLike
         The image (single channel, 8 or 16 bits per sample).
-    exposure_time : float
-        Seconds (such files carry none).
+    exposure_time : float or None
+        Seconds (such files carry none); None is refused.
 
     Returns
     -------
     RawFrame
         uint16 values (DN), the exposure time (s); black level 0, white level from the bit depth.
+
+    Raises
+    ------
+    InputError
+        No exposure time, an unreadable file, or not a single-channel 8/16-bit image.
     """
     path = Path(path)
     check_readable(path)
@@ -663,7 +672,9 @@ def read_image16(path, exposure_time: float) -> RawFrame:
     return RawFrame(data=data.astype(np.uint16, copy=False), exposure_time=t, path=str(path))
 
 
-def read_frame(path, exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse") -> RawFrame:
+def read_frame(
+    path: str | os.PathLike[str], exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse"
+) -> RawFrame:
     """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type.
 
     Parameters
@@ -711,7 +722,7 @@ def _check_same_sensor(frame: RawFrame, first: RawFrame, what: str) -> None:
     name, ref = frame.path or "<array>", first.path or f"the first {what}"
     if frame.cfa_pattern != first.cfa_pattern:
         raise InputError(f"{name}: CFA pattern {frame.cfa_pattern} differs from {ref} ({first.cfa_pattern})")
-    if None in (frame.white_level, first.white_level):
+    if frame.white_level is None or first.white_level is None:
         return
     if frame.white_level != first.white_level:
         raise InputError(f"{name}: white level {frame.white_level:g} DN differs from {ref} ({first.white_level:g} DN)")

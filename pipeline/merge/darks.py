@@ -14,7 +14,7 @@ The dark level b_i of exposure i follows its :class:`pipeline.noise.DarkStrategy
     no dark frame: the merge subtracts the bias level plus the calibrated dark current.
 
 :class:`DarkResolver` answers "which dark frame serves this exposure" for all merges:
-:func:`pipeline.merge.accumulator.merge_frames`, the baselines of :mod:`pipeline.merge.weighting`, the file
+:func:`pipeline.merge.files.merge_files`, the baselines of :mod:`pipeline.merge.weighting`, the file
 merge of the command line and the streaming merge of a capture session.
 """
 

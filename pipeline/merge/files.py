@@ -28,7 +28,7 @@ import numpy as np
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.raw import IMAGE_EXTENSIONS, RawFrame
 from hdrcap.pipeline.merge.accumulator import MergeOptions
-from hdrcap.pipeline.merge.darks import DarkResolver, default_strategy
+from hdrcap.pipeline.merge.darks import DarkResolver, DarkSource, default_strategy
 from hdrcap.pipeline.noise import DarkStrategy
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.planfile import PlanFile
@@ -174,7 +174,9 @@ def _warm_up(work: Callable[[], None] | None) -> None:
     thread; a failure is left to the command itself to report."""
     try:
         if work is None:
-            from hdrcap.pipeline.merge.accumulator import warm_up_kernels as work
+            from hdrcap.pipeline.merge.accumulator import warm_up_kernels
+
+            work = warm_up_kernels
         work()
     except Exception:  # noqa: BLE001, S110  (the command reports its own errors)
         pass
@@ -235,10 +237,13 @@ def _frames_in(
             for it, t, fut in zip(items, ts, futures):
                 if fut is not None:
                     yield fut.result()
-                elif t is None:
-                    yield it  # type: ignore[misc]
                 else:
-                    yield dataclasses.replace(it, exposure_time=check_exposure_time(t, it.path or what))  # type: ignore[type-var]
+                    assert isinstance(it, RawFrame)  # no future: a frame in memory
+                    yield (
+                        it
+                        if t is None
+                        else dataclasses.replace(it, exposure_time=check_exposure_time(t, it.path or what))
+                    )
                 bar.update()
 
 
@@ -415,7 +420,9 @@ def _option_dict(options: MergeOptions) -> dict[str, Any]:
     return out
 
 
-def prepare(req: MergeRequest, calib: Calibration, options: MergeOptions, library: str | None, warn) -> Prepared:
+def prepare(
+    req: MergeRequest, calib: Calibration, options: MergeOptions, library: str | None, warn: Callable[[str], None]
+) -> Prepared:
     """The plan, dark strategies and header entries of a request (both engines take them).
 
     Parameters
@@ -536,7 +543,14 @@ def missing_dark(fr: RawFrame, strategy: DarkStrategy, resolver: DarkResolver) -
     return InputError(f"{fr.path}: no master dark for exposure {t:g} s: none in --darks, no --master-dark, and {where}")
 
 
-def warn_short_master(src: Any, strategy: DarkStrategy, n_planned: float | None, t: float, warned: set, warn) -> None:
+def warn_short_master(
+    src: DarkSource,
+    strategy: DarkStrategy,
+    n_planned: float | None,
+    t: float,
+    warned: set[str],
+    warn: Callable[[str], None],
+) -> None:
     """Warn once per master dark that averages fewer frames than the plan expects.
 
     Parameters
@@ -554,7 +568,13 @@ def warn_short_master(src: Any, strategy: DarkStrategy, n_planned: float | None,
     warn : callable
         Called with the warning.
     """
-    short = src.origin == "frames" and strategy is DarkStrategy.MASTER and n_planned and src.n_frames < n_planned
+    short = (
+        src.origin == "frames"
+        and strategy is DarkStrategy.MASTER
+        and n_planned
+        and src.n_frames is not None
+        and src.n_frames < n_planned
+    )
     if short and src.source not in warned:
         warned.add(src.source)
         warn(

@@ -12,8 +12,8 @@ plain 1-D arrays without branches, so that LLVM vectorises them (SIMD over photo
 
 Precision: the samples x_i, the starting average and the estimates are float64. The weights
 and their sums use the precision of the caller's ``proto`` array: float32 (twice the SIMD
-width, a quarter of the cost of a division) where :meth:`pipeline.merge.accumulator.MergeAccumulator.
-_single_precision_safe` proves every such quantity stays well inside the float32 range, else
+width, a quarter of the cost of a division) where :func:`pipeline.merge.precision.single_precision_safe`
+proves every such quantity stays well inside the float32 range, else
 float64. Three samples share one division (w_i = n_i/d_i from 1/(d1 d2 d3)) where the block's
 variances allow it.
 
@@ -38,7 +38,10 @@ of arrays and scalars in nopython mode); they are unpacked once at the top of ea
 
 from __future__ import annotations
 
+import contextlib
 import math
+import warnings
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import numpy as np
@@ -61,12 +64,28 @@ __all__ = [
     "StartSums",
     "IterationOptions",
     "MergeOutputs",
+    "reflected_lists_quiet",
 ]
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 _FM = {"contract", "arcp", "nsz"}
 _var = numba.njit(inline="always", cache=True)(variance_of_rate)  # Var(v_i - b_i), DN^2 (Eq. 3, 5)
+
+
+@contextlib.contextmanager
+def reflected_lists_quiet() -> Iterator[None]:
+    """Silence numba's pending deprecation of reflected lists around a kernel call: the kernels
+    take plain lists of frames on purpose (``numba.typed.List`` would cost its compilation in
+    every process).
+
+    Yields
+    ------
+    None
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", category=numba.NumbaPendingDeprecationWarning)
+        yield
 
 
 class MapArg(NamedTuple):
@@ -1076,8 +1095,8 @@ def calibration_terms_kernel(
     out: np.ndarray,
     out_m: np.ndarray,
 ) -> None:
-    """The errors common to all exposures of a photosite (:meth:`pipeline.merge.accumulator.
-    MergeAccumulator._shared_terms`), parallel over rows, a row of each frame at a time (row
+    """The errors common to all exposures of a photosite (:func:`pipeline.merge.calibration_errors.
+    shared_terms`), parallel over rows, a row of each frame at a time (row
     buffers, no full-size temporaries).
 
     The calibration's errors are systematic: the same bias map b_j, dark-current map D_j and

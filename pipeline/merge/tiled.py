@@ -26,6 +26,7 @@ EXR equals the in-memory merge's bit for bit, every channel and the header.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -40,9 +41,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.raw import RawFrame
+from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
@@ -134,7 +137,7 @@ class RowFile:
         """The rows of ``index`` (row numbers), stacked; one read per row."""
         return np.stack([self.rows(int(r), int(r) + 1)[0] for r in index]) if len(index) else self.rows(0, 0)
 
-    def __getitem__(self, key) -> np.ndarray:
+    def __getitem__(self, key: slice | tuple[slice, ...]) -> np.ndarray:
         """``self[rows, cols]`` with slices (what ``dask.array.from_array`` asks for)."""
         key = key if isinstance(key, tuple) else (key,)
         rows = key[0] if key else slice(None)
@@ -158,7 +161,7 @@ class RowFile:
         return np.ndarray((h, w), self.dtype, buffer=raw, strides=(self.row_bytes, item))
 
     @classmethod
-    def create(cls, path: str | os.PathLike, shape: tuple[int, int], dtype) -> RowFile:
+    def create(cls, path: str | os.PathLike, shape: tuple[int, int], dtype: DTypeLike) -> RowFile:
         """A new zero-filled file for an array of ``shape`` (sparse where the file system allows)."""
         dtype = np.dtype(dtype)
         h, w = (int(s) for s in shape)
@@ -168,10 +171,11 @@ class RowFile:
 
 
 def _memmap_of(arr: np.ndarray) -> np.memmap | None:
-    base = arr
+    """The file-backed memory map ``arr`` is a view of, or None."""
+    base: object = arr
     while base is not None and not isinstance(base, np.memmap):
         base = getattr(base, "base", None)
-    return base if base is not None and getattr(base, "filename", None) else None
+    return base if isinstance(base, np.memmap) and getattr(base, "filename", None) else None
 
 
 def _file_rows(arr: np.ndarray) -> RowFile | None:
@@ -321,7 +325,7 @@ def _raw_dimensions(path: Path) -> tuple[int, int] | None:
 def tiling_rows(
     frames: Sequence[Path],
     n_darks: int,
-    calibration,
+    calibration: Calibration,
     *,
     chunks: int | None,
     budget: int,
@@ -412,7 +416,8 @@ def _calibration_sources(calib, inputs: _Inputs, shape) -> dict[str, int]:
 @functools.cache
 def _accumulator_classes():
     """(MergeAccumulator, its subsample variant, its tile variant), imported on first use."""
-    from hdrcap.pipeline.merge.accumulator import MergeAccumulator, _extrema
+    from hdrcap.pipeline.merge.accumulator import MergeAccumulator
+    from hdrcap.pipeline.merge.precision import extrema
 
     class SampleAccumulator(MergeAccumulator):
         """Merges the regular subsample itself: its subsample is everything it holds."""
@@ -429,12 +434,13 @@ def _accumulator_classes():
         own_single: bool | None = None
 
         def _single_precision_safe(self, values, darks, master) -> bool:
-            ext = {"a": _extrema(self._a), "D": _extrema(self._D), "bias": _extrema(self._bias)}
+            maps = self.maps
+            ext = {"a": extrema(maps.prnu), "D": extrema(maps.dark_current), "bias": extrema(maps.bias)}
             if self.master_dark is not None:
-                ext["master"] = _extrema((master, True, 0.0))
-            for i, (d, kind) in enumerate(zip(darks, self._kinds)):
+                ext["master"] = extrema((master, True, 0.0))
+            for i, (d, kind) in enumerate(zip(darks, self.frames.kinds)):
                 if kind == 0 and d.dtype != np.uint16:
-                    ext[f"dark{i}"] = _extrema((d, True, 0.0))
+                    ext[f"dark{i}"] = extrema((d, True, 0.0))
             self.extrema = ext
             self.own_single = super()._single_precision_safe(values, darks, master)
             return self.own_single if self.forced_single is None else self.forced_single
@@ -515,9 +521,10 @@ class _Plan:
         acc = cls(calib, shape, master_dark=master, stream=False, **options)
         for i, (fr, k, t, strategy) in enumerate(zip(self.frames, self.frame_src, times, self.strategies)):
             src = resolver.resolve(fr.exposure_time, strategy, camera=fr.camera, iso=fr.iso)
+            assert src is not None  # every frame's dark level was resolved before (_resolve_darks)
             dark = src.data if dark_for is None else dark_for(i, src.data)
-            n = src.n_frames if strategy is DarkStrategy.MASTER else None
-            acc.add(blocks[k], t, dark, strategy=strategy, n_dark=n)
+            n_dark = src.n_frames if strategy is DarkStrategy.MASTER else None
+            acc.add(blocks[k], t, dark, strategy=strategy, n_dark=n_dark)
         return acc
 
     def merge_block(self, blocks: Sequence[np.ndarray], r0: int, forced: bool | None = None) -> np.ndarray:
@@ -592,11 +599,7 @@ def _global_single(plan: _Plan, extrema: dict[str, tuple[float, float]]) -> bool
     full_cls, _, _ = _accumulator_classes()
     opts = dict(plan.options, exposure_times="nominal")
     probe = probe_plan.accumulate(full_cls, blocks, plan.times, opts, dark_for=dark_for)
-    own = [d for d in probe._darks if d is not None]
-    hold = np.zeros((1, 1), own[0].dtype if own else np.float32)
-    darks = [hold if d is None else d for d in probe._darks]
-    m = np.zeros((1, 1), np.float32) if probe.master_dark is None else probe.master_dark.astype(np.float32)
-    return bool(probe._single_precision_safe(list(probe._values), darks, m))
+    return bool(probe._single_precision_safe(*probe._kernel_frames()))
 
 
 def _effective_times(plan: _Plan) -> tuple[list[float], dict[str, Any]]:
@@ -616,7 +619,7 @@ def _effective_times(plan: _Plan) -> tuple[list[float], dict[str, Any]]:
     blocks = [src.take(index)[:, win_c] for src in plan.inputs.sources]
     acc = plan.accumulate(sample_cls, blocks, [fr.exposure_time for fr in plan.frames], plan.options)
     acc.apply_exposure_times()
-    return list(acc._times), acc._exposure_info()
+    return list(acc.frames.times), acc._exposure_info()
 
 
 def _resolve_darks(plan: _Plan, strategy_for, library, warn) -> list[str]:
@@ -637,6 +640,7 @@ def _resolve_darks(plan: _Plan, strategy_for, library, warn) -> list[str]:
         if src is None:
             raise missing_dark(fr, strategy, resolver)
         if src.origin == "library" and all(src.source != name for _t, _n, name, _k in plan.library):
+            assert src.data is not None and src.n_frames is not None  # a library master: its data and N
             if np.shape(src.data) != fr.shape:
                 raise InputError(f"{src.source}: dark frame size differs from the bracket's")
             k = plan.inputs.add(np.asarray(src.data, np.float32), f"library{len(plan.library)}")
@@ -802,15 +806,16 @@ def _run_tiles(p: _Plan, rows: int, spill: str, progress: bool) -> tuple[dict[st
         meta=np.empty((0, 0, 0), np.float32),
         name=f"hdrcap-tiles-{token}",  # named: dask would otherwise hash the function, pickling the plan's inputs
     )
-    # One tile at a time: the merge kernel is itself parallel over the rows of a tile.
-    with dask.config.set(scheduler="synchronous"):
-        if progress:
-            from dask.diagnostics import ProgressBar
+    bar: contextlib.AbstractContextManager[Any] = contextlib.nullcontext()
+    if progress:
+        from dask.diagnostics import ProgressBar
 
-            with ProgressBar(out=sys.stderr):
-                da.store(merged, Writer(), lock=False)
-        else:
-            da.store(merged, Writer(), lock=False)
+        bar = ProgressBar(out=sys.stderr)
+    # One tile at a time: the merge kernel is itself parallel over the rows of a tile.
+    with dask.config.set(scheduler="synchronous"), bar:
+        # store() writes into any object with numpy-style __setitem__ (its documented contract);
+        # its annotation names only array-likes
+        da.store(merged, Writer(), lock=False)  # type: ignore[arg-type]
     if len(p.tiles) != len(arrays[0].chunks[0]):
         raise RuntimeError(f"{len(p.tiles)} of {len(arrays[0].chunks[0])} tiles were merged")
     single = _global_single(p, _combine([t["extrema"] for t in p.tiles.values()]))

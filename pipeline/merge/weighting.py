@@ -26,8 +26,10 @@ merge of :mod:`pipeline.merge.accumulator`, which evaluates Eq. 13 at the curren
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.merge.darks import DarkResolver
@@ -60,7 +62,7 @@ def _pos(v) -> np.ndarray:
     return np.maximum(np.asarray(v, dtype=np.float64), 0.0)
 
 
-def weighting_function_Uniform(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_Uniform(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Uniform weight, w = 1 (Sec. 7; Table 1 lists its alternatives; shown optimal in [1]
     under other assumptions).
 
@@ -83,7 +85,7 @@ def weighting_function_Uniform(v, t, params: SensorParams, **model) -> np.ndarra
     return np.ones(np.broadcast(np.asarray(v), np.asarray(t)).shape)
 
 
-def weighting_function_MannPicard(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_MannPicard(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Mann & Picard (1995), Table 1: w = 1 / (d/dv log g(v)).
 
     The certainty of an output value is the inverse of the quantisation step in log
@@ -109,7 +111,7 @@ def weighting_function_MannPicard(v, t, params: SensorParams, **model) -> np.nda
     return np.broadcast_to(_pos(v), np.broadcast(np.asarray(v), np.asarray(t)).shape).copy()
 
 
-def weighting_function_DebevecMalik(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_DebevecMalik(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Debevec & Malik (1997), Table 1 hat: w = min(v - v_min, v_max - v).
 
     Linear sensor: v_min = 0 (the black level), v_max = v_sat - mu_R; clipped at 0.
@@ -136,7 +138,7 @@ def weighting_function_DebevecMalik(v, t, params: SensorParams, **model) -> np.n
     return np.broadcast_to(w, np.broadcast(v, np.asarray(t)).shape).copy()
 
 
-def weighting_function_MitsunagaNayar(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_MitsunagaNayar(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Mitsunaga & Nayar (1999), Table 1 SNR weight: w = g(v) / g'(v) (Appendix A, Eq. 19).
 
     Linear sensor: g(v)/g'(v) = (v/g)/(1/g) = **v** (clipped at 0); in expectation
@@ -162,7 +164,7 @@ def weighting_function_MitsunagaNayar(v, t, params: SensorParams, **model) -> np
     return weighting_function_MannPicard(v, t, params)
 
 
-def weighting_function_Reinhard(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_Reinhard(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Reinhard et al. (2005), Table 1 SNR times hat: w = g(v)/g'(v) [1 - (v/v_mid - 1)^12].
 
     Linear sensor: w = v [1 - (v/v_mid - 1)^12] with v_mid = (v_sat - mu_R)/2, clipped at 0.
@@ -190,7 +192,7 @@ def weighting_function_Reinhard(v, t, params: SensorParams, **model) -> np.ndarr
     return np.broadcast_to(w, np.broadcast(v, np.asarray(t)).shape).copy()
 
 
-def weighting_function_Robertson(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_Robertson(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Robertson et al. (2003), Table 1 variance weight: w = t^2 / (d/dv log g(v)).
 
     The output variance is replaced by the Mann-Picard term. Linear sensor: **w = t^2 v**
@@ -226,7 +228,7 @@ def _observed_variance(v, t, params: SensorParams) -> np.ndarray:
     return exposure_variance(x_obs, t, params.g, params.sigma2_R, D=0.0, a=1.0, dark=DarkStrategy.MODEL)
 
 
-def weighting_function_Tsin(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_Tsin(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Tsin, Ramesh & Kanade (2001), Table 1 standard-deviation weight: w = t / sigma_g(v).
 
     sigma_g(v) is the standard deviation of g(v) = v/g, which Tsin et al. estimate from the
@@ -255,7 +257,7 @@ def weighting_function_Tsin(v, t, params: SensorParams, **model) -> np.ndarray:
     return 1.0 / np.sqrt(_observed_variance(v, t, params))
 
 
-def weighting_function_KirkAndersen(v, t, params: SensorParams, **model) -> np.ndarray:
+def weighting_function_KirkAndersen(v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Kirk & Andersen (2006), Table 1 variance weight: w = t^2 / (g'(v)^2 sigma_v^2).
 
     Linear sensor, their simplified noise model (shot + readout noise, no dark-current shot
@@ -283,7 +285,15 @@ def weighting_function_KirkAndersen(v, t, params: SensorParams, **model) -> np.n
 
 
 def weighting_function_Optimal(
-    v, t, params: SensorParams, *, a=1.0, D=None, dark=DarkStrategy.MATCHED, n_dark=1, **model
+    v: ArrayLike,
+    t: ArrayLike,
+    params: SensorParams,
+    *,
+    a: float | np.ndarray = 1.0,
+    D: float | np.ndarray | None = None,
+    dark: DarkStrategy | str = DarkStrategy.MATCHED,
+    n_dark: float = 1,
+    **model: Any,
 ) -> np.ndarray:
     """Granados et al. (2010), Eq. 13, evaluated at the OBSERVED value (single pass):
 
@@ -296,9 +306,9 @@ def weighting_function_Optimal(
     ----------
     v, t, params
         As :func:`weighting_function_Uniform`; ``v`` includes the dark signal g t D.
-    a : array_like
+    a : float or numpy.ndarray
         PRNU gain (mean 1).
-    D : array_like, optional
+    D : float or numpy.ndarray, optional
         Dark current, e-/s (default ``params.dark_current``).
     dark : {"matched", "master", "model"}
         Dark strategy.
@@ -331,7 +341,7 @@ WEIGHTING_METHODS: dict[str, Callable[..., np.ndarray]] = {
 }
 
 
-def weights(method: str, v, t, params: SensorParams, **model) -> np.ndarray:
+def weights(method: str, v: ArrayLike, t: ArrayLike, params: SensorParams, **model: Any) -> np.ndarray:
     """Weight of a registered method (Table 1).
 
     Parameters
@@ -389,7 +399,12 @@ def _dark_levels(values, times, calibration: Calibration, darks, n_dark) -> tupl
             raise InputError(f"dark frame of shape {np.shape(d)} does not match the frames' {np.shape(values[0])}")
         resolver.add_dark(d, t)
     strategy = DarkStrategy.MATCHED if n_dark == 1 else DarkStrategy.MASTER
-    return [np.asarray(resolver.resolve(t, strategy).data, dtype=np.float64) for t in times], strategy
+    levels = []
+    for t in times:
+        src = resolver.resolve(t, strategy)
+        assert src is not None  # every exposure time has its dark frame (added above)
+        levels.append(np.asarray(src.data, dtype=np.float64))
+    return levels, strategy
 
 
 def _check_bracket(values, times, method: str) -> tuple[list, list[float], tuple]:
@@ -452,7 +467,7 @@ def merge_weighted(
     values: Sequence[np.ndarray],
     times: Sequence[float],
     calibration: Calibration,
-    darks=None,
+    darks: np.ndarray | Sequence[np.ndarray] | None = None,
     method: str = "uniform",
     *,
     n_dark: float = 1,

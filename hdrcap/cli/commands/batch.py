@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -15,6 +16,10 @@ class BatchIncomplete(HdrcapError):
     """Some runs failed (the others landed); exit status 1."""
 
     exit_code = 1
+
+    def __init__(self, message: str, reported: bool = False) -> None:
+        super().__init__(message)
+        self.reported = reported
 
 
 #: The options of ``hdrcap merge`` that ``hdrcap batch`` takes too (the same click options).
@@ -59,7 +64,17 @@ SHARED = (
 @click.option("--progress/--no-progress", default=None, help="Progress bar with ETA (default: on a terminal).")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
-def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **merge_opts):
+def command(
+    ctx: click.Context,
+    runs: tuple[Path, ...],
+    output: Path,
+    workers: int | None,
+    scheduler: str | None,
+    force: bool,
+    progress: bool | None,
+    as_json: bool,
+    **merge_opts: Any,
+) -> None:
     """Merge many RUNS (capture run folders with manifest.jsonl, or folders of raw brackets)
     into the zarr archive OUTPUT, one Dask task per run, with the options of `hdrcap merge`.
 
@@ -125,12 +140,11 @@ def command(ctx, runs, output, workers, scheduler, force, progress, as_json, **m
             f"{len(report.failed)} failed, {report.seconds:.1f} s"
         )
     if report.failed:
-        err = BatchIncomplete(
+        raise BatchIncomplete(
             f"{len(report.failed)} of {len(report.failed) + len(report.committed)} runs failed; "
-            f"recorded in {output} (attribute hdrcap_failed_runs); run again to retry them"
+            f"recorded in {output} (attribute hdrcap_failed_runs); run again to retry them",
+            reported=as_json,  # the report above is the JSON answer; no second JSON object
         )
-        err.reported = as_json  # the report above is the JSON answer; no second JSON object
-        raise err
 
 
 command.params.extend(p for p in _merge.params if p.name in SHARED)

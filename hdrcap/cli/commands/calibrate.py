@@ -5,11 +5,12 @@ from __future__ import annotations
 import datetime as _dt
 import time
 from pathlib import Path
+from typing import Any
 
 import click
 
 from hdrcap.cli.util import echo_json, many_values
-from hdrcap.pipeline.errors import InputError, OutputExistsError
+from hdrcap.pipeline.errors import InputError
 
 _FILE = click.Path(dir_okay=False, path_type=Path)
 _FOLDER = click.Path(file_okay=False, path_type=Path)
@@ -113,31 +114,31 @@ _FRAMES = click.Path(path_type=Path)
     "`hdrcap merge` without --calibration finds it there; see `hdrcap calibrations`).",
 )
 def command(
-    bias,
-    saturation,
-    flat,
-    dark,
-    shutter,
-    shutter_reference,
-    base_calibration,
-    times,
-    emva,
-    output,
-    force,
-    as_json,
-    report,
-    dark_library,
-    gain_method,
-    clip,
-    no_clip,
-    saturation_criterion,
-    white_level,
-    camera_name,
-    serial,
-    iso,
-    temperature,
-    save_to_library,
-):
+    bias: tuple[Path, ...],
+    saturation: tuple[Path, ...],
+    flat: tuple[Path, ...],
+    dark: tuple[Path, ...],
+    shutter: tuple[Path, ...],
+    shutter_reference: float | None,
+    base_calibration: Path | None,
+    times: tuple[float, ...],
+    emva: Path | None,
+    output: Path,
+    force: bool,
+    as_json: bool,
+    report: Path | None,
+    dark_library: Path | None,
+    gain_method: str,
+    clip: float,
+    no_clip: bool,
+    saturation_criterion: str,
+    white_level: float | None,
+    camera_name: str | None,
+    serial: str | None,
+    iso: float | None,
+    temperature: float | None,
+    save_to_library: bool,
+) -> None:
     """Calibrate the camera noise model (Sec. 6 of the paper, EMVA 1288) into a calibration file.
 
     From frame lists: mu_R and sigma2_R from bias frames (pair difference), v_sat from a
@@ -157,16 +158,19 @@ def command(
         load_calibration,
         save_calibration,
     )
+    from hdrcap.pipeline.io.files import check_new_output
 
     t0 = time.perf_counter()
-    prov = {"hdrcap_version": __version__, "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
+    prov: dict[str, Any] = {
+        "hdrcap_version": __version__,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    }
     for key, val in (("camera", camera_name), ("serial", serial), ("iso", iso), ("temperature", temperature)):
         if val is not None:
             prov[key] = val
     if base_calibration is not None and output.resolve() == base_calibration.resolve():
         raise InputError(f"{output}: is the calibration given with --calibration; write the result to a new file")
-    if output.exists() and not force:
-        raise OutputExistsError(f"{output}: exists; use --force to overwrite")
+    check_new_output(output, force)
     emva_res = None
     if base_calibration is not None:
         if bias or saturation or flat or dark or emva is not None:

@@ -8,7 +8,7 @@ from hdrcap.cli.util import echo_json
 
 
 @click.group("calibrations")
-def command():
+def command() -> None:
     """The calibration library: calibrations stored by `hdrcap calibrate --save-to-library`, keyed by
     camera model, serial and ISO, that `hdrcap merge` uses when no --calibration is given. Folder:
     $HDRCAP_DATA_DIR/calibrations, else $XDG_DATA_HOME/hdrcap/calibrations (~/.local/share)."""
@@ -16,7 +16,7 @@ def command():
 
 @command.command("list")
 @click.option("--json", "as_json", is_flag=True, help="Print one line of JSON.")
-def list_(as_json):
+def list_(as_json: bool) -> None:
     """List the library's calibrations (name, model, serial, ISO)."""
     from hdrcap.pipeline.calibration.library import library_dir, library_entries
 
@@ -40,7 +40,7 @@ def list_(as_json):
 @command.command("show")
 @click.argument("name")
 @click.option("--json", "as_json", is_flag=True, help="Print one line of JSON.")
-def show(name, as_json):
+def show(name: str, as_json: bool) -> None:
     """Show the calibration NAME (a name from `hdrcap calibrations list`)."""
     from hdrcap.pipeline.calibration import load_calibration
     from hdrcap.pipeline.calibration.library import library_dir
@@ -77,7 +77,7 @@ def show(name, as_json):
 
 @command.command("remove")
 @click.argument("name")
-def remove(name):
+def remove(name: str) -> None:
     """Remove the calibration NAME from the library."""
     from hdrcap.pipeline.calibration.library import remove_calibration
 

@@ -9,7 +9,7 @@ from hdrcap.cli.util import echo_json
 
 @click.command("cameras")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON on stdout.")
-def command(as_json):
+def command(as_json: bool) -> None:
     """List detected cameras (model, port and serial number, via libgphoto2) and the simulated
     camera presets usable as backend = "mock". The serial is what a job's [camera] serial = "..."
     matches; it keeps the camera found after a re-plug gives it a new port."""

@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from hdrcap.cli.util import echo_json
+
+if TYPE_CHECKING:
+    from hdrcap.pipeline.result import HdrResult
 
 DEMO_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
@@ -22,19 +26,18 @@ def run_demo(
     force: bool,
     progress: bool | None = None,
     target_snr: float | None = None,
-) -> dict:
+) -> dict[str, Any]:
     """Capture, merge and summarise the demo into ``out``; returns the summary text and paths."""
     from hdrcap.acquire.capture.job import job_from_dict
     from hdrcap.acquire.capture.manifest import Manifest
     from hdrcap.acquire.capture.run import run_job
     from hdrcap.pipeline.errors import OutputExistsError
-    from hdrcap.pipeline.io.files import atomic_output
+    from hdrcap.pipeline.io.files import atomic_output, check_new_output
     from hdrcap.pipeline.times import unique_exposures
 
     out = Path(out)
     for name in ("demo.exr", "demo.png", "summary.txt"):
-        if (out / name).exists() and not force:
-            raise OutputExistsError(f"{out / name}: exists; use --force to overwrite")
+        check_new_output(out / name, force)
     run_dir = out / "demo-run"
     if run_dir.exists():
         head = Manifest(run_dir).header()
@@ -43,7 +46,7 @@ def run_demo(
         elif head is not None or any(run_dir.iterdir()):
             raise OutputExistsError(f"{run_dir}: holds an earlier capture; use --force to replace it")
     out.mkdir(parents=True, exist_ok=True)
-    exposure = {"mode": "bracket", "times": list(DEMO_TIMES)}
+    exposure: dict[str, Any] = {"mode": "bracket", "times": list(DEMO_TIMES)}
     if target_snr is not None:
         exposure = {"mode": "snr", "target_snr_db": target_snr, "times": list(DEMO_TIMES)}
     job = job_from_dict(
@@ -66,6 +69,8 @@ def run_demo(
         return_result=True,
         echo=lambda s: click.echo(s, err=True),
     )
+    # a new run (no resume) always captures, and with its calibration always merges
+    assert session is not None and session.merge is not None
     err = res["error_vs_truth"]
     m = session.merge
     times = sorted(unique_exposures(r["file_exposure_s"] for r in session.frames.values() if r["kind"] == "light"))
@@ -117,7 +122,9 @@ def run_demo(
 )
 @click.option("--force", is_flag=True, help="Overwrite the outputs (and the capture) of an earlier demo.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary instead of the text.")
-def command(out, camera, scene, size, seed, target_snr, force, as_json):
+def command(
+    out: Path, camera: str, scene: str, size: str, seed: int, target_snr: float | None, force: bool, as_json: bool
+) -> None:
     """Capture a bracket with dark frames from the simulated camera through the capture session,
     merge it, write out/demo.exr, a tone-mapped out/demo.png and out/summary.txt with the error
     against the simulator's ground truth."""
@@ -129,7 +136,7 @@ def command(out, camera, scene, size, seed, target_snr, force, as_json):
         click.echo(res["text"], nl=False)
 
 
-def _channels(result) -> str:
+def _channels(result: HdrResult) -> str:
     """The EXR channels of the demo's merge, and why sigma_calibration is missing when it is."""
     if getattr(result, "sigma_calibration", None) is not None:
         return "irradiance, sigma, sigma_calibration, nexp, quality"

@@ -19,8 +19,9 @@ _SPACES = ", ".join(OUTPUT_SPACES)
 def _refuse_clobber(path: Path | None, force: bool, input_exr: Path) -> None:
     if path is None:
         return
-    if path.exists() and not force:
-        raise InputError(f"{path}: exists; use --force to overwrite")
+    from hdrcap.pipeline.io.files import check_new_output
+
+    check_new_output(path, force)
     if input_exr.exists() and path.exists() and input_exr.resolve() == path.resolve():
         raise InputError(f"{path}: is the input file; inputs are never modified, choose another output")
 
@@ -46,7 +47,9 @@ def _refuse_clobber(path: Path | None, force: bool, input_exr: Path) -> None:
 )
 @click.option("--force", is_flag=True, help="Overwrite existing output files.")
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
-def command(input_exr, output, method, space, preview, force, as_json):
+def command(
+    input_exr: Path, output: Path, method: str, space: str, preview: Path | None, force: bool, as_json: bool
+) -> None:
     """Develop the CFA irradiance EXR of `hdrcap merge` into a scene-linear RGB EXR.
 
     Demosaics with colour-science's colour-demosaicing, applies the camera's colour matrix and
@@ -62,7 +65,7 @@ def command(input_exr, output, method, space, preview, force, as_json):
     _refuse_clobber(output, force, input_exr)
     _refuse_clobber(preview, force, input_exr)
     out = develop_image(read_result(input_exr), method, space, source=str(input_exr))
-    precision = {name: "uint" for name in ("nexp", "quality") if name in out.channels}
+    precision: dict[str, str] = {name: "uint" for name in ("nexp", "quality") if name in out.channels}
     write_exr(output, out.channels, out.header, force=force, precision=precision)
     if preview is not None:
         import numpy as np

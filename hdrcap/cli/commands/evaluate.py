@@ -7,6 +7,7 @@ the summary.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -15,7 +16,7 @@ from hdrcap.pipeline.errors import InputError
 __all__ = ["command"]
 
 
-def _print_summary(results: dict) -> None:
+def _print_summary(results: dict[str, Any]) -> None:
     for label, rows in results["summary"].items():
         click.echo(f"{label}: mean efficiency (bound/MSE) and mean SNR - optimal (dB) per method")
         for name, row in rows.items():
@@ -43,7 +44,7 @@ def _print_summary(results: dict) -> None:
 @click.option("--denoise", is_flag=True, help="Also run the denoising experiment (Sec. 9, Fig. 8d).")
 @click.option("--force", is_flag=True, help="Overwrite existing outputs.")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as one line of JSON.")
-def command(out, quick, seed, denoise, force, as_json):
+def command(out: Path, quick: bool, seed: int, denoise: bool, force: bool, as_json: bool) -> None:
     """Reproduce the paper's evaluation (Sec. 7) on simulated camera-A and camera-B.
 
     Writes evaluation.json (every number) and fig2_weights.png, fig4_snr.png,
@@ -54,14 +55,13 @@ def command(out, quick, seed, denoise, force, as_json):
     """
     from hdrcap.cli.util import echo_json
     from hdrcap.experiments import evaluate_denoising, run_evaluation
+    from hdrcap.pipeline.io.files import check_new_output
 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
-    if not force:
-        for name in ("evaluation.json", "fig4_snr.png"):
-            if (out / name).exists():
-                raise InputError(f"{out / name}: exists; use --force to overwrite")
+    for name in ("evaluation.json", "fig4_snr.png"):
+        check_new_output(out / name, force)
     say = None if as_json else (lambda msg: click.echo(msg, err=True))
     results = run_evaluation(out, quick=quick, seed=seed, force=force, progress=say)
     summary = {"out": str(out), "plots": results["plots"], "seconds": results["seconds"], "summary": results["summary"]}

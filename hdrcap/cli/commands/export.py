@@ -29,7 +29,7 @@ import click
     "as that precision stored them).",
 )
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
-def command(archive, run, output, exr_compression, sigma_precision, force):
+def command(archive: Path, run: int, output: Path, exr_compression: str, sigma_precision: str, force: bool) -> None:
     """Write run RUN of the zarr ARCHIVE (from `hdrcap batch`) as an EXR: the channels and
     header `hdrcap merge` writes for that run (the archive holds the channels as they are
     stored, so the EXR is the merge's bit for bit)."""

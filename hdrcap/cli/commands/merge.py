@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -187,34 +188,34 @@ def _memory_here() -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print a one-line JSON summary on stdout.")
 @click.pass_context
 def command(
-    ctx,
-    frames,
-    darks,
-    calibration,
-    camera,
-    times,
-    plan_file,
-    output,
-    weighting,
-    iterations,
-    tolerance,
-    saturation,
-    saturation_sigmas,
-    prnu,
-    dark_strategy,
-    master_dark,
-    master_dark_frames,
-    exposure_times,
-    bad_values,
-    exr_compression,
-    sigma_precision,
-    chunks,
-    memory_budget,
-    force,
-    as_json,
-    out_format,
-    dng_bits,
-):
+    ctx: click.Context,
+    frames: tuple[Path, ...],
+    darks: tuple[Path, ...],
+    calibration: Path | None,
+    camera: str | None,
+    times: tuple[float, ...],
+    plan_file: Path | None,
+    output: Path,
+    weighting: str,
+    iterations: int,
+    tolerance: float,
+    saturation: str,
+    saturation_sigmas: float,
+    prnu: str,
+    dark_strategy: str | None,
+    master_dark: Path | None,
+    master_dark_frames: float | None,
+    exposure_times: str,
+    bad_values: str,
+    exr_compression: str,
+    sigma_precision: str,
+    chunks: int | None,
+    memory_budget: str | None,
+    force: bool,
+    as_json: bool,
+    out_format: str | None,
+    dng_bits: str,
+) -> None:
     """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR (or a float DNG).
 
     The EXR holds irradiance (e-/s per photosite), sigma (its standard uncertainty),
@@ -229,7 +230,7 @@ def command(
     from hdrcap.acquire.camera.model import camera_model
     from hdrcap.pipeline.io.files import check_new_output
     from hdrcap.pipeline.io.results import output_format, write_result
-    from hdrcap.pipeline.merge.accumulator import MergeOptions
+    from hdrcap.pipeline.merge.accumulator import MergeOptions, as_strategy
     from hdrcap.pipeline.merge.files import MergeRequest, merge_files, start_warm_up
     from hdrcap.pipeline.result import summarise
 
@@ -249,7 +250,7 @@ def command(
         saturation=saturation,
         saturation_sigmas=saturation_sigmas,
         prnu=prnu,
-        dark_strategy=dark_strategy,
+        dark_strategy=as_strategy(dark_strategy),
         exposure_times=exposure_times,
     )
     given = frozenset(
@@ -312,7 +313,7 @@ def _memory_budget(text: str | None) -> int | None:
     return parse_memory(text)
 
 
-def _report(info: dict, as_json: bool) -> None:
+def _report(info: dict[str, Any], as_json: bool) -> None:
     """Print the merge's summary: one JSON line, or one sentence in the unit written."""
     from hdrcap.pipeline.schema import UNIT_ELECTRONS
 
@@ -327,7 +328,7 @@ def _report(info: dict, as_json: bool) -> None:
     )
 
 
-def _selfcal_summary(head: dict) -> str:
+def _selfcal_summary(head: dict[str, Any]) -> str:
     """One line from the header's ``self_calibration``: the gain and read noise with their
     standard errors."""
     g, r = head["gain"], head["read_noise_variance"]

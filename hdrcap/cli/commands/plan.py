@@ -3,15 +3,34 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from hdrcap.cli.util import echo_json, many_values
-from hdrcap.pipeline.errors import HdrcapError, InputError
+from hdrcap.pipeline.errors import InputError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from hdrcap.pipeline.params import Calibration
+    from hdrcap.planner.meter import MeterReport
 
 
-def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, allowed, meter_frames, meter_max_time):
+def _metered_irradiance(
+    camera: str | None,
+    scene: str,
+    size: str,
+    decades: float,
+    x_max: float,
+    seed: int,
+    calibration: Calibration,
+    allowed: Sequence[float] | None,
+    meter_frames: int,
+    meter_max_time: float,
+) -> tuple[np.ndarray, MeterReport]:
     """The scene metered with quick frames of the simulated camera: (irradiance, MeterReport)."""
     import numpy as np
 
@@ -147,32 +166,32 @@ def _metered_irradiance(camera, scene, size, decades, x_max, seed, calibration, 
 )
 @click.option("--force", is_flag=True, help="Overwrite an existing --plot file.")
 def command(
-    calibration,
-    camera,
-    irradiance,
-    do_meter,
-    scene,
-    size,
-    decades,
-    x_max,
-    seed,
-    meter_frames,
-    meter_max_time,
-    target_snr_db,
-    max_exposures,
-    time_budget,
-    overhead,
-    highlight_fraction,
-    allowed_times,
-    quantile,
-    dark_error,
-    dark_library,
-    uniform_darks,
-    explain,
-    as_json,
-    plot,
-    force,
-):
+    calibration: Path | None,
+    camera: str | None,
+    irradiance: Path | None,
+    do_meter: bool,
+    scene: str,
+    size: str,
+    decades: float,
+    x_max: float,
+    seed: int,
+    meter_frames: int,
+    meter_max_time: float,
+    target_snr_db: float,
+    max_exposures: int | None,
+    time_budget: float | None,
+    overhead: float | None,
+    highlight_fraction: float | None,
+    allowed_times: tuple[str, ...],
+    quantile: float | None,
+    dark_error: float | None,
+    dark_library: tuple[str, ...],
+    uniform_darks: bool,
+    explain: bool,
+    as_json: bool,
+    plot: Path | None,
+    force: bool,
+) -> None:
     """Plan the exposures that reach --target-snr-db on a scene (greedy Eq. 18, Sec. 8).
 
     The scene comes from an irradiance map (--irradiance MAP.exr) or from metering quick
@@ -186,6 +205,7 @@ def command(
     """
     import numpy as np
 
+    from hdrcap.pipeline.io.files import check_new_output
     from hdrcap.planner import plan_exposures, systematic_errors_from_calibration
     from hdrcap.planner.ladder import parse_dark_library, parse_times
     from hdrcap.planner.meter import read_irradiance_map
@@ -198,8 +218,8 @@ def command(
         raise InputError("give exactly one scene source: --irradiance MAP.exr or --meter")
     if not np.isfinite(target_snr_db):
         raise InputError(f"--target-snr-db must be a finite number, got {target_snr_db!r}")
-    if plot is not None and plot.exists() and not force:
-        raise HdrcapError(f"{plot}: exists; use --force to overwrite")
+    if plot is not None:
+        check_new_output(plot, force)
     from hdrcap.acquire.camera.model import camera_model
     from hdrcap.mock_camera.sensor import preset_name
 
@@ -214,12 +234,12 @@ def command(
     except ValueError as err:
         raise InputError(str(err)) from None
     meter_report = None
-    if do_meter:
+    if irradiance is not None:  # exactly one source, checked above
+        X = read_irradiance_map(irradiance)
+    else:
         X, meter_report = _metered_irradiance(
             camera, scene, size, decades, x_max, seed, cal, allowed, meter_frames, meter_max_time
         )
-    else:
-        X = read_irradiance_map(irradiance)
     errors = None
     if dark_error is not None:
         if not (np.isfinite(dark_error) and dark_error >= 0):

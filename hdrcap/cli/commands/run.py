@@ -4,6 +4,7 @@ outputs), optionally repeated on a schedule."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -54,7 +55,18 @@ from hdrcap.cli.util import echo_json
     is_flag=True,
     help="Print one JSON line per repetition as it ends (an error: a JSON object, see docs/acquisition.md).",
 )
-def command(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json):
+def command(
+    job_file: Path,
+    resume: bool,
+    repeat: int | None,
+    every: float | None,
+    keep_going: bool,
+    run_dir: Path | None,
+    force: bool,
+    check: bool,
+    progress: bool | None,
+    as_json: bool,
+) -> None:
     """Run the measurement described by JOB_FILE (TOML; see docs/acquisition.md).
 
     The job is validated before any frame is taken; every frame is verified, hashed and
@@ -65,7 +77,18 @@ def command(job_file, resume, repeat, every, keep_going, run_dir, force, check, 
     _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json)
 
 
-def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json) -> None:
+def _run(
+    job_file: Path,
+    resume: bool,
+    repeat: int | None,
+    every: float | None,
+    keep_going: bool,
+    run_dir: Path | None,
+    force: bool,
+    check: bool,
+    progress: bool | None,
+    as_json: bool,
+) -> None:
     from hdrcap.acquire.capture.camera_setup import check_free_space, check_job_against_camera, open_camera
     from hdrcap.acquire.capture.job import load_job
     from hdrcap.acquire.capture.runfolder import run_folder
@@ -90,7 +113,7 @@ def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, pro
         )
         return
 
-    def report(res: dict) -> None:
+    def report(res: dict[str, Any]) -> None:
         if as_json:
             echo_json(res)
         else:
@@ -111,7 +134,7 @@ def _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, pro
         )
 
 
-def _describe(res: dict) -> str:
+def _describe(res: dict[str, Any]) -> str:
     if res.get("status") == "failed":
         return f"run {res.get('run_dir') or '-'}: failed (exit {res['exit_code']}): {res['error']}"
     if res.get("status") == "nothing_to_resume":

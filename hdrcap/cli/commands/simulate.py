@@ -55,8 +55,20 @@ from hdrcap.cli.util import echo_json, many_values
     help="Instead of a bracket, write a calibration series (bias, saturation, 36 flats, a photon-transfer series, darks at 6 times) and calibration_set.json, for `hdrcap calibrate`.",
 )
 def command(
-    camera_name, scene, times, darks, out, size, decades, x_max, seed, temperature, force, as_json, calibration_set
-):
+    camera_name: str,
+    scene: str,
+    times: tuple[float, ...],
+    darks: bool,
+    out: Path,
+    size: str,
+    decades: float,
+    x_max: float,
+    seed: int,
+    temperature: float | None,
+    force: bool,
+    as_json: bool,
+    calibration_set: bool,
+) -> None:
     """Simulate a bracket: DNG frames (and dark frames) plus truth.exr and simulation.json.
 
     The DNGs hold the CFA mosaic with BlackLevel, WhiteLevel, ExposureTime and ISO (IFD0 and
