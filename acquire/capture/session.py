@@ -400,13 +400,21 @@ def _default_prompt(message: str) -> None:
 
 
 class StopEvent(threading.Event):
-    """A :class:`threading.Event` that remembers the signal that set it (``signum``)."""
+    """A :class:`threading.Event` that remembers the signal that set it (``signum``) and, for a
+    stop that is not a signal (a Bluesky RunEngine's), who asked (``by``)."""
 
     signum: int = 15
+    by: str = ""
 
-    def stop(self, signum: int) -> None:
+    def stop(self, signum: int, by: str = "") -> None:
         self.signum = int(signum)
+        self.by = by
         self.set()
+
+    @property
+    def reason(self) -> str:
+        """``stopped by signal N``, or ``stopped by`` whoever asked."""
+        return f"stopped by {self.by}" if self.by else f"stopped by signal {self.signum}"
 
 
 @contextmanager
@@ -985,9 +993,8 @@ class CaptureSession:
         """Raise :class:`RunInterrupted` when the stop event is set (SIGTERM/SIGINT)."""
         if self.stop is not None and self.stop.is_set():
             signum = getattr(self.stop, "signum", 15)
-            raise RunInterrupted(
-                f"{self.run_dir}: stopped by signal {signum} between two frames; run again with --resume", signum
-            )
+            reason = getattr(self.stop, "reason", f"stopped by signal {signum}")
+            raise RunInterrupted(f"{self.run_dir}: {reason} between two frames; run again with --resume", signum)
 
     def _feed(
         self, calibration: Calibration, merger: StreamingMerge | None, rec: dict[str, Any], values: np.ndarray
