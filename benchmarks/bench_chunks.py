@@ -32,9 +32,6 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
 BASE = 1250  # side of the simulated base tile, photosites (even)
 TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
 
@@ -47,9 +44,9 @@ def _reps(mpix: float) -> tuple[int, int]:
 
 def _simulate(root: Path, n_frames: int, seed: int = 5):
     """Base-size sensor, calibration, frames and dark frames (seeded)."""
+    from hdrcap.experiments.calibrated import calibrated_sensor
     from hdrcap.mock_camera.scenes import make_scene
     from hdrcap.mock_camera.sensor import preset
-    from tests.simcal import calibrated_sensor
 
     spec = preset("camera-A", realistic=True)
     sensor, cal = calibrated_sensor(spec, seed, (BASE, BASE))

@@ -11,7 +11,7 @@ dark strategy (matched, master per time, one master dark at t_ref, model) and sa
   clip level (above it there is only a lower bound; see :func:`z_table`).
 
 The calibration: 2 bias frames, 1 saturation frame, 16 flat fields, a dark series at 6 exposure
-times (2 frames each), through :func:`hdrcap.pipeline.calibration.calibrate`. The scene: half the
+times (2 frames each): :func:`hdrcap.experiments.calibrated.estimated_calibration`. The scene: half the
 photosites log-uniform over 1-10^4 e-/s, half placed uniformly in k in [-4, 4] around the clip
 level of one of the exposures. Exposure times: the effective ones the merge estimates from the
 bracket, as ``hdrcap merge`` does by default (``exposure_times="effective"``); ``--times
@@ -32,9 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from hdrcap.experiments.calibrated import estimated_calibration
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
-from hdrcap.pipeline.calibration import calibrate
-from hdrcap.pipeline.io.raw import RawFrame
 from hdrcap.pipeline.merge.accumulator import merge_arrays
 
 CAMERAS = ("camera-A", "camera-B", "camera-R")
@@ -46,58 +45,6 @@ DECADES = ((0, 1), (1, 2), (2, 3), (3, 4))
 K_EDGES = (-3, -2, -1, 0, 1, 2, 3)
 STRATEGIES = ("matched", "master", "master@t_ref", "model")
 SATURATIONS = ("threshold", "probabilistic")
-
-
-def _frames(sensor, X, t, n, rng, kind, dark=False):
-    """n simulated RawFrames (lazily, as a camera delivers them)."""
-    for i in range(n):
-        yield RawFrame(
-            sensor.expose(X, t, dark=dark, rng=rng), t, path=f"{kind}_{i:03d}", white_level=sensor.spec.white_level
-        )
-
-
-def estimated_calibration(
-    sensor: SimulatedSensor,
-    rng: np.random.Generator,
-    n_bias: int = 2,
-    n_flats: int = 16,
-    dark_times=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0),
-    n_per_dark: int = 2,
-):
-    """A calibration estimated from simulated frames of ``sensor`` (Sec. 6), never its truth.
-
-    Parameters
-    ----------
-    sensor : SimulatedSensor
-        The sensor (its fixed patterns are those of the bracket).
-    rng : numpy.random.Generator
-        Temporal noise of the calibration frames.
-    n_bias, n_flats, n_per_dark : int
-        Bias frames, flat fields (at 75 % of saturation, 0.01 s) and dark frames per time.
-    dark_times : sequence of float
-        Exposure times of the dark series, s (>= 6 for the dark-current map).
-
-    Returns
-    -------
-    Calibration
-        With the standard-error maps and the defect map of the calibration workflow.
-    """
-    spec = sensor.spec
-    nominal = spec.nominal_params()
-    t_flat = 0.01
-    X = 0.75 * (nominal.v_sat - spec.mu_R) / spec.g / t_flat
-
-    def darks():
-        for t in dark_times:
-            yield from _frames(sensor, 0.0, t, n_per_dark, rng, f"dark{t:g}", dark=True)
-
-    return calibrate(
-        _frames(sensor, 0.0, 1e-4, n_bias, rng, "bias", dark=True),
-        _frames(sensor, X, 10 * t_flat, 1, rng, "sat"),
-        _frames(sensor, X, t_flat, n_flats, rng, "flat"),
-        darks(),
-        white_level=spec.white_level,
-    )
 
 
 def clip_scene(spec, shape, times, rng) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Accuracy figures of the optimal merge against the simulator's truth and the practical bound
-(the same Monte Carlo as tests/test_merge.py, larger), plus the EMVA 1288 two-bracket check.
-Prints one JSON object.
+(the same Monte Carlo as tests/pipeline/merge/test_optimal_merge.py, larger), plus the EMVA 1288
+two-bracket check. Prints one JSON object.
 
 Usage: python benchmarks/merge_accuracy.py [--seeds 4]
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO), str(REPO / "tests")]
+sys.path.insert(0, str(REPO))  # the tests package: the Monte Carlo is that of the test
 
 
 def _figures(mc):
@@ -33,7 +33,7 @@ def _figures(mc):
 
 
 def main(argv=None):
-    import test_merge as T
+    from tests.pipeline.merge import test_optimal_merge as T
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=4)
@@ -47,7 +47,7 @@ def main(argv=None):
     out["camera-A matched probabilistic"] = _figures(
         T._monte_carlo("camera-A", "matched", seeds=seeds, saturation="probabilistic")
     )
-    from conftest import emva_dataset_dir
+    from tests.helpers.datasets import emva_dataset_dir
 
     emva = emva_dataset_dir()
     if emva is not None:

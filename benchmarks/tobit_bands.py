@@ -2,13 +2,14 @@
 from simulated frames; prints one JSON object.
 
 Per seed: a camera preset's sensor (192 x 192), a calibration estimated from simulated frames
-(``bench_honesty.estimated_calibration``: 2 bias frames, 16 flats, a 6-time dark series), a scene
-whose photosites lie at k ~ U(-3.5, 3.5), k = (E v - v_sat)/sd(v), around the clip level of an
-exposure that has a shorter one, and the merge with ``saturation="probabilistic"``. z is the
-error against the truth scaled by the estimated gain's error (gain-referred: that error is
-common to every photosite and reported in the header, not in sigma) over sigma. Per band of k
-(width 0.5, -3..+3, named by its lower edge): photosites, z mean, its standard error and the z
-spread. The issue's target: |z mean| < 0.05 in every band (docs/merge.md, item 5).
+(``hdrcap.experiments.calibrated.estimated_calibration``: 2 bias frames, 16 flats, a 6-time dark
+series), a scene whose photosites lie at k ~ U(-3.5, 3.5), k = (E v - v_sat)/sd(v), around the
+clip level of an exposure that has a shorter one (``hdrcap.mock_camera.scenes.near_clip_scene``),
+and the merge with ``saturation="probabilistic"``. z is the error against the truth scaled by
+the estimated gain's error (gain-referred: that error is common to every photosite and reported
+in the header, not in sigma) over sigma. Per band of k (width 0.5, -3..+3, named by its lower
+edge): photosites, z mean, its standard error and the z spread. The issue's target: |z mean| <
+0.05 in every band (docs/merge.md, item 5).
 
 Usage::
 
@@ -21,39 +22,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_honesty import estimated_calibration  # noqa: E402
+from hdrcap.experiments.calibrated import estimated_calibration
+from hdrcap.mock_camera.scenes import near_clip_scene
 
-#: Brackets: ``matched`` the Monte Carlo's of tests/test_tobit.py (1/1000-1 s, a dark frame per
-#: exposure); ``model`` that of its estimated-calibration test (0.125-30 s, no dark frames).
+#: Brackets: ``matched`` the Monte Carlo's of tests/pipeline/merge/test_censored_likelihood.py
+#: (1/1000-1 s, a dark frame per exposure); ``model`` that of its estimated-calibration test
+#: (0.125-30 s, no dark frames).
 BRACKETS = {
     "matched": (1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0),
     "model": (0.125, 0.5, 2.0, 8.0, 30.0),
 }
 K_EDGES = np.arange(-3.0, 3.01, 0.5)
-
-
-def electrons_at_k(spec, v_sat, k):
-    """Electrons E with mu_R + g E = v_sat + k sqrt(g^2 E + sigma_R^2) (fixed point)."""
-    e = (v_sat - spec.mu_R) / spec.g
-    for _ in range(10):
-        e = (v_sat + k * np.sqrt(spec.g**2 * e + spec.sigma2_R) - spec.mu_R) / spec.g
-    return e
-
-
-def clip_scene(sensor, rng, times):
-    """Every photosite at k ~ U(-3.5, 3.5) of the clip level of an exposure that has a shorter
-    one (PRNU and dark-current map of the truth), and that k."""
-    spec = sensor.spec
-    shape = sensor.prnu.shape
-    t = np.asarray(times)[rng.integers(1, len(times), shape)]
-    k = rng.uniform(-3.5, 3.5, shape)
-    e = electrons_at_k(spec, spec.nominal_params().v_sat, k)
-    return (e / t - sensor.dark_current_map()) / sensor.prnu, k
 
 
 def bands(camera: str, seeds: int, darks: str, size: int = 192) -> dict:
@@ -68,7 +50,7 @@ def bands(camera: str, seeds: int, darks: str, size: int = 192) -> dict:
         sensor = SimulatedSensor(spec, (size, size), seed=100 + seed)
         rng = np.random.default_rng([seed, 31])
         cal = estimated_calibration(sensor, rng)
-        X, k = clip_scene(sensor, rng, times)
+        X, k = near_clip_scene(sensor, rng, times)
         values = [sensor.expose(X, t, rng=rng) for t in times]
         dk = [sensor.expose(X, t, dark=True, rng=rng) for t in times] if darks == "matched" else None
         res = merge_arrays(values, times, cal, dk, saturation="probabilistic")

@@ -1,6 +1,6 @@
 """Worked example: re-merge a whole run archive on a SLURM cluster with dask-jobqueue.
 
-It needs a SLURM cluster (tests/test_batch.py runs it with a local Dask cluster standing in for
+It needs a SLURM cluster (tests/batch/test_driver.py runs it with a local Dask cluster standing in for
 dask-jobqueue's SLURMCluster). Run it on the login node, inside the environment hdrcap is
 installed in. The worker jobs must see the same environment (the same hdrcap version) and, at
 the same paths, on a shared file system: the run folders, the calibration file (and its dark

@@ -6,8 +6,8 @@ Not run by the tests. Run it from the repository root with the project's environ
 
 The demo scene (``hdr``: gradient, patches, edges; 4 decades) is tinted column by column with
 eight linear sRGB colours and seen through a camera with a real colour matrix (Adobe's D65
-matrix of the Canon EOS 5D Mark II, tests/colour_sim.py) under D65 light: each photosite gets the irradiance its
-colour filter passes. The simulated camera-B shoots the demo's bracket, the frames carry that
+matrix of the Canon EOS 5D Mark II, tests/helpers/colour_sim.py) under D65 light: each photosite
+gets the irradiance its colour filter passes. The simulated camera-B shoots the demo's bracket, the frames carry that
 matrix and the D65 white balance, ``hdrcap merge`` merges them without options beyond the
 preset, and ``hdrcap develop --space linear-srgb`` develops the result. Written to docs/:
 ``develop_before.png`` (the merged CFA irradiance, one grey value per photosite, log
@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 
 DOCS = Path(__file__).resolve().parent
-sys.path.insert(0, str(DOCS.parent))  # the tests' colour camera (tests/colour_sim.py)
+sys.path.insert(0, str(DOCS.parent))  # the tests' colour camera (tests/helpers/colour_sim.py)
 
 from hdrcap.mock_camera.scenes import make_scene  # noqa: E402
 from hdrcap.pipeline.io.exr import read_exr, write_exr  # noqa: E402
 from hdrcap.pipeline.preview import write_preview_png  # noqa: E402
-from tests.colour_sim import camera_mosaic, recolour_frames  # noqa: E402
+from tests.helpers.colour_sim import camera_mosaic, recolour_frames  # noqa: E402
 
 #: The eight column tints (linear sRGB).
 TINTS = np.array(

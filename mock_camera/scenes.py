@@ -8,6 +8,9 @@ Every scene spans ``decades`` orders of magnitude below ``x_max`` (e-/s). Names:
 ``hdr``       a composite: gradient band, patch band and edge band (the default);
 ``flat``      a uniform field at x_max (for flat fields and statistics).
 
+:func:`near_clip_scene` places every photosite of a given sensor near the clip level of one
+exposure of a bracket (the censored likelihood's hardest case).
+
 :func:`load_scene_exr` reads any single-channel EXR (channel ``irradiance``, or ``Y``/``R``)
 as a scene.
 """
@@ -15,12 +18,17 @@ as a scene.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["SCENES", "make_scene", "load_scene_exr", "load_scene", "parse_size"]
+if TYPE_CHECKING:
+    from hdrcap.mock_camera.sensor import SensorSpec, SimulatedSensor
+
+__all__ = ["SCENES", "make_scene", "load_scene_exr", "load_scene", "parse_size", "electrons_at_k", "near_clip_scene"]
 
 SCENES = ("hdr", "gradient", "patches", "edges", "flat")
 
@@ -89,6 +97,64 @@ def make_scene(
         out[b:] = _edges(h - b, w, lo, hi)
         return out
     raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)} or an .exr file")
+
+
+def electrons_at_k(spec: SensorSpec, v_sat: float, k: float | np.ndarray) -> np.ndarray:
+    """The signal whose mean lies ``k`` of its standard deviations from the clip level ``v_sat``.
+
+    Solves mu_R + g E = v_sat + k sqrt(g^2 E + sigma_R^2) for E by fixed-point iteration (10
+    steps), with the spec's nominal gain, bias and read-noise variance.
+
+    Parameters
+    ----------
+    spec : SensorSpec
+        The sensor's specification.
+    v_sat : float
+        Clip level, DN.
+    k : float or numpy.ndarray
+        Distance from the clip level, standard deviations of the value (negative: below it).
+
+    Returns
+    -------
+    numpy.ndarray
+        Electrons per photosite (float64).
+    """
+    e = (v_sat - spec.mu_R) / spec.g
+    for _ in range(10):
+        e = (v_sat + k * np.sqrt(spec.g**2 * e + spec.sigma2_R) - spec.mu_R) / spec.g
+    return np.asarray(e, dtype=np.float64)
+
+
+def near_clip_scene(
+    sensor: SimulatedSensor, rng: np.random.Generator, times: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every photosite at k ~ U(-3.5, 3.5) standard deviations of the clip level of an exposure.
+
+    Each photosite picks one of ``times`` that has a shorter one (never the shortest: above its
+    clip level there is only a lower bound) and k; its irradiance puts the mean value of that
+    exposure k standard deviations from the nominal clip level, through the sensor's own PRNU
+    and dark-current map (the truth the merge must recover).
+
+    Parameters
+    ----------
+    sensor : SimulatedSensor
+        The sensor (its shape, PRNU and dark-current map).
+    rng : numpy.random.Generator
+        Draws the exposure and k of each photosite.
+    times : sequence of float
+        The bracket's exposure times, s, shortest first.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        Irradiance, e-/s (float64, the sensor's shape), and each photosite's k.
+    """
+    spec = sensor.spec
+    shape = sensor.prnu.shape
+    t = np.asarray(times)[rng.integers(1, len(times), shape)]
+    k = rng.uniform(-3.5, 3.5, shape)
+    e = electrons_at_k(spec, spec.nominal_params().v_sat, k)
+    return (e / t - sensor.dark_current_map()) / sensor.prnu, k
 
 
 def load_scene_exr(path: str | os.PathLike[str]) -> np.ndarray:

@@ -82,7 +82,7 @@ __all__ = [
 SIGMA_NOT_PROPAGATED = "sigma not propagated: the demosaicing method is non-linear; no sigma channels"
 
 #: Photosites whose change can change an output pixel, per method, photosites from it
-#: (measured by perturbing single photosites of random mosaics; tests/test_develop.py checks it).
+#: (measured by perturbing single photosites of random mosaics; tests/pipeline/test_develop.py checks it).
 _SUPPORT_RADIUS = {"bilinear": 1, "malvar2004": 2, "menon2007": 8}
 #: Bayer tiles colour_demosaicing knows.
 _BAYER = ("RGGB", "BGGR", "GRBG", "GBRG")

@@ -283,15 +283,15 @@ def saturation_decision(
     The merge's probabilistic model is the censored (Tobit) likelihood of Eq. 8-10 (a saturated
     sample contributes its survival probability), and its predicted gain uses the same
     likelihood's expected information (:func:`planner.predict.censored_information_fraction`).
-    On sensors that follow the model (camera-A, camera-B) its centred estimate is now within
-    z mean -0.07..+0.05 of the truth in every band of k = (E v - v_sat)/sigma_v from -3 to +3
-    (tests/test_tobit.py; the threshold rule's own is -0.17..-0.20 at k in -3..-2), but it is
-    still not chosen unasked: on the realistic camera-R its z mean near the clip levels is
-    0.1-0.6 lower than the threshold rule's (k in -3..+3, matched darks, estimated calibration
-    and effective times; benchmarks/bench_honesty.py, docs/merge.md's honesty table): it relies
-    on the samples just below v_sat, where the model's remaining errors (there, mostly the
-    shutter's: with camera-R's shutter errors switched off the gap is 0-0.24; with its
-    nonlinearity switched off it stays) weigh more; and it costs several times the merge time.
+    On sensors that follow the model (camera-A, camera-B) its centred estimate is now within z mean
+    -0.07..+0.05 of the truth in every band of k = (E v - v_sat)/sigma_v from -3 to +3
+    (tests/pipeline/merge/test_censored_likelihood.py; the threshold rule's own is -0.17..-0.20 at k
+    in -3..-2), but it is still not chosen unasked: on the realistic camera-R its z mean near the
+    clip levels is 0.1-0.6 lower than the threshold rule's (k in -3..+3, matched darks, estimated
+    calibration and effective times; benchmarks/bench_honesty.py, docs/merge.md's honesty table): it
+    relies on the samples just below v_sat, where the model's remaining errors (there, mostly the
+    shutter's: with camera-R's shutter errors switched off the gap is 0-0.24; with its nonlinearity
+    switched off it stays) weigh more; and it costs several times the merge time.
     A user asks for it with ``--saturation probabilistic``.
 
     Parameters

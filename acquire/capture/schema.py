@@ -65,8 +65,8 @@ def _folder_pattern(pattern: str) -> str:
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 #: A frame count a run can take (:data:`MAX_FRAMES_PER_RUN`).
 FrameCount = Annotated[int, AfterValidator(_frames)]
-#: The names of :class:`pipeline.dark_strategy.DarkStrategy`, in its order (tests/test_job.py
-#: checks that the two agree).
+#: The names of :class:`pipeline.dark_strategy.DarkStrategy`, in its order
+#: (tests/acquire/capture/test_job.py checks that the two agree).
 DarkStrategyName = Literal["matched", "master", "model"]
 
 

@@ -9,7 +9,7 @@ can commit runs by rewriting a few small JSON files (no zarr or xarray on either
 proportional to the pixels on the client). Every array of the archive uses the one layout of
 :func:`array_metadata`: C order, chunk files named ``I.0.0`` (``.`` separator), Blosc LZ4, which
 is what xarray wrote for the archive before; :func:`encode_chunk` gives the bytes zarr-python
-writes for the same chunk (tests/test_archive.py checks both directions).
+writes for the same chunk (tests/batch/test_archive.py checks both directions).
 """
 
 from __future__ import annotations

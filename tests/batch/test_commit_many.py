@@ -12,13 +12,13 @@ import xarray as xr
 
 from hdrcap.batch import archive as archive_mod
 from hdrcap.batch.archive import CHANNELS, RUN_COORDS, Archive
-from tests.test_archive import _run
+from tests.helpers.archive import archive_run
 
 
 def _archive(path, groups):
     """An archive of runs 0..n committed in ``groups`` (lists of run indices) with commit_many."""
     store = Archive(path)
-    return [store.commit_many([_run(i) for i in g]) for g in groups]
+    return [store.commit_many([archive_run(i) for i in g]) for g in groups]
 
 
 def test_runs_committed_together_equal_runs_committed_one_by_one(tmp_path):
@@ -30,7 +30,7 @@ def test_runs_committed_together_equal_runs_committed_one_by_one(tmp_path):
         np.testing.assert_array_equal(a[name].values, b[name].values)
     assert a.attrs == b.attrs
     for i in range(6):
-        np.testing.assert_array_equal(a["irradiance"].isel(run=i).values, _run(i).channels["irradiance"])
+        np.testing.assert_array_equal(a["irradiance"].isel(run=i).values, archive_run(i).channels["irradiance"])
         assert json.loads(str(a["header"].values[i]))["i"] == i
 
 
@@ -38,7 +38,7 @@ def test_a_session_commits_once_per_commit_call(tmp_path):
     store = Archive(tmp_path / "a.zarr")
     with store.writer() as session:
         for i in range(5):
-            session.add(session.write(_run(i)))
+            session.add(session.write(archive_run(i)))
         assert session.commit() == {f"/runs/{i:03d}": i for i in range(5)}
         assert session.commits == 1
     assert session.commits == 1  # nothing left for the final commit
@@ -47,7 +47,8 @@ def test_a_session_commits_once_per_commit_call(tmp_path):
 def test_a_crash_before_the_commit_leaves_none_of_the_runs(tmp_path, monkeypatch):
     path = tmp_path / "a.zarr"
     store = Archive(path)
-    store.commit(_run(0))
+    store.commit(archive_run(0))
+    # private on purpose: the crash is injected at the commit step itself
     real = archive_mod._write_consolidated
 
     def die(*args, **kwargs):
@@ -55,21 +56,21 @@ def test_a_crash_before_the_commit_leaves_none_of_the_runs(tmp_path, monkeypatch
 
     monkeypatch.setattr(archive_mod, "_write_consolidated", die)
     with pytest.raises(KeyboardInterrupt):
-        store.commit_many([_run(i) for i in (1, 2)])
+        store.commit_many([archive_run(i) for i in (1, 2)])
     monkeypatch.setattr(archive_mod, "_write_consolidated", real)
     assert xr.open_zarr(path).sizes["run"] == 1
-    assert store.commit_many([_run(i) for i in (3, 4)]) == [1, 2]
+    assert store.commit_many([archive_run(i) for i in (3, 4)]) == [1, 2]
     assert list(xr.open_zarr(path)["folder"].values) == ["/runs/000", "/runs/003", "/runs/004"]
 
 
 def test_a_rewrite_among_new_runs(tmp_path):
     path = tmp_path / "a.zarr"
     store = Archive(path)
-    assert store.commit_many([_run(0), _run(1)]) == [0, 1]
+    assert store.commit_many([archive_run(0), archive_run(1)]) == [0, 1]
     # a rewrite of a committed run among new ones: in place, the new one appended
-    assert store.commit_many([_run(1, seed=9), _run(2)], replace=True) == [1, 2]
+    assert store.commit_many([archive_run(1, seed=9), archive_run(2)], replace=True) == [1, 2]
     ds = xr.open_zarr(path)
-    np.testing.assert_array_equal(ds["irradiance"].isel(run=1).values, _run(1, seed=9).channels["irradiance"])
-    np.testing.assert_array_equal(ds["irradiance"].isel(run=2).values, _run(2).channels["irradiance"])
+    np.testing.assert_array_equal(ds["irradiance"].isel(run=1).values, archive_run(1, seed=9).channels["irradiance"])
+    np.testing.assert_array_equal(ds["irradiance"].isel(run=2).values, archive_run(2).channels["irradiance"])
     assert list(ds["folder"].values) == ["/runs/000", "/runs/001", "/runs/002"]
     assert list(ds["run"].values) == [0, 1, 2]

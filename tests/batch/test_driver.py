@@ -266,7 +266,7 @@ def test_the_slurm_example_runs_with_a_stand_in_for_dask_jobqueue(runs, tmp_path
 
     archive = tmp_path / "s.zarr"
     calibration = save_calibration(tmp_path / "cam.cal", camera_model(None, CAMERA))  # a calibration file
-    script = Path(__file__).resolve().parents[1] / "docs" / "batch_slurm.py"
+    script = Path(__file__).resolve().parents[2] / "docs" / "batch_slurm.py"
     folders = [str(f) for f in runs["good"][:2]]
     monkeypatch.setattr(sys, "argv", [str(script), *folders, "--calibration", str(calibration), "-o", str(archive)])
     runpy.run_path(str(script), run_name="__main__")
@@ -286,8 +286,8 @@ def test_a_task_that_raised_is_recorded_with_its_error(tmp_path):
     from concurrent.futures import CancelledError
 
     from hdrcap.batch.archive import Archive
-    from hdrcap.batch.driver import BatchReport, RunOutcome, RunSource, _Committer
-    from tests.test_archive import _run
+    from hdrcap.batch.driver import BatchReport, RunOutcome, RunSource, _Committer  # private on purpose: fed directly
+    from tests.helpers.archive import archive_run
 
     store = Archive(tmp_path / "e.zarr")
     report = BatchReport(str(store.path))
@@ -296,7 +296,7 @@ def test_a_task_that_raised_is_recorded_with_its_error(tmp_path):
         boom = RuntimeError("boom\nsecond line")
         committer.take(RunSource("/runs/001", ("f",)), "error", (RuntimeError, boom, None))
         committer.take(RunSource("/runs/002", ("f",)), "cancelled", CancelledError("lost"))
-        committer.take(RunSource("/runs/000", ("f",)), "finished", RunOutcome(None, _run(0), ("w",), 1.0))
+        committer.take(RunSource("/runs/000", ("f",)), "finished", RunOutcome(None, archive_run(0), ("w",), 1.0))
         assert committer.commit() == 1
     assert report.failed == {"/runs/001": "RuntimeError: boom", "/runs/002": "CancelledError: lost"}
     assert report.committed == {"/runs/000": 0} and report.warnings == ["/runs/000: w"]

@@ -393,7 +393,7 @@ def test_tiled_reads_the_run_back(tmp_path):
 
 def test_the_docs_example_runs(tmp_path, monkeypatch):
     """docs/bluesky.md's first example, as written (count, a motor scan, a target-SNR list_scan)."""
-    text = (Path(__file__).resolve().parents[1] / "docs" / "bluesky.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "bluesky.md").read_text()
     code = text.split("```python\n", 1)[1].split("```", 1)[0]
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}

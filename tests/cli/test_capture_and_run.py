@@ -13,7 +13,7 @@ import pytest
 import hdrcap.acquire.capture.run as run_mod
 from hdrcap.acquire.capture.manifest import EventLog, Manifest
 from hdrcap.cli import main
-from tests.test_unattended import _StoppingCamera
+from tests.helpers.cameras import StoppingCamera as _StoppingCamera
 
 
 class _Kill:

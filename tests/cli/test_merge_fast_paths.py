@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from hdrcap.pipeline.io import exr as pexr
+from hdrcap.pipeline.io import exr as pexr  # its private block checks, on purpose: fast path vs formula
 from hdrcap.pipeline.io import files as pfiles
 from hdrcap.pipeline.io import raw as praw
 from hdrcap.pipeline.merge.calibration_errors import add_in_quadrature
-from tests.test_io import _dng
+from tests.helpers.dng import write_test_dng
 
 _FLOATS = hnp.arrays(
     np.float32,
@@ -100,7 +100,7 @@ def _resident_mb() -> float:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="resident set of file mappings: Linux")
 def test_released_frames_leave_memory_and_stay_readable(tmp_path):
     data = np.random.default_rng(1).integers(64, 4096, (2048, 4096), dtype=np.uint16)  # 16 MB
-    path = _dng(tmp_path / "f.dng", data)
+    path = write_test_dng(tmp_path / "f.dng", data)
     frame = praw.read_frame(path)
     assert np.array_equal(frame.data, data)  # every page touched: resident
     before = _resident_mb()

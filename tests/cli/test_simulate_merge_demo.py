@@ -12,7 +12,7 @@ from hdrcap.pipeline.io.raw import read_raw
 
 @pytest.fixture(scope="module")
 def bracket(tmp_path_factory):
-    from tests.conftest import run_cli
+    from tests.helpers.cli import run_cli
 
     out = tmp_path_factory.mktemp("sim")
     proc = run_cli(
@@ -86,9 +86,9 @@ def test_bad_inputs_one_line_errors(bracket, cli, tmp_path):
     blob = open(frames[0], "rb").read()
     (tmp_path / "trunc.dng").write_bytes(blob[: len(blob) // 3])
     (tmp_path / "text.dng").write_text("not raw\n" * 100)
-    from tests.test_io import _dng
+    from tests.helpers.dng import write_test_dng
 
-    _dng(tmp_path / "small.dng", np.ones((40, 40), np.uint16))
+    write_test_dng(tmp_path / "small.dng", np.ones((40, 40), np.uint16))
     from PIL import Image
 
     Image.fromarray(np.ones((48, 64), np.uint16)).save(tmp_path / "a.png")

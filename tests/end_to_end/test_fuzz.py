@@ -1,7 +1,7 @@
-"""A small fuzz budget for every parser (the nightly budget: ``python tests/fuzzing.py``).
+"""A small fuzz budget for every parser (the nightly budget: ``python -m tests.helpers.fuzzing``).
 
 Every input must end in a result or a one-line ``hdrcap: error:`` with exit status 2 (see
-``tests/fuzzing.py``). Inputs that once broke the contract are stored under
+``tests/helpers/fuzzing.py``). Inputs that once broke the contract are stored under
 ``tests/data/fuzz/<target>/`` and replayed here.
 """
 
@@ -13,9 +13,10 @@ import threading
 from pathlib import Path
 
 import pytest
-from fuzzing import DATA, TARGETS, build_corpus, check_outcome, failure_key, fuzz, run_target
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from tests.helpers.fuzzing import DATA, TARGETS, build_corpus, check_outcome, failure_key, fuzz, run_target
 
 EXAMPLES = 30
 
@@ -89,7 +90,7 @@ def test_failure_key_ignores_numbers_and_tells_locations_apart():
         except ValueError as err:
             keys.append(failure_key(err))
     assert keys[0] == keys[1] != keys[2]
-    assert keys[0].message == "index N out of range" and keys[0].location.startswith("tests/test_fuzz.py:")
+    assert keys[0].message == "index N out of range" and keys[0].location.startswith("tests/end_to_end/test_fuzz.py:")
 
 
 def test_a_stuck_call_is_stored_and_reported(tmp_path):
@@ -156,7 +157,7 @@ def test_each_target_is_warmed_up_outside_the_time_limit(corpus, tmp_path, monke
     """The nightly run first runs a target's unmutated seed without a time limit (numba compiles
     that path's kernels then; a cold cache on a busy machine was reported as a hang), and every
     call it counts afterwards is timed."""
-    import fuzzing
+    from tests.helpers import fuzzing
 
     limited, timeouts = [], []
     real_limit, real_run = fuzzing._time_limit, fuzzing.run_target
@@ -180,7 +181,7 @@ def test_each_target_is_warmed_up_outside_the_time_limit(corpus, tmp_path, monke
 def test_a_call_over_the_time_limit_is_a_hang_whatever_it_printed(corpus, tmp_path, monkeypatch):
     """The alarm can land in a finalizer, which prints 'Exception ignored ... Traceback' and lets
     the call finish: a call that took longer than the limit is a hang, not a traceback."""
-    import fuzzing
+    from tests.helpers import fuzzing
 
     ticks = itertools.count(0.0, 1e6)  # every reading a million seconds after the one before
     monkeypatch.setattr(fuzzing.time, "monotonic", lambda: next(ticks))

@@ -20,7 +20,7 @@ from hdrcap.acquire.capture.manifest import EventLog, Manifest
 from hdrcap.pipeline.io.exr import read_exr
 from hdrcap.pipeline.io.files import sha256_file
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 #: ``python -c SCRIPT ENOSPC_AT ARGS...``: `hdrcap ARGS` whose camera download finds the host
 #: disk full once, at capture call ENOSPC_AT (0: never) - the fixture's ENOSPC.

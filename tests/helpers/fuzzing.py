@@ -10,10 +10,11 @@ the byte level (flips, overwrites, truncation, insertion, duplication of a chunk
 biased towards the headers where parsers decide), and, for the text formats, generated
 documents of the right shape with wrong values.
 
-``tests/test_fuzz.py`` runs a small budget of examples in ``make test``. The nightly command
-runs one target (or all) for a time budget and prints one JSON line per target::
+``tests/end_to_end/test_fuzz.py`` runs a small budget of examples in ``make test``. The nightly
+command runs one target (or all) for a time budget and prints one JSON line per target (from the
+repository root; ``.venv/bin/python tests/helpers/fuzzing.py ...`` runs the same)::
 
-    .venv/bin/python tests/fuzzing.py --minutes 30 [--target dng] [--corpus DIR]
+    .venv/bin/python -m tests.helpers.fuzzing --minutes 30 [--target dng] [--corpus DIR]
 
 A failure does not end a target's budget: its input is shrunk and stored, and fuzzing goes on
 with a fresh random seed; the JSON line lists every distinct failure (exception type, first line,
@@ -39,7 +40,7 @@ from pathlib import Path
 
 from hypothesis import strategies as st
 
-DATA = Path(__file__).resolve().parent / "data" / "fuzz"
+DATA = Path(__file__).resolve().parents[1] / "data" / "fuzz"
 
 #: Seconds hypothesis may go on shrinking a failure after a target's time budget.
 SHRINK_S = 300
@@ -610,7 +611,7 @@ TARGETS: dict[str, Target] = {
 # --------------------------------------------------------------------------- nightly command
 
 #: The repository root: a failure's location is its innermost frame in hdrcap's own code.
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,7 @@ from hdrcap.pipeline.io.dngwrite import (
 )
 from hdrcap.pipeline.io.exr import read_exr, write_exr
 from hdrcap.pipeline.result import HdrResult
-from tests.colour_sim import CANON_CM, CANON_NEUTRAL, XYZ_TO_SRGB, camera_mosaic, mosaic, recolour_frames
+from tests.helpers.colour_sim import CANON_CM, CANON_NEUTRAL, XYZ_TO_SRGB, camera_mosaic, mosaic, recolour_frames
 
 #: D50 white, CIE 15 chromaticity (0.3457, 0.3585), as XYZ with Y = 1 (the DNG connection space white).
 D50_XYZ = np.array([0.3457 / 0.3585, 1.0, (1 - 0.3457 - 0.3585) / 0.3585])
@@ -229,7 +229,7 @@ PATCH_W = 32
 def colour_bracket(tmp_path_factory):
     """A simulated camera-A bracket of four flat colour patches, its frames carrying the Canon
     colour matrix and D65 neutral, merged and developed by the command line."""
-    from tests.conftest import run_cli
+    from tests.helpers.cli import run_cli
 
     d = tmp_path_factory.mktemp("develop")
     h, w = 256, 4 * PATCH_W
@@ -406,7 +406,7 @@ def test_colour_preview_keeps_hues_and_orders_brightness():
 def test_rawtherapee_develops_the_float_dng_with_the_cameras_colours(colour_bracket, tmp_path):
     """RawTherapee (5.9) reads the float DNG, its CFA and colour tags; in its picture of the
     scene each colour patch keeps its dominant primary and the grey patch stays grey."""
-    from tests.conftest import run_cli
+    from tests.helpers.cli import run_cli
 
     d, _ = colour_bracket
     frames = sorted(d.glob("frame_*.dng"))

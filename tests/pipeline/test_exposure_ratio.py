@@ -6,10 +6,10 @@ simulated frames."""
 
 import numpy as np
 import pytest
-from simcal import bracket, calibrated_sensor
 
 import hdrcap
 from hdrcap.acquire.capture.session import StreamingMerge
+from hdrcap.experiments.calibrated import bracket, calibrated_sensor
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.errors import InputError

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import llvmlite.binding as llvm
 
-from hdrcap.pipeline._numba_target import configure
+from hdrcap.pipeline._numba_target import configure  # the private module under test
 
 
 def test_user_settings_win(monkeypatch):

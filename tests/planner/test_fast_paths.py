@@ -23,7 +23,12 @@ from hypothesis import strategies as st
 from hdrcap.pipeline import calibration as calpkg
 from hdrcap.pipeline.io.exr import read_exr, write_exr
 from hdrcap.pipeline.params import Calibration, SensorParams
-from hdrcap.planner.plan import _ELIGIBLE_DIRECT, _HIST_BLOCK, eligible_mask, irradiance_histogram
+from hdrcap.planner.plan import (  # the private block sizes on purpose: inputs must span several blocks
+    _ELIGIBLE_DIRECT,
+    _HIST_BLOCK,
+    eligible_mask,
+    irradiance_histogram,
+)
 from hdrcap.planner.predict import usable_fraction
 
 
@@ -146,7 +151,7 @@ def test_loading_a_calibration_does_not_import_numba():
 
 
 def test_every_public_name_of_the_calibration_package_resolves():
-    assert set(calpkg.__all__) == set(calpkg._HOME)
+    assert set(calpkg.__all__) == set(calpkg._HOME)  # private on purpose: the lazy-export table
     for name in calpkg.__all__:
         assert getattr(calpkg, name) is not None
         assert name in dir(calpkg)

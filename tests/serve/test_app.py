@@ -35,7 +35,7 @@ from hdrcap.serve.safety import check_bind, is_loopback  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BASE = "http://127.0.0.1:8765"
 TOKEN = "s3cret-token-0123456789"
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -9,7 +9,7 @@ import pytest
 
 from hdrcap.acquire.camera import CameraDisconnectedError
 from hdrcap.acquire.camera.gphoto2 import GphotoError
-from tests.test_gphoto2_camera import FakeBody, _fake_camera
+from tests.helpers.fake_gphoto2 import FakeBody, fake_camera
 
 
 class _NoDelete(FakeBody):
@@ -28,7 +28,7 @@ class _NoDelete(FakeBody):
 @pytest.mark.parametrize("code", [-110, -1, -7])  # busy (after its retries), generic, I/O
 def test_a_failed_delete_after_a_good_download_is_a_warning(tmp_path, caplog, code):
     body = _NoDelete(code, fmt="RAW")
-    cam = _fake_camera(body, pair_wait_s=0.0, backoff_s=0.0)
+    cam = fake_camera(body, pair_wait_s=0.0, backoff_s=0.0)
     cam.set_exposure(0.01)
     with caplog.at_level(logging.WARNING, logger="hdrcap"):
         res = cam.capture(tmp_path / "a.dng")
@@ -56,5 +56,5 @@ class _NoSpeeds(FakeBody):
 def test_a_failed_constructor_leaves_the_worker_stopped(body_cls, err):
     body = body_cls()
     with pytest.raises(err):
-        _fake_camera(body, backoff_s=0.0)
+        fake_camera(body, backoff_s=0.0)
     assert body.dead  # the worker process that holds the camera was ended

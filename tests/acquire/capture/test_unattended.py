@@ -30,8 +30,9 @@ from hdrcap.acquire.capture.session import (
     VerificationError,
 )
 from hdrcap.pipeline.io.files import sha256_file
+from tests.helpers.cameras import StoppingCamera as _StoppingCamera
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
 
 JOB = """\
@@ -213,23 +214,6 @@ def _scene(shape):
     from hdrcap.mock_camera.scenes import make_scene
 
     return make_scene("hdr", shape, decades=3.0, x_max=2e4)
-
-
-class _StoppingCamera:
-    """A MockCamera whose stop event is set (as SIGTERM would) after ``after`` captures."""
-
-    def __init__(self, cam, stop, after):
-        self._cam, self._stop, self._after, self.n = cam, stop, after, 0
-
-    def __getattr__(self, name):
-        return getattr(self._cam, name)
-
-    def capture(self, *a, **kw):
-        res = self._cam.capture(*a, **kw)
-        self.n += 1
-        if self.n == self._after:
-            self._stop.stop(signal.SIGTERM)
-        return res
 
 
 def test_stop_event_ends_the_session_between_frames_and_resume_completes(tmp_path):

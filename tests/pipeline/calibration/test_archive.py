@@ -56,6 +56,7 @@ def test_compressed_files_of_earlier_versions_still_load(tmp_path):
 
 def _verdict(name, arr, params):
     """What load_calibration's value checks say of ``arr``: None or the error message."""
+    # private on purpose: the elementwise check itself, against its shortcut on the extremes
     from hdrcap.pipeline.calibration.archive import _check_map_range
     from hdrcap.pipeline.errors import InputError
 
@@ -71,7 +72,7 @@ def _verdict(name, arr, params):
 def test_map_checks_on_the_extremes_say_what_they_say_on_the_whole_map():
     """The float maps are checked on their least and largest value alone: the same verdict (and
     message) as the elementwise checks, at the thresholds too (float32 rounding of the bounds)."""
-    from hdrcap.pipeline.calibration.archive import _extremes
+    from hdrcap.pipeline.calibration.archive import _extremes  # private on purpose: the shortcut
 
     params = _calibration().params
     rng = np.random.default_rng(7)

@@ -368,7 +368,7 @@ def test_dark_library(tmp_path):
 
 def test_emva_stage_on_a_simulated_descriptor(tmp_path):
     """parse -> data -> results on an EMVA 1288 data set written from the simulator (runs
-    everywhere; the real reference set is tested in test_calibrate_cli.py)."""
+    everywhere; the real reference set is tested in tests/cli/test_calibrate.py)."""
     from PIL import Image
 
     from hdrcap.pipeline.calibration.emva import emva_calibration, emva_data, emva_results

@@ -102,7 +102,7 @@ def test_dark_current_reported_when_the_series_supports_it(tmp_path):
 
 
 def test_pgm_values_are_read_as_stored(tmp_path):
-    from hdrcap.pipeline.calibration.emva import _read_pgm
+    from hdrcap.pipeline.calibration.emva import _read_pgm  # private on purpose: the PGM reader alone
 
     rng = np.random.default_rng(4)
     for bits in (8, 10, 12, 16):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+# Private names on purpose: each fused pass is checked against the numpy expression it replaces.
 from hdrcap.pipeline.calibration import flats as fl
 from hdrcap.pipeline.calibration.stats import (
     _MAD_TO_SIGMA,

@@ -9,8 +9,8 @@ import re
 
 import numpy as np
 import pytest
-from simcal import shots
 
+from hdrcap.experiments.calibrated import simulated_frames
 from hdrcap.mock_camera import SimulatedSensor, preset
 from hdrcap.pipeline.calibration import calibrate
 
@@ -30,11 +30,11 @@ def _calibrate(nonlinearity: float):
 
     def flats():
         for k, f in enumerate(LEVELS):
-            yield from shots(sensor, X, 0.1 * f, 2, rng, f"flat{k:02d}")
+            yield from simulated_frames(sensor, X, 0.1 * f, 2, rng, f"flat{k:02d}")
 
     return spec, calibrate(
-        shots(sensor, 0.0, 1e-4, 2, rng, "bias", dark=True),
-        shots(sensor, X, 0.2, 1, rng, "sat"),
+        simulated_frames(sensor, 0.0, 1e-4, 2, rng, "bias", dark=True),
+        simulated_frames(sensor, X, 0.2, 1, rng, "sat"),
         flats(),
         white_level=spec.white_level,
     )

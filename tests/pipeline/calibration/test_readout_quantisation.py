@@ -15,7 +15,7 @@ from hdrcap.pipeline.calibration import calibrate
 from hdrcap.pipeline.calibration.readout import (
     QUANTISATION_LIMIT,
     QUANTISATION_VARIANCE,
-    _from_pairs,
+    _from_pairs,  # private on purpose (with _read_bias): the stated errors as they were
     _read_bias,
     estimate_readout,
     quantiser_errors,

@@ -3,20 +3,15 @@ dead photosites, +-3 % shutter errors, 0.2 DN bias drift, a 0.2 % loss of respon
 against the simulator's truth, with calibrations ESTIMATED from simulated frames: flats at
 87.5 % of the range, a photon-transfer series (one pair at each of 10 levels from 5 % to 70 %)
 and a dark series at six times, on 256 x 256 photosites, over several sensor seeds; a bracket of
-0.08-300 s merged with each. ``benchmarks/bench_realistic.py`` prints the same figures per seed
-as JSON (the functions are its own)."""
-
-import sys
-from pathlib import Path
+0.08-300 s merged with each. The experiment is :mod:`hdrcap.experiments.realistic`;
+``benchmarks/bench_realistic.py`` prints the same figures per seed as JSON."""
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_realistic import FLAT_LEVEL, calibrated_camera_r, case_figures  # noqa: E402
-from simcal import calibrated_sensor  # noqa: E402
-
-from hdrcap.mock_camera import preset  # noqa: E402
+from hdrcap.experiments.calibrated import calibrated_sensor
+from hdrcap.experiments.realistic import FLAT_LEVEL, calibrated_camera_r, case_figures
+from hdrcap.mock_camera import preset
 
 SIZE = 256
 SEEDS = (1, 2, 3, 4, 5, 6)

@@ -22,7 +22,7 @@ from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.exr import read_exr
 from hdrcap.pipeline.io.raw import RawFrame
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 TIMES = (1 / 2000, 1 / 250, 1 / 30, 1 / 4, 2.0)
 G14 = 0.4
 

@@ -12,11 +12,11 @@ import json
 import numpy as np
 import pytest
 import tifffile
-from simcal import bracket, calibrated_sensor
 
 import hdrcap
 from hdrcap.acquire.capture.session import StreamingMerge
 from hdrcap.cli import main
+from hdrcap.experiments.calibrated import bracket, calibrated_sensor
 from hdrcap.mock_camera import preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.calibration import load_calibration, save_calibration

@@ -63,7 +63,7 @@ def _decoded_directly(path) -> bool:
 
 def _assert_same_as_libraw(path, direct=True):
     fr = pio.read_raw(path)
-    ref = pio._libraw_decode(path)
+    ref = pio._libraw_decode(path)  # private on purpose: LibRaw's decoding is the reference
     assert _decoded_directly(path) is direct
     assert fr.data.dtype == np.uint16 and fr.data.shape == ref.data.shape
     assert np.array_equal(fr.data, ref.data)

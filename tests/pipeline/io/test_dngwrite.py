@@ -32,7 +32,7 @@ def _mosaic(irr, cfa):
 @pytest.fixture(scope="module")
 def merged(tmp_path_factory):
     """A simulated camera-A bracket merged by the CLI twice: to EXR and to float DNG."""
-    from tests.conftest import run_cli
+    from tests.helpers.cli import run_cli
 
     d = tmp_path_factory.mktemp("dng")
     sim = d / "sim"
@@ -182,7 +182,7 @@ def test_darktable_develops_the_float_dng(merged, tmp_path):
 
 
 def test_format_option_and_help(merged, tmp_path):
-    from tests.conftest import run_cli
+    from tests.helpers.cli import run_cli
 
     _, _, frames = merged
     run_cli(

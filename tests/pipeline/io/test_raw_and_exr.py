@@ -1,37 +1,19 @@
 """Raw and EXR I/O: DNG round trip through rawpy, EXIF, EXR channels and attributes,
 EMVA descriptor parsing, atomic no-clobber writes."""
 
-import datetime as dt
 import json
 from fractions import Fraction
 
 import numpy as np
 import pytest
 
-from hdrcap.mock_camera.dng import exposure_rational, write_dng
+from hdrcap.mock_camera.dng import exposure_rational
 from hdrcap.pipeline.errors import InputError, OutputExistsError
 from hdrcap.pipeline.io.emva_descriptor import read_emva_descriptor
 from hdrcap.pipeline.io.exr import ExrContent, read_exr, write_exr
 from hdrcap.pipeline.io.files import atomic_output
 from hdrcap.pipeline.io.raw import check_frames, read_frame, read_raw
-
-
-def _dng(path, data, t=1 / 250, iso=400, cfa="RGGB", black=128, white=4095):
-    with open(path, "wb") as f:
-        write_dng(
-            f,
-            data,
-            exposure_time=t,
-            iso=iso,
-            black_level=black,
-            white_level=white,
-            cfa=cfa,
-            make="Acme",
-            model="Sim 1",
-            serial="42",
-            timestamp=dt.datetime(2026, 1, 2, 3, 4, 5),
-        )
-    return path
+from tests.helpers.dng import write_test_dng as _dng
 
 
 @pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])

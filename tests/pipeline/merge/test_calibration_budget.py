@@ -7,17 +7,12 @@ finite-difference propagation (re-merging with perturbed calibration maps) for t
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
+from hdrcap.experiments.calibrated import estimated_calibration
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.merge import accumulator as merge_mod
 from hdrcap.pipeline.merge.accumulator import merge_arrays
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_honesty import estimated_calibration  # noqa: E402
 
 SHAPE = (128, 128)
 

@@ -16,9 +16,6 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.integrate import quad
@@ -26,13 +23,11 @@ from scipy.optimize import brentq
 from scipy.special import log_ndtr
 from scipy.stats import norm
 
+from hdrcap.experiments.calibrated import estimated_calibration
+from hdrcap.mock_camera.scenes import near_clip_scene as clip_scene
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_honesty import estimated_calibration  # noqa: E402
-from tobit_bands import clip_scene  # noqa: E402
 
 TIMES = np.array([1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0])
 K_EDGES = np.arange(-3.0, 3.01, 0.5)

@@ -5,9 +5,9 @@ EXR carries the channel; the denoiser never uses them. Checked against the simul
 
 import numpy as np
 import pytest
-from simcal import bracket, calibrated_sensor
 
 import hdrcap
+from hdrcap.experiments.calibrated import bracket, calibrated_sensor
 from hdrcap.mock_camera import preset
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.pipeline.denoise.filter import DenoiseSettings, denoise
@@ -23,7 +23,7 @@ TIMES = (0.004, 0.03, 0.25, 2.0)
 @pytest.fixture(scope="module")
 def merged():
     # more stuck photosites than the preset's 0.01 % to have some in a small frame; exact shutter
-    # times (the effective exposure times are tested in test_exposure_ratio.py)
+    # times (the effective exposure times are tested in tests/pipeline/test_exposure_ratio.py)
     spec = preset("camera-R", stuck_fraction=1e-3, shutter_error=0.0, shutter_jitter=0.0)
     sensor, cal = calibrated_sensor(spec, seed=8, shape=SHAPE)
     X = make_scene("gradient", SHAPE, decades=3.0, x_max=2e5)

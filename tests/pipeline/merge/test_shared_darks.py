@@ -145,14 +145,10 @@ def test_planner_predicts_the_measured_snr_of_copies_sharing_a_dark():
 @pytest.mark.parametrize("cam,times", [("camera-A", [0.1]), ("camera-B", [0.1, 0.4])])
 def test_four_frames_sharing_one_dark_with_an_estimated_calibration(cam, times):
     """The same with a calibration ESTIMATED from simulated frames of the sensor (2 bias frames,
-    16 flats, a dark series at 6 times: `bench_honesty.estimated_calibration`), as a user has it:
+    16 flats, a dark series at 6 times: `experiments.calibrated.estimated_calibration`), as a user has it:
     z spread 0.95-1.05 in every decade and merge, the truth scaled by the estimated gain's error
     (common to every photosite, recorded in the header, not in sigma)."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from bench_honesty import estimated_calibration
+    from hdrcap.experiments.calibrated import estimated_calibration
 
     spec = PRESETS[cam]
     for seed in (1, 2):

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hdrcap.cli import main
+from hdrcap.experiments.calibrated import calibrated_sensor
 from hdrcap.mock_camera.dng import write_dng
 from hdrcap.mock_camera.scenes import make_scene
 from hdrcap.mock_camera.sensor import preset
@@ -20,7 +21,6 @@ from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.exr import read_exr
 from hdrcap.pipeline.merge.tiled import RowFile, chunk_rows_for, parse_memory, row_source
 from hdrcap.pipeline.params import ShutterTable
-from tests.simcal import calibrated_sensor
 
 SHAPE = (98, 128)  # 98 rows: the last tile of 20 rows is short
 TIMES = (0.001, 0.004, 0.016, 0.064)
@@ -160,6 +160,7 @@ def test_weight_precision_is_chosen_for_the_whole_frame(bracket, tmp_path, capsy
 
     bias = np.asarray(load_calibration(bracket["cal"]).bias_map)
     limit = float(np.median([bias[r : r + 20].max() for r in range(0, SHAPE[0], 20)]))
+    # private on purpose: the precision rule is replaced by one that half of the tiles pass
     monkeypatch.setattr(pm.MergeAccumulator, "_single_precision_safe", rule)
     args = [*bracket["frames"], "--darks", *bracket["darks"], "--calibration", bracket["cal"]]
     ref, _, _ = _merge(tmp_path, "mem", args, capsys)

@@ -7,8 +7,8 @@ camera-R frames, against the simulator's truth (the irradiance is 0)."""
 
 import numpy as np
 import pytest
-from simcal import calibrated_sensor
 
+from hdrcap.experiments.calibrated import calibrated_sensor
 from hdrcap.mock_camera import preset
 from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration, SensorParams
