@@ -111,9 +111,12 @@ class CameraProfile:
     @classmethod
     def from_frame(cls, frame: object, source: str | None = None) -> CameraProfile:
         """A frame (:class:`pipeline.io.raw.RawFrame`): its camera, serial, ISO, white level,
-        size and CFA pattern (``none`` for a monochrome one)."""
+        size and CFA pattern (``none`` for a monochrome one; unknown for an array without one, or
+        a PNG/TIFF whose pattern was not given)."""
         path = getattr(frame, "path", None)
         shape = tuple(int(n) for n in getattr(getattr(frame, "data", None), "shape", ()))
+        cfa = getattr(frame, "cfa_pattern", None)
+        cfa_known = cfa is not None or (path is not None and "cfa" not in getattr(frame, "assumed", ()))
         return cls(
             source or (f"frame {path}" if path else "the frame"),
             str(getattr(frame, "camera", "") or ""),
@@ -121,7 +124,7 @@ class CameraProfile:
             _num(getattr(frame, "iso", None)),
             white_level=_num(getattr(frame, "white_level", None)),
             shape=(shape[0], shape[1]) if len(shape) == 2 else None,
-            cfa_pattern=str(getattr(frame, "cfa_pattern", None) or "none"),
+            cfa_pattern=str(cfa or "none") if cfa_known else None,
         )
 
     @classmethod

@@ -115,6 +115,12 @@ MIN_RELATIVE_STDERR = 1e-6
 #: Effective times further than this many standard errors from the nominal ones differ from them.
 TIMES_DIFFER_SIGMAS = 3.0
 
+#: Rounding is dithered (its error uniform, of variance step^2 / 12, and its mean linear) where
+#: the signal's own noise has a standard deviation of at least this many quantisation steps
+#: (the error's periodic part is then damped by exp(-2 pi^2 0.25) < 1 %); signal bins whose
+#: shorter frame is noisier by less are left out of the fit.
+DITHER_STEPS = 0.5
+
 
 @dataclass(frozen=True)
 class PairEstimate:
@@ -267,6 +273,7 @@ class SelfCalibration:
                     "model_rejected",
                     "stderr_scale",
                     "n_bins",
+                    "n_bins_undithered",
                     "n_photosites",
                     "max_weight_ratio",
                 )
@@ -380,13 +387,21 @@ def _black_rows(tile: np.ndarray, rows: np.ndarray, width: int) -> np.ndarray:
     return tile[(rows % 2)[:, None], cols[None, :]]
 
 
-def saturation_level(longest: np.ndarray, white_level: float, black: float) -> float:
+def saturation_level(
+    longest: np.ndarray,
+    white_level: float,
+    black: float,
+    shorter: np.ndarray | None = None,
+    ratio: float | None = None,
+) -> float:
     """The raw value from which a sample counts as saturated, DN.
 
     Where the ADC clips first, values pile up at the white level: ``white_level``. Where the
     full well clips first, they pile up below it, spread by the read noise: the pile-up's
     median minus 3 robust standard deviations (Sec. 6: v_sat = mean - 3 std of a saturation
-    frame). Without a pile-up, the white level.
+    frame). Without a pile-up, the white level. A peak whose photosites the next shorter frame
+    sees at the peak's signal over the exposure ratio is a flat scene, not a pile-up (saturated
+    photosites would have had more signal).
 
     Parameters
     ----------
@@ -396,6 +411,10 @@ def saturation_level(longest: np.ndarray, white_level: float, black: float) -> f
         The file's white level, DN.
     black : float
         Mean black level, DN.
+    shorter : numpy.ndarray, optional
+        The next shorter exposure (same photosites), DN.
+    ratio : float, optional
+        The exposure ratio of ``longest`` to ``shorter`` (nominal).
 
     Returns
     -------
@@ -414,8 +433,14 @@ def saturation_level(longest: np.ndarray, white_level: float, black: float) -> f
     if hist[peak] < 10 * max(np.median(hist), 1):
         return float(white_level)
     centre = 0.5 * (edges[peak] + edges[peak + 1])
-    near = top[np.abs(top - centre) <= 4 * (edges[1] - edges[0]) + 8]
+    window = 4 * (edges[1] - edges[0]) + 8
+    near = top[np.abs(top - centre) <= window]
     med = float(np.median(near))
+    if shorter is not None and ratio:
+        there = np.abs(np.asarray(longest).ravel() - centre) <= window
+        seen = (float(np.median(np.asarray(shorter).ravel()[there])) - black) * ratio
+        if seen < 1.05 * (med - black):  # the shorter frame sees just this signal: a flat scene
+            return float(white_level)
     spread = 1.4826 * float(np.median(np.abs(near - med)))
     return float(min(white_level, med - 3.0 * max(spread, 0.5)))
 
@@ -577,45 +602,12 @@ def _weighted_fit(
     return np.array([g, floor]), np.array([[1.0 / sxx, 0.0], [0.0, 0.0]]), True, float(coef[1])
 
 
-def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0) -> dict[str, Any] | None:
-    """Gain and readout variance from the difference variances of every pair (Eq. 3):
-    Var(d) = g m_j (1 + r) + sigma_R^2 (1 + r^2), weighted least squares with sigma_R^2 >=
-    ``floor`` and weights (n - 1) / (2 Var^2) (the variance of a sample variance), Var the
-    fitted one (at least the floor's share: bounded weights), iterated to convergence.
-
-    Parameters
-    ----------
-    pairs : sequence of PairEstimate
-    floor : float
-        Smallest readout variance, DN^2: the quantisation floor step^2 / 12.
-
-    Returns
-    -------
-    dict or None
-        ``g`` (DN/e-), ``sigma2_R`` (DN^2), ``g_stderr``, ``sigma2_R_stderr`` (None when
-        constrained to the floor), ``reduced_chi2``, ``dof``, ``chi2_limit`` (its
-        :data:`CHI2_LIMIT_PROBABILITY` quantile), ``model_rejected`` (chi^2 above it),
-        ``stderr_scale`` (sqrt of the reduced chi^2 when above 1: the standard errors are
-        scaled by it), ``n_bins``, ``n_photosites``, ``sigma2_R_floor``, ``sigma2_R_fitted``
-        (the unconstrained value), ``constrained``, ``max_weight_ratio`` (largest weight over
-        the median); None with fewer than 3 bins or a signal range under a factor 4.
-    """
-    from scipy.stats import chi2 as chi2_dist
-
-    x1s: list[np.ndarray] = []
-    x2s: list[np.ndarray] = []
-    ys: list[np.ndarray] = []
-    ns: list[np.ndarray] = []
-    for q in pairs:
-        if not q.overlap or not q.count.size:
-            continue
-        x1s.append(q.signal * (1.0 + q.ratio))
-        x2s.append(np.full(q.signal.size, 1.0 + q.ratio**2))
-        ys.append(q.variance)
-        ns.append(q.count)
-    if not ys:
-        return None
-    x1, x2, y, n = (np.concatenate(c) for c in (x1s, x2s, ys, ns))
+def _fit_bins(
+    x1: np.ndarray, x2: np.ndarray, y: np.ndarray, n: np.ndarray, floor: float
+) -> tuple[np.ndarray, np.ndarray, bool, float, np.ndarray] | None:
+    """The iterated weighted fit of :func:`photon_transfer_fit` over some bins: (coefficients,
+    covariance, constrained, the unconstrained sigma_R^2, the fitted variances); None with
+    fewer than 3 bins or a signal range under a factor 4."""
     sig = x1 / np.maximum(x2, 1)
     if y.size < 3 or sig.max() < 4 * max(sig.min(), 1e-12):
         return None
@@ -630,6 +622,60 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0
         pred = new
         if done:
             break
+    return coef, cov, constrained, fitted, pred
+
+
+def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0) -> dict[str, Any] | None:
+    """Gain and readout variance from the difference variances of every pair (Eq. 3):
+    Var(d) = g m_j (1 + r) + sigma_R^2 (1 + r^2), weighted least squares with sigma_R^2 >=
+    ``floor`` and weights (n - 1) / (2 Var^2) (the variance of a sample variance), Var the
+    fitted one (at least the floor's share: bounded weights), iterated to convergence; then
+    again without the bins whose shorter frame's noise is under :data:`DITHER_STEPS`
+    quantisation steps (undithered rounding: its variance is not step^2 / 12).
+
+    Parameters
+    ----------
+    pairs : sequence of PairEstimate
+    floor : float
+        Smallest readout variance, DN^2: the quantisation floor step^2 / 12.
+
+    Returns
+    -------
+    dict or None
+        ``g`` (DN/e-), ``sigma2_R`` (DN^2), ``g_stderr``, ``sigma2_R_stderr`` (None when
+        constrained to the floor), ``reduced_chi2``, ``dof``, ``chi2_limit`` (its
+        :data:`CHI2_LIMIT_PROBABILITY` quantile), ``model_rejected`` (chi^2 above it),
+        ``stderr_scale`` (sqrt of the reduced chi^2 when above 1: the standard errors are
+        scaled by it), ``n_bins`` (used), ``n_bins_undithered`` (left out), ``n_photosites``,
+        ``sigma2_R_floor``, ``sigma2_R_fitted``
+        (the unconstrained value), ``constrained``, ``max_weight_ratio`` (largest weight over
+        the median); None with fewer than 3 bins or a signal range under a factor 4.
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    cols: list[list[np.ndarray]] = [[], [], [], [], []]
+    for q in pairs:
+        if not q.overlap or not q.count.size:
+            continue
+        for c, v in zip(
+            cols, (q.signal * (1.0 + q.ratio), np.full(q.signal.size, 1.0 + q.ratio**2), q.variance, q.count)
+        ):
+            c.append(v)
+        cols[4].append(q.signal / q.ratio)  # the short frame's signal
+    if not cols[2]:
+        return None
+    x1, x2, y, n, short = (np.concatenate(c) for c in cols)
+    first = _fit_bins(x1, x2, y, n, floor)
+    if first is None:
+        return None
+    coef, _, _, _, _ = first
+    # the short frame's noise before rounding: g m_i + sigma_R^2 - step^2 / 12 (step^2 = 12 floor)
+    dithered = coef[0] * short + coef[1] - floor >= (DITHER_STEPS**2) * 12.0 * floor
+    found = _fit_bins(x1[dithered], x2[dithered], y[dithered], n[dithered], floor) if not dithered.all() else first
+    if found is None:  # too few bins are dithered: all of them, the model's error says so
+        found, dithered = first, np.ones(y.size, bool)
+    coef, cov, constrained, fitted, pred = found
+    y, n = y[dithered], n[dithered]
     w = np.maximum(n - 1, 1) / (2.0 * pred**2)
     dof = max(y.size - (1 if constrained else 2), 1)
     chi2 = float(np.sum((y - pred) ** 2 * w) / dof)
@@ -649,6 +695,7 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0
         "model_rejected": bool(chi2 > limit),
         "stderr_scale": scale,
         "n_bins": int(y.size),
+        "n_bins_undithered": int(np.count_nonzero(~dithered)),
         "n_photosites": int(n.sum()),
         "sigma2_R_floor": float(floor),
         "sigma2_R_fitted": fitted,
@@ -698,7 +745,7 @@ def _third_frame_level(
 
 
 def estimate_black_level(
-    data: Sequence[np.ndarray], order: np.ndarray, nominal: np.ndarray, v_sat: float
+    data: Sequence[np.ndarray], order: np.ndarray, nominal: np.ndarray, v_sat: float, step: float = 1.0
 ) -> tuple[float, float] | None:
     """The black level of a bracket whose files do not say it, DN, with its standard error.
 
@@ -719,6 +766,9 @@ def estimate_black_level(
         Nominal exposure times per frame, s.
     v_sat : float
         Saturation level, DN.
+    step : float
+        Quantisation step, DN: bins whose short frame's spread is under
+        :data:`DITHER_STEPS` steps are left out (the mean of undithered rounding is not linear).
 
     Returns
     -------
@@ -746,6 +796,8 @@ def estimate_black_level(
         for k in range(BINS_PER_PAIR):
             s = np.flatnonzero(idx == k)
             if s.size < MIN_BIN_PHOTOSITES or np.mean(clip[s]) > MAX_CLIPPED_FRACTION:
+                continue
+            if np.var(a[s]) < (DITHER_STEPS * step) ** 2:  # rounding not dithered: its mean is not linear
                 continue
             pts.append((np.mean(a[s]), np.mean(b[s]), np.var(a[s]) / s.size, np.var(b[s]) / s.size))
         if len(pts) < 3:
@@ -851,11 +903,20 @@ def self_calibrate(
     nominal = np.array([fr.exposure_time for fr in frames], float)
     order = np.argsort(nominal, kind="stable")
     rows = _row_sample(first.shape, max_samples)
-    longest = np.asarray(frames[order[-1]].data)[rows]
     data = [np.asarray(fr.data)[rows] for fr in frames]
+    longest = data[order[-1]]
+
+    def v_sat_for(black_level: float) -> float:
+        if len(order) < 2:
+            return saturation_level(longest, white, black_level)
+        ratio = nominal[order[-1]] / nominal[order[-2]]
+        return saturation_level(longest, white, black_level, data[order[-2]], ratio)
+
     black_source = "file metadata"
     if first.black_level is None:
-        found = estimate_black_level(data, order, nominal, saturation_level(longest, white, 0.0))
+        found = estimate_black_level(data, order, nominal, v_sat_for(0.0), step)
+        if found is not None and found[1] > max(step, 1e-3 * white):  # not identified (e.g. a flat scene)
+            found = None
         if found is None:
             note(f"{first.path}: no black level in the file, and the bracket cannot give one; 0 DN assumed")
             black_source = "assumed 0 DN (not in the files)"
@@ -865,7 +926,7 @@ def self_calibrate(
             black_source = f"estimated from the bracket: {b0:.3f} +- {b_se:.2g} DN"
             note(f"{first.path}: no black level in the file; {black_source} (--black-level to give it)")
     black = _black_rows(tile, rows, first.shape[1])
-    v_sat = saturation_level(longest, white, float(tile.mean()))
+    v_sat = v_sat_for(float(tile.mean()))
     if v_sat < white:
         note(f"values pile up below the white level ({white:g} DN): saturation taken at {v_sat:.1f} DN")
     pairs = _pairs(data, order, nominal, black, v_sat, step)
@@ -877,7 +938,8 @@ def self_calibrate(
         a, b = q.short, q.long
         if not q.overlap:
             note(
-                f"no photosite is exposed and unsaturated in both {frames[a].path} and {frames[b].path}: "
+                f"no photosite is exposed and unsaturated (below {MAX_SIGNAL_FRACTION:.0%} of the range) in both {frames[a].path} "
+                f"and {frames[b].path}: "
                 f"their nominal exposure ratio {nominal[b] / nominal[a]:.4g} is assumed"
             )
     if not any(q.overlap for q in pairs):

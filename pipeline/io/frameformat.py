@@ -23,7 +23,22 @@ import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["CFA_CHOICES", "FrameFormat", "ImageLevels", "image_levels", "aligned_step", "check_cfa_option"]
+__all__ = [
+    "ASSUMED",
+    "CFA_CHOICES",
+    "FrameFormat",
+    "ImageLevels",
+    "image_levels",
+    "aligned_step",
+    "check_cfa_option",
+    "describe_assumed",
+]
+
+#: What a PNG/TIFF reader may have had to assume (the keys of ``RawFrame.assumed``): ``msb``
+#: (MSB alignment detected from the values), ``white_level`` (from the bit depth),
+#: ``white_level_unknown`` (16-bit words, bits not known), ``black_level`` (unknown), ``cfa``
+#: (no CFA pattern said: monochrome).
+ASSUMED = ("msb", "white_level", "white_level_unknown", "black_level", "cfa")
 
 #: The values of ``--cfa``: a 2x2 Bayer tile read row by row, or ``mono`` (no colour filter).
 CFA_CHOICES = ("RGGB", "BGGR", "GRBG", "GBRG", "mono")
@@ -174,18 +189,19 @@ class ImageLevels:
         Quantisation step, DN.
     black_level : float or None
         DN; None when neither the file nor the format says it.
-    white_level : float
-        DN.
+    white_level : float or None
+        DN; None for 16-bit values whose bit depth nothing says (LSB-aligned, no ``bits``).
     cfa_pattern : str or None
         Bayer tile, None for monochrome.
     assumed : tuple of str
-        What was assumed because neither the file nor the format said it.
+        What was assumed because neither the file nor the format said it (keys of
+        :data:`ASSUMED`).
     """
 
     bits: int
     step: float
     black_level: float | None
-    white_level: float
+    white_level: float | None
     cfa_pattern: str | None
     assumed: tuple[str, ...]
 
@@ -195,8 +211,9 @@ def image_levels(data: np.ndarray, stored_bits: int, fmt: FrameFormat | None, wh
 
     From ``fmt`` where it says them; else: the bits from the file (``stored_bits``; in 16-bit
     words whose values are all multiples of 2^k, 16 - k bits MSB-aligned, said in ``assumed``),
-    the white level (2^N - 1) x step, no black level (None: a self-calibration estimates it)
-    and no CFA (monochrome), each recorded in ``assumed``.
+    the white level (2^N - 1) x step (None for 16-bit values that are not MSB-aligned: nothing
+    says how many bits they have), no black level (None: a self-calibration estimates it) and
+    no CFA (monochrome), each recorded in ``assumed``.
 
     Parameters
     ----------
@@ -234,30 +251,68 @@ def image_levels(data: np.ndarray, stored_bits: int, fmt: FrameFormat | None, wh
         shift = min(_trailing_zeros(data), 8) if stored_bits == 16 and np.any(data) else 0
         bits, step = stored_bits - shift, float(1 << shift)
         if shift:
-            assumed.append(
-                f"{bits}-bit data MSB-aligned in 16-bit words (every value a multiple of {1 << shift}: "
-                f"quantisation step {1 << shift} DN)"
-            )
+            assumed.append("msb")
+    white: float | None
     if fmt.white_level is not None:
         white = float(fmt.white_level)
+    elif fmt.bits is None and stored_bits == 16 and step == 1:
+        white = None  # 16-bit words, nothing says how many bits the data have
+        assumed.append("white_level_unknown")
     else:
         white = float((1 << bits) - 1) * step
         if fmt.bits is None:
-            high = int(np.max(data)) if data.size else 0
-            hint = ""
-            if step == 1 and stored_bits == 16 and 0 < high < 1 << 15:
-                hint = f"; the largest value is {high} DN: give --bits if the data have fewer bits"
-            assumed.append(f"white level {white:g} DN from the {bits}-bit depth{hint}")
+            assumed.append("white_level")
     black: float | None = None
     if fmt.black_level is not None:
         black = float(fmt.black_level)
     else:
-        assumed.append("black level unknown (a self-calibration estimates it from the bracket)")
+        assumed.append("black_level")
     if fmt.cfa is not None:
         cfa = fmt.cfa_pattern
     else:
         cfa = None
-        assumed.append("no colour filter (monochrome)")
-    if black is not None and black >= white:
+        assumed.append("cfa")
+    if black is not None and white is not None and black >= white:
         raise InputError(f"{where}: black level {black:g} DN is not below the white level {white:g} DN")
     return ImageLevels(bits, step, black, white, cfa, tuple(assumed))
+
+
+def describe_assumed(
+    assumed: tuple[str, ...], bits: int | None, step: float, white_level: float | None, high: int | None = None
+) -> str:
+    """What a reader assumed about a frame, as one phrase for a warning.
+
+    Parameters
+    ----------
+    assumed : tuple of str
+        Keys of :data:`ASSUMED`.
+    bits : int or None
+        The frame's significant bits.
+    step : float
+        Its quantisation step, DN.
+    white_level : float or None
+        Its white level, DN.
+    high : int, optional
+        Its largest value, DN (named when the white level is unknown).
+
+    Returns
+    -------
+    str
+        E.g. ``"white level 255 DN from the 8-bit depth; black level unknown (...)"``.
+
+    Examples
+    --------
+    >>> describe_assumed(("white_level", "cfa"), 8, 1.0, 255.0)
+    'white level 255 DN from the 8-bit depth; no colour filter (monochrome)'
+    """
+    words = {
+        "msb": f"{bits}-bit data MSB-aligned in 16-bit words (every value a multiple of {step:g}: quantisation "
+        f"step {step:g} DN)",
+        "white_level": f"white level {white_level:g} DN from the {bits}-bit depth" if white_level else "",
+        "white_level_unknown": "white level unknown: 16-bit values"
+        + (f" (the largest is {high} DN)" if high is not None else "")
+        + ", give --bits or --white-level if the data have fewer bits",
+        "black_level": "black level unknown (a self-calibration estimates it from the bracket)",
+        "cfa": "no colour filter (monochrome)",
+    }
+    return "; ".join(words[k] for k in assumed if words.get(k))

@@ -91,7 +91,8 @@ class RawFrame:
     serial : str or None
         Camera serial number (DNG CameraSerialNumber or EXIF BodySerialNumber).
     assumed : tuple of str
-        What the reader assumed because the file does not say it (a PNG's black level, ...).
+        What the reader assumed because the file does not say it (keys of
+        :data:`pipeline.io.frameformat.ASSUMED`: a PNG's black level, CFA pattern, ...).
     """
 
     data: np.ndarray
@@ -698,9 +699,7 @@ def _image_pixels(path: Path) -> tuple[np.ndarray, int]:
     return data.astype(np.uint16, copy=False), min(bits, 16)
 
 
-def read_image16(
-    path: str | os.PathLike[str], exposure_time: float | None, fmt: FrameFormat | None = None
-) -> RawFrame:
+def read_image16(path: str | os.PathLike[str], exposure_time: float | None, fmt: FrameFormat | None = None) -> RawFrame:
     """Read a single-channel PNG or TIFF (8 to 16 bits per sample) as a raw frame.
 
     Such files carry no exposure time, levels or CFA pattern: the time is required, the rest
@@ -822,7 +821,9 @@ def with_format(frame: RawFrame, fmt: FrameFormat | None) -> RawFrame:
         stored = 8 if data.dtype == np.uint8 else 16
         integer = data.dtype.kind in "ui"
         changes["bits"] = int(fmt.bits)
-        changes["quantisation_step"] = aligned_step(data, stored, int(fmt.bits), frame.path or "frame") if integer else 1.0
+        changes["quantisation_step"] = (
+            aligned_step(data, stored, int(fmt.bits), frame.path or "frame") if integer else 1.0
+        )
     out = dataclasses.replace(frame, **changes)
     black, white = out.black_level or 0.0, out.white_level
     if white is not None and black >= white:

@@ -401,10 +401,8 @@ def bracket_calibration(
         return found[1], (list(times) if times else None), None
     sc = self_calibrate(frames, warn=warn)
     if say is not None:
-        say(
-            f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
-            f"{sc.calibration.provenance['source']}"
-        )
+        which = f"for {first.camera} at ISO {first.iso:g}" if first.camera and first.iso else "for these frames"
+        say(f"no --calibration and none in the library {library_dir()} {which}: {sc.calibration.provenance['source']}")
     if exposure_times == "nominal":
         return sc.calibration, list(sc.nominal_times), sc
     if darks and not sc.times_match_nominal():
@@ -487,9 +485,13 @@ class _FirstFrame:
             return
         self.seen = True
         if fr.assumed:
+            from hdrcap.pipeline.io.frameformat import describe_assumed
+
+            high = int(np.max(fr.data)) if "white_level_unknown" in fr.assumed else None
+            what = describe_assumed(fr.assumed, fr.bits, fr.quantisation_step, fr.white_level, high)
             self.warn(
                 f"{fr.path or 'frame'} (and the bracket's other frames): the file does not say its format; assumed "
-                f"{'; '.join(fr.assumed)} (--cfa, --black-level, --white-level, --bits say otherwise)"
+                f"{what} (--cfa, --black-level, --white-level, --bits say otherwise)"
             )
         if self.check is not None:
             self.check(fr)

@@ -741,9 +741,7 @@ def merge_tiled(
         inputs = _Inputs(spill, warn, fmt=req.frame_format)
         p = _open_all(inputs, calib, [Path(f) for f in req.frames], times, [Path(d) for d in req.darks], on_frame)
         if prep.master_dark is not None:
-            md, p.master_src = inputs.open(
-                Path(prep.master_dark), 1.0 if prep.master_plain else None, formatted=False
-            )
+            md, p.master_src = inputs.open(Path(prep.master_dark), 1.0 if prep.master_plain else None, formatted=False)
             if md.shape != p.shape:
                 raise InputError(f"{md.path}: master dark size differs from the bracket's")
             prep.master_dark_time(md)
