@@ -50,8 +50,10 @@ def _scene(name: str = "hdr", decades: float = 4.0, level: float = 1.0, shape=SH
 
 
 def _bracket(folder: Path, X: np.ndarray, seed: int, suffix: str = ".tif", spec: SensorSpec = MV, **kw) -> list[Path]:
+    """The bracket as image files: the machine-vision camera's 8-bit files by default."""
     cam = SimulatedCamera(spec, X, seed=seed)
     folder.mkdir(parents=True, exist_ok=True)
+    kw = {"bits": 8, **kw} if spec is MV or spec.name == MV.name else kw
     return [cam.capture_image_to(folder / f"f{i}{suffix}", t, **kw) for i, t in enumerate(TIMES)]
 
 
@@ -191,14 +193,20 @@ def test_read_noise_below_quantisation_is_held_at_the_floor():
 def test_a_model_the_data_reject_inflates_the_stated_errors():
     """A black level 6 DN off (what a PNG without one gave before): the reduced chi^2 exceeds
     what its degrees of freedom allow, the errors are scaled by its square root and a note says
-    so."""
+    so; the variances are missed by so much that the gain is declared not estimable (DN/s). A
+    black level 1.2 DN off still fits (chi^2 about 1) and gives the gain within 3 %."""
     sensor = SimulatedSensor(MV, SHAPE, seed=2)
     notes: list[str] = []
     sc = self_calibrate(_frames_8bit(_scene(), sensor, np.random.default_rng(6), black=0.0), warn=notes.append)
-    fit = sc.header()["photon_transfer_fit"]
+    head = sc.header()
+    fit = head["photon_transfer_fit"]
     assert fit["model_rejected"] and fit["reduced_chi2"] > fit["chi2_limit"]
     assert fit["stderr_scale"] == pytest.approx(np.sqrt(fit["reduced_chi2"]))
     assert any("does not describe this bracket" in n for n in notes)
+    assert not sc.gain_known and sc.unit.startswith("DN per second")
+    assert "misses the variances" in head["gain"]["not_estimable"] and fit["relative_misfit"] > 0.1
+    near = self_calibrate(_frames_8bit(_scene(), sensor, np.random.default_rng(6), black=5.0))
+    assert near.gain_known and abs(near.fit["g"] / G8 - 1) < 0.03
 
 
 SCENES = [
@@ -277,9 +285,9 @@ def test_size_and_cfa_of_a_calibration_are_checked(camera_a_frames):
     from hdrcap.api import camera_calibration, merge
 
     cal = camera_calibration("camera-A")
-    with pytest.raises(InputError, match=r"is 64x48 photosites, but the calibration is of 32x48"):
+    with pytest.raises(InputError, match=r"a0.dng is 64x48 photosites, but preset camera-A is of 32x48"):
         merge(camera_a_frames, calibration=cal.replace(prnu=np.ones((48, 32), np.float32)))
-    with pytest.raises(InputError, match="has CFA pattern RGGB, but the calibration has BGGR"):
+    with pytest.raises(InputError, match="has CFA pattern RGGB, but preset camera-A has BGGR"):
         merge(camera_a_frames, calibration=cal.replace(provenance={**cal.provenance, "cfa_pattern": "BGGR"}))
 
 
@@ -297,7 +305,7 @@ def test_monochrome_sensor_through_merge_denoise_and_batch_develop_refuses(tmp_p
     assert read_exr(out).header["cfa_pattern"] == "none"
     cli("merge", *files, "--camera", "camera-B", "-o", tmp_path / "p.exr", check=True)
     den = cli("denoise", out, "-o", tmp_path / "d.exr", "--json", check=True)
-    assert read_exr(tmp_path / "d.exr").header["denoise"]["layout"] == "mono", den.stdout
+    assert read_exr(tmp_path / "d.exr").header["denoise"]["settings"]["layout"] == "mono", den.stdout
     dev = cli("develop", out, "-o", tmp_path / "rgb.exr")
     assert dev.returncode == 2 and len(dev.stderr.strip().splitlines()) == 1
     assert "no colour filter" in dev.stderr and "monochrome" in dev.stderr
@@ -318,11 +326,11 @@ def test_monochrome_8bit_png_bracket_merges(tmp_path, cli):
 
 # --------------------------------------------------------------------------- summaries
 def test_summary_states_the_unit_written_and_the_read_noise_used(tmp_path, cli):
-    """A flat scene cannot give the gain: the summary says DN/s as the EXR does, and prints the
-    read-noise variance the merge used."""
-    files = _bracket(tmp_path / "b", np.full(SHAPE, 0.3 * 250 / (G8 * TIMES[2])), seed=8, bits=8)
+    """Two frames of a flat scene cannot give the gain (one signal level): the summary says DN/s
+    as the EXR does, and prints the read-noise variance the merge used."""
+    files = _bracket(tmp_path / "b", np.full(SHAPE, 0.3 * 250 / (G8 * TIMES[1])), seed=8)
     out = tmp_path / "m.exr"
-    proc = cli("merge", *files[:4], "--times", *_times()[:4], "--cfa", "GBRG", "--black-level", "6.2", "-o", out)
+    proc = cli("merge", *files[:2], "--times", *_times()[:2], "--cfa", "GBRG", "--black-level", "6.2", "-o", out)
     assert proc.returncode == 0, proc.stderr
     img = read_exr(out)
     assert img.header["unit"].startswith("DN per second")
@@ -383,3 +391,39 @@ def test_emva_reference_bracket_self_calibrates_to_its_gain(emva_dir, tmp_path, 
     g, se = sc["gain"]["value"], sc["gain"]["stderr"]
     assert sc["white_level"] == 4095 and sc["saturation_level"] == 4095, proc.stderr
     assert abs(g / 0.280769 - 1) < 0.03 and abs(g - 0.280769) < 4 * se, (g, se)
+
+
+def test_a_negative_intercept_is_fitted_at_the_floor_with_bounded_weights():
+    """Bin variances whose straight line crosses below the floor (what the issue's bracket gave:
+    sigma_R^2 = -0.149): sigma_R^2 is held at the floor and not stated as estimated, the gain
+    is fitted with it, and no weight is more than 1e8 times the median."""
+    from hdrcap.pipeline.calibration.selfcal import PairEstimate, photon_transfer_fit
+
+    rng = np.random.default_rng(3)
+    pairs = []
+    for k, r in enumerate((2.0, 4.0, 1.96)):
+        m = np.geomspace(0.5, 150, 12)
+        var = G8 * m * (1 + r) - 0.15 * (1 + r**2)
+        var = np.maximum(var, 1e-6) * (1 + 0.01 * rng.standard_normal(m.size))
+        n = np.full(m.size, 5000)
+        pairs.append(PairEstimate(k, k + 1, r, 1e-3, int(n.sum()), m, var, n))
+    fit = photon_transfer_fit(pairs, floor=1 / 12)
+    assert fit is not None and fit["constrained"] and fit["sigma2_R"] == 1 / 12
+    assert fit["sigma2_R_stderr"] is None and fit["sigma2_R_fitted"] < 1 / 12
+    assert fit["max_weight_ratio"] < 1e8 and fit["g_stderr"] >= 1e-6 * fit["g"]
+    assert fit["model_rejected"]  # the line does not hold at the floor: said, errors scaled
+
+
+def test_arrays_in_memory_take_the_format(tmp_path):
+    """The API's merge of arrays with a CFA pattern and bits: the format is the frames'."""
+    from hdrcap.api import camera_calibration, merge
+
+    cal = camera_calibration("camera-B")
+    sensor = SimulatedSensor(PRESETS["camera-B"], (32, 48), seed=1)
+    X = make_scene("hdr", (32, 48), decades=2.0, x_max=2e4)
+    times = [0.001, 0.01, 0.1]
+    frames = [sensor.expose(X, t) for t in times]
+    hdr = merge(frames, times, calibration=cal, cfa_pattern="GBRG", bits=10)
+    assert hdr.header["cfa_pattern"] == "GBRG"
+    with pytest.raises(InputError, match="CFA pattern 'XYZW'"):
+        merge(frames, times, calibration=cal, cfa_pattern="XYZW")

@@ -51,7 +51,7 @@ def bracket(tmp_path_factory):
                     iso=100,
                     black_level=spec.mu_R,
                     white_level=spec.white_level,
-                    model="Simulated camera-A",
+                    model=spec.model,  # the camera the preset names (the merge checks it)
                 )
             paths[kind].append(p)
     master = root / "master.dng"

@@ -96,6 +96,12 @@ MAX_SIGNAL_FRACTION = 0.7
 #: Largest relative standard error of the gain for the gain to count as estimated.
 MAX_GAIN_RELATIVE_ERROR = 0.2
 
+#: Largest rms relative misfit of the bin variances (beyond their own sampling scatter) for the
+#: gain to count as estimated: above it the photon-transfer model misses the variances by so
+#: much (a wrong black level gave 18-27 %, a right model 0-2 %) that the fitted slope describes
+#: no camera, and scaling its error by sqrt(chi^2) does not make brackets agree.
+MAX_MODEL_MISFIT = 0.1
+
 #: Outlier rejection within a signal bin, in robust standard deviations (hot photosites,
 #: motion): a Gaussian sample is rejected with probability 2e-9.
 CLIP_SIGMAS = 6.0
@@ -272,6 +278,7 @@ class SelfCalibration:
                     "chi2_limit",
                     "model_rejected",
                     "stderr_scale",
+                    "relative_misfit",
                     "n_bins",
                     "n_bins_undithered",
                     "n_photosites",
@@ -646,7 +653,8 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0
         constrained to the floor), ``reduced_chi2``, ``dof``, ``chi2_limit`` (its
         :data:`CHI2_LIMIT_PROBABILITY` quantile), ``model_rejected`` (chi^2 above it),
         ``stderr_scale`` (sqrt of the reduced chi^2 when above 1: the standard errors are
-        scaled by it), ``n_bins`` (used), ``n_bins_undithered`` (left out), ``n_photosites``,
+        scaled by it), ``relative_misfit`` (rms relative deviation of the bin variances from the
+        fit beyond their sampling scatter), ``n_bins`` (used), ``n_bins_undithered`` (left out), ``n_photosites``,
         ``sigma2_R_floor``, ``sigma2_R_fitted``
         (the unconstrained value), ``constrained``, ``max_weight_ratio`` (largest weight over
         the median); None with fewer than 3 bins or a signal range under a factor 4.
@@ -677,6 +685,8 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0
     coef, cov, constrained, fitted, pred = found
     y, n = y[dithered], n[dithered]
     w = np.maximum(n - 1, 1) / (2.0 * pred**2)
+    rel2 = (y - pred) ** 2 / pred**2 - 2.0 / np.maximum(n - 1, 1)  # beyond the sample variances' own scatter
+    misfit = float(np.sqrt(max(float(np.mean(rel2)), 0.0)))
     dof = max(y.size - (1 if constrained else 2), 1)
     chi2 = float(np.sum((y - pred) ** 2 * w) / dof)
     limit = float(chi2_dist.ppf(CHI2_LIMIT_PROBABILITY, dof) / dof)
@@ -694,6 +704,7 @@ def photon_transfer_fit(pairs: Sequence[PairEstimate], floor: float = 1.0 / 12.0
         "chi2_limit": limit,
         "model_rejected": bool(chi2 > limit),
         "stderr_scale": scale,
+        "relative_misfit": misfit,
         "n_bins": int(y.size),
         "n_bins_undithered": int(np.count_nonzero(~dithered)),
         "n_photosites": int(n.sum()),
@@ -888,8 +899,6 @@ def self_calibrate(
             warn(msg)
 
     first = frames[0]
-    if first.white_level is None:
-        note(f"{first.path}: no white level in the file; 65535 DN assumed")
     white = float(first.white_level or 65535.0)
     step = float(first.quantisation_step or 1.0)
     floor = step * step / 12.0
@@ -905,6 +914,8 @@ def self_calibrate(
     rows = _row_sample(first.shape, max_samples)
     data = [np.asarray(fr.data)[rows] for fr in frames]
     longest = data[order[-1]]
+    if first.white_level is None:
+        white = _unknown_white_level(longest, note, first.path)
 
     def v_sat_for(black_level: float) -> float:
         if len(order) < 2:
@@ -949,7 +960,12 @@ def self_calibrate(
         )
     eff, rel_t = _chain_times(nominal, order, pairs)
     _note_fit(fit, step, note)
-    gain_known = bool(fit and fit["g"] > 0 and fit["g_stderr"] < MAX_GAIN_RELATIVE_ERROR * fit["g"])
+    gain_known = bool(
+        fit
+        and fit["g"] > 0
+        and fit["g_stderr"] < MAX_GAIN_RELATIVE_ERROR * fit["g"]
+        and fit["relative_misfit"] <= MAX_MODEL_MISFIT
+    )
     if fit is None or not gain_known:
         why = _not_estimable(fit)
         note(f"gain not estimable ({why}): irradiance in DN/s (g = 1 DN/e- assumed), sigma relative only")
@@ -1008,6 +1024,18 @@ def self_calibrate(
     )
 
 
+def _unknown_white_level(longest: np.ndarray, note: Callable[[str], None], where: object) -> float:
+    """The white level of frames whose files do not say it (16-bit words of fewer bits): the
+    largest value of the longest frame where values pile up there (the ADC clips), else 65535 DN;
+    a note says which."""
+    high = int(np.max(longest)) if longest.size else 65535
+    if high < 65535 and np.count_nonzero(longest == high) >= max(20, 1e-4 * longest.size):
+        note(f"{where}: no white level in the file; values pile up at {high} DN, taken as the white level")
+        return float(high)
+    note(f"{where}: no white level in the file; 65535 DN assumed")
+    return 65535.0
+
+
 def _note_fit(fit: dict[str, Any] | None, step: float, note: Callable[[str], None]) -> None:
     """Say what the photon-transfer fit could not take from the data: a readout variance held
     at the quantisation floor, a model the data reject (errors scaled)."""
@@ -1032,6 +1060,11 @@ def _not_estimable(fit: dict[str, Any] | None) -> str:
         return "too few photosites or signal levels: fewer than 3 signal bins or a range under a factor 4"
     if fit["g"] <= 0:
         return f"the fitted gain {fit['g']:.3g} DN/e- is not positive"
+    if fit["relative_misfit"] > MAX_MODEL_MISFIT:
+        return (
+            f"the photon-transfer model misses the variances by {fit['relative_misfit']:.0%} rms (chi^2/dof "
+            f"{fit['reduced_chi2']:.3g}): a wrong black level, non-linearity or motion?"
+        )
     return (
         f"g = {fit['g']:.4g} +- {fit['g_stderr']:.2g} DN/e-: a relative standard error above "
         f"{MAX_GAIN_RELATIVE_ERROR:.0%}"
