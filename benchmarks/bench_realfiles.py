@@ -78,8 +78,9 @@ def _consistency(rows: list[dict]) -> dict:
 
 
 def _row(sc) -> dict:
-    fit = sc.header()["photon_transfer_fit"]
-    return {
+    head = sc.header()
+    fit, gain = head["photon_transfer_fit"], head["gain"]
+    row = {
         "gain_estimated": sc.gain_known,
         "gain": round(sc.fit["g"], 5),
         "gain_stderr": None if sc.fit["g_stderr"] is None else float(f"{sc.fit['g_stderr']:.3g}"),
@@ -87,8 +88,13 @@ def _row(sc) -> dict:
         "reduced_chi2": round(fit.get("reduced_chi2", float("nan")), 2),
         "dof": fit.get("dof"),
         "model_rejected": fit.get("model_rejected"),
+        "relative_misfit": round(fit.get("relative_misfit", float("nan")), 3),
         "black_level": sc.black_source,
     }
+    if not sc.gain_known:
+        row["gain_fitted"] = None if gain.get("fitted") is None else round(gain["fitted"], 5)
+        row["not_estimable"] = gain.get("not_estimable")
+    return row
 
 
 def brackets(folder: Path, shape: tuple[int, int], seed: int) -> dict:
