@@ -666,7 +666,8 @@ def _first_tiff_page(path: Path) -> tuple[np.ndarray, int]:
         len(tif.pages)  # walks the directory chain: a loop or a bad offset is logged
         page = tif.pages[0]
         _refuse_oversized_page(path, page)
-        bits = page.bitspersample if isinstance(page.bitspersample, int) else max(page.bitspersample)
+        per_sample = getattr(page, "bitspersample", 16)
+        bits = per_sample if isinstance(per_sample, int) else max(per_sample)
         return page.asarray(), int(bits)
 
 
