@@ -1,30 +1,37 @@
-"""Benchmark of ``hdrcap batch``: N runs of MPIX-megapixel brackets, 1 worker vs 2; prints JSON.
+"""Benchmark of ``hdrcap batch``: N runs of MPIX-megapixel brackets on 1, 2, 4, 8 workers; prints JSON.
 
 One bracket (3 exposures with matching dark frames, camera-B, DNG) is simulated and hard-linked
 into N run folders (distinct runs to the archive, the same bytes, so every run has the same
 merge work). Each configuration runs the whole ``run_batch`` (local cluster start-up included)
-into a fresh archive; the JSON gives wall-clock seconds, runs per second, seconds merging
-(summed over the workers) and committing (on the client), the speed-ups of 2 workers, whether
-every run of every archive is bit-identical to the in-process merge of that bracket, and the
-machine's load average before and after (the machine may be shared).
+into a fresh archive. For each, the JSON gives:
 
-Usage: python benchmarks/bench_batch.py [--runs 16] [--mpix 4] [--configs 1x2 1x1 2x1]
+- wall-clock seconds, with and without the local cluster's start-up, and the speed-up over 1x1;
+- the merge's CPU seconds (the workers' tasks, summed, and per run) against the client's (the
+  process that runs ``run_batch``: a local cluster's scheduler, the Dask client, the commits;
+  in all, after the start-up, per run, and as a fraction of the merge's), the commits' own CPU
+  seconds (the client's main thread) and how many commits were made;
+- whether every run of the archive is bit-identical to the in-process merge of that bracket;
+- the machine's 1-minute load average sampled every second while the configuration ran (the
+  machine may be shared: wall-clock figures depend on it, CPU seconds do not).
+
+``done_when`` checks the figures of issue #32 (client CPU <= 10 % of the merge's, 2 workers
+>= 1.6x one worker after start-up, every run bit-identical) where the configurations allow.
+
+Usage: python benchmarks/bench_batch.py [--runs 16] [--mpix 2] [--configs 1x1 2x1 4x1 8x1]
 
 A configuration WxT is W local workers with T merge-kernel threads each (the merge kernel is
-itself parallel: 1x2 is what ``--workers 1`` gives on 2 cores, 2x1 what ``--workers 2`` gives);
-a trailing ``s`` (e.g. 2x1s) commits the runs one at a time instead of the finished ones
-together. CPU seconds (the workers' tasks summed, the client process) do not depend on the
-machine's load; wall-clock seconds do.
+itself parallel: 1x2 is what ``--workers 1`` gives on 2 cores, 2x1 what ``--workers 2`` gives).
+By default 1x1, 2x1, 4x1, 8x1 as far as the machine has the cores.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -57,33 +64,50 @@ def _runs(root: Path, n: int, mpix: float) -> list[Path]:
     return runs
 
 
-@contextlib.contextmanager
-def _one_by_one(single: bool):
-    """With ``single``, the archive commits the runs of a batch one at a time (the old client)."""
-    from hdrcap.batch.archive import Archive
+class _Load:
+    """Samples the 1-minute load average every second while it runs."""
 
-    if not single:
-        yield
-        return
-    many = Archive.commit_many
-    Archive.commit_many = lambda self, runs, replace=False: [self.commit(r, replace) for r in runs]
-    try:
-        yield
-    finally:
-        Archive.commit_many = many
+    def __init__(self) -> None:
+        self.samples: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.samples.append(os.getloadavg()[0])
+            self._stop.wait(1.0)
+
+    def __enter__(self) -> _Load:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def summary(self) -> dict:
+        s = self.samples or [os.getloadavg()[0]]
+        return {"min": round(min(s), 2), "mean": round(float(np.mean(s)), 2), "max": round(max(s), 2)}
+
+
+def _default_configs() -> list[str]:
+    cpus = os.cpu_count() or 1
+    return [f"{w}x1" for w in (1, 2, 4, 8) if w <= cpus] or ["1x1"]
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=16)
-    ap.add_argument("--mpix", type=float, default=4.0)
+    ap.add_argument("--mpix", type=float, default=2.0)
     ap.add_argument(
         "--configs",
         nargs="+",
-        default=["1x2", "1x1", "2x1"],
-        help="WORKERSxTHREADS: local workers and merge-kernel threads per worker",
+        default=None,
+        help="WORKERSxTHREADS: local workers and merge-kernel threads per worker (default: 1x1 2x1 4x1 8x1 as far "
+        "as the machine has the cores)",
     )
     args = ap.parse_args(argv)
+    configs = args.configs or _default_configs()
 
     import xarray as xr
 
@@ -104,12 +128,11 @@ def main(argv=None) -> dict:
         runs = _runs(root, args.runs, args.mpix)
         out["simulate_s"] = round(time.perf_counter() - t0, 2)
         ref = merge_run(find_runs(runs[:1])[0], settings).run.channels
-        for cfg in args.configs:
-            single = cfg.endswith("s")  # commits one run at a time, as before commit_many
-            w, th = (int(v) for v in cfg.rstrip("s").split("x"))
+        for cfg in configs:
+            w, th = (int(v) for v in cfg.split("x"))
             archive = root / f"w{cfg}.zarr"
             t0 = time.perf_counter()
-            with _one_by_one(single):
+            with _Load() as load:
                 report = run_batch(runs, archive, settings, workers=w, threads=th, progress=False)
             wall = time.perf_counter() - t0
             ds = xr.open_zarr(archive)
@@ -118,37 +141,52 @@ def main(argv=None) -> dict:
                 for i in range(ds.sizes["run"])
                 for k in ref
             )
+            n = max(len(report.committed), 1)
+            merge_cpu = report.merge_cpu_seconds
+            startup_cpu = getattr(report, "startup_cpu_seconds", None)  # None: a hdrcap before issue #32
+            after = None if startup_cpu is None else report.client_cpu_seconds - startup_cpu
             out["configs"][cfg] = {
                 "workers": w,
                 "threads_per_worker": th,
-                "numba_threads_per_worker": th,
-                "commits": "one run at a time" if single else "finished runs together",
                 "seconds": round(wall, 2),
-                "runs_per_s": round(args.runs / wall, 3),
-                "committed": len(report.committed),
-                "failed": len(report.failed),
-                "merge_s_summed": round(report.merge_seconds, 2),
-                "merge_cpu_s_summed": round(report.merge_cpu_seconds, 2),
-                "merge_cpu_s_per_run": round(report.merge_cpu_seconds / max(len(report.committed), 1), 3),
-                "client_cpu_s": round(report.client_cpu_seconds, 2),
                 "startup_s": round(report.startup_seconds, 2),
                 "seconds_after_startup": round(wall - report.startup_seconds, 2),
-                "commit_s": round(report.commit_seconds, 2),
+                "runs_per_s_after_startup": round(args.runs / max(wall - report.startup_seconds, 1e-9), 3),
+                "committed": len(report.committed),
+                "failed": len(report.failed),
+                "merge_cpu_s_summed": round(merge_cpu, 3),
+                "merge_cpu_s_per_run": round(merge_cpu / n, 4),
+                "client_cpu_s": round(report.client_cpu_seconds, 3),
+                "client_cpu_s_startup": None if startup_cpu is None else round(startup_cpu, 3),
+                "client_cpu_s_after_startup": None if after is None else round(after, 3),
+                "client_cpu_s_per_run": round(report.client_cpu_seconds / n, 4),
+                "client_cpu_over_merge_cpu": round(report.client_cpu_seconds / merge_cpu, 4),
+                "client_cpu_after_startup_over_merge_cpu": None if after is None else round(after / merge_cpu, 4),
+                "commit_cpu_s": getattr(report, "commit_cpu_seconds", None),
+                "commits": getattr(report, "commits", None),
+                "commit_s": round(report.commit_seconds, 3),
+                "load_average_1min": load.summary(),
                 "bit_identical": bool(identical),
             }
-    sec = {k: v["seconds"] for k, v in out["configs"].items()}
-    run_sec = {k: v["seconds_after_startup"] for k, v in out["configs"].items()}
-    if {"1x1", "2x1"} <= set(sec):  # the same without the local cluster's start-up
-        out["speedup_2x1_over_1x1_after_startup"] = round(run_sec["1x1"] / run_sec["2x1"], 3)
+    after = {k: v["seconds_after_startup"] for k, v in out["configs"].items()}
+    if "1x1" in after:
+        out["speedup_over_1x1_after_startup"] = {k: round(after["1x1"] / v, 3) for k, v in after.items()}
     cpu = {k: v["merge_cpu_s_summed"] + v["client_cpu_s"] for k, v in out["configs"].items()}
     if {"1x1", "2x1"} <= set(cpu):  # CPU seconds of 2 workers against 1 (1.0: no overhead of a second worker)
         out["cpu_ratio_2x1_over_1x1"] = round(cpu["2x1"] / cpu["1x1"], 3)
-    if {"2x1", "2x1s"} <= set(sec):
-        out["speedup_commit_together_2x1"] = round(sec["2x1s"] / sec["2x1"], 3)
-    if {"1x1", "2x1"} <= set(sec):  # scaling: one run per core at a time, 1 worker vs 2
-        out["speedup_2x1_over_1x1"] = round(sec["1x1"] / sec["2x1"], 3)
-    if {"1x2", "2x1"} <= set(sec):  # the defaults on 2 cores: 1 worker with 2 kernel threads vs 2 workers
-        out["speedup_2x1_over_1x2"] = round(sec["1x2"] / sec["2x1"], 3)
+    done: dict = {"every_run_bit_identical": all(v["bit_identical"] for v in out["configs"].values())}
+    ratios = [v["client_cpu_over_merge_cpu"] for v in out["configs"].values()]
+    done["client_cpu_le_10pct_of_merge_cpu"] = {
+        "worst": max(ratios),
+        "worst_after_startup": max(
+            (v["client_cpu_after_startup_over_merge_cpu"] or 0.0 for v in out["configs"].values()), default=None
+        ),
+        "ok": max(ratios) <= 0.10,
+    }
+    if "speedup_over_1x1_after_startup" in out and "2x1" in after:
+        s = out["speedup_over_1x1_after_startup"]["2x1"]
+        done["2x1_ge_1.6x_1x1_after_startup"] = {"speedup": s, "ok": s >= 1.6}
+    out["done_when"] = done
     out["load_after"] = [round(x, 2) for x in os.getloadavg()]
     print(json.dumps(out))
     return out

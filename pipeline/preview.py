@@ -8,7 +8,7 @@ import numpy as np
 
 from hdrcap.pipeline.io.files import atomic_output
 
-__all__ = ["mosaic_to_rgb", "tonemap_log", "tonemap_log_colour", "write_preview_png"]
+__all__ = ["mosaic_to_rgb", "tonemap_log", "tonemap_log_colour", "preview_image", "write_preview_png"]
 
 
 def mosaic_to_rgb(mosaic: np.ndarray, cfa: str | None) -> np.ndarray:
@@ -106,6 +106,26 @@ def tonemap_log_colour(rgb: np.ndarray, lo_pct: float = 0.5, hi_pct: float = 99.
     return np.round(255 * ratio * val[..., None]).astype(np.uint8)
 
 
+def preview_image(irradiance: np.ndarray, cfa: str | None) -> np.ndarray:
+    """The 8-bit RGB image of a preview (what :func:`write_preview_png` writes).
+
+    Parameters
+    ----------
+    irradiance : numpy.ndarray
+        (H, W) irradiance mosaic, e-/s, or (H, W, 3) RGB (its hues kept, :func:`tonemap_log_colour`).
+    cfa : str or None
+        2x2 CFA pattern of the mosaic (None: grey; ignored for RGB).
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (h, w, 3): half resolution for a CFA mosaic (:func:`mosaic_to_rgb`), else full.
+    """
+    if np.ndim(irradiance) == 3:
+        return tonemap_log_colour(irradiance)
+    return tonemap_log(mosaic_to_rgb(irradiance, cfa))
+
+
 def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None, force: bool = False) -> Path:
     """Write a log tone-mapped PNG preview of an irradiance mosaic (for looking at only).
 
@@ -128,10 +148,7 @@ def write_preview_png(path: str | Path, irradiance: np.ndarray, cfa: str | None,
     """
     from PIL import Image
 
-    if np.ndim(irradiance) == 3:
-        img = tonemap_log_colour(irradiance)
-    else:
-        img = tonemap_log(mosaic_to_rgb(irradiance, cfa))
+    img = preview_image(irradiance, cfa)
     with atomic_output(path, force=force, suffix=".png") as tmp:
         Image.fromarray(img, "RGB").save(tmp, format="PNG")
     return Path(path)

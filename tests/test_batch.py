@@ -200,15 +200,26 @@ def test_killed_worker_loses_nothing(runs, tmp_path):
             assert np.array_equal(ds[name].isel(run=i).values, ref.channels[name], equal_nan=True)
 
 
-def test_time_series_of_one_photosite_with_sigma(runs, tmp_path):
+def test_time_series_of_one_photosite_with_sigma(runs, tmp_path, monkeypatch):
     """Three runs of the same scene: the archive's time series of a photosite scatters about the
-    simulator's truth as its sigma says."""
+    simulator's truth as its sigma says. The workers write the runs' arrays: the client writes
+    none (it commits metadata), and a run merged again with force is rewritten in place."""
+    from hdrcap.batch.archive import ArchiveWriter
     from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
 
+    def no_arrays_on_the_client(self, run):
+        raise AssertionError("the client wrote a run's arrays")
+
+    monkeypatch.setattr(ArchiveWriter, "write", no_arrays_on_the_client)
     archive = tmp_path / "t.zarr"
     settings = BatchSettings(calibration=None, camera=CAMERA, calibration_id=calibration_identity(None, CAMERA))
     report = run_batch(runs["good"], archive, settings, workers=1, progress=False)
-    assert len(report.committed) == 3
+    assert len(report.committed) == 3 and not report.failed and 1 <= report.commits <= 3
+    before = xr.open_zarr(archive).load()
+    again = run_batch(runs["good"][1:2], archive, settings, workers=1, force=True, progress=False)
+    assert again.committed == {str(runs["good"][1].resolve()): report.committed[str(runs["good"][1].resolve())]}
+    after = xr.open_zarr(archive).load()
+    assert after.identical(before)  # rewritten in place: the same run number, the same bits
     ds = xr.open_zarr(archive).sortby("start_time")
     truth = read_exr(runs["good"][0] / "truth.exr").channels["irradiance"]
     y, x = np.unravel_index(np.argsort(truth, axis=None)[truth.size // 2], truth.shape)  # a mid-range photosite
@@ -221,3 +232,72 @@ def test_time_series_of_one_photosite_with_sigma(runs, tmp_path):
     ok = (ds["nexp"] > 0).values
     zall = ((ds["irradiance"].values - truth[None]) / ds["sigma"].values)[ok]
     assert 0.85 < zall.std() < 1.15 and abs(zall.mean()) < 0.1
+
+
+def test_the_slurm_example_runs_with_a_stand_in_for_dask_jobqueue(runs, tmp_path, monkeypatch, capsys):
+    """docs/batch_slurm.py, with a local cluster standing in for SLURMCluster (the same
+    arguments, checked against dask-jobqueue 0.9): the batch through a scheduler address."""
+    import runpy
+    import sys
+    import types
+
+    from distributed import LocalCluster
+
+    made = {}
+
+    class SLURMCluster:
+        def __init__(self, *, queue, account, cores, processes, memory, walltime, job_script_prologue):
+            made.update(cores=cores, processes=processes, memory=memory, prologue=job_script_prologue)
+            self._local = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None)
+            self.scheduler_address = self._local.scheduler_address
+
+        def job_script(self) -> str:
+            return "#!/usr/bin/env bash"
+
+        def scale(self, jobs: int) -> None:
+            made["jobs"] = jobs
+
+        def close(self) -> None:
+            self._local.close()
+
+    monkeypatch.setitem(sys.modules, "dask_jobqueue", types.SimpleNamespace(SLURMCluster=SLURMCluster))
+    from hdrcap.acquire.camera.model import camera_model
+    from hdrcap.pipeline.calibration.archive import save_calibration
+
+    archive = tmp_path / "s.zarr"
+    calibration = save_calibration(tmp_path / "cam.cal", camera_model(None, CAMERA))  # a calibration file
+    script = Path(__file__).resolve().parents[1] / "docs" / "batch_slurm.py"
+    folders = [str(f) for f in runs["good"][:2]]
+    monkeypatch.setattr(sys, "argv", [str(script), *folders, "--calibration", str(calibration), "-o", str(archive)])
+    runpy.run_path(str(script), run_name="__main__")
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["committed"] == 2 and not report["failed"]
+    assert made == {"cores": 1, "processes": 1, "memory": "4GB", "jobs": 32, "prologue": made["prologue"]}
+    ds = xr.open_zarr(archive)
+    assert ds.sizes["run"] == 2
+    # the calibration file's identity, parameters and provenance, once, for both runs
+    ((cid, record),) = json.loads(ds.attrs["hdrcap_calibrations"]).items()
+    assert set(map(str, ds["calibration"].values)) == {cid} and record["file"] == str(calibration.resolve())
+
+
+def test_a_task_that_raised_is_recorded_with_its_error(tmp_path):
+    """What Dask gives for a task that raised (not bad input: any exception), or was cancelled,
+    is recorded as the run's failure with a one-line error; the others land."""
+    from concurrent.futures import CancelledError
+
+    from hdrcap.batch.archive import Archive
+    from hdrcap.batch.driver import BatchReport, RunOutcome, RunSource, _Committer
+    from tests.test_archive import _run
+
+    store = Archive(tmp_path / "e.zarr")
+    report = BatchReport(str(store.path))
+    with store.writer() as session:
+        committer = _Committer(session, report, force=False)
+        boom = RuntimeError("boom\nsecond line")
+        committer.take(RunSource("/runs/001", ("f",)), "error", (RuntimeError, boom, None))
+        committer.take(RunSource("/runs/002", ("f",)), "cancelled", CancelledError("lost"))
+        committer.take(RunSource("/runs/000", ("f",)), "finished", RunOutcome(None, _run(0), ("w",), 1.0))
+        assert committer.commit() == 1
+    assert report.failed == {"/runs/001": "RuntimeError: boom", "/runs/002": "CancelledError: lost"}
+    assert report.committed == {"/runs/000": 0} and report.warnings == ["/runs/000: w"]
+    assert set(store.failed()) == {"/runs/001", "/runs/002"}

@@ -1,7 +1,6 @@
-"""Several staged runs committed together (``Archive.commit_many``, what ``hdrcap batch`` does
-with the runs that finish while others are committed): the archive equals the one of commits
-made one by one; a crash before the commit leaves none of them; cases that cannot be appended
-together are committed one by one."""
+"""Several runs committed together (what ``hdrcap batch`` does with the runs reported while the
+previous commit was made): the archive equals the one of commits made one by one; a crash before
+the commit leaves none of them; a rewrite among new runs goes in the same commit."""
 
 from __future__ import annotations
 
@@ -10,19 +9,16 @@ import json
 import numpy as np
 import pytest
 import xarray as xr
-import zarr
 
+from hdrcap.batch import archive as archive_mod
 from hdrcap.batch.archive import CHANNELS, RUN_COORDS, Archive
-from tests.test_archive import _run, _staged
+from tests.test_archive import _run
 
 
 def _archive(path, groups):
     """An archive of runs 0..n committed in ``groups`` (lists of run indices) with commit_many."""
     store = Archive(path)
-    staging = store.open_staging()
-    numbers = [store.commit_many([_staged(store, staging, _run(i)) for i in g]) for g in groups]
-    store.close_staging(staging)
-    return numbers
+    return [store.commit_many([_run(i) for i in g]) for g in groups]
 
 
 def test_runs_committed_together_equal_runs_committed_one_by_one(tmp_path):
@@ -38,35 +34,42 @@ def test_runs_committed_together_equal_runs_committed_one_by_one(tmp_path):
         assert json.loads(str(a["header"].values[i]))["i"] == i
 
 
+def test_a_session_commits_once_per_commit_call(tmp_path):
+    store = Archive(tmp_path / "a.zarr")
+    with store.writer() as session:
+        for i in range(5):
+            session.add(session.write(_run(i)))
+        assert session.commit() == {f"/runs/{i:03d}": i for i in range(5)}
+        assert session.commits == 1
+    assert session.commits == 1  # nothing left for the final commit
+
+
 def test_a_crash_before_the_commit_leaves_none_of_the_runs(tmp_path, monkeypatch):
     path = tmp_path / "a.zarr"
     store = Archive(path)
-    staging = store.open_staging()
-    store.commit(_staged(store, staging, _run(0)))
-    real = zarr.consolidate_metadata
+    store.commit(_run(0))
+    real = archive_mod._write_consolidated
 
     def die(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(zarr, "consolidate_metadata", die)
+    monkeypatch.setattr(archive_mod, "_write_consolidated", die)
     with pytest.raises(KeyboardInterrupt):
-        store.commit_many([_staged(store, staging, _run(i)) for i in (1, 2)])
-    monkeypatch.setattr(zarr, "consolidate_metadata", real)
+        store.commit_many([_run(i) for i in (1, 2)])
+    monkeypatch.setattr(archive_mod, "_write_consolidated", real)
     assert xr.open_zarr(path).sizes["run"] == 1
-    assert store.commit_many([_staged(store, staging, _run(i)) for i in (3, 4)]) == [1, 2]
+    assert store.commit_many([_run(i) for i in (3, 4)]) == [1, 2]
     assert list(xr.open_zarr(path)["folder"].values) == ["/runs/000", "/runs/003", "/runs/004"]
 
 
-def test_runs_that_cannot_go_together_are_committed_one_by_one(tmp_path):
+def test_a_rewrite_among_new_runs(tmp_path):
     path = tmp_path / "a.zarr"
     store = Archive(path)
-    # the first runs create the archive, arrays sent back (not staged): one by one
     assert store.commit_many([_run(0), _run(1)]) == [0, 1]
-    staging = store.open_staging()
-    # a rewrite of a committed run among new ones: one by one
-    assert store.commit_many(
-        [_staged(store, staging, _run(1, seed=9)), _staged(store, staging, _run(2))], replace=True
-    ) == [1, 2]
+    # a rewrite of a committed run among new ones: in place, the new one appended
+    assert store.commit_many([_run(1, seed=9), _run(2)], replace=True) == [1, 2]
     ds = xr.open_zarr(path)
     np.testing.assert_array_equal(ds["irradiance"].isel(run=1).values, _run(1, seed=9).channels["irradiance"])
+    np.testing.assert_array_equal(ds["irradiance"].isel(run=2).values, _run(2).channels["irradiance"])
     assert list(ds["folder"].values) == ["/runs/000", "/runs/001", "/runs/002"]
+    assert list(ds["run"].values) == [0, 1, 2]

@@ -266,7 +266,7 @@ def test_capture_command_plans_for_a_target_snr(tmp_path, cli):
 
 def test_capture_rejects_bad_camera_and_cameras_lists(tmp_path, cli):
     proc = cli("capture", "--camera", "nikon", "--times", "0.01", "--out", tmp_path / "x")
-    assert proc.returncode != 0 and "hdrcap: error: --camera must be" in proc.stderr
+    assert proc.returncode != 0 and "hdrcap: error: camera must be mock:PRESET" in proc.stderr
     proc = cli("cameras", "--json")
     assert proc.returncode == 0
     out = json.loads(proc.stdout)

@@ -1,7 +1,7 @@
 """The import rules of the layering hold: imports point downward only.
 
-Faces (``hdrcap.api``, ``hdrcap.cli``, ``hdrcap.batch``, ``hdrcap.experiments``) -> ``acquire``
-(cameras and capture) -> ``planner`` -> ``pipeline``; ``acquire`` -> ``mock_camera`` (the
+Faces (``hdrcap.api``, ``hdrcap.cli``, ``hdrcap.batch``, ``hdrcap.bluesky``, ``hdrcap.serve``,
+``hdrcap.experiments``) -> ``acquire`` (cameras and capture) -> ``planner`` -> ``pipeline``; ``acquire`` -> ``mock_camera`` (the
 simulated camera backend) -> pipeline's shared types and file formats. ``pipeline`` imports
 nothing of ours above it; no library module imports the command line, and the command line is
 the only importer of click. Every import statement counts, also those inside functions (lazy
@@ -24,7 +24,7 @@ SUBPACKAGES = {
     for name in ("pipeline", "planner", "mock_camera", "acquire")
 }
 #: Face packages inside the ``hdrcap`` folder itself.
-FACES = ("cli", "batch", "experiments")
+FACES = ("cli", "batch", "bluesky", "serve", "experiments")
 
 _ABOVE_PIPELINE = (
     "hdrcap.planner",
@@ -34,6 +34,8 @@ _ABOVE_PIPELINE = (
     "hdrcap.api",
     "hdrcap.cli",
     "hdrcap.batch",
+    "hdrcap.bluesky",
+    "hdrcap.serve",
 )
 #: What each layer may not import (prefixes of absolute module names).
 FORBIDDEN = {
@@ -45,6 +47,8 @@ FORBIDDEN = {
         "hdrcap.api",
         "hdrcap.cli",
         "hdrcap.batch",
+        "hdrcap.bluesky",
+        "hdrcap.serve",
     ),
     "mock_camera": (
         "hdrcap.planner",
@@ -53,11 +57,17 @@ FORBIDDEN = {
         "hdrcap.api",
         "hdrcap.cli",
         "hdrcap.batch",
+        "hdrcap.bluesky",
+        "hdrcap.serve",
     ),
-    "acquire": ("hdrcap.experiments", "hdrcap.api", "hdrcap.cli", "hdrcap.batch"),
-    "api": ("hdrcap.cli", "hdrcap.batch", "hdrcap.experiments"),
-    "batch": ("hdrcap.cli", "hdrcap.api"),
-    "experiments": ("hdrcap.cli", "hdrcap.batch", "hdrcap.api", "hdrcap.acquire"),
+    "acquire": ("hdrcap.experiments", "hdrcap.api", "hdrcap.cli", "hdrcap.batch", "hdrcap.bluesky", "hdrcap.serve"),
+    "api": ("hdrcap.cli", "hdrcap.batch", "hdrcap.bluesky", "hdrcap.experiments", "hdrcap.serve"),
+    "batch": ("hdrcap.cli", "hdrcap.api", "hdrcap.bluesky", "hdrcap.serve"),
+    # the Bluesky detector drives acquire (the capture session and merge), never a command
+    "bluesky": ("hdrcap.cli", "hdrcap.api", "hdrcap.batch", "hdrcap.experiments", "hdrcap.serve"),
+    # the web page: reads run folders (acquire), results (pipeline) and archives (batch)
+    "serve": ("hdrcap.cli", "hdrcap.api", "hdrcap.bluesky", "hdrcap.experiments"),
+    "experiments": ("hdrcap.cli", "hdrcap.batch", "hdrcap.api", "hdrcap.acquire", "hdrcap.bluesky", "hdrcap.serve"),
 }
 #: The only modules of pipeline the simulator may read: shared parameter and error types, the
 #: time rule and the file formats it writes (never the estimator's noise model or merge).
@@ -151,9 +161,16 @@ def test_the_rule_test_can_fail(tmp_path):
     assert _violations("acquire", "hdrcap.acquire.capture.job", {"hdrcap.cli.commands.merge"})
     assert _violations("api", "hdrcap.api", {"hdrcap.cli.util"})
     assert _violations("api", "hdrcap.api", {"click"})
+    assert _violations("bluesky", "hdrcap.bluesky.detector", {"hdrcap.cli.commands.capture"})
+    assert _violations("bluesky", "hdrcap.bluesky.detector", {"click"})
+    assert not _violations("bluesky", "hdrcap.bluesky.detector", {"hdrcap.acquire.capture.run", "ophyd_async.core"})
     assert _violations("pipeline", "hdrcap.pipeline.merge.files", {"click.core"})
     assert not _violations("cli", "hdrcap.cli", {"click", "hdrcap.cli.commands.merge"})
     assert _violations("mock_camera", "hdrcap.mock_camera.dng", {"hdrcap.pipeline.merge.accumulator"})
+    assert _violations("serve", "hdrcap.serve.app", {"hdrcap.cli.util"})
+    assert _violations("serve", "hdrcap.serve.app", {"click"})
+    assert _violations("acquire", "hdrcap.acquire.capture.runfolder", {"hdrcap.serve.runs"})
+    assert not _violations("serve", "hdrcap.serve.series", {"hdrcap.batch.archive", "hdrcap.acquire.capture.manifest"})
     assert not _violations("mock_camera", "hdrcap.mock_camera.sensor", {"hdrcap.pipeline.params"})
     assert _violations("pipeline", "hdrcap.pipeline.compat", {"hdrcap.acquire.camera.types"})
 
@@ -161,6 +178,18 @@ def test_the_rule_test_can_fail(tmp_path):
 def test_every_module_is_seen():
     """The walk covers every layer (a moved folder would silently check nothing)."""
     layers = {m[0] for m in MODULES}
-    assert {"pipeline", "planner", "mock_camera", "acquire", "hdrcap", "api", "cli", "batch", "experiments"} <= layers
+    assert {
+        "pipeline",
+        "planner",
+        "mock_camera",
+        "acquire",
+        "hdrcap",
+        "api",
+        "cli",
+        "batch",
+        "bluesky",
+        "serve",
+        "experiments",
+    } <= layers
     assert sum(1 for m in MODULES if m[0] == "pipeline") >= 10
     assert sum(1 for m in MODULES if m[0] == "cli") >= 10

@@ -156,6 +156,8 @@ class MockCamera:
             spec = PRESETS[spec]
         self.spec = spec
         self.sim = SimulatedCamera(spec, scene, seed=seed, temperature=temperature)
+        self._scene = self.sim.scene  # as opened: set_scene_scale scales this one
+        self.scene_scale = 1.0
         self.shape = self.sim.scene.shape
         self._allowed = sorted(float(t) for t in (allowed_times or STANDARD_TIMES))
         self.faults = faults or MockFaults()
@@ -208,6 +210,21 @@ class MockCamera:
         return self._t
 
     # --- light, temperature, connection -------------------------------------------------
+    def set_scene_scale(self, scale: float) -> None:
+        """Dim or brighten the simulated light source: later frames see ``scale`` times the
+        irradiance of the scene the camera was opened with (``sim.scene``, the truth, follows).
+
+        Raises
+        ------
+        ValueError
+            ``scale`` negative or not finite.
+        """
+        scale = float(scale)
+        if not (math.isfinite(scale) and scale >= 0):
+            raise ValueError(f"scene scale must be finite and >= 0, got {scale!r}")
+        self.sim.scene = self._scene if scale == 1.0 else self._scene * scale
+        self.scene_scale = scale
+
     def cover(self) -> None:
         self._covered = True
 

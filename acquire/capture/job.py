@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import re
 import tomllib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, get_args
@@ -23,7 +24,7 @@ from pydantic_core import ErrorDetails
 from hdrcap.acquire.capture.schema import JobFile, Problem
 from hdrcap.pipeline.errors import InputError
 
-__all__ = ["Job", "JobError", "load_job", "job_from_dict"]
+__all__ = ["Job", "JobError", "load_job", "job_from_dict", "capture_job"]
 
 
 class JobError(InputError):
@@ -168,6 +169,125 @@ def job_from_dict(data: dict[str, Any], path: Path | None = None, text: str = ""
     job = Job(spec, path, lines)
     _check_paths(job)
     return job
+
+
+def capture_job(
+    camera: str = "mock:camera-B",
+    run_dir: str | os.PathLike[str] = ".",
+    *,
+    times: Sequence[float] = (),
+    target_snr_db: float | None = None,
+    max_exposures: int | None = None,
+    dark_strategy: str | None = None,
+    dark_count: int = 1,
+    block_light: str | None = None,
+    cover_command: str | None = None,
+    uncover_command: str | None = None,
+    calibration: str | os.PathLike[str] | None = None,
+    scene: str = "hdr",
+    size: str = "256x192",
+    seed: int = 0,
+    faults: Mapping[str, Any] | None = None,
+    port: str | None = None,
+    serial: str | None = None,
+    iso: int | None = None,
+    enforce: bool = False,
+    png: bool = True,
+) -> Job:
+    """The job of one capture given as options (``hdrcap capture``, :mod:`hdrcap.bluesky`):
+    a fixed bracket or a target SNR on the simulated or a real camera, validated like a job file.
+
+    Parameters
+    ----------
+    camera : str
+        ``mock:PRESET`` or ``PRESET`` (the simulator), ``gphoto2`` or ``gphoto2:MODEL`` (a real camera).
+    run_dir : str or path-like
+        The run folder (``[output] folder``).
+    times : sequence of float
+        Exposure times of a fixed bracket, s (with ``target_snr_db``: the fallback without the planner).
+    target_snr_db : float, optional
+        Plan the exposures for this SNR of the merged irradiance, dB (metering and the planner).
+    max_exposures : int, optional
+        Most exposure times the planner may choose.
+    dark_strategy : {"matched", "master", "model"}, optional
+        Default: matched; with ``target_snr_db`` the planner's choice per exposure.
+    dark_count : int
+        Dark frames averaged per exposure time (``master``).
+    block_light : {"mock", "prompt", "command", "none"}, optional
+        How the light is blocked for dark frames (default: mock for the simulator, prompt otherwise).
+    cover_command, uncover_command : str, optional
+        Shell commands that block and unblock the light (``block_light="command"``).
+    calibration : str or path-like, optional
+        A calibration file (``hdrcap calibrate``) or a simulator preset's name (its nominal model);
+        default: the simulator's preset.
+    scene, size, seed, faults
+        The simulator's scene, mosaic ``WIDTHxHEIGHT``, seed and injected faults
+        (:class:`acquire.camera.mock.MockFaults` fields).
+    port, serial, iso, enforce
+        A real camera's gphoto2 port, serial number, ISO speed and whether wrong settings are set.
+    png : bool
+        Write the preview PNG next to the EXR.
+
+    Returns
+    -------
+    Job
+
+    Raises
+    ------
+    InputError
+        An unknown camera, neither ``times`` nor ``target_snr_db``.
+    JobError
+        What the job schema refuses (``<job>: section.key: message``).
+    """
+    from hdrcap.mock_camera import PRESETS
+
+    backend, _, name = camera.partition(":") if ":" in camera or camera == "gphoto2" else ("mock", ":", camera)
+    if backend not in ("mock", "gphoto2") or (backend == "mock" and name and name not in PRESETS):
+        raise InputError(
+            f"camera must be mock:PRESET, PRESET ({', '.join(PRESETS)}) or gphoto2[:MODEL], got {camera!r}"
+        )
+    if not times and target_snr_db is None:
+        raise InputError("give times (a fixed bracket) or a target SNR (dB)")
+    cam: dict[str, Any] = {"backend": backend}
+    if backend == "mock":
+        cam.update(preset=name or "camera-B", size=size, seed=seed)
+        if faults:
+            cam["faults"] = dict(faults)
+    else:
+        cam.update({k: v for k, v in (("model", name), ("port", port), ("serial", serial)) if v})
+        cam["enforce"] = enforce
+    if iso is not None:
+        cam["iso"] = iso
+    exposure: dict[str, Any] = {"mode": "snr", "target_snr_db": target_snr_db} if target_snr_db is not None else {}
+    exposure.setdefault("mode", "bracket")
+    if times:
+        exposure["times"] = [float(t) for t in times]
+    if max_exposures is not None:
+        exposure["max_exposures"] = max_exposures
+    darks: dict[str, Any] = {
+        "count": dark_count,
+        "block_light": block_light or ("mock" if backend == "mock" else "prompt"),
+    }
+    for key, value in (
+        ("strategy", dark_strategy),
+        ("cover_command", cover_command),
+        ("uncover_command", uncover_command),
+    ):
+        if value:
+            darks[key] = value
+    data: dict[str, Any] = {
+        "job": {"name": "capture"},
+        "camera": cam,
+        "exposure": exposure,
+        "darks": darks,
+        "output": {"folder": str(run_dir), **({} if png else {"png": ""})},
+    }
+    if backend == "mock":
+        data["scene"] = {"name": scene}
+    if calibration:
+        preset = str(calibration).removeprefix("mock:")
+        data["calibration"] = {"preset": preset} if preset in PRESETS else {"file": str(calibration)}
+    return job_from_dict(data)
 
 
 def _check_paths(job: Job) -> None:

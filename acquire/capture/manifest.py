@@ -19,11 +19,11 @@ import errno
 import json
 import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
-__all__ = ["Manifest", "EventLog", "utc_now", "jsonable", "MANIFEST_NAME", "EVENTS_NAME"]
+__all__ = ["Manifest", "ManifestScan", "EventLog", "utc_now", "jsonable", "MANIFEST_NAME", "EVENTS_NAME"]
 
 MANIFEST_NAME = "manifest.jsonl"
 EVENTS_NAME = "events.jsonl"
@@ -85,18 +85,48 @@ def _write_all(fd: int, data: bytes, size: int) -> None:
         raise
 
 
+def _parse_line(raw: bytes) -> dict | None:
+    """The JSON object of one line (None: torn, not JSON, or not an object)."""
+    try:
+        rec = json.loads(raw)
+    except ValueError:
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
 def _read_lines(path: Path) -> Iterator[tuple[int, dict | None]]:
     with open(path, "rb") as f:
         for lineno, raw in enumerate(f, 1):
             raw = raw.strip()
-            if not raw:
-                continue
-            try:
-                rec = json.loads(raw)
-            except ValueError:
-                yield lineno, None
-                continue
-            yield lineno, rec if isinstance(rec, dict) else None
+            if raw:
+                yield lineno, _parse_line(raw)
+
+
+class ManifestScan(NamedTuple):
+    """One pass over a manifest (:meth:`Manifest.scan`).
+
+    Attributes
+    ----------
+    header : dict or None
+        The ``run`` record.
+    keys : frozenset of str
+        Plan keys of the frames recorded (voided ones taken out).
+    completion : dict or None
+        The last ``complete`` record.
+    """
+
+    header: dict | None
+    keys: frozenset[str]
+    completion: dict | None
+
+
+def _fold_frame(out: dict, rec: dict, value: Any) -> None:
+    """Apply one record to the frames recorded so far: a ``frame`` record adds its key (the last
+    one wins), a ``void`` record takes it out again."""
+    if rec["type"] == "frame":
+        out[rec["key"]] = value
+    elif rec["type"] == "void":
+        out.pop(rec["key"], None)
 
 
 class Manifest:
@@ -109,11 +139,12 @@ class Manifest:
     def exists(self) -> bool:
         return self.path.exists() and self.path.stat().st_size > 0
 
-    def records(self) -> list[dict]:
-        """All intact records, in order (torn or foreign lines are counted in ``torn_lines``)."""
+    def iter_records(self) -> Iterator[dict]:
+        """The intact records, in order, read one line at a time (torn or foreign lines are
+        counted in ``torn_lines`` as they are passed)."""
+        self.torn_lines = 0
         if not self.path.exists():
-            return []
-        out, self.torn_lines = [], 0
+            return
         for _lineno, rec in _read_lines(self.path):
             if (
                 rec is None
@@ -122,25 +153,50 @@ class Manifest:
             ):
                 self.torn_lines += 1
             else:
-                out.append(rec)
-        return out
+                yield rec
+
+    def records(self) -> list[dict]:
+        """All intact records, in order (torn or foreign lines are counted in ``torn_lines``)."""
+        return list(self.iter_records())
 
     def header(self) -> dict | None:
-        return next((r for r in self.records() if r["type"] == "run"), None)
+        """The ``run`` record (the first line: the plan), read without the lines after it."""
+        return next((r for r in self.iter_records() if r["type"] == "run"), None)
 
     def frames(self) -> dict[str, dict]:
         """The frame record of each plan key (the last one wins if a frame was re-recorded)."""
         out: dict[str, dict] = {}
-        for rec in self.records():
-            if rec["type"] == "frame":
-                out[rec["key"]] = rec
-            elif rec["type"] == "void":
-                out.pop(rec["key"], None)
+        for rec in self.iter_records():
+            _fold_frame(out, rec, rec)
         return out
 
     def completion(self) -> dict | None:
         """The last ``{"type": "complete"}`` record (written once the run's outputs exist), or None."""
-        return next((r for r in reversed(self.records()) if r["type"] == "complete"), None)
+        done = None
+        for rec in self.iter_records():
+            if rec["type"] == "complete":
+                done = rec
+        return done
+
+    def scan(self) -> ManifestScan:
+        """Header, the keys of the frames recorded and the completion in one pass, one line at
+        a time: what a run's state needs, in memory bounded by its number of keys (not by its
+        frame records).
+
+        Returns
+        -------
+        ManifestScan
+        """
+        head: dict | None = None
+        done: dict | None = None
+        keys: dict[str, dict] = {}
+        for rec in self.iter_records():
+            if rec["type"] == "run" and head is None:
+                head = rec
+            elif rec["type"] == "complete":
+                done = rec
+            _fold_frame(keys, rec, None)
+        return ManifestScan(head, frozenset(keys), done)
 
     def append(self, record: dict) -> None:
         if "type" not in record:
@@ -200,3 +256,32 @@ class EventLog:
         if not self.path.exists():
             return []
         return [r for _n, r in _read_lines(self.path) if r is not None]
+
+    def read_from(self, offset: int = 0) -> Generator[tuple[int, dict | None], None, None]:
+        """The events written from byte ``offset`` on, one whole line at a time, for a reader
+        that follows the log while a run appends to it.
+
+        Parameters
+        ----------
+        offset : int
+            Byte offset of a line's start (0, or an offset this method gave).
+
+        Yields
+        ------
+        (int, dict or None)
+            The byte offset after the line, and its event (None for a torn or foreign line).
+            A last line without its newline (being written) is not read.
+        """
+        try:
+            f = open(self.path, "rb")
+        except FileNotFoundError:
+            return
+        with f:
+            f.seek(offset)
+            pos = offset
+            for raw in f:
+                if not raw.endswith(b"\n"):
+                    return
+                pos += len(raw)
+                if raw.strip():
+                    yield pos, _parse_line(raw.strip())

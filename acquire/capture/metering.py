@@ -81,9 +81,8 @@ def _stop_if_asked(stop: StopEvent | None, run_dir: Path) -> None:
     if stop is not None and stop.is_set():
         from hdrcap.acquire.capture.session import RunInterrupted
 
-        raise RunInterrupted(
-            f"{run_dir}: stopped by signal {stop.signum} while metering; run again with --resume", stop.signum
-        )
+        reason = getattr(stop, "reason", f"stopped by signal {stop.signum}")
+        raise RunInterrupted(f"{run_dir}: {reason} while metering; run again with --resume", stop.signum)
 
 
 def _meter_frame(camera: Camera, dest: Path, t: float, retry: RetryPolicy) -> np.ndarray:

@@ -73,6 +73,10 @@ __all__ = [
     "lock_dir",
     "stop_on_signals",
     "hold_run_locks",
+    "run_lock_files",
+    "held_locks",
+    "lock_is_held",
+    "SESSION_LOCK_NAME",
 ]
 
 #: Frame kinds; the first two feed the HDR merge, the rest are calibration series.
@@ -396,13 +400,21 @@ def _default_prompt(message: str) -> None:
 
 
 class StopEvent(threading.Event):
-    """A :class:`threading.Event` that remembers the signal that set it (``signum``)."""
+    """A :class:`threading.Event` that remembers the signal that set it (``signum``) and, for a
+    stop that is not a signal (a Bluesky RunEngine's), who asked (``by``)."""
 
     signum: int = 15
+    by: str = ""
 
-    def stop(self, signum: int) -> None:
+    def stop(self, signum: int, by: str = "") -> None:
         self.signum = int(signum)
+        self.by = by
         self.set()
+
+    @property
+    def reason(self) -> str:
+        """``stopped by signal N``, or ``stopped by`` whoever asked."""
+        return f"stopped by {self.by}" if self.by else f"stopped by signal {self.signum}"
 
 
 @contextmanager
@@ -438,16 +450,21 @@ def stop_on_signals(signals: Sequence[int] = (signal.SIGTERM, signal.SIGINT)) ->
             signal.signal(sig, old)
 
 
-def lock_dir() -> Path:
+def lock_dir(create: bool = True) -> Path:
     """Folder of the lock files: ``$HDRCAP_LOCK_DIR``, else ``$XDG_RUNTIME_DIR/hdrcap/locks``
     (per user, emptied at boot), else the user's state folder
     (``${XDG_STATE_HOME:-~/.local/state}/hdrcap/locks``). Not the shared /tmp: another user's
     lock there would be unwritable, and systemd's PrivateTmp gives each service its own /tmp.
 
+    Parameters
+    ----------
+    create : bool
+        Create the folder (False: only name it, for a reader that must not write).
+
     Returns
     -------
     Path
-        The folder (created, private to the user).
+        The folder (created, private to the user, unless ``create`` is false).
     """
     if os.environ.get("HDRCAP_LOCK_DIR"):
         d = Path(os.environ["HDRCAP_LOCK_DIR"])
@@ -456,6 +473,8 @@ def lock_dir() -> Path:
     else:
         state = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
         d = Path(state) / "hdrcap" / "locks"
+    if not create:
+        return d
     try:
         d.mkdir(parents=True, exist_ok=True, mode=0o700)
     except OSError as err:
@@ -479,8 +498,7 @@ def hold_run_locks(run_dir: str | os.PathLike[str], camera_key: str | None = Non
     """
     from filelock import FileLock, Timeout
 
-    folder = hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
-    wanted = [(f"run-{folder}", f"{run_dir}: another hdrcap session is using this run folder")]
+    wanted = [(_run_lock_name(run_dir), f"{run_dir}: another hdrcap session is using this run folder")]
     if camera_key:
         wanted.append((f"open-{_safe(camera_key)}", f"camera {camera_key} is in use by another hdrcap session"))
     held = []
@@ -496,6 +514,69 @@ def hold_run_locks(run_dir: str | os.PathLike[str], camera_key: str | None = Non
     finally:
         for lock in reversed(held):
             lock.release()
+
+
+def _run_lock_name(run_dir: str | os.PathLike[str]) -> str:
+    """Name of the run folder's lock in :func:`lock_dir` (from its absolute path)."""
+    return "run-" + hashlib.sha256(str(Path(run_dir).resolve()).encode()).hexdigest()[:16]
+
+
+#: The lock file a session holds inside its run folder while it captures.
+SESSION_LOCK_NAME = ".hdrcap.lock"
+
+
+def run_lock_files(run_dir: str | os.PathLike[str]) -> list[Path]:
+    """The lock files held while a run is going on in ``run_dir``: the one in the run folder
+    (held by the session while it captures) and the one in :func:`lock_dir` (held by ``hdrcap
+    run``/``capture`` from before metering until the outputs are written). Nothing is created.
+
+    Parameters
+    ----------
+    run_dir : path
+        The run folder.
+
+    Returns
+    -------
+    list of Path
+    """
+    return [Path(run_dir) / SESSION_LOCK_NAME, lock_dir(create=False) / f"{_run_lock_name(run_dir)}.lock"]
+
+
+def held_locks() -> frozenset[tuple[int, int, int]] | None:
+    """The files some process holds a lock on, as (device major, device minor, inode), read from
+    Linux's ``/proc/locks``: a look that takes no lock itself, so it can never make a starting
+    run fail on a held lock.
+
+    Returns
+    -------
+    frozenset of (int, int, int) or None
+        None where ``/proc/locks`` cannot be read (not Linux).
+    """
+    try:
+        text = Path("/proc/locks").read_text()
+    except OSError:
+        return None
+    out = set()
+    for line in text.splitlines():
+        fields = line.replace("->", " ").split()
+        for word in fields[4:7]:  # "MAJ:MIN:INODE" (hex, hex, decimal) after the pid
+            parts = word.split(":")
+            if len(parts) == 3:
+                try:
+                    out.add((int(parts[0], 16), int(parts[1], 16), int(parts[2])))
+                except ValueError:
+                    pass
+                break
+    return frozenset(out)
+
+
+def lock_is_held(path: Path, held: frozenset[tuple[int, int, int]]) -> bool:
+    """Whether some process holds a lock on the file ``path`` (``held``: :func:`held_locks`)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino) in held
 
 
 def _safe(text: str) -> str:
@@ -694,7 +775,7 @@ class CaptureSession:
         if not os.access(self.run_dir, os.W_OK):
             raise InputError(f"{self.run_dir}: run folder is not writable")
         ident = _identity(self.camera)
-        run_lock = FileLock(str(self.run_dir / ".hdrcap.lock"))
+        run_lock = FileLock(str(self.run_dir / SESSION_LOCK_NAME))
         cam_lock = FileLock(str(lock_dir() / (_lock_key(ident) + ".lock")))
         try:
             run_lock.acquire(timeout=0)
@@ -912,9 +993,8 @@ class CaptureSession:
         """Raise :class:`RunInterrupted` when the stop event is set (SIGTERM/SIGINT)."""
         if self.stop is not None and self.stop.is_set():
             signum = getattr(self.stop, "signum", 15)
-            raise RunInterrupted(
-                f"{self.run_dir}: stopped by signal {signum} between two frames; run again with --resume", signum
-            )
+            reason = getattr(self.stop, "reason", f"stopped by signal {signum}")
+            raise RunInterrupted(f"{self.run_dir}: {reason} between two frames; run again with --resume", signum)
 
     def _feed(
         self, calibration: Calibration, merger: StreamingMerge | None, rec: dict[str, Any], values: np.ndarray

@@ -5,6 +5,7 @@ Layout (zarr format 2, consolidated metadata; ``xarray.open_zarr(ARCHIVE)``)::
     irradiance (run, y, x) float32   photo-electrons per second per photosite (the paper's X)
     sigma      (run, y, x) float32   standard deviation of irradiance, same unit
     nexp       (run, y, x) float32   unsaturated exposures used (0: irradiance is a lower bound)
+    quality, sigma_calibration (run, y, x) float32   as in the EXR of ``hdrcap merge``
     run        (run)       int64     0, 1, 2, ... in the order the runs were committed
     start_time (run)       datetime64[us]  start of the run (UTC)
     folder     (run)       str       the run folder (absolute path): the run's identity
@@ -12,58 +13,80 @@ Layout (zarr format 2, consolidated metadata; ``xarray.open_zarr(ARCHIVE)``)::
     n_frames   (run)       int64     light frames merged
     plan       (run)       str       JSON of the plan the merge followed ("null": none)
     merge_options (run)    str       JSON of the merge options (and the merge's own record)
-    calibration (run)      str       JSON of the calibration identity (sha256 of its file, params, provenance)
+    calibration (run)      str       id of the run's calibration in the attribute hdrcap_calibrations
     header     (run)       str       JSON of the attributes ``hdrcap merge`` writes in its EXR header
+                                     (its ``calibration`` entry: the calibration id)
 
-Every array along ``run`` is chunked one run per chunk, so appending a run writes new chunk
-files only and never rewrites one a reader may be reading.
+Global attributes: ``hdrcap_calibrations`` (JSON: calibration id -> file sha256 or preset,
+parameters, provenance; each distinct calibration once), ``hdrcap_failed_runs`` (JSON: folder
+-> error and time), ``hdrcap_archive_format``.
 
-Commit scheme: readers see the runs listed in the consolidated metadata (``.zmetadata``), which
-is replaced atomically (temporary file, then rename) as the last step of every append. A run's
-arrays are written first (the arrays' own metadata grows by one run, chunk files land), then
-the consolidated metadata is rewritten: the commit. A writer that dies in between leaves
-arrays one run longer than the consolidated metadata says; readers do not see that run, and
-the next writer cuts the arrays back to the committed length before appending. So the archive
-never shows a partial run. Writers take a lock file ``ARCHIVE.zarr.lock`` (one writer at a
-time); readers take no lock and may read while a batch appends.
+Every array is chunked one run per chunk, so a run is one chunk file in each array and no two
+runs share a file. Who writes what (:class:`ArchiveWriter`, one writer session at a time under
+the lock file ``ARCHIVE.zarr.lock``):
 
-Staging: batch workers may write a run's chunk files themselves (:func:`stage_channels`, encoded
-exactly as the archive's chunks) into ``ARCHIVE.zarr.staging/BATCH/``; the commit then renames
-them into place instead of compressing and writing the arrays.
+- **Slots.** A run's chunk files are written at a *slot*: a run index at or beyond the committed
+  length, taken by an exclusive file create (``O_CREAT | O_EXCL``) in the session's staging
+  folder ``ARCHIVE.zarr.staging/TOKEN/slots/`` (:func:`write_run`), so concurrent writers never
+  take the same slot and never write the same file. The files are encoded in a temporary folder
+  first and then hard-linked into place, which never replaces a file: a writer that lost its
+  slot (a task Dask ran twice) cannot overwrite another run.
+- **Workers** (:func:`write_run`) write every array's chunk file of their run at their slot,
+  coordinates included, and return a :class:`RunEntry` (folder, slot, size, calibration).
+- **The client** (:meth:`ArchiveWriter.commit`) commits: readers see the runs listed in the
+  consolidated metadata (``.zmetadata``), which is replaced atomically (temporary file, then
+  rename) as the last step; before it, the arrays' ``.zarray`` grow to the new length. Runs are
+  committed in slot order; a slot whose run will never come (its run failed after taking it,
+  landed at another slot, or was a ``--force`` rewrite, moved onto its committed index) is
+  filled by renaming the chunk files of the last finished run into it. Nothing the client does
+  is proportional to the pixels.
+
+So the archive never shows a partial run: a chunk beyond the committed length is invisible, and
+a writer that dies leaves at most ``.zarray`` files longer than the consolidated metadata and
+chunk files beyond it, which the next writer cuts back and removes. Readers take no lock; a
+Dataset opened before a commit keeps reading its runs undisturbed (a commit never rewrites a
+committed chunk, except ``--force`` rewriting a run in place).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import os
+import secrets
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hdrcap.batch import zarrv2
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.result import HdrResult
 from hdrcap.pipeline.schema import CHANNEL_NAMES
 
 if TYPE_CHECKING:
     import xarray as xr
-    import zarr
-    from numcodecs import Blosc
 
 __all__ = [
     "ArchiveRun",
+    "RunEntry",
+    "Target",
     "Archive",
+    "ArchiveWriter",
     "CHANNELS",
     "OPTIONAL_FILL",
     "RUN_COORDS",
+    "ARRAYS",
+    "calibration_id",
     "complete_channels",
     "read_run",
     "open_archive",
-    "stage_channels",
+    "write_run",
 ]
 
 #: The per-photosite variables, as in the EXR of ``hdrcap merge``.
@@ -74,12 +97,30 @@ CHANNELS = CHANNEL_NAMES
 #: own channels (every merge writes quality).
 OPTIONAL_FILL = {"quality": 0.0, "sigma_calibration": float("nan")}
 #: Coordinates along ``run`` that hold JSON text.
-_JSON_COORDS = ("exposure_times", "plan", "merge_options", "calibration", "header")
+_JSON_COORDS = ("exposure_times", "plan", "merge_options", "header")
 #: Every coordinate along ``run`` (besides ``run`` itself).
-RUN_COORDS = ("start_time", "folder", "n_frames") + _JSON_COORDS
-_FORMAT: Literal[2] = 2
-_TIME_UNITS = "microseconds since 1970-01-01T00:00:00"
+RUN_COORDS = ("start_time", "folder", "n_frames", "exposure_times", "plan", "merge_options", "calibration", "header")
+#: Every array of an archive: one chunk file per run in each.
+ARRAYS = ("run", *RUN_COORDS, *CHANNELS)
+_DTYPES = {
+    "run": "<i8",
+    "start_time": "<i8",
+    "n_frames": "<i8",
+    "folder": "|O",
+    "calibration": "|O",
+    **{n: "|O" for n in _JSON_COORDS},
+    **{n: "<f4" for n in CHANNELS},
+}
+#: Version of the archive's content (2: calibrations stored once, referenced by id).
+FORMAT = 2
+_FORMAT_ATTR = "hdrcap_archive_format"
+_TIME_UNITS = "microseconds since 1970-01-01"
 _FAILED_ATTR = "hdrcap_failed_runs"
+_CALIBRATIONS_ATTR = "hdrcap_calibrations"
+_CONSOLIDATED = ".zmetadata"
+#: Seconds between updates of the per-array metadata files during a writer session (readers
+#: without consolidated metadata see the runs committed up to then).
+SYNC_SECONDS = 30.0
 
 _VAR_ATTRS = {
     "irradiance": {
@@ -107,6 +148,29 @@ _VAR_ATTRS = {
     },
 }
 
+_COORD_ATTRS = {
+    "run": {"long_name": "run number in the archive (commit order)"},
+    "start_time": {
+        "long_name": "start of the run (UTC)",
+        "standard_name": "time",
+        "units": _TIME_UNITS,
+        "calendar": "proleptic_gregorian",
+    },
+    "folder": {"long_name": "run folder (absolute path); identifies the run"},
+    "exposure_times": {"long_name": "exposure times of the merged frames, s (JSON list)"},
+    "n_frames": {"long_name": "number of light frames merged", "units": "1"},
+    "plan": {"long_name": "plan the merge followed (JSON; null: none)"},
+    "merge_options": {"long_name": "merge options and the merge's record (JSON)"},
+    "calibration": {
+        "long_name": "calibration id: key of the global attribute hdrcap_calibrations (JSON: file sha256 "
+        "or preset, parameters, provenance)"
+    },
+    "header": {
+        "long_name": "attributes of the EXR header hdrcap merge writes for this run (JSON; its calibration "
+        "entry is the calibration id)"
+    },
+}
+
 
 def complete_channels(channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Every archive channel of a merge's channels as float32, the optional ones filled where
@@ -131,22 +195,9 @@ def complete_channels(channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     }
 
 
-_COORD_ATTRS = {
-    "run": {"long_name": "run number in the archive (commit order)"},
-    "start_time": {"long_name": "start of the run (UTC)", "standard_name": "time"},
-    "folder": {"long_name": "run folder (absolute path); identifies the run"},
-    "exposure_times": {"long_name": "exposure times of the merged frames, s (JSON list)"},
-    "n_frames": {"long_name": "number of light frames merged", "units": "1"},
-    "plan": {"long_name": "plan the merge followed (JSON; null: none)"},
-    "merge_options": {"long_name": "merge options and the merge's record (JSON)"},
-    "calibration": {"long_name": "calibration identity: file sha256, parameters, provenance (JSON)"},
-    "header": {"long_name": "attributes of the EXR header hdrcap merge writes for this run (JSON)"},
-}
-
-
 @dataclass(frozen=True)
 class ArchiveRun:
-    """One merged run, ready to be committed to an archive.
+    """One merged run, ready to be written to an archive.
 
     Parameters
     ----------
@@ -155,7 +206,8 @@ class ArchiveRun:
     start_time : str
         Start of the run, ISO 8601 (UTC if no zone is given).
     channels : dict of str to numpy.ndarray
-        ``irradiance``, ``sigma`` (e-/s per photosite) and ``nexp``, 2-D, as float32 (the EXR's).
+        ``irradiance``, ``sigma`` (e-/s per photosite) and ``nexp`` (and ``quality``,
+        ``sigma_calibration`` if the merge has them), 2-D, as the EXR stores them.
     header : dict
         The EXR header attributes of ``hdrcap merge`` for this run.
     exposure_times : list of float
@@ -165,7 +217,7 @@ class ArchiveRun:
     merge_options : dict
         The merge options used.
     calibration : dict
-        Calibration identity (file sha256, parameters, provenance).
+        The calibration: its identity (file sha256, or preset), parameters, provenance.
     """
 
     folder: str
@@ -176,27 +228,73 @@ class ArchiveRun:
     plan: dict[str, Any] | None = None
     merge_options: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
-    staged: dict[str, str] = field(default_factory=dict)
-    staged_shape: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
-        if self.channels:
-            object.__setattr__(self, "channels", complete_channels(self.channels))  # frozen dataclass
+        object.__setattr__(self, "channels", complete_channels(self.channels))  # frozen dataclass
 
     @property
     def shape(self) -> tuple[int, int]:
-        h, w = self.staged_shape if self.staged else self.channels["irradiance"].shape
+        h, w = self.channels["irradiance"].shape
         return h, w
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The channels, decoded from the staged chunk files if the run was staged."""
-        if not self.staged:
-            return self.channels
-        codec = _codec()
-        return {
-            name: np.frombuffer(codec.decode(Path(f).read_bytes()), dtype=np.float32).reshape(self.shape)
-            for name, f in self.staged.items()
-        }
+
+@dataclass(frozen=True)
+class RunEntry:
+    """A run written at its slot, as a worker reports it to the client (a few hundred bytes, plus
+    the calibration record).
+
+    Parameters
+    ----------
+    folder : str
+        The run's folder (its identity).
+    slot : int
+        Run index its chunk files were written at.
+    shape : (int, int)
+        Its size, rows and columns.
+    calibration_id : str
+        Key of its calibration in the archive's ``hdrcap_calibrations``.
+    calibration : dict
+        That calibration (identity, parameters, provenance), stored once per archive.
+    """
+
+    folder: str
+    slot: int
+    shape: tuple[int, int]
+    calibration_id: str
+    calibration: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where the writers of one session write runs (sent with every batch task).
+
+    Parameters
+    ----------
+    archive : str
+        The ``.zarr`` folder.
+    staging : str
+        The session's staging folder (slot reservations, temporary files).
+    token : str
+        The session's token: a worker writes only if the staging folder holds it (it sees the
+        archive's file system, and the session is still open).
+    base : int
+        The committed length when the session began: the first slot.
+    shape : (int, int) or None
+        The size of the archive's runs (None: no run yet).
+    """
+
+    archive: str
+    staging: str
+    token: str
+    base: int
+    shape: tuple[int, int] | None
+
+    def sees(self) -> bool:
+        """Whether this process sees the session's staging folder (a shared file system)."""
+        try:
+            return (Path(self.staging) / "token").read_text() == self.token
+        except OSError:
+            return False
 
 
 def _json(obj: Any) -> str:
@@ -205,64 +303,64 @@ def _json(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, default=_json_default)
 
 
-def _utc_datetime64(iso: str) -> np.datetime64:
+def calibration_id(calibration: dict[str, Any]) -> str:
+    """The id of a calibration record: the first 16 hex digits of the sha256 of its JSON.
+
+    Parameters
+    ----------
+    calibration : dict
+        Identity (file sha256, or preset), parameters, provenance.
+
+    Returns
+    -------
+    str
+    """
+    return hashlib.sha256(_json(calibration).encode()).hexdigest()[:16]
+
+
+def _header_calibration(calibration: dict[str, Any]) -> dict[str, Any]:
+    """The header's ``calibration`` entry that a calibration record stands for."""
+    return {"params": calibration.get("params"), "provenance": calibration.get("provenance")}
+
+
+def _utc_microseconds(iso: str) -> int:
     t = _dt.datetime.fromisoformat(iso)
     if t.tzinfo is not None:
         t = t.astimezone(_dt.UTC).replace(tzinfo=None)
-    return np.datetime64(t, "us")
+    return int(np.datetime64(t, "us").astype(np.int64))
 
 
-def _coords(run: ArchiveRun, index: int) -> dict[str, tuple[str, np.ndarray, dict[str, str]]]:
-    """The coordinates along ``run`` of ``run`` at position ``index``."""
-    values = {
-        "run": np.array([index], dtype=np.int64),
-        "start_time": np.array([_utc_datetime64(run.start_time)], dtype="datetime64[us]"),
-        "folder": np.array([run.folder], dtype=object),
-        "n_frames": np.array([len(run.exposure_times)], dtype=np.int64),
-        "exposure_times": np.array([_json(list(run.exposure_times))], dtype=object),
-        "plan": np.array([_json(run.plan)], dtype=object),
-        "merge_options": np.array([_json(run.merge_options)], dtype=object),
-        "calibration": np.array([_json(run.calibration)], dtype=object),
-        "header": np.array([_json(run.header)], dtype=object),
+def _coordinates(run: ArchiveRun, cid: str) -> dict[str, Any]:
+    """The values of ``run``'s coordinates (all but ``run``): the header's calibration entry
+    replaced by the calibration id when the calibration record holds it."""
+    header = dict(run.header)
+    if "calibration" in header and _json(header["calibration"]) == _json(_header_calibration(run.calibration)):
+        header["calibration"] = cid
+    return {
+        "start_time": _utc_microseconds(run.start_time),
+        "folder": run.folder,
+        "n_frames": len(run.exposure_times),
+        "exposure_times": _json(list(run.exposure_times)),
+        "plan": _json(run.plan),
+        "merge_options": _json(run.merge_options),
+        "calibration": cid,
+        "header": _json(header),
     }
-    return {name: ("run", v, _COORD_ATTRS[name]) for name, v in values.items()}
 
 
-def _dataset(run: ArchiveRun, index: int) -> xr.Dataset:
-    """The one-run xarray Dataset of ``run`` at position ``index``."""
-    import xarray as xr
-
-    arrays = run.arrays()
-    data = {
-        name: (("run", "y", "x"), np.asarray(arrays[name], dtype=np.float32)[None], _VAR_ATTRS[name])
-        for name in CHANNELS
-    }
-    return xr.Dataset(data, coords=_coords(run, index))
+def _metadata(name: str, shape: tuple[int, int], length: int = 0) -> dict[str, Any]:
+    """The ``.zarray`` of array ``name`` for runs of ``shape``."""
+    return zarrv2.array_metadata((length, *shape) if name in CHANNELS else (length,), _DTYPES[name])
 
 
-def _dataset_coords(run: ArchiveRun, index: int) -> xr.Dataset:
-    """The one-run Dataset of ``run``'s coordinates only (its arrays are staged), as variables:
-    the per-photosite arrays' ``coordinates`` attribute already makes them coordinates."""
-    import xarray as xr
-
-    return xr.Dataset(coords=_coords(run, index)).reset_coords()
-
-
-def _codec() -> Blosc:
-    """The compressor of the per-photosite chunks (workers encode staged chunks with it)."""
-    from numcodecs import Blosc
-
-    return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
+def _array_attrs(name: str) -> dict[str, Any]:
+    """The ``.zattrs`` of array ``name`` (dimensions as xarray names them, CF attributes)."""
+    if name in CHANNELS:
+        return {**_VAR_ATTRS[name], "coordinates": " ".join(sorted(RUN_COORDS)), "_ARRAY_DIMENSIONS": ["run", "y", "x"]}
+    return {**_COORD_ATTRS[name], "_ARRAY_DIMENSIONS": ["run"]}
 
 
-def _encoding(shape: tuple[int, int]) -> dict[str, dict[str, Any]]:
-    enc: dict[str, dict[str, Any]] = {name: {"chunks": (1, *shape), "compressors": (_codec(),)} for name in CHANNELS}
-    enc.update({name: {"chunks": (1,)} for name in ("run", *RUN_COORDS)})
-    enc["start_time"].update(units=_TIME_UNITS, dtype="int64")
-    return enc
-
-
-def _global_attrs() -> dict[str, str]:
+def _global_attrs() -> dict[str, Any]:
     from hdrcap import __version__
 
     return {
@@ -271,23 +369,113 @@ def _global_attrs() -> dict[str, str]:
         "source": f"hdrcap {__version__}",
         "references": "Granados et al., Optimal HDR Reconstruction with Linear Digital Cameras, CVPR 2010",
         "comment": "open with xarray.open_zarr; runs appear when committed (consolidated metadata)",
+        _FORMAT_ATTR: FORMAT,
         _FAILED_ATTR: "{}",
+        _CALIBRATIONS_ATTR: "{}",
     }
 
 
-def _array(group: zarr.Group, name: str) -> zarr.Array:
-    """The array ``name`` of an archive's zarr group (InputError when it is a group: not an archive)."""
-    import zarr
+# --------------------------------------------------------------------------- the worker's side
+def _reserve(target: Target, folder: str) -> int:
+    """Take the lowest free slot of the session (an exclusive create of ``slots/N``, which
+    names the run) and return it. Slots are taken in order, never released within a session."""
+    slots = Path(target.staging) / "slots"
+    slot = target.base + len(os.listdir(slots))  # the first free slot when listed, or below it
+    while True:
+        try:
+            fd = os.open(slots / str(slot), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            slot += 1
+            continue
+        try:
+            os.write(fd, folder.encode())
+        finally:
+            os.close(fd)
+        return slot
 
-    arr = group[name]
-    if not isinstance(arr, zarr.Array):
-        raise InputError(f"{group.store_path}: {name} is a group, not an array; not an hdrcap archive")
-    return arr
+
+def write_run(target: Target, run: ArchiveRun) -> RunEntry | None:
+    """Write ``run``'s chunk files into the archive at a slot of its own (on a batch worker, or
+    the client); the run becomes visible when the session commits it.
+
+    Every array's chunk is encoded into the staging folder first, then the slot is taken and the
+    files are hard-linked into the archive (never replacing a file).
+
+    Parameters
+    ----------
+    target : Target
+        The writer session's target (:attr:`ArchiveWriter.target`).
+    run : ArchiveRun
+        The merged run.
+
+    Returns
+    -------
+    RunEntry or None
+        What the session needs to commit the run; None when this process does not see the
+        session's staging folder (then send the run to the client, which writes it).
+
+    Raises
+    ------
+    InputError
+        The run's size differs from the archive's.
+    FileExistsError
+        A chunk file is already at the slot (a writer of the same run that lost its slot).
+    """
+    from hdrcap.pipeline.io.files import place_new
+
+    if not target.sees():
+        return None
+    if target.shape is not None and tuple(run.shape) != tuple(target.shape):
+        raise InputError(
+            f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
+            f"archive's {target.shape[1]}x{target.shape[0]}"
+        )
+    record = dict(run.calibration)
+    cid = calibration_id(record)
+    values: dict[str, Any] = {**_coordinates(run, cid), **run.channels}
+    tmp = Path(target.staging) / "tmp"
+    prefix = secrets.token_hex(8)
+    files: dict[str, Path] = {}
+    try:
+        for name in ARRAYS[1:]:
+            files[name] = tmp / f"{prefix}.{name}"
+            data = zarrv2.encode_chunk(_metadata(name, run.shape), np.asarray(values[name])[None])
+            files[name].write_bytes(data)
+        slot = _reserve(target, run.folder)
+        files["run"] = tmp / f"{prefix}.run"
+        files["run"].write_bytes(zarrv2.encode_chunk(_metadata("run", run.shape), [slot]))
+        root = Path(target.archive)
+        for name, f in files.items():
+            folder = root / name
+            folder.mkdir(parents=True, exist_ok=True)
+            place_new(f, folder / zarrv2.chunk_name(slot, 3 if name in CHANNELS else 1))
+    finally:
+        for f in files.values():
+            f.unlink(missing_ok=True)
+    return RunEntry(run.folder, slot, run.shape, cid, record)
 
 
-def _folders(group: zarr.Group) -> list[str]:
-    """The ``folder`` coordinate of an archive's zarr group: the run folders, in run order."""
-    return [str(f) for f in np.asarray(_array(group, "folder")[:])]
+# --------------------------------------------------------------------------- reading
+def _consolidated(path: Path) -> dict[str, Any]:
+    """The consolidated metadata of the archive at ``path`` (key -> JSON; empty: none)."""
+    doc = zarrv2.read_json(path / _CONSOLIDATED)
+    return {} if doc is None else dict(doc["metadata"])
+
+
+def _length(meta: dict[str, Any]) -> int:
+    return int(meta["run/.zarray"]["shape"][0]) if "run/.zarray" in meta else 0
+
+
+def _read_coordinate(path: Path, meta: dict[str, Any], name: str) -> list[Any]:
+    """The committed values of the coordinate ``name`` (one chunk file per run)."""
+    key = f"{name}/.zarray"
+    if key not in meta:
+        return []
+    arr = meta[key]
+    return [
+        zarrv2.decode_chunk(arr, (path / name / zarrv2.chunk_name(i, 1)).read_bytes())[0]
+        for i in range(int(arr["shape"][0]))
+    ]
 
 
 def open_archive(path: str | os.PathLike[str]) -> xr.Dataset:
@@ -301,12 +489,12 @@ def open_archive(path: str | os.PathLike[str]) -> xr.Dataset:
     Returns
     -------
     xarray.Dataset
-        Variables ``irradiance``, ``sigma``, ``nexp`` (run, y, x) and the run coordinates.
+        Variables ``irradiance``, ``sigma``, ``nexp``, ... (run, y, x) and the run coordinates.
     """
     import xarray as xr
 
     folder = Path(path)
-    if not (folder / ".zmetadata").is_file():
+    if not (folder / _CONSOLIDATED).is_file():
         raise InputError(f"{folder}: not an hdrcap archive (no consolidated zarr metadata)")
     return xr.open_zarr(folder, consolidated=True)
 
@@ -325,8 +513,8 @@ def read_run(path: str | Path, index: int) -> HdrResult:
     -------
     HdrResult
         The channels as the run's EXR stores them (read back as float32; quality as uint8),
-        and the run's header. ``sigma_calibration`` and ``quality`` are left out where the
-        merge had none.
+        and the run's header (its calibration entry in full). ``sigma_calibration`` and
+        ``quality`` are left out where the merge had none.
 
     Raises
     ------
@@ -343,6 +531,13 @@ def read_run(path: str | Path, index: int) -> HdrResult:
         )
     one = ds.isel(run=index)
     header = json.loads(str(one["header"].values))
+    if isinstance(header.get("calibration"), str):  # an id of the archive's calibrations
+        table = json.loads(str(ds.attrs.get(_CALIBRATIONS_ATTR, "{}")))
+        if header["calibration"] not in table:
+            raise InputError(
+                f"{path}: run {index}'s calibration {header['calibration']} is not in {_CALIBRATIONS_ATTR}"
+            )
+        header["calibration"] = _header_calibration(table[header["calibration"]])
     channels = {}
     for name in CHANNELS:
         if name not in one:
@@ -363,12 +558,12 @@ def read_run(path: str | Path, index: int) -> HdrResult:
 
 
 class Archive:
-    """Writer of a run archive (see the module notes for the layout and the commit scheme).
+    """A run archive on disk: what it holds, and its writer sessions (see the module notes).
 
     Parameters
     ----------
     path : str or Path
-        The ``.zarr`` folder; created by the first :meth:`commit`.
+        The ``.zarr`` folder; created by the first commit.
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -377,45 +572,49 @@ class Archive:
 
     # ------------------------------------------------------------------ reading
     def exists(self) -> bool:
-        return (self.path / ".zmetadata").is_file()
+        return (self.path / _CONSOLIDATED).is_file()
 
     def folders(self) -> dict[str, int]:
         """Folder -> run number of every committed run."""
-        if not self.exists():
-            return {}
-        ds = open_archive(self.path)
-        if "folder" not in ds:  # failures only, no run yet
-            return {}
-        return {str(f): int(r) for f, r in zip(ds["folder"].values, ds["run"].values)}
+        meta = _consolidated(self.path)
+        return {str(f): i for i, f in enumerate(_read_coordinate(self.path, meta, "folder"))}
 
     def failed(self) -> dict[str, dict[str, str]]:
         """Folder -> {"error", "time"} of the runs whose last attempt failed."""
-        if not self.exists():
-            return {}
-        return json.loads(open_archive(self.path).attrs.get(_FAILED_ATTR, "{}"))
+        attrs = _consolidated(self.path).get(".zattrs", {})
+        return dict(json.loads(str(attrs.get(_FAILED_ATTR, "{}"))))
+
+    def calibrations(self) -> dict[str, dict[str, Any]]:
+        """Calibration id -> calibration record (identity, parameters, provenance)."""
+        attrs = _consolidated(self.path).get(".zattrs", {})
+        return dict(json.loads(str(attrs.get(_CALIBRATIONS_ATTR, "{}"))))
 
     # ------------------------------------------------------------------ writing
     @contextmanager
-    def _locked(self) -> Iterator[None]:
+    def writer(self) -> Iterator[ArchiveWriter]:
+        """A writer session: the archive's lock held (a second session waits for it), an
+        interrupted earlier session cleaned up, a staging folder for the writers. On a normal
+        exit every run added is committed (:meth:`ArchiveWriter.commit` with ``final``); on an
+        exception nothing more is committed. Either way the chunk files beyond the committed
+        runs and the staging folder are removed.
+
+        Yields
+        ------
+        ArchiveWriter
+        """
         from filelock import FileLock
 
         if self.path.exists() and not self.path.is_dir():
             raise InputError(f"{self.path}: exists and is not a zarr folder")
         with FileLock(str(self.lock_path)):
-            yield
-
-    def _repair(self) -> int:
-        """Cut every array back to the committed number of runs (an append that died before its
-        commit left them longer); returns that number."""
-        import zarr
-
-        committed = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
-        n = _array(committed, "run").shape[0]
-        group = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
-        for _name, arr in group.arrays():
-            if arr.shape[0] > n:
-                arr.resize((n, *arr.shape[1:]))
-        return n
+            session = ArchiveWriter(self.path)
+            ok = False
+            try:
+                yield session
+                session.commit(final=True)
+                ok = True
+            finally:
+                session.close(ok)
 
     def commit(self, run: ArchiveRun, replace: bool = False) -> int:
         """Write ``run`` and commit it; returns its run number.
@@ -435,21 +634,11 @@ class Archive:
         int
             The run number (``run`` coordinate).
         """
-        with self._locked():
-            i = self._commit(run, replace)
-        for f in run.staged.values():  # decoded rather than renamed (first run, rewrite): not needed any more
-            Path(f).unlink(missing_ok=True)
-        return i
+        return self.commit_many([run], replace)[0]
 
     def commit_many(self, runs: Sequence[ArchiveRun], replace: bool = False) -> list[int]:
-        """Commit several runs at once; returns their run numbers.
-
-        New runs whose chunks were staged are appended together: one append of their
-        coordinates, one resize of every array and one commit (consolidated metadata) for all
-        of them, which is what a commit costs on the client whatever the number of runs. Any
-        other case (a rewrite, arrays sent back, the first run) commits the runs one by one.
-        Either every run of the call is committed or, if an error is raised, none of the ones
-        appended together.
+        """Write several runs and commit them together (one commit); returns their run numbers.
+        Either every run is committed or, if an error is raised, none.
 
         Parameters
         ----------
@@ -463,218 +652,332 @@ class Archive:
         list of int
             The run numbers, in the order of ``runs``.
         """
-        import zarr
-
-        runs = list(runs)
-        with self._locked():
-            group = None
-            if self.exists():
-                self._repair()
-                group = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
-            together = (
-                len(runs) > 1
-                and group is not None
-                and "irradiance" in group
-                and len({r.folder for r in runs}) == len(runs)
-                and all(r.staged for r in runs)
-                and all(tuple(r.shape) == tuple(_array(group, "irradiance").shape[1:]) for r in runs)
-                and not {r.folder for r in runs} & set(_folders(group))
-                and self._chunks_compatible(group)
-            )
-            if together and group is not None:
-                attrs = dict(group.attrs)
-                attrs.pop("coordinates", None)
-                failed = json.loads(str(attrs.get(_FAILED_ATTR, "{}")))
-                for r in runs:
-                    failed.pop(r.folder, None)
-                attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
-                numbers = self._append_staged_many(runs, _array(group, "run").shape[0], attrs)
-            else:
-                numbers = [self._commit(r, replace) for r in runs]
-        for r in runs:
-            for f in r.staged.values():  # decoded rather than renamed (first run, rewrite): not needed any more
-                Path(f).unlink(missing_ok=True)
-        return numbers
-
-    def _commit(self, run: ArchiveRun, replace: bool) -> int:
-        """:meth:`commit` under the writer's lock."""
-        import zarr
-
-        group = None
-        if self.exists():
-            self._repair()
-            group = zarr.open_group(self.path, mode="r", use_consolidated=True, zarr_format=_FORMAT)
-        attrs: dict[str, Any] = _global_attrs() if group is None else dict(group.attrs)
-        attrs.pop("coordinates", None)
-        failed = json.loads(str(attrs.get(_FAILED_ATTR, "{}")))
-        failed.pop(run.folder, None)
-        attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
-        if group is None or "irradiance" not in group:  # the first run (perhaps after failures only)
-            ds = _dataset(run, 0)
-            ds.attrs.update(attrs)
-            ds.to_zarr(self.path, mode="w", consolidated=True, zarr_format=_FORMAT, encoding=_encoding(run.shape))
-            return 0
-        n = _array(group, "run").shape[0]
-        shape = tuple(_array(group, "irradiance").shape[1:])
-        if tuple(run.shape) != shape:
-            raise InputError(
-                f"{run.folder}: merged size {run.shape[1]}x{run.shape[0]} differs from the "
-                f"archive's {shape[1]}x{shape[0]}"
-            )
-        folders = _folders(group)
-        if run.folder in folders:
-            if not replace:
-                raise InputError(f"{run.folder}: already in {self.path} as run {folders.index(run.folder)}")
-            i = folders.index(run.folder)
-            ds = _dataset(run, i)
-            ds.attrs.update(attrs)
-            ds.to_zarr(self.path, mode="r+", region={"run": slice(i, i + 1)}, consolidated=True, zarr_format=_FORMAT)
-            return i
-        if run.staged and self._chunks_compatible(group):
-            return self._append_staged(run, n, attrs)
-        ds = _dataset(run, n)
-        ds.attrs.update(attrs)  # xarray replaces the root attributes on append
-        ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=True, zarr_format=_FORMAT)
-        return n
-
-    @staticmethod
-    def _chunks_compatible(group: zarr.Group) -> bool:
-        """Whether staged chunk files can be moved in as they are (same codec, dtype, layout)."""
-        from zarr.core.metadata import ArrayV2Metadata
-
-        for name in CHANNELS:
-            meta = _array(group, name).metadata
-            if not isinstance(meta, ArrayV2Metadata):  # the archive is zarr format 2
-                return False
-            if (
-                meta.compressor != _codec()
-                or meta.filters
-                or meta.order != "C"
-                or meta.dtype.to_native_dtype() != np.dtype("<f4")
-                or meta.dimension_separator != "."
-            ):
-                return False
-        return True
-
-    def _append_staged(self, run: ArchiveRun, n: int, attrs: dict[str, Any]) -> int:
-        """Append a staged run (:meth:`_append_staged_many` of one run)."""
-        return self._append_staged_many([run], n, attrs)[0]
-
-    def _append_staged_many(self, runs: list[ArchiveRun], n: int, attrs: dict[str, Any]) -> list[int]:
-        """Append staged runs as runs n, n+1, ...: their coordinates (xarray, one append), the
-        per-photosite arrays grown by that many runs and the chunk files renamed into place,
-        then the commit (consolidated metadata)."""
-        import xarray as xr
-        import zarr
-
-        parts = [_dataset_coords(run, n + i) for i, run in enumerate(runs)]
-        ds = parts[0] if len(parts) == 1 else xr.concat(parts, dim="run")
-        ds.attrs.update(attrs)
-        ds.to_zarr(self.path, mode="a", append_dim="run", consolidated=False, zarr_format=_FORMAT)
-        group = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
-        for name in CHANNELS:
-            arr = _array(group, name)
-            arr.resize((n + len(runs), *arr.shape[1:]))
-            for i, run in enumerate(runs):
-                os.replace(run.staged[name], self.path / name / arr.metadata.encode_chunk_key((n + i, 0, 0)))
-        zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)
-        return list(range(n, n + len(runs)))
-
-    # ------------------------------------------------------------------ staging
-    def open_staging(self) -> tuple[str, str]:
-        """A staging folder for this batch (``ARCHIVE.zarr.staging/TOKEN``, on the archive's file
-        system) where workers that see it write their runs' encoded chunks; returns (folder, token)."""
-        import secrets
-
-        token = secrets.token_hex(8)
-        folder = self.path.with_name(self.path.name + ".staging") / token
-        folder.mkdir(parents=True)
-        (folder / "token").write_text(token)
-        return str(folder), token
-
-    def close_staging(self, staging: tuple[str, str]) -> None:
-        """Remove this batch's staging folder (and the staging root once empty)."""
-        import shutil
-
-        folder = Path(staging[0])
-        shutil.rmtree(folder, ignore_errors=True)
-        try:
-            folder.parent.rmdir()
-        except OSError:
-            pass
+        with self.writer() as session:
+            for run in runs:
+                session.add(session.write(run), replace)
+            landed = session.commit(final=True)
+        return [landed[r.folder] for r in runs]
 
     def record_failure(self, folder: str, error: str) -> None:
         """Record that merging ``folder`` failed with ``error`` (kept in the archive's
         ``hdrcap_failed_runs`` attribute, JSON, until the run lands)."""
-        with self._locked():
-            if not self.exists():
-                import zarr
-
-                root = zarr.open_group(self.path, mode="w", zarr_format=_FORMAT)
-                root.attrs.update(_global_attrs())
-                # an empty archive: the run dimension exists with no run yet
-                self._init_empty(root)
-            else:
-                self._repair()
-            self._set_failed(folder, error)
-
-    def _init_empty(self, root: zarr.Group) -> None:
-        import zarr
-
-        arr = root.create_array("run", shape=(0,), chunks=(1,), dtype="int64")
-        arr.attrs.update({"_ARRAY_DIMENSIONS": ["run"], **_COORD_ATTRS["run"]})
-        zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)
-
-    def _set_failed(self, folder: str, error: str | None, consolidate: bool = True) -> None:
-        import zarr
-
-        root = zarr.open_group(self.path, mode="r+", use_consolidated=False, zarr_format=_FORMAT)
-        failed = json.loads(str(root.attrs.get(_FAILED_ATTR, "{}")))
-        if error is None:
-            if folder not in failed:
-                return
-            failed.pop(folder)
-        else:
-            failed[folder] = {"error": error, "time": _dt.datetime.now(_dt.UTC).isoformat()}
-        root.attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
-        if consolidate:
-            zarr.consolidate_metadata(self.path, zarr_format=_FORMAT)
+        with self.writer() as session:
+            session.fail(folder, error)
 
 
-def stage_channels(staging: tuple[str, str] | None, key: str, channels: dict[str, np.ndarray]) -> dict[str, str]:
-    """On a worker: write each channel as the archive's chunk file (float32, C order, encoded with
-    the archive's compressor) into the batch's staging folder, so that the client commits the
-    run by renaming files instead of receiving and compressing the arrays.
+class ArchiveWriter:
+    """The writer session of an archive (:meth:`Archive.writer`; the lock is held).
+
+    Writers (batch workers, or :meth:`write`) write runs at slots (:func:`write_run`, with
+    :attr:`target`); :meth:`add` hands a written run to the session, :meth:`fail` records a
+    run that failed, :meth:`commit` makes the runs added so far visible (the ones that can be:
+    slot order) with one rewrite of the metadata.
 
     Parameters
     ----------
-    staging : (str, str) or None
-        The staging folder and its token (:meth:`Archive.open_staging`).
-    key : str
-        A name unique to the run in this batch.
-    channels : dict of str to numpy.ndarray
-        ``irradiance``, ``sigma``, ``nexp``.
-
-    Returns
-    -------
-    dict of str to str
-        Channel name -> staged file; empty when the worker does not see the staging folder
-        (no shared file system): then the arrays go to the client.
+    path : Path
+        The ``.zarr`` folder.
     """
-    if staging is None:
-        return {}
-    folder, token = Path(staging[0]), staging[1]
-    try:
-        if (folder / "token").read_text() != token:
-            return {}
-    except OSError:
-        return {}
-    codec, out = _codec(), {}
-    channels = complete_channels(channels)
-    for name in CHANNELS:
-        final = folder / f"{key}.{name}"
-        tmp = folder / f".{key}.{name}.{os.getpid()}.partial"
-        tmp.write_bytes(codec.encode(np.ascontiguousarray(channels[name], dtype=np.float32)))
-        os.replace(tmp, final)
-        out[name] = str(final)
-    return out
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._meta = _consolidated(path)
+        self._synced: dict[str, Any] = {}  # key -> what the per-array metadata file holds
+        self._synced_at = time.monotonic()
+        self._check()
+        #: Committed runs.
+        self.length = _length(self._meta)
+        irr = self._meta.get("irradiance/.zarray")
+        #: The runs' size (None: no run yet).
+        self.shape: tuple[int, int] | None = None if irr is None else (int(irr["shape"][1]), int(irr["shape"][2]))
+        self._repair()
+        #: Folder -> run number of the committed runs.
+        self.committed = {str(f): i for i, f in enumerate(_read_coordinate(path, self._meta, "folder"))}
+        self._attrs: dict[str, Any] = dict(self._meta.get(".zattrs") or _global_attrs())
+        self._attrs.setdefault(_CALIBRATIONS_ATTR, "{}")
+        self._attrs[_FORMAT_ATTR] = FORMAT
+        self._failed_runs: dict[str, Any] = json.loads(str(self._attrs.get(_FAILED_ATTR, "{}")))
+        self._calibrations: dict[str, Any] = json.loads(str(self._attrs[_CALIBRATIONS_ATTR]))
+        staging_root = path.with_name(path.name + ".staging")
+        token = secrets.token_hex(8)
+        self._staging = staging_root / token
+        (self._staging / "slots").mkdir(parents=True)
+        (self._staging / "tmp").mkdir()
+        (self._staging / "token").write_text(token)
+        #: Where the session's writers write (sent to batch workers).
+        self.target = Target(str(path), str(self._staging), token, self.length, self.shape)
+        self._pending: dict[int, RunEntry] = {}  # slot -> a new run waiting for the slots before it
+        self._rewrites: list[tuple[int, RunEntry]] = []  # committed index -> a run rewriting it
+        self._seen: dict[str, int | None] = {}  # folder -> the slot of its run (None: failed)
+        self._orphans: set[int] = set()  # slots whose run will never come
+        self._failures: dict[str, dict[str, str]] = {}
+        #: Commits made (metadata rewrites).
+        self.commits = 0
+
+    # ------------------------------------------------------------------ session start
+    def _check(self) -> None:
+        """Refuse a folder that is not an archive of this format."""
+        if not self._meta:  # no archive yet: an empty folder, or what a first commit that died left
+            if self.path.is_dir() and not all(_ours(p.name) for p in self.path.iterdir()):
+                raise InputError(f"{self.path}: exists and is not an hdrcap archive (no consolidated zarr metadata)")
+            return
+        attrs = self._meta.get(".zattrs", {})
+        if "irradiance/.zarray" in self._meta and attrs.get(_FORMAT_ATTR) != FORMAT:
+            raise InputError(
+                f"{self.path}: written by an earlier hdrcap (calibration stored with every run); "
+                "batch into a new archive"
+            )
+        for name in ARRAYS:
+            arr = self._meta.get(f"{name}/.zarray")
+            if arr is not None and arr != zarrv2.array_metadata(arr["shape"], _DTYPES[name]):
+                raise InputError(f"{self.path}: its array {name} is not laid out as hdrcap batch writes it")
+
+    def _repair(self) -> None:
+        """Undo what an interrupted session left: per-array metadata behind the consolidated
+        metadata (brought up to it), chunk files beyond the committed runs and temporary files
+        (removed), its staging folder (removed)."""
+        import shutil
+
+        self._sync(check_disk=True)
+        for name in ARRAYS:
+            folder = self.path / name
+            if not folder.is_dir():
+                continue
+            with os.scandir(folder) as entries:
+                for e in entries:
+                    i = zarrv2.chunk_index(e.name)
+                    if (i is not None and i >= self.length) or e.name.endswith(".partial"):
+                        os.unlink(e.path)
+        if self.path.is_dir():
+            for p in self.path.glob(".*.partial"):
+                p.unlink(missing_ok=True)
+        root = self.path.with_name(self.path.name + ".staging")
+        if root.is_dir():  # only a dead session's: the lock is held
+            shutil.rmtree(root, ignore_errors=True)
+
+    # ------------------------------------------------------------------ runs
+    def write(self, run: ArchiveRun) -> RunEntry:
+        """Write ``run`` at a slot from this process (:func:`write_run`).
+
+        Parameters
+        ----------
+        run : ArchiveRun
+
+        Returns
+        -------
+        RunEntry
+        """
+        entry = write_run(self.target, run)
+        if entry is None:
+            raise InputError(f"{self._staging}: the session's staging folder is gone")
+        return entry
+
+    def add(self, entry: RunEntry, replace: bool = False) -> None:
+        """Hand a run written at its slot to the session, to be committed.
+
+        Parameters
+        ----------
+        entry : RunEntry
+            What :func:`write_run` returned.
+        replace : bool
+            A run of a committed folder rewrites it in place (else it is refused).
+
+        Raises
+        ------
+        InputError
+            Its size differs from the archive's, its folder is committed (without ``replace``)
+            or already added. The run is then dropped (its slot is filled by another run).
+        """
+        try:
+            if entry.folder in self._seen and self._seen[entry.folder] != entry.slot:
+                raise InputError(f"{entry.folder}: given twice")
+            self._seen[entry.folder] = entry.slot
+            if self.shape is None:
+                self.shape = (int(entry.shape[0]), int(entry.shape[1]))
+            elif tuple(entry.shape) != tuple(self.shape):
+                raise InputError(
+                    f"{entry.folder}: merged size {entry.shape[1]}x{entry.shape[0]} differs from the "
+                    f"archive's {self.shape[1]}x{self.shape[0]}"
+                )
+            if entry.folder in self.committed:
+                if not replace:
+                    raise InputError(f"{entry.folder}: already in {self.path} as run {self.committed[entry.folder]}")
+                self._rewrites.append((self.committed[entry.folder], entry))
+            else:
+                self._pending[entry.slot] = entry
+        except InputError:
+            self._orphans.add(entry.slot)
+            raise
+
+    def fail(self, folder: str, error: str) -> None:
+        """Record that ``folder`` failed with ``error`` (committed with the next commit; the
+        record is cleared when the run lands).
+
+        Parameters
+        ----------
+        folder : str
+        error : str
+            One line.
+        """
+        self._seen.setdefault(folder, None)
+        self._failures[folder] = {"error": error, "time": _dt.datetime.now(_dt.UTC).isoformat()}
+
+    def _orphaned(self, slot: int) -> bool:
+        """Whether no run will come for ``slot``: its run landed at another slot, failed, or
+        was moved away (from its reservation, which names the run's folder)."""
+        if slot in self._orphans:
+            return True
+        try:
+            folder = (self._staging / "slots" / str(slot)).read_text()
+        except OSError:
+            return False
+        return folder in self._seen and self._seen[folder] != slot
+
+    def _ready(self, final: bool) -> list[tuple[int, int, RunEntry]]:
+        """The new runs that can be committed now, as (run number, slot, entry): in slot order,
+        a slot whose run will never come filled with the last finished run (with ``final``,
+        once no writer is left, every such slot)."""
+        out: list[tuple[int, int, RunEntry]] = []
+        index = self.length
+        while self._pending:
+            if index in self._pending:
+                out.append((index, index, self._pending.pop(index)))
+            elif final or self._orphaned(index):
+                top = max(self._pending)
+                out.append((index, top, self._pending.pop(top)))
+                self._orphans.add(top)
+            else:
+                break
+            index += 1
+        return out
+
+    def _move(self, src: int, dst: int, run_coordinate: bool) -> None:
+        """Rename every chunk file of slot ``src`` onto run ``dst`` (a rename replaces a file a
+        writer that lost slot ``dst`` may have left); write ``dst``'s ``run`` coordinate if asked
+        (else it keeps its own)."""
+        for name in ARRAYS[1:]:
+            ndim = 3 if name in CHANNELS else 1
+            os.replace(self.path / name / zarrv2.chunk_name(src, ndim), self.path / name / zarrv2.chunk_name(dst, ndim))
+        if run_coordinate:
+            data = zarrv2.encode_chunk(_metadata("run", (1, 1)), [dst])
+            zarrv2.write_atomic(self.path / "run" / zarrv2.chunk_name(dst, 1), data)
+
+    def commit(self, final: bool = False) -> dict[str, int]:
+        """Commit what can be: the rewrites, the new runs in slot order, the failure records, in
+        one rewrite of the consolidated metadata (the commit point; a few kB per distinct
+        calibration plus the failure records, whatever the number of runs).
+
+        Parameters
+        ----------
+        final : bool
+            No writer is left: fill every slot whose run will never come.
+
+        Returns
+        -------
+        dict of str to int
+            Folder -> run number of the runs committed now.
+        """
+        ready = self._ready(final)
+        landed: dict[str, int] = {}
+        entries: list[RunEntry] = []
+        for index, entry in self._rewrites:
+            self._move(entry.slot, index, run_coordinate=False)
+            self._orphans.add(entry.slot)
+            landed[entry.folder] = index
+            entries.append(entry)
+        for index, slot, entry in ready:
+            if slot != index:
+                self._move(slot, index, run_coordinate=True)
+            landed[entry.folder] = index
+            entries.append(entry)
+        if landed or self._failures:
+            self._commit_metadata(landed, entries, len(ready))
+        if final or time.monotonic() - self._synced_at >= SYNC_SECONDS:
+            self._sync()
+        return landed
+
+    def _commit_metadata(self, landed: dict[str, int], entries: list[RunEntry], new: int) -> None:
+        """Commit ``landed`` (``new`` of them appended) and the failure records."""
+        failed, table = self._failed_runs, self._calibrations
+        failed.update(self._failures)
+        for folder in landed:
+            failed.pop(folder, None)
+        new_calibrations = {e.calibration_id: e.calibration for e in entries if e.calibration_id not in table}
+        table.update(new_calibrations)
+        self._attrs[_FAILED_ATTR] = json.dumps(failed, sort_keys=True)
+        if new_calibrations:
+            self._attrs[_CALIBRATIONS_ATTR] = _json(table)
+        self._write_metadata(self.length + new)
+        self._rewrites.clear()
+        self._failures.clear()
+        for folder, index in landed.items():
+            self.committed[folder] = index
+
+    def _write_metadata(self, length: int) -> None:
+        """The commit: the consolidated metadata rewritten with the arrays grown to ``length``
+        runs (and created, when the archive had no run yet) and the attributes."""
+        meta = dict(self._meta)  # the session's view changes only once the commit is made
+        for name in ARRAYS:
+            key = f"{name}/.zarray"
+            if key not in meta:
+                if name != "run" and (length == 0 or self.shape is None):
+                    continue  # an archive of failure records only: the run dimension, no run
+                meta[key] = _metadata(name, self.shape or (1, 1), length)
+                meta[f"{name}/.zattrs"] = _array_attrs(name)
+            elif meta[key]["shape"][0] != length:
+                meta[key] = {**meta[key], "shape": [length, *meta[key]["shape"][1:]]}
+        meta[".zgroup"] = {"zarr_format": 2}
+        meta[".zattrs"] = dict(self._attrs)
+        self.path.mkdir(exist_ok=True)
+        _write_consolidated(self.path, meta)
+        self._meta = meta
+        self.length = length
+        self.commits += 1
+
+    def _sync(self, check_disk: bool = False) -> None:
+        """Bring the per-array metadata files (``.zarray``, ``.zattrs``, ``.zgroup``) up to the
+        consolidated metadata, for readers that do not read it: after a commit, so they never
+        run ahead of it (at most every :data:`SYNC_SECONDS` during a session, and at its end)."""
+        for key, value in self._meta.items():
+            if check_disk:
+                self._synced[key] = zarrv2.read_json(self.path / key)
+            if self._synced.get(key) != value:
+                (self.path / key).parent.mkdir(exist_ok=True)
+                zarrv2.write_json(self.path / key, value)
+                self._synced[key] = value
+        self._synced_at = time.monotonic()
+
+    # ------------------------------------------------------------------ session end
+    def close(self, committed: bool) -> None:
+        """End the session: remove the chunk files at the slots beyond the committed runs, the
+        staging folder, and the archive folder if nothing was ever committed to it."""
+        import shutil
+
+        if self._meta:
+            self._sync()
+        slots = self._staging / "slots"
+        taken = {int(p.name) for p in slots.iterdir()} if slots.is_dir() else set()
+        for slot in sorted(taken | self._orphans):
+            if slot < self.length:
+                continue
+            for name in ARRAYS:
+                (self.path / name / zarrv2.chunk_name(slot, 3 if name in CHANNELS else 1)).unlink(missing_ok=True)
+        shutil.rmtree(self._staging, ignore_errors=True)
+        empty = [self._staging.parent]
+        if not self._meta:  # nothing ever committed: no archive
+            empty += [*(self.path / n for n in ARRAYS), self.path]
+        for folder in empty:
+            try:
+                folder.rmdir()  # only if empty
+            except OSError:
+                pass
+
+
+def _ours(name: str) -> bool:
+    """Whether ``name`` in an archive folder is something hdrcap batch writes there."""
+    return name in ARRAYS or name in (".zgroup", ".zattrs") or name.endswith(".partial")
+
+
+def _write_consolidated(path: Path, meta: dict[str, Any]) -> None:
+    """Replace the consolidated metadata (atomically): the commit point of every write."""
+    zarrv2.write_json(path / _CONSOLIDATED, {"metadata": meta, "zarr_consolidated_format": 1})

@@ -2,17 +2,17 @@
 
 :func:`find_runs` turns the folders given into :class:`RunSource` (file paths only: capture
 run folders through their ``manifest.jsonl``, or folders of raw brackets); :func:`merge_run` is
-the task a worker runs for one run: it reads the frames itself and merges them with
-:func:`pipeline.merge.files.merge_files`, exactly as ``hdrcap merge`` does; :func:`run_batch` sends
-one task per run to a local cluster or a scheduler, commits every merged run to the
-:class:`hdrcap.batch.archive.Archive` as it arrives (the runs that finished while the previous ones
-were committed together, in one commit), records failures and skips runs already there.
+the task a worker runs for one run: it reads the frames itself, merges them with
+:func:`pipeline.merge.files.merge_files` exactly as ``hdrcap merge`` does, and writes the run's
+chunk files straight into the archive at a slot of its own (:func:`hdrcap.batch.archive.write_run`);
+:func:`run_batch` sends one task per run to a local cluster or a scheduler and commits the runs
+as they are reported (the runs reported while the previous commit was made go together into one
+commit: a rewrite of a few small metadata files), records failures and skips runs already there.
 
-Over the network go the task (a run's file paths and the merge settings, a few kB) and a few
-kB of result: a worker that sees the archive's file system writes the run's encoded chunk files
-into the batch's staging folder (:func:`hdrcap.batch.archive.stage_channels`) and the client commits
-them by renaming; otherwise the float32 arrays (12 bytes per photosite) go to the client. The
-raw frames are read on the worker and never leave it.
+Over the network go the task (a run's file paths and the merge settings, a few kB) and the
+worker's report (the run's folder, slot and size, and its calibration record): the raw frames
+and the merged arrays never leave the worker. Only a worker that does not see the archive's
+file system sends the arrays (12 bytes per photosite) to the client, which writes them.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.merge.accumulator import MergeOptions, as_strategy
 
 if TYPE_CHECKING:
-    from distributed import Client, Future
+    from distributed import Client
 
-    from hdrcap.batch.archive import Archive
+    from hdrcap.batch.archive import ArchiveRun, ArchiveWriter, RunEntry, Target
     from hdrcap.pipeline.params import Calibration
     from hdrcap.pipeline.result import HdrResult
 
@@ -124,11 +124,14 @@ class BatchSettings:
 
 @dataclass(frozen=True)
 class RunOutcome:
-    """What a worker sends back for one run: the run to commit (None if it failed), warnings,
-    merge seconds (wall clock), the one-line error of a run that failed on bad input, and the
-    worker process's CPU seconds during the task (all its threads: the merge kernel's too)."""
+    """What a worker sends back for one run: where it wrote the run (None if it failed or did not
+    see the archive), the run itself only when it did not write it (no shared file system, or no
+    archive given), warnings, merge seconds (wall clock), the one-line error of a run that failed
+    on bad input, and the worker process's CPU seconds during the task (all its threads: the
+    merge kernel's too)."""
 
-    run: Any
+    entry: RunEntry | None
+    run: ArchiveRun | None
     warnings: tuple[str, ...]
     seconds: float
     error: str | None = None
@@ -140,9 +143,11 @@ class BatchReport:
     """What a batch did: runs committed (folder -> run number), skipped (already in the
     archive), failed (folder -> error), warnings, wall-clock seconds, and the seconds spent
     merging (summed over the workers) and committing (on the client), the CPU seconds of the
-    workers' tasks (summed) and of the client process (commits, scheduling, communication): CPU
-    seconds do not depend on what else the machine runs), and the seconds until the cluster's
-    workers were ready."""
+    workers' tasks (summed), of the client process (scheduling, communication, commits; a local
+    cluster's scheduler runs in it) in all and until the cluster was ready (the start-up:
+    imports, finding the runs, opening the archive, starting the cluster), and of the client's
+    commits alone; the number of commits; the seconds of the start-up. CPU seconds do not
+    depend on what else the machine runs."""
 
     archive: str
     committed: dict[str, int] = field(default_factory=dict)
@@ -154,6 +159,9 @@ class BatchReport:
     commit_seconds: float = 0.0
     merge_cpu_seconds: float = 0.0
     client_cpu_seconds: float = 0.0
+    startup_cpu_seconds: float = 0.0
+    commit_cpu_seconds: float = 0.0
+    commits: int = 0
     startup_seconds: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
@@ -168,6 +176,9 @@ class BatchReport:
             "commit_seconds": round(self.commit_seconds, 3),
             "merge_cpu_seconds": round(self.merge_cpu_seconds, 3),
             "client_cpu_seconds": round(self.client_cpu_seconds, 3),
+            "startup_cpu_seconds": round(self.startup_cpu_seconds, 3),
+            "commit_cpu_seconds": round(self.commit_cpu_seconds, 3),
+            "commits": self.commits,
             "startup_seconds": round(self.startup_seconds, 3),
         }
 
@@ -273,10 +284,10 @@ def _start_time(source: RunSource, result: HdrResult) -> str:
     return _dt.datetime.fromtimestamp(first, _dt.UTC).isoformat()
 
 
-def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None = None) -> RunOutcome:
-    """Merge one run on the worker, as ``hdrcap merge`` would: the same
+def merge_run(source: RunSource, settings: BatchSettings, target: Target | None = None) -> RunOutcome:
+    """Merge one run on the worker, as ``hdrcap merge`` would (the same
     :func:`pipeline.merge.files.merge_files` and EXR content, the run's recorded plan and dark
-    strategy unless the settings override them.
+    strategy unless the settings override them), and write it into the archive.
 
     Parameters
     ----------
@@ -284,28 +295,29 @@ def merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, st
         The run's files.
     settings : BatchSettings
         The merge settings.
-    staging : (str, str) or None
-        The batch's staging folder and token: if this worker sees it, the merged arrays are
-        written there as the archive's chunk files instead of being sent back.
+    target : Target or None
+        The archive's writer session: if this worker sees it, the run's chunk files are written
+        there (:func:`hdrcap.batch.archive.write_run`) and only their entry is sent back.
 
     Returns
     -------
     RunOutcome
-        The :class:`hdrcap.batch.archive.ArchiveRun` (float32 channels as in the EXR), warnings, seconds;
-        or the one-line error of a run that failed on bad input (other exceptions propagate).
+        The run's entry (or the run itself, float32 channels as in the EXR, when it was not
+        written), warnings, seconds; or the one-line error of a run that failed on bad input
+        (other exceptions propagate).
     """
     from hdrcap.pipeline.errors import HdrcapError
 
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        out = _merge_run(source, settings, staging, t0)
+        out = _merge_run(source, settings, target, t0)
     except HdrcapError as err:  # bad input: a one-line error, no worker traceback in the log
-        out = RunOutcome(None, (), time.perf_counter() - t0, _describe(err))
+        out = RunOutcome(None, None, (), time.perf_counter() - t0, _describe(err))
     return dataclasses.replace(out, cpu_seconds=time.process_time() - c0)
 
 
-def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, str] | None, t0: float) -> RunOutcome:
-    from hdrcap.batch.archive import ArchiveRun, complete_channels, stage_channels
+def _merge_run(source: RunSource, settings: BatchSettings, target: Target | None, t0: float) -> RunOutcome:
+    from hdrcap.batch.archive import ArchiveRun, write_run
     from hdrcap.pipeline.io.exr import as_stored
     from hdrcap.pipeline.merge.files import MergeRequest, library_root, merge_files
     from hdrcap.pipeline.schema import storage_precision
@@ -339,41 +351,52 @@ def _merge_run(source: RunSource, settings: BatchSettings, staging: tuple[str, s
         warn=warnings.append,
     )
     stored = as_stored(result.channels(), storage_precision(result.channels(), settings.sigma_precision))
-    channels = complete_channels(stored)
-    staged = stage_channels(staging, _task_key(source), channels)
-    frames = result.header.get("exposure_times") or []
     run = ArchiveRun(
         folder=source.folder,
         start_time=_start_time(source, result),
-        channels={} if staged else channels,
-        staged=staged,
-        staged_shape=result.shape,
+        channels=stored,
         header=result.header,
-        exposure_times=list(frames),
+        exposure_times=list(result.header.get("exposure_times") or []),
         plan=source.plan,
         merge_options={"weighting": settings.weighting, "merge": result.header.get("merge")},
         calibration=dict(settings.calibration_id, params=calib.params.to_dict(), provenance=calib.provenance),
     )
-    return RunOutcome(run, tuple(warnings), time.perf_counter() - t0)
+    entry = None if target is None else write_run(target, run)
+    return RunOutcome(entry, run if entry is None else None, tuple(warnings), time.perf_counter() - t0)
 
 
 # --------------------------------------------------------------------------- the driver
+#: Dask settings of a local cluster. Its scheduler and the workers' nannies run in the client's
+#: process: event-loop health checks (they only time warnings of a blocked loop) every second
+#: rather than every 20 ms, and the resource monitor (it feeds the dashboard, which a batch does
+#: not start) every 2 s without disk counters, take two thirds off an idle local cluster's CPU in
+#: the client (about 0.036 -> 0.012 CPU seconds per second with 2 workers).
+_LOCAL_CLUSTER_CONFIG = {
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.admin.system-monitor.disk": False,
+}
+
+
 @contextmanager
 def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Client]:
-    """A dask.distributed client: of the scheduler at ``scheduler``, or of a local cluster of
-    ``workers`` worker processes running one task at a time, each with ``threads`` threads for
-    the merge kernel (default: its share of the cores). Results are fetched from the workers
-    directly, not through the scheduler."""
+    """A dask.distributed client: of the scheduler at ``scheduler`` (the workers' reports, a few
+    kB each, come through it: the client needs to reach the scheduler only), or of a local
+    cluster of ``workers`` worker processes running one task at a time, each with ``threads``
+    threads for the merge kernel (default: its share of the cores; reports fetched from the
+    workers directly)."""
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler:
-        with Client(scheduler, direct_to_workers=True) as client:  # results straight from the worker
+        with Client(scheduler) as client:
             yield client
         return
     n = workers or max(1, (os.cpu_count() or 1))
     per_worker = str(threads or max(1, (os.cpu_count() or 1) // n))
     env = {"NUMBA_NUM_THREADS": per_worker, "OMP_NUM_THREADS": per_worker}
     with (
+        dask.config.set(_LOCAL_CLUSTER_CONFIG),
         LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=env) as cluster,
         Client(cluster, direct_to_workers=True) as client,
     ):
@@ -403,11 +426,13 @@ def run_batch(
     progress: bool | None = None,
     on_submit: Callable[[Client], None] | None = None,
 ) -> BatchReport:
-    """Merge the runs of ``paths`` on dask.distributed and commit each to ``archive``.
+    """Merge the runs of ``paths`` on dask.distributed into ``archive``.
 
     Runs already in the archive are skipped unless ``force`` (then rewritten in place). One
-    task per run; a run whose task fails is recorded in the archive with its error and the
-    others go on; a task whose worker dies is re-run by Dask.
+    task per run, which writes the run into the archive; the client commits the runs reported
+    (together, in one commit, when several are). A run whose task fails is recorded in the
+    archive with its error and the others go on; a task whose worker dies is re-run by Dask. The
+    archive's writer lock is held for the whole batch (a second batch into it waits).
 
     Parameters
     ----------
@@ -438,99 +463,95 @@ def run_batch(
 
     t0, c0 = time.perf_counter(), time.process_time()
     sources = find_runs(paths)
-    store = Archive(archive)
     report = BatchReport(str(archive))
-    there = store.folders()
-    todo = [s for s in sources if force or s.folder not in there]
-    report.skipped = [s.folder for s in sources if s not in todo]
-    if todo:
-        staging = store.open_staging()
-        try:
-            _run_tasks(todo, settings, staging, store, report, workers, scheduler, threads, force, progress, on_submit)
-        finally:
-            store.close_staging(staging)
+    with Archive(archive).writer() as session:
+        todo = [s for s in sources if force or s.folder not in session.committed]
+        report.skipped = [s.folder for s in sources if s not in todo]
+        if todo:
+            _run_tasks(
+                todo, settings, session, report, (workers, scheduler, threads), force, progress, on_submit, (t0, c0)
+            )
     report.seconds = time.perf_counter() - t0
     report.client_cpu_seconds = time.process_time() - c0
     return report
 
 
+class _Committer:
+    """The client's side of a batch: takes the workers' reports and commits them."""
+
+    def __init__(self, session: ArchiveWriter, report: BatchReport, force: bool) -> None:
+        self.session, self.report, self.force = session, report, force
+        self.warnings: dict[str, tuple[str, ...]] = {}
+
+    def take(self, source: RunSource, status: str, result: Any) -> None:
+        """One finished task: its status and its :class:`RunOutcome`, or what
+        ``as_completed(..., raise_errors=False)`` gives for a task that raised (``(type,
+        exception, traceback)``) or was cancelled (the exception)."""
+        try:
+            if status != "finished":
+                raise result[1] if isinstance(result, tuple) else result
+            out: RunOutcome = result
+            self.report.merge_seconds += out.seconds
+            self.report.merge_cpu_seconds += out.cpu_seconds
+            if out.error is not None:
+                raise InputError(out.error)
+            entry = out.entry
+            if entry is None and out.run is not None:  # the worker did not see the archive: write it here
+                entry = self.session.write(out.run)
+            if entry is None:
+                raise InputError("the worker returned no run")
+            self.warnings[source.folder] = out.warnings
+            self.session.add(entry, replace=self.force)
+        except Exception as err:  # any failure of one run: recorded, the batch goes on
+            message = _describe(err)
+            self.session.fail(source.folder, message)
+            self.report.failed[source.folder] = message
+
+    def commit(self, final: bool = False) -> int:
+        """Commit what can be; returns the number of runs committed."""
+        t0, c0 = time.perf_counter(), time.thread_time()
+        landed = self.session.commit(final=final)
+        self.report.commit_seconds += time.perf_counter() - t0
+        self.report.commit_cpu_seconds += time.thread_time() - c0
+        self.report.commits = self.session.commits
+        for folder, i in landed.items():
+            self.report.committed[folder] = i
+            self.report.warnings.extend(f"{folder}: {w}" for w in self.warnings.pop(folder, ()))
+        return len(landed)
+
+
 def _run_tasks(
     todo: list[RunSource],
     settings: BatchSettings,
-    staging: tuple[str, str],
-    store: Archive,
+    session: ArchiveWriter,
     report: BatchReport,
-    workers: int | None,
-    scheduler: str | None,
-    threads: int | None,
+    cluster: tuple[int | None, str | None, int | None],
     force: bool,
     progress: bool | None,
     on_submit: Callable[[Client], None] | None,
+    began: tuple[float, float],
 ) -> None:
-    """Submit one task per run and commit (or record the failure of) each as it finishes."""
+    """Submit one task per run; commit the runs reported (or record their failure) as they come.
+    ``cluster``: the workers, scheduler and threads of :func:`_client`; ``began``: the clock and
+    the client's CPU seconds when the batch began (the start-up is counted from then)."""
     from distributed import as_completed
     from tqdm import tqdm
 
-    t0 = time.perf_counter()
-    with _client(workers, scheduler, threads) as client:
-        report.startup_seconds = time.perf_counter() - t0
-        futures = {client.submit(merge_run, s, settings, staging, key=_task_key(s), pure=False): s for s in todo}
+    committer = _Committer(session, report, force)
+    with _client(*cluster) as client:
+        report.startup_seconds = time.perf_counter() - began[0]
+        report.startup_cpu_seconds = time.process_time() - began[1]
+        futures = [client.submit(merge_run, s, settings, session.target, key=_task_key(s), pure=False) for s in todo]
+        sources = {f.key: s for f, s in zip(futures, todo)}
         if on_submit is not None:
             on_submit(client)
         show = sys.stderr.isatty() if progress is None else progress
         with tqdm(total=len(todo), desc="batch", unit="run", disable=not show, dynamic_ncols=True) as bar:
-            # the runs finished while the previous ones were committed are committed together
-            for done in as_completed(futures).batches():
-                _land_many([(fut, futures.pop(fut)) for fut in done], store, force, report)
-                for fut in done:
+            # the runs reported while the previous commit was made are committed together
+            for done in as_completed(futures, with_results=True, raise_errors=False).batches():
+                for fut, result in done:
+                    committer.take(sources[fut.key], fut.status, result)
                     fut.release()
+                committer.commit()
                 bar.update(len(done))
-
-
-def _land_many(finished: list[tuple[Future, RunSource]], store: Archive, force: bool, report: BatchReport) -> None:
-    """Commit finished tasks' runs to the archive (together when they can be, see
-    :meth:`hdrcap.batch.archive.Archive.commit_many`), or record each failure."""
-    good: list[tuple[RunSource, RunOutcome]] = []
-    for fut, source in finished:
-        try:
-            out = fut.result()
-            report.merge_seconds += out.seconds
-            report.merge_cpu_seconds += out.cpu_seconds
-            if out.error is not None:
-                raise InputError(out.error)
-        except Exception as err:  # any failure of one run: recorded, the batch goes on
-            _record_failure(store, source, err, report)
-            continue
-        good.append((source, out))
-    if len(good) > 1:
-        t0 = time.perf_counter()
-        try:
-            numbers = store.commit_many([out.run for _s, out in good], replace=force)
-        except Exception:  # noqa: BLE001  (nothing of them committed: one by one, to record which run fails)
-            numbers = None
-        report.commit_seconds += time.perf_counter() - t0
-        if numbers is not None:
-            for (source, out), i in zip(good, numbers):
-                report.committed[source.folder] = i
-                report.warnings.extend(f"{source.folder}: {w}" for w in out.warnings)
-            return
-    for source, out in good:
-        _land(source, out, store, force, report)
-
-
-def _record_failure(store: Archive, source: RunSource, err: BaseException, report: BatchReport) -> None:
-    message = _describe(err)
-    store.record_failure(source.folder, message)
-    report.failed[source.folder] = message
-
-
-def _land(source: RunSource, out: RunOutcome, store: Archive, force: bool, report: BatchReport) -> None:
-    """Commit one finished task's run to the archive, or record its failure."""
-    try:
-        t0 = time.perf_counter()
-        report.committed[source.folder] = store.commit(out.run, replace=force)
-        report.commit_seconds += time.perf_counter() - t0
-    except Exception as err:  # any failure of one run: recorded, the batch goes on
-        _record_failure(store, source, err, report)
-        return
-    report.warnings.extend(f"{source.folder}: {w}" for w in out.warnings)
+        committer.commit(final=True)

@@ -4,7 +4,6 @@ with dark frames, verification, manifest and resume; the job-file-free form of `
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import click
 
@@ -108,55 +107,30 @@ def command(
     SIGTERM or Ctrl-C ends the capture cleanly before the next frame (exit 143 / 130, camera
     closed); --resume continues it. Exit status: see docs/acquisition.md.
     """
-    from hdrcap.acquire.capture.job import job_from_dict
+    from hdrcap.acquire.capture.job import capture_job
     from hdrcap.acquire.capture.run import run_job
     from hdrcap.acquire.capture.session import stop_on_signals
     from hdrcap.cli.commands.run import _describe
-    from hdrcap.mock_camera import PRESETS
-    from hdrcap.pipeline.errors import InputError
 
-    backend, _, name = camera.partition(":") if ":" in camera or camera == "gphoto2" else ("mock", ":", camera)
-    if backend not in ("mock", "gphoto2") or (backend == "mock" and name and name not in PRESETS):
-        raise InputError(
-            f"--camera must be mock:PRESET, PRESET ({', '.join(PRESETS)}) or gphoto2[:MODEL], got {camera!r}"
-        )
-    cam: dict[str, Any] = {"backend": backend}
-    if backend == "mock":
-        cam.update(preset=name or "camera-B", size=size, seed=seed)
-    else:
-        cam.update({k: v for k, v in (("model", name), ("port", port), ("serial", serial)) if v})
-        cam["enforce"] = enforce
-    if iso is not None:
-        cam["iso"] = iso
-    if not times and target_snr is None:
-        raise InputError("give --times (a fixed bracket) or --target-snr-db")
-    exposure: dict[str, Any] = (
-        {"mode": "snr", "target_snr_db": target_snr} if target_snr is not None else {"mode": "bracket"}
+    job = capture_job(
+        camera,
+        out,
+        times=times,
+        target_snr_db=target_snr,
+        dark_strategy=dark_strategy,
+        dark_count=dark_count,
+        block_light=block_light,
+        cover_command=cover_command,
+        uncover_command=uncover_command,
+        calibration=calibration,
+        scene=scene,
+        size=size,
+        seed=seed,
+        port=port,
+        serial=serial,
+        iso=iso,
+        enforce=enforce,
     )
-    if times:
-        exposure["times"] = list(times)
-    darks: dict[str, Any] = {
-        "count": dark_count,
-        "block_light": block_light or ("mock" if backend == "mock" else "prompt"),
-    }
-    if dark_strategy:
-        darks["strategy"] = dark_strategy
-    if cover_command:
-        darks["cover_command"] = cover_command
-    if uncover_command:
-        darks["uncover_command"] = uncover_command
-    data: dict[str, Any] = {
-        "job": {"name": "capture"},
-        "camera": cam,
-        "exposure": exposure,
-        "darks": darks,
-        "output": {"folder": str(out)},
-    }
-    if backend == "mock":
-        data["scene"] = {"name": scene}
-    if calibration:
-        data["calibration"] = {"file": calibration}
-    job = job_from_dict(data)
     with stop_on_signals() as stop:  # SIGTERM / Ctrl-C: a clean, resumable stop (exit 143 / 130)
         res = run_job(job, resume=resume, run_dir=out, progress=progress, force=force, stop=stop)
     if as_json:
