@@ -393,6 +393,10 @@ def merge(
     plan: Plan | PlanFile | Mapping[str, Any] | None = None,
     weighting: str = "optimal",
     cfa_pattern: str | None = None,
+    black_level: float | None = None,
+    white_level: float | None = None,
+    bits: int | None = None,
+    calibration_mismatch: str = "refuse",
 ) -> HdrResult:
     """Merge a bracket of raw frames into irradiance and its uncertainty (Eq. 6, 8-13, Fig. 3).
 
@@ -405,7 +409,7 @@ def merge(
     Parameters
     ----------
     frames : paths or 2-D arrays
-        The bracket, any order: raw files (DNG, NEF, ...), 16-bit PNG/TIFF files, or raw
+        The bracket, any order: raw files (DNG, NEF, ...), 8- to 16-bit PNG/TIFF files, or raw
         mosaics in DN (uint16 or float); a 3-D array is a stack of frames.
     times : sequence of float, optional
         Exposure times, s, one per frame. Required for arrays and PNG/TIFF files; for raw
@@ -434,8 +438,19 @@ def merge(
     weighting : str
         ``"optimal"`` or a baseline of Table 1 (:data:`hdrcap.pipeline.merge.weighting.WEIGHTING_METHODS`).
     cfa_pattern : str, optional
-        Bayer tile recorded in the header (e.g. ``"RGGB"``; default: the raw file's, else
-        ``"none"``); :func:`denoise` filters each colour plane when one is recorded.
+        The frames' Bayer tile (``"RGGB"``, ``"BGGR"``, ``"GRBG"``, ``"GBRG"``) or ``"mono"``
+        (default: the raw file's; PNG/TIFF files and arrays: monochrome); recorded in the
+        header, :func:`denoise` filters each colour plane when one is recorded.
+    black_level, white_level : float, optional
+        The frames' black and white level, DN (default: the raw file's; PNG/TIFF: the white
+        level from the bit depth, the black level estimated by a self-calibration).
+    bits : int, optional
+        Significant bits of the values: N-bit data stored LSB- or MSB-aligned in 16-bit words
+        (MSB alignment sets the quantisation step 2^(16 - N) DN); default: the file's bit depth,
+        MSB alignment detected.
+    calibration_mismatch : {"refuse", "warn"}
+        A calibration made for another camera than the frames' (model or serial, ISO, white
+        level, size, CFA pattern): refuse (InputError), or merge with a warning.
 
     Returns
     -------
@@ -459,8 +474,10 @@ def merge(
     >>> bool(abs(hdr.irradiance[hdr.measured] / sim.truth[hdr.measured] - 1).mean() < 0.1)
     True
     """
+    from hdrcap.pipeline.io.frameformat import FrameFormat
     from hdrcap.pipeline.merge.files import MergeRequest, merge_files
 
+    fmt = FrameFormat(cfa=cfa_pattern, black_level=black_level, white_level=white_level, bits=bits)
     calib: Calibration | str | os.PathLike[str] | None = None
     if calibration is not None:
         calib = _as_calibration(calibration)
@@ -470,7 +487,10 @@ def merge(
     if not items:
         raise InputError("no frames to merge")
     ts = _times(times, len(items), "frame")
-    fr = [_frame(x, t, "frame", i) for i, (x, t) in enumerate(zip(items, ts))]
+    # files are read by merge_files (with the format); arrays wrapped with their times
+    fr: list[str | os.PathLike[str] | RawFrame] = [
+        x if isinstance(x, (str, os.PathLike)) else _frame(x, t, "frame", i) for i, (x, t) in enumerate(zip(items, ts))
+    ]
     opts = MergeOptions(exposure_times="effective") if options is None else options
     if not isinstance(opts, MergeOptions):
         raise InputError(f"options: expected a MergeOptions, got {type(opts).__name__}")
@@ -478,9 +498,9 @@ def merge(
     if darks is not None:
         ditems = _items(darks, "darks")
         if dark_times is None and len(ditems) == len(fr):
-            dts: list[float | None] = [
-                None if isinstance(d, (str, os.PathLike, RawFrame)) else f.exposure_time for d, f in zip(ditems, fr)
-            ]
+            arrays = [not isinstance(d, (str, os.PathLike, RawFrame)) for d in ditems]
+            own = _frame_times(fr, ts) if any(arrays) else [None] * len(fr)
+            dts: list[float | None] = [t if a else None for a, t in zip(arrays, own)]
         else:
             dts = _times(dark_times, len(ditems), "dark frame")
         dk = [_frame(x, t, "dark frame", i) for i, (x, t) in enumerate(zip(ditems, dts))]
@@ -500,9 +520,24 @@ def merge(
         plan=None if plan is None else _plan_file(plan),
         given=given,
         weighting=weighting,
-        header={} if cfa_pattern is None else {"cfa_pattern": cfa_pattern},
+        times=ts if any(t is not None for t in ts) else None,
+        tiling=None,
+        frame_format=fmt if fmt.given else None,
+        calibration_mismatch=calibration_mismatch,
     )
     return merge_files(request)
+
+
+def _frame_times(frames: Sequence[Any], times: Sequence[float | None]) -> list[float | None]:
+    """Each frame's exposure time, s: the one given, else a frame's own (a file's from its metadata)."""
+    from hdrcap.pipeline.io.raw import read_frame
+
+    out: list[float | None] = []
+    for f, t in zip(frames, times):
+        if t is None:
+            t = f.exposure_time if isinstance(f, RawFrame) else read_frame(Path(f)).exposure_time
+        out.append(t)
+    return out
 
 
 # --------------------------------------------------------------------------- plan
@@ -735,7 +770,8 @@ def simulate(
         bias_map=bias,
         provenance={
             "source": f"simulated {camera}, seed {seed}: the sensor's true model",
-            "camera": camera,
+            "camera": f"{spec.make} {spec.model}",  # as the camera's files name it
+            "iso": spec.iso,
             "temperature": temperature,
         },
     )

@@ -60,6 +60,25 @@ class SimulatedCamera:
         """Expose for ``t`` seconds (light blocked when ``dark``) and return the uint16 mosaic."""
         return self.sensor.expose(self.scene, self.actual_time(t), dark=dark, temperature=self.temperature)
 
+    def capture_image_to(
+        self, path: str | os.PathLike[str], t: float, *, bits: int | None = None, msb: bool = False, dark: bool = False
+    ) -> Path:
+        """Capture one frame and write it as a PNG or TIFF (by the suffix), as machine-vision
+        software saves it: no metadata, the ADC's values converted to ``bits`` bits
+        (:func:`mock_camera.imagefiles.requantise`, im2uint8-style rounding and clipping; default
+        the ADC's own), in 8-bit words up to 8 bits, else in 16-bit words, LSB-aligned or
+        (``msb``) MSB-aligned."""
+        from hdrcap.mock_camera.imagefiles import msb_align, requantise, write_image
+
+        mosaic = self.capture_array(t, dark=dark)
+        n = bits or self.spec.bits
+        out = mosaic if n == self.spec.bits else requantise(mosaic, self.spec.bits, n)
+        if msb:
+            out = msb_align(out, n)
+        elif n <= 8:
+            out = out.astype(np.uint8)
+        return write_image(path, out)
+
     def capture_to(self, path: str | os.PathLike[str], t: float, dark: bool = False, overwrite: bool = False) -> Path:
         """Capture one frame and write it as a DNG to ``path`` (written atomically; an existing
         file is never replaced unless ``overwrite``)."""

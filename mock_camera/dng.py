@@ -127,21 +127,23 @@ def _check_mosaic(mosaic: np.ndarray) -> np.ndarray:
 
 
 def _image_tags(ifd: _IFD, h: int, w: int, cfa: str) -> None:
-    """TIFF baseline and TIFF/EP tags of one uncompressed 16-bit CFA strip (offset patched later)."""
+    """TIFF baseline and TIFF/EP tags of one uncompressed 16-bit CFA strip, or of a monochrome
+    (LinearRaw, one sample) image for ``cfa == "mono"`` (offset patched later)."""
     ifd.add(254, _LONG, 0)  # NewSubFileType: main image
     ifd.add(256, _LONG, w)
     ifd.add(257, _LONG, h)
     ifd.add(258, _SHORT, 16)  # BitsPerSample
     ifd.add(259, _SHORT, 1)  # no compression
-    ifd.add(262, _SHORT, 32803)  # PhotometricInterpretation: CFA
+    ifd.add(262, _SHORT, 34892 if cfa == "mono" else 32803)  # PhotometricInterpretation: LinearRaw or CFA
     ifd.add(273, _LONG, 0)  # StripOffsets, patched by _layout
     ifd.add(274, _SHORT, 1)  # Orientation
     ifd.add(277, _SHORT, 1)  # SamplesPerPixel
     ifd.add(278, _LONG, h)  # RowsPerStrip
     ifd.add(279, _LONG, h * w * 2)  # StripByteCounts
     ifd.add(284, _SHORT, 1)  # PlanarConfiguration
-    ifd.add(33421, _SHORT, [2, 2])  # CFARepeatPatternDim
-    ifd.add(33422, _BYTE, [CFA_CODES[c] for c in cfa])  # CFAPattern
+    if cfa != "mono":
+        ifd.add(33421, _SHORT, [2, 2])  # CFARepeatPatternDim
+        ifd.add(33422, _BYTE, [CFA_CODES[c] for c in cfa])  # CFAPattern
 
 
 def _camera_tags(ifd: _IFD, cap: _Capture, make: str, model: str, software: str, description: str) -> None:
@@ -166,10 +168,12 @@ def _dng_tags(
     white_level: int,
     color_matrix: ArrayLike | None = None,
     as_shot_neutral: Sequence[float] | None = None,
+    mono: bool = False,
 ) -> None:
     """DNG 1.4 tags: version, camera model, CFA layout, black and white levels, the colour
     matrix (XYZ to camera, default identity), the white balance (AsShotNeutral, default neutral),
-    serial number and the D65 illuminant."""
+    serial number and the D65 illuminant; a monochrome image (``mono``) has no CFA layout and no
+    colour tags."""
     matrix = np.eye(3) if color_matrix is None else np.asarray(color_matrix, dtype=float)
     neutral = (1.0, 1.0, 1.0) if as_shot_neutral is None else tuple(float(v) for v in as_shot_neutral)
     if matrix.shape != (3, 3) or len(neutral) != 3 or not all(v > 0 for v in neutral):
@@ -177,15 +181,18 @@ def _dng_tags(
     ifd.add(50706, _BYTE, [1, 4, 0, 0])  # DNGVersion
     ifd.add(50707, _BYTE, [1, 1, 0, 0])  # DNGBackwardVersion
     ifd.add(50708, _ASCII, unique_model)  # UniqueCameraModel
-    ifd.add(50710, _BYTE, [0, 1, 2])  # CFAPlaneColor
-    ifd.add(50711, _SHORT, 1)  # CFALayout: rectangular
+    if not mono:
+        ifd.add(50710, _BYTE, [0, 1, 2])  # CFAPlaneColor
+        ifd.add(50711, _SHORT, 1)  # CFALayout: rectangular
     ifd.add(50713, _SHORT, [1, 1])  # BlackLevelRepeatDim
     ifd.add(50714, _RATIONAL, [_rational(black_level, 1000)])
     ifd.add(50717, _LONG, int(white_level))
-    ifd.add(50721, _SRATIONAL, [_rational(v, 10000) for v in matrix.ravel()])  # ColorMatrix1
-    ifd.add(50728, _RATIONAL, [_rational(v, 10000) for v in neutral])  # AsShotNeutral
+    if not mono:
+        ifd.add(50721, _SRATIONAL, [_rational(v, 10000) for v in matrix.ravel()])  # ColorMatrix1
+        ifd.add(50728, _RATIONAL, [_rational(v, 10000) for v in neutral])  # AsShotNeutral
     ifd.add(50735, _ASCII, serial)  # CameraSerialNumber
-    ifd.add(50778, _SHORT, 21)  # CalibrationIlluminant1: D65
+    if not mono:
+        ifd.add(50778, _SHORT, 21)  # CalibrationIlluminant1: D65
 
 
 def _exif_ifd(cap: _Capture) -> _IFD:
@@ -252,7 +259,8 @@ def write_dng(
     black_level, white_level : float, int
         DN, written to BlackLevel and WhiteLevel.
     cfa : str
-        Bayer pattern of the 2x2 tile, e.g. ``"RGGB"``.
+        Bayer pattern of the 2x2 tile, e.g. ``"RGGB"``, or ``"mono"``: a monochrome image
+        (PhotometricInterpretation LinearRaw, one sample, no colour tags).
     make, model, serial, software, description : str
         Written to Make, Model (and ``make model`` to UniqueCameraModel), CameraSerialNumber,
         Software and ImageDescription (omitted when empty).
@@ -282,6 +290,8 @@ def write_dng(
     ifd0 = _IFD()
     _image_tags(ifd0, h, w, cfa)
     _camera_tags(ifd0, cap, make, model, software, description)
-    _dng_tags(ifd0, f"{make} {model}", serial, black_level, white_level, color_matrix, as_shot_neutral)
+    _dng_tags(
+        ifd0, f"{make} {model}", serial, black_level, white_level, color_matrix, as_shot_neutral, mono=cfa == "mono"
+    )
     fileobj.write(_layout(ifd0, _exif_ifd(cap)))
     fileobj.write(mosaic.astype("<u2", copy=False).tobytes())

@@ -120,7 +120,8 @@ class SensorSpec:
     width, height : int
         Default mosaic size, photosites.
     cfa : str
-        Bayer pattern of the mosaic, four letters from R, G, B (row-major 2x2 tile).
+        Bayer pattern of the mosaic, four letters from R, G, B (row-major 2x2 tile), or ``mono``
+        (no colour filter: a monochrome sensor; the physics is the same).
     make, model : str
         Written into the DNG files.
     """
@@ -163,8 +164,8 @@ class SensorSpec:
             raise ValueError("sigma2_R includes quantisation and cannot be below 1/12 DN^2")
         if self.g <= 0 or self.full_well <= 0 or not 8 <= self.bits <= 16:
             raise ValueError("g and full_well must be > 0 and bits within 8..16")
-        if len(self.cfa) != 4 or set(self.cfa) - set("RGB"):
-            raise ValueError(f"cfa must be four letters of R, G, B, got {self.cfa!r}")
+        if self.cfa != "mono" and (len(self.cfa) != 4 or set(self.cfa) - set("RGB")):
+            raise ValueError(f"cfa must be four letters of R, G, B or mono, got {self.cfa!r}")
         fractions = (self.dead_fraction, self.weak_fraction, self.stuck_fraction, self.hot_pixel_fraction)
         if any(not 0 <= f <= 1 for f in fractions) or sum(fractions[:3]) > 1:
             raise ValueError("defect fractions must lie within 0..1 (dead + weak + stuck at most 1)")

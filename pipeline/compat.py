@@ -14,6 +14,11 @@ when each frame is verified and on resume:
 * **ISO**: when both are known they must agree (an error: the gain g depends on it).
 * **temperature**: a difference above the tolerance (or an unknown temperature where one is
   expected) is only a warning; the dark current depends on it, the calibration still holds.
+* **white level, size, CFA pattern** (a calibration against the frames of a merge,
+  :meth:`CameraProfile.from_frame`): when both are known, the white levels must imply the same
+  ADC range (:func:`pipeline.io.raw.adc_maximum`: 12-bit against 10-bit is another camera) and
+  the calibration's saturation level must lie within the frames' white level; the calibration's
+  maps must have the frames' size; the CFA patterns must be equal (``none``: monochrome).
 """
 
 from __future__ import annotations
@@ -61,6 +66,14 @@ class CameraProfile:
         ISO speed.
     temperature_c : float or None
         Sensor temperature, degrees C.
+    white_level : float or None
+        Largest value the ADC writes, DN.
+    saturation : float or None
+        Saturation level v_sat the model assumes, DN (a calibration's).
+    shape : (int, int) or None
+        Photosites (rows, columns) of the frames, or of a calibration's maps.
+    cfa_pattern : str or None
+        2x2 Bayer tile (``RGGB`` ...), ``none`` for monochrome; None when unknown.
     """
 
     source: str
@@ -68,17 +81,50 @@ class CameraProfile:
     serial: str = ""
     iso: float | None = None
     temperature_c: float | None = None
+    white_level: float | None = None
+    saturation: float | None = None
+    shape: tuple[int, int] | None = None
+    cfa_pattern: str | None = None
 
     @classmethod
     def from_calibration(cls, calibration: Calibration, name: str = "calibration") -> CameraProfile:
         """The camera a :class:`pipeline.params.Calibration` was made on (its provenance)."""
         prov: dict[str, Any] = dict(getattr(calibration, "provenance", {}) or {})
+        params = getattr(calibration, "params", None)
+        shapes = [
+            tuple(int(n) for n in getattr(calibration, f).shape)
+            for f in ("prnu", "bias_map", "dark_current_map", "saturation_map", "defect_map")
+            if getattr(calibration, f, None) is not None
+        ]
         return cls(
             name,
             str(prov.get("camera") or ""),
             str(prov.get("serial") or ""),
             _num(prov.get("iso")),
             _num(prov.get("temperature")),
+            white_level=None if params is None else float(params.white_level),
+            saturation=None if params is None else float(params.v_sat),
+            shape=(shapes[0][0], shapes[0][1]) if shapes else None,
+            cfa_pattern=str(prov["cfa_pattern"] or "none") if "cfa_pattern" in prov else None,
+        )
+
+    @classmethod
+    def from_frame(cls, frame: object, source: str | None = None) -> CameraProfile:
+        """A frame (:class:`pipeline.io.raw.RawFrame`): its camera, serial, ISO, white level,
+        size and CFA pattern (``none`` for a monochrome one; unknown for an array without one, or
+        a PNG/TIFF whose pattern was not given)."""
+        path = getattr(frame, "path", None)
+        shape = tuple(int(n) for n in getattr(getattr(frame, "data", None), "shape", ()))
+        cfa = getattr(frame, "cfa_pattern", None)
+        cfa_known = cfa is not None or (path is not None and "cfa" not in getattr(frame, "assumed", ()))
+        return cls(
+            source or (f"frame {path}" if path else "the frame"),
+            str(getattr(frame, "camera", "") or ""),
+            str(getattr(frame, "serial", "") or ""),
+            _num(getattr(frame, "iso", None)),
+            white_level=_num(getattr(frame, "white_level", None)),
+            shape=(shape[0], shape[1]) if len(shape) == 2 else None,
+            cfa_pattern=str(cfa or "none") if cfa_known else None,
         )
 
     @classmethod
@@ -125,7 +171,9 @@ def check_compatible(
     Raises
     ------
     CompatibilityError
-        Different serial numbers, models or ISO speeds (one line naming both sides).
+        Different serial numbers, models, ISO speeds, white levels (ADC ranges), sizes or CFA
+        patterns, or a saturation level above the other side's white level (one line naming
+        both sides).
     """
     a, b = expected, actual
     if a.serial and b.serial:
@@ -142,6 +190,7 @@ def check_compatible(
         raise CompatibilityError(
             f"{b.source} is at ISO {b.iso:g}, but {a.source} is at ISO {a.iso:g} (the gain depends on the ISO)"
         )
+    _check_format(a, b)
     warnings = []
     if a.temperature_c is not None:
         if b.temperature_c is None:
@@ -152,6 +201,29 @@ def check_compatible(
                 f"(more than {temperature_tolerance:g} C apart: dark current differs)"
             )
     return warnings
+
+
+def _check_format(a: CameraProfile, b: CameraProfile) -> None:
+    """White level (ADC range), saturation, size and CFA of ``b`` against ``a`` (both known)."""
+    from hdrcap.pipeline.io.raw import adc_maximum
+
+    if a.white_level and b.white_level and adc_maximum(a.white_level) != adc_maximum(b.white_level):
+        raise CompatibilityError(
+            f"{b.source} has white level {b.white_level:g} DN ({adc_maximum(b.white_level).bit_length()}-bit), but "
+            f"{a.source} is of a camera with white level {a.white_level:g} DN "
+            f"({adc_maximum(a.white_level).bit_length()}-bit)"
+        )
+    for x, y in ((a, b), (b, a)):
+        if x.saturation is not None and y.white_level and x.saturation > y.white_level:
+            raise CompatibilityError(
+                f"{x.source} saturates at {x.saturation:g} DN, above the white level {y.white_level:g} DN of {y.source}"
+            )
+    if a.shape and b.shape and tuple(a.shape) != tuple(b.shape):
+        raise CompatibilityError(
+            f"{b.source} is {b.shape[1]}x{b.shape[0]} photosites, but {a.source} is of {a.shape[1]}x{a.shape[0]}"
+        )
+    if a.cfa_pattern and b.cfa_pattern and a.cfa_pattern != b.cfa_pattern:
+        raise CompatibilityError(f"{b.source} has CFA pattern {b.cfa_pattern}, but {a.source} has {a.cfa_pattern}")
 
 
 def _num(value) -> float | None:

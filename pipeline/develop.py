@@ -99,6 +99,11 @@ def _check_method(method: str) -> None:
 
 def _check_cfa(cfa: object) -> str:
     cfa = str(cfa or "none").upper()
+    if cfa in ("NONE", "MONO"):
+        raise InputError(
+            "develop makes colour from a Bayer mosaic, and this merge has no colour filter (a monochrome sensor, or "
+            "PNG/TIFF frames merged without --cfa): its irradiance is the image already"
+        )
     if cfa not in _BAYER:
         raise InputError(
             f"develop needs a 2x2 Bayer CFA mosaic ({', '.join(_BAYER)}); the header's CFA pattern is {cfa!r}"

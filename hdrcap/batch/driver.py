@@ -105,6 +105,9 @@ class BatchSettings:
     sigma_precision : str
         Storage precision of the uncertainty channels, as ``hdrcap merge --sigma-precision``
         (the archive holds the values an EXR of ``hdrcap merge`` would hold).
+    calibration_mismatch : {"refuse", "warn"}
+        A calibration made for another camera than a run's frames: the run fails (one line),
+        or is merged with a warning (``hdrcap merge --calibration-mismatch``).
     """
 
     calibration: str | None
@@ -116,6 +119,7 @@ class BatchSettings:
     master_dark_frames: float | None = None
     calibration_id: dict[str, Any] = field(default_factory=dict)
     sigma_precision: str = "auto"
+    calibration_mismatch: str = "refuse"
 
 
 @dataclass(frozen=True)
@@ -342,6 +346,7 @@ def _merge_run(source: RunSource, settings: BatchSettings, target: Target | None
             given=given,
             weighting=settings.weighting,
             tiling=None,
+            calibration_mismatch=settings.calibration_mismatch,
         ),
         warn=warnings.append,
     )

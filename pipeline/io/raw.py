@@ -1,5 +1,7 @@
-"""Raw frames in: camera raw files (LibRaw, or uncompressed DNGs read directly), 16-bit PNG/TIFF
-images, and the sanity checks every frame passes (exposure time, white and black level, CFA).
+"""Raw frames in: camera raw files (LibRaw, or uncompressed DNGs read directly), 8- to 16-bit
+PNG/TIFF images, and the sanity checks every frame passes (exposure time, white and black level,
+CFA). What a file does not say (a PNG's levels and CFA) comes from a
+:class:`~pipeline.io.frameformat.FrameFormat`, or is assumed and recorded in ``RawFrame.assumed``.
 
 Raw frames are returned as the CFA mosaic the sensor wrote (rawpy's ``raw_image_visible``),
 never demosaiced. Every problem with an input file raises :class:`~pipeline.errors.InputError`
@@ -9,6 +11,7 @@ with a one-line message naming the file.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import logging
 import math
@@ -25,6 +28,7 @@ import numpy as np
 
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.files import check_readable, one_line, quiet_stderr
+from hdrcap.pipeline.io.frameformat import FrameFormat, aligned_step, image_levels
 
 __all__ = [
     "BAD_VALUES",
@@ -38,6 +42,7 @@ __all__ = [
     "check_exposure_time",
     "check_frames",
     "read_frame",
+    "with_format",
     "read_image16",
     "read_raw",
     "tiff_dimensions",
@@ -78,6 +83,16 @@ class RawFrame:
         white level's ADC range) and that the reader masked instead of refusing the file
         (``bad_values="mask"``); their ``data`` values are left as decoded and must not be used.
         None: nothing masked.
+    bits : int or None
+        Significant bits of the values (N), when known.
+    quantisation_step : float
+        DN between two adjacent codes: 1, or 2^(16 - N) for N-bit data stored MSB-aligned in
+        16-bit words (the readout variance is at least its square / 12).
+    serial : str or None
+        Camera serial number (DNG CameraSerialNumber or EXIF BodySerialNumber).
+    assumed : tuple of str
+        What the reader assumed because the file does not say it (keys of
+        :data:`pipeline.io.frameformat.ASSUMED`: a PNG's black level, CFA pattern, ...).
     """
 
     data: np.ndarray
@@ -90,6 +105,10 @@ class RawFrame:
     camera: str | None = None
     timestamp: str | None = None
     masked: np.ndarray | None = None
+    bits: int | None = None
+    quantisation_step: float = 1.0
+    serial: str | None = None
+    assumed: tuple[str, ...] = ()
 
     @property
     def n_masked(self) -> int:
@@ -157,6 +176,8 @@ def _exif_values(page, path: Path) -> dict[str, Any]:
             val = tags[code].value
         out[key] = val
     out["camera"] = " ".join(str(tags[c].value).strip() for c in (271, 272) if c in tags) or None
+    serial = exif.get("BodySerialNumber") or (tags[50735].value if 50735 in tags else None)
+    out["serial"] = (str(serial).strip() or None) if serial is not None else None
     t = out["ExposureTime"]
     if t is not None:
         out["ExposureTime"] = _rational_seconds(t)
@@ -546,7 +567,12 @@ def _direct_is_complete(exif: dict[str, Any], exposure_time: float | None) -> bo
 
 
 def read_raw(
-    path: str | os.PathLike[str], exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse"
+    path: str | os.PathLike[str],
+    exposure_time: float | None = None,
+    *,
+    mmap: bool = True,
+    bad_values: str = "refuse",
+    fmt: FrameFormat | None = None,
 ) -> RawFrame:
     """Read a camera raw file (DNG, NEF, CR2, ...).
 
@@ -570,12 +596,15 @@ def read_raw(
         (default), or mask them (:attr:`RawFrame.masked`; the pixels keep their decoded values).
         Problems that are not per photosite (dimensions, levels, exposure time) are always
         refused.
+    fmt : FrameFormat, optional
+        What the user says about the frames: its CFA pattern, black and white level replace the
+        file's; its bits set the quantisation step (MSB-aligned data: 2^(16 - bits) DN).
 
     Returns
     -------
     RawFrame
         uint16 mosaic (DN), exposure time (s), ISO, black and white levels (DN), CFA pattern,
-        camera, capture time and the masked photosites.
+        camera, serial, capture time and the masked photosites.
     """
     check_bad_values(bad_values)
     path = Path(path)
@@ -585,6 +614,7 @@ def read_raw(
         dec = _Decoded(data=direct.data, cfa=direct.cfa_pattern, black=direct.black_level, white=direct.white_level)
     else:
         dec = _libraw_decode(path)
+    dec, bits, step = _with_format(path, dec, fmt)
     masked = _check_decoded(path, dec, bad_values)
     t = exposure_time if exposure_time is not None else exif.get("ExposureTime")
     t = t if t is not None else dec.shutter
@@ -601,11 +631,30 @@ def read_raw(
         camera=exif.get("camera"),
         timestamp=exif.get("DateTimeOriginal") or dec.timestamp,
         masked=masked,
+        bits=bits,
+        quantisation_step=step,
+        serial=exif.get("serial"),
     )
 
 
-def _first_tiff_page(path: Path) -> np.ndarray:
-    """The pixels of a TIFF file's first page.
+def _with_format(path: Path, dec: _Decoded, fmt: FrameFormat | None) -> tuple[_Decoded, int | None, float]:
+    """A raw file's decoded levels and CFA with the user's format applied, its significant bits
+    (None unless given) and quantisation step (DN)."""
+    if fmt is None or not fmt.given:
+        return dec, None, 1.0
+    changes: dict[str, Any] = {}
+    if fmt.cfa is not None:
+        changes["cfa"] = fmt.cfa_pattern
+    if fmt.black_level is not None:
+        changes["black"] = float(fmt.black_level)
+    if fmt.white_level is not None:
+        changes["white"] = float(fmt.white_level)
+    step = 1.0 if fmt.bits is None else aligned_step(dec.data, 16, int(fmt.bits), path)
+    return dataclasses.replace(dec, **changes), fmt.bits, step
+
+
+def _first_tiff_page(path: Path) -> tuple[np.ndarray, int]:
+    """The pixels of a TIFF file's first page and its bits per sample.
 
     Never ``tifffile.imread``: it builds the file's image series by iterating its pages, which
     never ends on a circular chain of directories (a corrupt next-IFD offset). Counting the
@@ -617,49 +666,28 @@ def _first_tiff_page(path: Path) -> np.ndarray:
         len(tif.pages)  # walks the directory chain: a loop or a bad offset is logged
         page = tif.pages[0]
         _refuse_oversized_page(path, page)
-        return page.asarray()
+        per_sample = getattr(page, "bitspersample", 16)
+        bits = per_sample if isinstance(per_sample, int) else max(per_sample)
+        return page.asarray(), int(bits)
 
 
-def read_image16(path: str | os.PathLike[str], exposure_time: float | None) -> RawFrame:
-    """Read a single-channel 8/16-bit PNG or TIFF as a raw frame with an explicit exposure time.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The image (single channel, 8 or 16 bits per sample).
-    exposure_time : float or None
-        Seconds (such files carry none); None is refused.
-
-    Returns
-    -------
-    RawFrame
-        uint16 values (DN), the exposure time (s); black level 0, white level from the bit depth.
-
-    Raises
-    ------
-    InputError
-        No exposure time, an unreadable file, or not a single-channel 8/16-bit image.
-    """
-    path = Path(path)
-    check_readable(path)
-    if exposure_time is None:
-        raise InputError(f"{path}: a PNG/TIFF frame needs an explicit exposure time (--times)")
-    t = check_exposure_time(exposure_time, path)
-    suffix = path.suffix.lower()
+def _image_pixels(path: Path) -> tuple[np.ndarray, int]:
+    """A PNG's or TIFF's pixels and bits per sample (8, 16, or a TIFF's 10/12/14)."""
     with _tiff_complaints() as complaints:
         try:
-            if suffix in (".tif", ".tiff"):
-                data = _first_tiff_page(path)
+            if path.suffix.lower() in (".tif", ".tiff"):
+                data, bits = _first_tiff_page(path)
             else:
                 from PIL import Image
 
                 with Image.open(path) as im:
                     im.load()
                     data = np.array(im)
+                bits = 8 if data.dtype == np.uint8 else 16
         except InputError:
             raise
         except Exception as err:  # PIL/tifffile raise many types for bad files
-            raise InputError(f"{path}: cannot read image ({type(err).__name__}: {err})") from None
+            raise InputError(f"{path}: cannot read image ({type(err).__name__}: {one_line(err)})") from None
     if complaints:  # a directory entry or page tifffile skipped: the pixels may be anything
         raise InputError(f"{path}: corrupt TIFF: {_tag_complaint(complaints[0])}")
     if data.ndim != 2:
@@ -668,14 +696,68 @@ def read_image16(path: str | os.PathLike[str], exposure_time: float | None) -> R
         if np.issubdtype(data.dtype, np.integer) and data.min() >= 0 and data.max() < 65536:
             data = data.astype(np.uint16)
         else:
-            raise InputError(f"{path}: expected 8- or 16-bit unsigned integer pixels, got {data.dtype}")
-    return RawFrame(data=data.astype(np.uint16, copy=False), exposure_time=t, path=str(path))
+            raise InputError(f"{path}: expected 8- to 16-bit unsigned integer pixels, got {data.dtype}")
+    return data.astype(np.uint16, copy=False), min(bits, 16)
+
+
+def read_image16(path: str | os.PathLike[str], exposure_time: float | None, fmt: FrameFormat | None = None) -> RawFrame:
+    """Read a single-channel PNG or TIFF (8 to 16 bits per sample) as a raw frame.
+
+    Such files carry no exposure time, levels or CFA pattern: the time is required, the rest
+    comes from ``fmt`` or is assumed (:func:`pipeline.io.frameformat.image_levels`: white level
+    from the bit depth, MSB alignment detected in 16-bit words, black level 0 DN, monochrome),
+    and what was assumed is listed in ``RawFrame.assumed``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The image (single channel, 8 to 16 bits per sample).
+    exposure_time : float or None
+        Seconds (such files carry none); None is refused.
+    fmt : FrameFormat, optional
+        CFA pattern, black and white level (DN), significant bits.
+
+    Returns
+    -------
+    RawFrame
+        uint16 values (DN), the exposure time (s), black and white level (DN), CFA pattern,
+        significant bits, quantisation step (DN) and what was assumed.
+
+    Raises
+    ------
+    InputError
+        No exposure time, an unreadable file, not a single-channel 8- to 16-bit image, or
+        values that contradict ``fmt.bits``.
+    """
+    path = Path(path)
+    check_readable(path)
+    if exposure_time is None:
+        raise InputError(f"{path}: a PNG/TIFF frame needs an explicit exposure time (--times)")
+    t = check_exposure_time(exposure_time, path)
+    data, stored_bits = _image_pixels(path)
+    lv = image_levels(data, stored_bits, fmt, path)
+    return RawFrame(
+        data=data,
+        exposure_time=t,
+        black_level=lv.black_level,
+        white_level=lv.white_level,
+        cfa_pattern=lv.cfa_pattern,
+        path=str(path),
+        bits=lv.bits,
+        quantisation_step=lv.step,
+        assumed=lv.assumed,
+    )
 
 
 def read_frame(
-    path: str | os.PathLike[str], exposure_time: float | None = None, *, mmap: bool = True, bad_values: str = "refuse"
+    path: str | os.PathLike[str],
+    exposure_time: float | None = None,
+    *,
+    mmap: bool = True,
+    bad_values: str = "refuse",
+    fmt: FrameFormat | None = None,
 ) -> RawFrame:
-    """Read a raw file or a 16-bit PNG/TIFF frame, choosing the reader by file type.
+    """Read a raw file or a PNG/TIFF frame, choosing the reader by file type.
 
     Parameters
     ----------
@@ -686,7 +768,11 @@ def read_frame(
     mmap : bool
         See :func:`read_raw`.
     bad_values : {"refuse", "mask"}
-        See :func:`read_raw` (a PNG/TIFF frame has no white level: nothing to refuse or mask).
+        See :func:`read_raw` (a PNG/TIFF frame's values cannot exceed its bit depth: nothing to
+        refuse or mask).
+    fmt : FrameFormat, optional
+        What the user says about the frame (CFA, levels, bits): see :func:`read_raw` and
+        :func:`read_image16`.
 
     Returns
     -------
@@ -696,8 +782,54 @@ def read_frame(
     path = Path(path)
     check_readable(path)
     if path.suffix.lower() in IMAGE_EXTENSIONS:
-        return read_image16(path, exposure_time)
-    return read_raw(path, exposure_time, mmap=mmap, bad_values=bad_values)
+        return read_image16(path, exposure_time, fmt)
+    return read_raw(path, exposure_time, mmap=mmap, bad_values=bad_values, fmt=fmt)
+
+
+def with_format(frame: RawFrame, fmt: FrameFormat | None) -> RawFrame:
+    """A frame in memory with the user's format applied, as :func:`read_frame` applies it to a
+    file: the CFA pattern, black and white level given replace the frame's; the bits given set
+    the quantisation step (MSB-aligned integer data: 2^(C - bits) DN, C the word's 8 or 16 bits).
+
+    Parameters
+    ----------
+    frame : RawFrame
+        The frame.
+    fmt : FrameFormat or None
+        What the user says (None: the frame unchanged).
+
+    Returns
+    -------
+    RawFrame
+        A new frame (pixels shared), or ``frame`` when ``fmt`` says nothing.
+
+    Raises
+    ------
+    InputError
+        Values that contradict ``fmt.bits``, or a black level not below the white level.
+    """
+    if fmt is None or not fmt.given:
+        return frame
+    changes: dict[str, Any] = {}
+    if fmt.cfa is not None:
+        changes["cfa_pattern"] = fmt.cfa_pattern
+    if fmt.black_level is not None:
+        changes["black_level"] = float(fmt.black_level)
+    if fmt.white_level is not None:
+        changes["white_level"] = float(fmt.white_level)
+    if fmt.bits is not None:
+        data = np.asarray(frame.data)
+        stored = 8 if data.dtype == np.uint8 else 16
+        integer = data.dtype.kind in "ui"
+        changes["bits"] = int(fmt.bits)
+        changes["quantisation_step"] = (
+            aligned_step(data, stored, int(fmt.bits), frame.path or "frame") if integer else 1.0
+        )
+    out = dataclasses.replace(frame, **changes)
+    black, white = out.black_level or 0.0, out.white_level
+    if white is not None and black >= white:
+        raise InputError(f"{frame.path or 'frame'}: black level {black:g} DN is not below the white level {white:g} DN")
+    return out
 
 
 #: Rows of a frame read into its duplicate-finding fingerprint (evenly spaced, whole rows).

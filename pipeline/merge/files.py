@@ -26,6 +26,7 @@ from typing import Any, Union
 import numpy as np
 
 from hdrcap.pipeline.errors import InputError
+from hdrcap.pipeline.io.frameformat import FrameFormat
 from hdrcap.pipeline.io.raw import IMAGE_EXTENSIONS, RawFrame
 from hdrcap.pipeline.merge.accumulator import MergeOptions
 from hdrcap.pipeline.merge.darks import DarkResolver, DarkSource, default_strategy
@@ -35,10 +36,12 @@ from hdrcap.pipeline.planfile import PlanFile
 from hdrcap.pipeline.result import HdrResult
 
 __all__ = [
+    "CALIBRATION_MISMATCH",
     "FrameSource",
     "MergeRequest",
     "WEIGHTINGS",
     "bracket_calibration",
+    "check_camera_model",
     "library_root",
     "merge_files",
     "read_frames",
@@ -50,6 +53,10 @@ FrameSource = Union[str, "os.PathLike[str]", RawFrame]
 
 #: The optimal weighting; the baselines of Table 1 are :data:`pipeline.merge.weighting.WEIGHTING_METHODS`.
 WEIGHTINGS = ("optimal",)
+
+#: What a merge does with a calibration (or preset) made for another camera than the frames':
+#: ``refuse`` (a one-line error) or ``warn`` (deliberate use: merged, with a warning).
+CALIBRATION_MISMATCH = ("refuse", "warn")
 
 
 def _warn(message: str) -> None:
@@ -105,6 +112,12 @@ class MergeRequest:
     header : mapping
         Further header entries of the door (``run``; ``source_files``, ``cfa_pattern`` to
         override what the frames say).
+    frame_format : FrameFormat, optional
+        What the files do not say, or say wrongly: CFA pattern, black and white level, significant
+        bits (applied to every frame and dark frame, files and frames in memory alike).
+    calibration_mismatch : {"refuse", "warn"}
+        A calibration or preset whose camera, ISO, white level, size or CFA pattern contradicts
+        the frames' (:func:`check_camera_model`): refuse (default), or merge with a warning.
     """
 
     frames: Sequence[FrameSource]
@@ -123,10 +136,16 @@ class MergeRequest:
     memory_budget: int | None = None
     scratch_dir: str | os.PathLike[str] | None = None
     header: Mapping[str, Any] = field(default_factory=dict)
+    frame_format: FrameFormat | None = None
+    calibration_mismatch: str = "refuse"
 
     def __post_init__(self) -> None:
         if not self.frames:
             raise InputError("no frames to merge")
+        if self.calibration_mismatch not in CALIBRATION_MISMATCH:
+            raise InputError(
+                f"calibration mismatch must be refused or warned about (refuse, warn), not {self.calibration_mismatch!r}"
+            )
         if self.times is not None and len(self.times) != len(self.frames):
             raise InputError(f"--times gives {len(self.times)} exposure times for {len(self.frames)} frames")
         if self.bad_values not in ("refuse", "mask"):
@@ -214,14 +233,17 @@ def _frames_in(
     what: str,
     progress: bool,
     bad_values: str = "refuse",
+    fmt: FrameFormat | None = None,
+    on_frame: Callable[[RawFrame], None] | None = None,
 ) -> Iterator[RawFrame]:
     """The frames in order: files decoded two at a time (LibRaw releases the GIL), frames in
-    memory as they are (``times`` overriding their exposure time)."""
+    memory as they are (``times`` overriding their exposure time), ``fmt`` applied to both;
+    ``on_frame`` sees each frame before it is yielded."""
     from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
 
-    from hdrcap.pipeline.io.raw import check_exposure_time, read_frame
+    from hdrcap.pipeline.io.raw import check_exposure_time, read_frame, with_format
 
     items = list(items)
     ts = list(times) if times else [None] * len(items)
@@ -229,21 +251,25 @@ def _frames_in(
         raise InputError(f"--times gives {len(ts)} exposure times for {len(items)} {what}s")
     with ThreadPoolExecutor(max_workers=2) as pool:
         futures = [
-            None if isinstance(it, RawFrame) else pool.submit(read_frame, Path(it), t, bad_values=bad_values)
+            None if isinstance(it, RawFrame) else pool.submit(read_frame, Path(it), t, bad_values=bad_values, fmt=fmt)
             for it, t in zip(items, ts)
         ]
         bar = tqdm(total=len(items), desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False)
         with bar:
             for it, t, fut in zip(items, ts, futures):
                 if fut is not None:
-                    yield fut.result()
+                    fr = fut.result()
                 else:
                     assert isinstance(it, RawFrame)  # no future: a frame in memory
-                    yield (
+                    fr = with_format(
                         it
                         if t is None
-                        else dataclasses.replace(it, exposure_time=check_exposure_time(t, it.path or what))
+                        else dataclasses.replace(it, exposure_time=check_exposure_time(t, it.path or what)),
+                        fmt,
                     )
+                if on_frame is not None:
+                    on_frame(fr)
+                yield fr
                 bar.update()
 
 
@@ -253,8 +279,10 @@ def read_frames(
     what: str = "frame",
     progress: bool = False,
     bad_values: str = "refuse",
+    fmt: FrameFormat | None = None,
+    on_frame: Callable[[RawFrame], None] | None = None,
 ) -> list[RawFrame]:
-    """Read raw files or 16-bit images, two at a time.
+    """Read raw files or PNG/TIFF images, two at a time.
 
     Parameters
     ----------
@@ -268,13 +296,17 @@ def read_frames(
         Show a progress bar.
     bad_values : {"refuse", "mask"}
         As :func:`pipeline.io.raw.read_raw`.
+    fmt : FrameFormat, optional
+        What the files do not say (CFA, levels, bits), applied to every frame.
+    on_frame : callable, optional
+        Called with each frame as it is read.
 
     Returns
     -------
     list of RawFrame
         In the order of ``paths``.
     """
-    return list(_frames_in(list(paths), times, what, progress, bad_values))
+    return list(_frames_in(list(paths), times, what, progress, bad_values, fmt, on_frame))
 
 
 def library_root(calib: Calibration, calibration_path: str | os.PathLike[str] | None = None) -> str | None:
@@ -313,6 +345,8 @@ def bracket_calibration(
     warn: Callable[[str], None] | None = None,
     say: Callable[[str], None] | None = None,
     exposure_times: str = "effective",
+    fmt: FrameFormat | None = None,
+    on_frame: Callable[[RawFrame], None] | None = None,
 ) -> tuple[Calibration, list[float | None] | None, Any]:
     """The camera model of a merge: ``calibration`` when given, else the calibration library's
     entry for the frames' camera model, ISO and size (:mod:`pipeline.calibration.library`),
@@ -330,13 +364,17 @@ def bracket_calibration(
         Dark frames are given: they are matched to the frames by nominal exposure time, so a
         self-calibration hands the merge the nominal times where an effective one differs by more
         than the matching tolerance (the merge then estimates the effective times itself, after
-        matching the dark frames, and says so).
+        matching the dark frames; it says so where they differ beyond their standard errors).
     warn : callable, optional
         Called with one-line messages on what was assumed.
     say : callable, optional
         Called with one line saying which calibration is used when none was given.
     exposure_times : {"effective", "nominal"}
         ``nominal``: a self-calibration hands the merge the nominal times, not its effective ones.
+    fmt : FrameFormat, optional
+        What the files do not say (CFA, levels, bits), applied to the frames read here.
+    on_frame : callable, optional
+        Called with each frame read here (the self-calibration reads the bracket).
 
     Returns
     -------
@@ -353,9 +391,8 @@ def bracket_calibration(
         )
     from hdrcap.pipeline.calibration.library import find_calibration, library_dir
     from hdrcap.pipeline.calibration.selfcal import self_calibrate
-    from hdrcap.pipeline.times import same_exposure
 
-    frames = read_frames(frame_paths, times or None)
+    frames = read_frames(frame_paths, times or None, fmt=fmt, on_frame=on_frame)
     first = frames[0]
     found = find_calibration(first.camera, first.iso, first.shape)
     if found is not None:
@@ -364,20 +401,100 @@ def bracket_calibration(
         return found[1], (list(times) if times else None), None
     sc = self_calibrate(frames, warn=warn)
     if say is not None:
-        say(
-            f"no --calibration and none in the library {library_dir()} for {first.camera} at ISO {first.iso}: "
-            f"{sc.calibration.provenance['source']}"
-        )
+        which = f"for {first.camera} at ISO {first.iso:g}" if first.camera and first.iso else "for these frames"
+        say(f"no --calibration and none in the library {library_dir()} {which}: {sc.calibration.provenance['source']}")
     if exposure_times == "nominal":
         return sc.calibration, list(sc.nominal_times), sc
-    if darks and not all(same_exposure(a, b) for a, b in zip(sc.effective_times, sc.nominal_times)):
-        if warn is not None:
+    if darks and not sc.times_match_nominal():
+        beyond = sc.times_beyond_errors()
+        if beyond and warn is not None:
             warn(
-                "effective exposure times differ from the nominal ones, but dark frames are matched by nominal "
-                "time: the merge estimates the effective times itself after matching them"
+                f"effective exposure times differ from the nominal ones beyond their standard errors (up to "
+                f"{beyond:.1f} standard errors), but dark frames are matched by nominal time: the merge uses the "
+                "nominal times and estimates the effective ones itself after matching them"
             )
         return sc.calibration, list(sc.nominal_times), sc
     return sc.calibration, list(sc.effective_times), sc
+
+
+def check_camera_model(
+    calibration: Calibration,
+    frame: RawFrame,
+    *,
+    name: str = "the calibration",
+    mismatch: str = "refuse",
+    warn: Callable[[str], None] | None = None,
+) -> None:
+    """Refuse a camera model made for another camera than ``frame``'s: another model or serial,
+    ISO, white level (ADC range), size or CFA pattern (:func:`pipeline.compat.check_compatible`,
+    the rule the capture runs use; what either side does not know is not compared).
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The model (a calibration file's, a preset's, the library's).
+    frame : RawFrame
+        A frame of the bracket (its metadata).
+    name : str
+        The model in messages (``calibration cam.cal``, ``preset camera-B``).
+    mismatch : {"refuse", "warn"}
+        ``warn``: a mismatch is a warning (deliberate use), not an error.
+    warn : callable, optional
+        Called with the warning (``mismatch="warn"``).
+
+    Raises
+    ------
+    pipeline.compat.CompatibilityError
+        A mismatch, with ``mismatch="refuse"``: one line naming what differs.
+    """
+    from hdrcap.pipeline.compat import CameraProfile, CompatibilityError, check_compatible
+
+    expected = dataclasses.replace(CameraProfile.from_calibration(calibration, name), temperature_c=None)
+    try:
+        check_compatible(expected, CameraProfile.from_frame(frame))
+    except CompatibilityError as err:
+        if mismatch != "warn":
+            raise CompatibilityError(
+                f"{err}; merge with this camera's calibration (--calibration-mismatch warn merges anyway)"
+            ) from None
+        if warn is not None:
+            warn(f"{err} (--calibration-mismatch warn: merged with it anyway)")
+
+
+def _model_name(calib: Calibration, calibration_file: Any) -> str:
+    """The camera model in messages: its file, a preset's name, or "the calibration"."""
+    if calibration_file is not None:
+        return f"calibration {calibration_file}"
+    source = str((calib.provenance or {}).get("source") or "")
+    if source.startswith("preset "):
+        return source.split(" (")[0]
+    return "the calibration"
+
+
+@dataclass
+class _FirstFrame:
+    """What a merge does once, with the first frame it reads (in whichever pass): say what was
+    assumed about the files (one warning for the bracket) and check the camera model given."""
+
+    warn: Callable[[str], None]
+    check: Callable[[RawFrame], None] | None = None
+    seen: bool = False
+
+    def __call__(self, fr: RawFrame) -> None:
+        if self.seen:
+            return
+        self.seen = True
+        if fr.assumed:
+            from hdrcap.pipeline.io.frameformat import describe_assumed
+
+            high = int(np.max(fr.data)) if "white_level_unknown" in fr.assumed else None
+            what = describe_assumed(fr.assumed, fr.bits, fr.quantisation_step, fr.white_level, high)
+            self.warn(
+                f"{fr.path or 'frame'} (and the bracket's other frames): the file does not say its format; assumed "
+                f"{what} (--cfa, --black-level, --white-level, --bits say otherwise)"
+            )
+        if self.check is not None:
+            self.check(fr)
 
 
 def _camera_model(calibration: Calibration | str | os.PathLike[str] | None) -> tuple[Calibration | None, Any]:
@@ -651,6 +768,10 @@ def merge_files(
     calib, calibration_file = _camera_model(req.calibration)
     if req.weighting == "optimal":
         start_warm_up()  # numba's set-up while the calibration loads and the frames are read
+    first = _FirstFrame(warn)
+    if calib is not None:
+        given, name = calib, _model_name(calib, calibration_file)
+        first.check = lambda fr: check_camera_model(given, fr, name=name, mismatch=req.calibration_mismatch, warn=warn)
     options = req.options
     times_applied = options.exposure_times == "effective"  # as asked (a self-calibration may hand them over)
     calib, times, selfcal = bracket_calibration(
@@ -661,19 +782,23 @@ def merge_files(
         warn=warn,
         say=say,
         exposure_times=options.exposure_times,
+        fmt=req.frame_format,
+        on_frame=first,
     )
     if selfcal is not None and times == list(selfcal.effective_times):
         # the self-calibration's pairs gave the effective times: not estimated twice
         options = dataclasses.replace(options, exposure_times="nominal")
     rows = _tile_rows(req, calib)
     if req.weighting != "optimal":
-        return _merge_baseline(req, calib, times, progress)
+        return _merge_baseline(req, calib, times, progress, first)
     prep = prepare(req, calib, options, req.dark_library or library_root(calib, calibration_file), warn)
     if rows:
         from hdrcap.pipeline.merge.tiled import merge_tiled
 
-        return merge_tiled(req, prep, calib, times, rows, selfcal, times_applied, progress=progress, warn=warn)
-    result, frames, darks, used = _merge_in_memory(req, prep, calib, times, progress, warn)
+        return merge_tiled(
+            req, prep, calib, times, rows, selfcal, times_applied, progress=progress, warn=warn, on_frame=first
+        )
+    result, frames, darks, used = _merge_in_memory(req, prep, calib, times, progress, warn, first)
     entries = dict(prep.entries, dark_sources=used)
     if req.bad_values == "mask":
         entries["masked_values"] = {str(f.path): f.n_masked for f in frames}
@@ -709,16 +834,17 @@ def _merge_in_memory(
     times: Sequence[float | None] | None,
     progress: bool,
     warn: Callable[[str], None],
+    on_frame: Callable[[RawFrame], None] | None = None,
 ) -> tuple[HdrResult, list[RawFrame], list[RawFrame], list[str]]:
     """Read the bracket (in parallel threads) and feed each frame to a
     :class:`pipeline.merge.accumulator.MergeAccumulator` as soon as it is decoded, with the
-    dark strategy and dark level it is served. Returns (result, frames, darks, per-frame dark
-    sources)."""
+    dark strategy and dark level it is served (``on_frame`` sees each frame first). Returns
+    (result, frames, darks, per-frame dark sources)."""
     from hdrcap.pipeline.io.files import release_mapped_pages
     from hdrcap.pipeline.io.raw import check_frames, read_frame
     from hdrcap.pipeline.merge.accumulator import MergeAccumulator
 
-    darks = read_frames(req.darks, None, "dark frame", progress) if req.darks else []
+    darks = read_frames(req.darks, None, "dark frame", progress, fmt=req.frame_format) if req.darks else []
     if darks:
         darks = check_frames(darks, "dark frame")
     master = prep.master_dark
@@ -733,7 +859,7 @@ def _merge_in_memory(
     frames: list[RawFrame] = []
     used: list[str] = []
     warned: set[str] = set()
-    for fr in _frames_in(req.frames, times, "frame", progress, req.bad_values):
+    for fr in _frames_in(req.frames, times, "frame", progress, req.bad_values, req.frame_format, on_frame):
         if fr.n_masked:
             warn(
                 f"{fr.path}: {fr.n_masked} photosites with impossible raw values (above the white level's ADC range) "
@@ -775,14 +901,18 @@ def _merge_in_memory(
 
 
 def _merge_baseline(
-    req: MergeRequest, calib: Calibration, times: Sequence[float | None] | None, progress: bool
+    req: MergeRequest,
+    calib: Calibration,
+    times: Sequence[float | None] | None,
+    progress: bool,
+    on_frame: Callable[[RawFrame], None] | None = None,
 ) -> HdrResult:
     """A weighted average of Table 1 (:func:`pipeline.merge.weighting.merge_weighted`)."""
     from hdrcap.pipeline.header import with_merge_header
     from hdrcap.pipeline.merge.weighting import merge_weighted
 
-    fr = read_frames(req.frames, times, "frame", progress)
-    dk = read_frames(req.darks, None, "dark frame", progress) if req.darks else []
+    fr = read_frames(req.frames, times, "frame", progress, fmt=req.frame_format, on_frame=on_frame)
+    dk = read_frames(req.darks, None, "dark frame", progress, fmt=req.frame_format) if req.darks else []
     result = merge_weighted(
         [f.data for f in fr],
         [f.exposure_time for f in fr],

@@ -379,6 +379,7 @@ class _Inputs:
     warn: Callable[[str], None]
     sources: list[RowFile] = field(default_factory=list)
     warned: bool = False
+    fmt: Any = None  # the request's FrameFormat (what the files do not say)
 
     def add(self, arr: np.ndarray, name: str, what: str | None = None) -> int:
         src, spilled = row_source(arr, self.spill_dir, f"in{len(self.sources)}")
@@ -391,11 +392,12 @@ class _Inputs:
         self.sources.append(src)
         return len(self.sources) - 1
 
-    def open(self, path, t=None) -> tuple[RawFrame, int]:
-        """Read one file's metadata and keep its rows as a source; the pixels are not held."""
+    def open(self, path, t=None, *, formatted: bool = True) -> tuple[RawFrame, int]:
+        """Read one file's metadata (with the request's format unless not ``formatted``: a
+        master dark is data) and keep its rows as a source; the pixels are not held."""
         from hdrcap.pipeline.io.raw import read_frame
 
-        fr = read_frame(path, t)
+        fr = read_frame(path, t, fmt=self.fmt if formatted else None)
         k = self.add(fr.data, str(path), str(path))
         return dataclasses.replace(fr, data=self.sources[k].mapped()), k
 
@@ -657,9 +659,9 @@ def _no_pixels(frames: list[RawFrame]) -> list[RawFrame]:
     return [dataclasses.replace(fr, data=np.broadcast_to(np.zeros((), fr.data.dtype), fr.shape)) for fr in frames]
 
 
-def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths) -> _Plan:
+def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths, on_frame=None) -> _Plan:
     """Open the bracket and its dark frames (metadata, row sources), checked as the in-memory
-    merge checks them; the calibration's maps as row sources."""
+    merge checks them (``on_frame`` sees each frame); the calibration's maps as row sources."""
     from hdrcap.pipeline.io.raw import check_frames
 
     if times:
@@ -670,6 +672,9 @@ def _open_all(inputs: _Inputs, calib, frame_paths, times, dark_paths) -> _Plan:
     dk = [inputs.open(p) for p in dark_paths]
     dark_meta = _no_pixels(check_frames([d for d, _k in dk], "dark frame")) if dk else []
     opened = [inputs.open(p, t) for p, t in zip(frame_paths, times)]
+    for fr, _k in opened:
+        if on_frame is not None:
+            on_frame(fr)
     frames = _no_pixels(check_frames([fr for fr, _k in opened]))
     shape = frames[0].shape
     if dark_meta and dark_meta[0].shape != shape:
@@ -689,6 +694,7 @@ def merge_tiled(
     *,
     progress: bool = False,
     warn: Callable[[str], None] | None = None,
+    on_frame: Callable[[RawFrame], None] | None = None,
 ) -> HdrResult:
     """Merge raw files tile by tile (bands of ``rows`` rows); the engine of
     :func:`pipeline.merge.files.merge_files` for frames larger than the memory budget.
@@ -716,6 +722,8 @@ def merge_tiled(
         A progress bar on stderr.
     warn : callable, optional
         Called with one-line warnings.
+    on_frame : callable, optional
+        Called with each frame's metadata once it is opened (the request's checks).
 
     Returns
     -------
@@ -730,10 +738,10 @@ def merge_tiled(
         raise InputError(f"--chunks {rows}: give an even number of rows (whole CFA periods), >= 2")
     spill_root = Path(req.scratch_dir) if req.scratch_dir else Path(tempfile.gettempdir())
     with tempfile.TemporaryDirectory(prefix=".hdrcap-tiles-", dir=spill_root) as spill:
-        inputs = _Inputs(spill, warn)
-        p = _open_all(inputs, calib, [Path(f) for f in req.frames], times, [Path(d) for d in req.darks])
+        inputs = _Inputs(spill, warn, fmt=req.frame_format)
+        p = _open_all(inputs, calib, [Path(f) for f in req.frames], times, [Path(d) for d in req.darks], on_frame)
         if prep.master_dark is not None:
-            md, p.master_src = inputs.open(Path(prep.master_dark), 1.0 if prep.master_plain else None)
+            md, p.master_src = inputs.open(Path(prep.master_dark), 1.0 if prep.master_plain else None, formatted=False)
             if md.shape != p.shape:
                 raise InputError(f"{md.path}: master dark size differs from the bracket's")
             prep.master_dark_time(md)

@@ -44,10 +44,13 @@ def recolour_frames(frames, out_dir: Path) -> list[Path]:
     out = []
     for path in frames:
         fr = read_raw(path)
+        make, _, model = (fr.camera or "hdrcap Simulated").partition(" ")
         buf = io.BytesIO()
         write_dng(
             buf,
             fr.data,
+            make=make,
+            model=model,
             exposure_time=fr.exposure_time,
             iso=int(fr.iso),
             black_level=fr.black_level,

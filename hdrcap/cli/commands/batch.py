@@ -36,6 +36,7 @@ SHARED = (
     "master_dark_frames",
     "exposure_times",
     "sigma_precision",
+    "calibration_mismatch",
 )
 
 
@@ -118,6 +119,7 @@ def command(
         master_dark_frames=o["master_dark_frames"],
         calibration_id=calibration_identity(calibration, o["camera"]),
         sigma_precision=o["sigma_precision"],
+        calibration_mismatch=o["calibration_mismatch"],
     )
     report = run_batch(
         runs,

@@ -46,6 +46,46 @@ def _memory_here() -> str:
     help="Exposure times (s), one per frame; override EXIF (needed for PNG/TIFF frames).",
 )
 @click.option(
+    "--cfa",
+    type=click.Choice(["RGGB", "BGGR", "GRBG", "GBRG", "mono"], case_sensitive=False),
+    default=None,
+    help="The frames' 2x2 Bayer tile, or mono (no colour filter): for PNG/TIFF frames, which do not say it "
+    "(default: monochrome, with a warning); overrides a raw file's.",
+)
+@click.option(
+    "--black-level",
+    type=click.FloatRange(min=0),
+    default=None,
+    metavar="DN",
+    help="Black level of the frames, DN. Default: the raw file's; for PNG/TIFF frames the self-calibration "
+    "estimates it from the bracket.",
+)
+@click.option(
+    "--white-level",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    metavar="DN",
+    help="White level of the frames, DN. Default: the raw file's; for PNG/TIFF frames (2^bits - 1) x the "
+    "quantisation step (255 for 8-bit files).",
+)
+@click.option(
+    "--bits",
+    type=click.IntRange(1, 16),
+    default=None,
+    metavar="N",
+    help="Significant bits of the values: N-bit data stored LSB-aligned (0..2^N - 1) or MSB-aligned (multiples "
+    "of 2^(16-N), detected) in 16-bit words; sets the white level and the quantisation step. Default: the file's "
+    "bit depth, MSB alignment detected and said.",
+)
+@click.option(
+    "--calibration-mismatch",
+    type=click.Choice(["refuse", "warn"]),
+    default="refuse",
+    show_default=True,
+    help="A --calibration or --camera made for another camera than the frames' (model or serial, ISO, white "
+    "level, size, CFA pattern): refuse in one line, or warn and merge anyway (deliberate use).",
+)
+@click.option(
     "--plan",
     "plan_file",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -215,8 +255,13 @@ def command(
     as_json: bool,
     out_format: str | None,
     dng_bits: str,
+    cfa: str | None,
+    black_level: float | None,
+    white_level: float | None,
+    bits: int | None,
+    calibration_mismatch: str,
 ) -> None:
-    """Merge raw FRAMES (DNG/raw files or 16-bit PNG/TIFF with --times) into an EXR (or a float DNG).
+    """Merge raw FRAMES (DNG/raw files, or 8- to 16-bit PNG/TIFF with --times) into an EXR (or a float DNG).
 
     The EXR holds irradiance (e-/s per photosite), sigma (its standard uncertainty),
     sigma_calibration (when the calibration has standard errors), nexp (unsaturated exposures
@@ -229,6 +274,7 @@ def command(
 
     from hdrcap.acquire.camera.model import camera_model
     from hdrcap.pipeline.io.files import check_new_output
+    from hdrcap.pipeline.io.frameformat import FrameFormat
     from hdrcap.pipeline.io.results import output_format, write_result
     from hdrcap.pipeline.merge.accumulator import MergeOptions, as_strategy
     from hdrcap.pipeline.merge.files import MergeRequest, merge_files, start_warm_up
@@ -275,6 +321,8 @@ def command(
         tiling=chunks if chunks is not None else ("auto" if out_format == "exr" else None),
         memory_budget=_memory_budget(memory_budget),
         scratch_dir=output.parent if output.parent.is_dir() else None,
+        frame_format=FrameFormat(cfa=cfa, black_level=black_level, white_level=white_level, bits=bits),
+        calibration_mismatch=calibration_mismatch,
     )
     warn = lambda m: click.echo(f"hdrcap: warning: {m}", err=True)  # noqa: E731
     result = merge_files(request, progress=not as_json, warn=warn, say=lambda m: click.echo(m, err=True))
@@ -329,13 +377,19 @@ def _report(info: dict[str, Any], as_json: bool) -> None:
 
 
 def _selfcal_summary(head: dict[str, Any]) -> str:
-    """One line from the header's ``self_calibration``: the gain and read noise with their
-    standard errors."""
+    """One line from the header's ``self_calibration``: the gain and the read-noise variance
+    used, with their standard errors, and the fit's reduced chi^2."""
     g, r = head["gain"], head["read_noise_variance"]
+    fit = head.get("photon_transfer_fit", {})
+    noise = f"sigma_R^2 = {r['value']:.3g}" + (
+        f" +- {r['stderr']:.2g} DN^2" if r.get("stderr") is not None else " DN^2 (the quantisation floor)"
+    )
     if not g.get("estimated"):
-        return "gain not estimable: irradiance in DN/s, sigma relative"
-    n = head.get("photon_transfer_fit", {}).get("n_photosites")
+        return f"gain not estimable: irradiance in DN/s, sigma relative; {noise}"
+    chi2 = fit.get("reduced_chi2")
+    scaled = f", errors scaled by {fit['stderr_scale']:.3g}" if fit.get("model_rejected") else ""
     return (
-        f"g = {g['value']:.4g} +- {g['stderr']:.2g} DN/e-, sigma_R^2 = {r['value']:.3g} +- "
-        f"{r['stderr']:.2g} DN^2, from {n} photosites in {len(head.get('exposure_ratios', []))} pairs"
+        f"g = {g['value']:.4g} +- {g['stderr']:.2g} DN/e-, {noise}, from {fit.get('n_photosites')} photosites "
+        f"in {len(head.get('exposure_ratios', []))} pairs"
+        + (f" (chi^2/dof {chi2:.3g} over {fit.get('dof')}{scaled})" if chi2 is not None else "")
     )

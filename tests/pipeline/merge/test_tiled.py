@@ -48,10 +48,10 @@ def bracket(tmp_path_factory):
                     fh,
                     sensor.expose(X, t, dark=dark, rng=rng),
                     exposure_time=t,
-                    iso=100,
+                    iso=spec.iso,
                     black_level=spec.mu_R,
                     white_level=spec.white_level,
-                    model="Simulated camera-A",
+                    model=spec.model,  # the camera the preset names (the merge checks it)
                 )
             paths[kind].append(p)
     master = root / "master.dng"
@@ -60,7 +60,7 @@ def bracket(tmp_path_factory):
             fh,
             sensor.expose(0.0, 0.064, dark=True, rng=rng),
             exposure_time=0.064,
-            iso=100,
+            iso=spec.iso,
             black_level=spec.mu_R,
             white_level=spec.white_level,
         )
