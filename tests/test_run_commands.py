@@ -130,7 +130,8 @@ def test_run_check_reports_the_disk_space_and_refuses_when_short(tmp_path, monke
     assert f"{frames} frames" in out and f"about {need / 1e6:.0f} MB" in out and str(tmp_path) in out
     monkeypatch.setattr("shutil.disk_usage", _disk(need - 1))
     assert main(["run", str(p), "--check"]) == 6  # local I/O, as documented
-    err = capsys.readouterr().err.strip().splitlines()
+    lines = capsys.readouterr().err.strip().splitlines()
+    err = [line for line in lines if not line.startswith("hdrcap: warning:")]  # 0.064 s is taken at 1/15 s
     assert len(err) == 1 and "MB free" in err[0] and f"{frames} planned frames" in err[0]
     # three repetitions need three times the room
     monkeypatch.setattr("shutil.disk_usage", _disk(2 * need))

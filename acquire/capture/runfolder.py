@@ -93,8 +93,10 @@ def resume_folder(job: Job, n: int = 0) -> Path | None:
 
 def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
     """(``"complete"`` or ``"incomplete"``, start time) of the run in ``run_dir``. Complete: the
-    manifest has a ``complete`` record, or (runs recorded before it existed) every planned
-    frame is recorded and the job's EXR output exists.
+    manifest has a ``complete`` record (written once every output was) and every output it
+    names still exists (records written before they named theirs: the job's EXR and PNG in
+    the run folder). A run killed between its outputs, or whose preview was deleted, is
+    incomplete: ``--resume`` writes what is missing.
 
     Parameters
     ----------
@@ -111,10 +113,12 @@ def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
     m = Manifest(run_dir)
     head = m.header() or {}
     started = str(head.get("time") or _dt.datetime.fromtimestamp(run_dir.stat().st_mtime, _dt.UTC).isoformat())
-    if m.completion() is not None:
-        return "complete", started
-    planned = {f["key"] for f in head.get("plan", {}).get("frames", [])}
-    exr = job["output"]["exr"]
-    if planned and planned <= set(m.frames()) and exr and (run_dir / exr).is_file():
+    done = m.completion()
+    if done is None:
+        return "incomplete", started
+    outputs = done.get("outputs")
+    if outputs is None:
+        outputs = [job["output"][k] for k in ("exr", "png") if job["output"][k]]
+    if all((run_dir / name).is_file() for name in outputs):  # an absolute name stays absolute
         return "complete", started
     return "incomplete", started
