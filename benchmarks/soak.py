@@ -44,6 +44,9 @@ FAULTS = {
     "renumber_rate": 0.3,
 }
 
+# the session's fault kinds (what it does) named by the fault injected (what happened)
+FAULT_NAMES = {"busy": "busy", "reconnect": "disconnect", "recapture": "corrupt"}
+
 
 def _job(root: Path) -> Any:
     return job_from_dict(
@@ -109,7 +112,7 @@ def main() -> None:
                 failures[err.exit_code] += 1
             for e in EventLog(run_dir).events():
                 if e["event"] == "fault":
-                    faults["hang" if "timeout" in e.get("error", "") else e["kind"]] += 1
+                    faults["hang" if "timeout" in e.get("error", "") else FAULT_NAMES.get(e["kind"], e["kind"])] += 1
             shutil.rmtree(run_dir, ignore_errors=True)
             done = n + 1
             if done % args.every == 0:
@@ -124,6 +127,7 @@ def main() -> None:
     rss_slope = _slope(xs, [float(s[1]) for s in tail])
     fd_slope = _slope(xs, [float(s[2]) for s in tail])
     half = [s for s in samples if s[0] >= done // 2]
+    middle = min(samples, key=lambda s: abs(s[0] - done // 2))
     print(
         json.dumps(
             {
@@ -138,13 +142,15 @@ def main() -> None:
                 "lock_files_left": locks_left,
                 "rss_start_mb": round(samples[0][1] / 1e6, 1),
                 "rss_after_warm_up_mb": round(tail[0][1] / 1e6, 1) if tail else None,
+                "rss_middle_mb": round(middle[1] / 1e6, 1),
+                "rss_middle_run": middle[0],
                 "rss_end_mb": round(samples[-1][1] / 1e6, 1),
-                "rss_slope_bytes_per_run": round(rss_slope, 1),
-                "rss_second_half_slope_bytes_per_run": round(
-                    _slope([float(s[0]) for s in half], [float(s[1]) for s in half]), 1
+                "rss_slope_kb_per_1000_runs": round(rss_slope * 1000 / 1e3, 1),
+                "rss_second_half_slope_kb_per_1000_runs": round(
+                    _slope([float(s[0]) for s in half], [float(s[1]) for s in half]) * 1000 / 1e3, 1
                 ),
                 "open_files_min_max": [min(s[2] for s in samples), max(s[2] for s in samples)],
-                "open_files_slope_per_run": round(fd_slope, 6),
+                "open_files_slope_per_1000_runs": round(fd_slope * 1000, 3),
                 "warm_up_runs": warm,
                 "samples": [[s[0], s[1], s[2]] for s in samples],
             }

@@ -860,6 +860,8 @@ class Gphoto2Camera:
                 break
             except (CameraError, InputError) as err:
                 self.events.append(("reconnect_failed", f"{type(err).__name__}: {err}"))
+                if self._stop is not None and self._stop.is_set():  # the run is stopping: no more polling
+                    raise CameraDisconnectedError(f"reconnect given up, the run is stopping ({err})") from None
                 left = deadline - time.monotonic()
                 if left <= 0:  # tried at the deadline too: give up
                     if isinstance(err, InputError):
@@ -889,11 +891,12 @@ class Gphoto2Camera:
         """Release the camera and end its worker process."""
         self._drop_worker()
 
-    def watch_stop(self, stop: threading.Event) -> None:
+    def watch_stop(self, stop: threading.Event | None) -> None:
         """Give up a call in progress :data:`STOP_GRACE_S` after ``stop`` is set (SIGTERM,
         :func:`hdrcap.acquire.capture.session.stop_on_signals`) instead of waiting for its
         timeout: the worker is killed (the kernel releases the USB claim with it) and the call
-        fails as a timeout; a stopping session then neither retries nor reconnects."""
+        fails as a timeout; a stopping session then neither retries nor reconnects, and a
+        reconnect in progress stops polling. None: no stop to watch."""
         self._stop = stop
 
     def __enter__(self) -> Self:

@@ -255,7 +255,7 @@ class MockCamera:
     def close(self) -> None:
         self._connected = False
 
-    def watch_stop(self, stop: threading.Event) -> None:
+    def watch_stop(self, stop: threading.Event | None) -> None:
         """A hang in progress ends when ``stop`` is set (as the real camera's worker is given
         up on: :meth:`hdrcap.acquire.camera.gphoto2.Gphoto2Camera.watch_stop`)."""
         self._stop = stop

@@ -37,6 +37,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -472,38 +473,40 @@ def run_command(command: str, what: str, timeout_s: float, stop: threading.Event
     On a timeout, a stop or any exception while waiting (a second signal), the command's
     whole process group is killed and reaped: nothing it started is left running.
     """
-    proc = subprocess.Popen(
-        command,
-        shell=True,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        start_new_session=True,
-    )
-    deadline = time.monotonic() + timeout_s
-    try:
-        while True:
-            try:
-                _out, err = proc.communicate(timeout=min(STOP_POLL_S, max(0.0, deadline - time.monotonic())))
-                break
-            except subprocess.TimeoutExpired:
-                pass
-            if stop is not None and stop.is_set():
-                signum = int(getattr(stop, "signum", signal.SIGTERM))
-                raise RunInterrupted(
-                    f"stopped by signal {signum} while the {what} ran; run again with --resume", signum
-                )
-            if time.monotonic() >= deadline:
-                raise SessionError(
-                    f"{what} {command!r} did not end within {timeout_s:g} s ([darks] command_timeout_s); "
-                    "it was stopped. Fix it, then run again with --resume"
-                )
-    except BaseException:
-        _kill_group(proc)
-        raise
-    if proc.returncode != 0:
-        text = (err or b"").decode(errors="replace").strip()[:200]
-        raise SessionError(f"{what} {command!r} failed (exit {proc.returncode}): {text}")
+    with tempfile.TemporaryFile() as errors:  # a file, not a pipe: nothing waits for a reader
+        proc = subprocess.Popen(
+            command,
+            shell=True,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=errors,
+            start_new_session=True,
+        )
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                try:
+                    proc.wait(timeout=min(STOP_POLL_S, max(0.0, deadline - time.monotonic())))
+                    break
+                except subprocess.TimeoutExpired:
+                    pass
+                if stop is not None and stop.is_set():
+                    signum = int(getattr(stop, "signum", signal.SIGTERM))
+                    raise RunInterrupted(
+                        f"stopped by signal {signum} while the {what} ran; run again with --resume", signum
+                    )
+                if time.monotonic() >= deadline:
+                    raise SessionError(
+                        f"{what} {command!r} did not end within {timeout_s:g} s ([darks] command_timeout_s); "
+                        "it was stopped. Fix it, then run again with --resume"
+                    )
+        except BaseException:
+            _kill_group(proc)
+            raise
+        if proc.returncode != 0:
+            errors.seek(0)
+            text = errors.read(4096).decode(errors="replace").strip()[:200]
+            raise SessionError(f"{what} {command!r} failed (exit {proc.returncode}): {text}")
 
 
 def _kill_group(proc: subprocess.Popen[bytes]) -> None:
@@ -513,8 +516,8 @@ def _kill_group(proc: subprocess.Popen[bytes]) -> None:
     except (ProcessLookupError, PermissionError):
         pass
     try:
-        proc.communicate(timeout=5)
-    except (subprocess.TimeoutExpired, OSError, ValueError):  # pragma: no cover - a process in D state
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:  # pragma: no cover - a process in uninterruptible sleep
         pass
 
 
@@ -1550,9 +1553,10 @@ def watch_stop(camera: Camera, stop: threading.Event | None) -> None:
     ----------
     camera : Camera
     stop : threading.Event or None
+        None: no stop to watch (a camera reused by a later session forgets the earlier one's).
     """
     watch = getattr(camera, "watch_stop", None)
-    if stop is not None and callable(watch):
+    if callable(watch):
         watch(stop)
 
 
