@@ -205,6 +205,41 @@ def test_a_hanging_cover_command_ends_the_run_and_leaves_no_process(tmp_path):
     assert _processes("sleep 100017") == []
 
 
+def test_two_sigterms_during_a_hanging_cover_command_leave_no_process(tmp_path):
+    # "&& true": the shell forks the sleep instead of becoming it, so killing the shell alone
+    # (what subprocess.run does when a second signal interrupts it) would leave the sleep behind
+    darks = 'block_light = "command"\ncover_command = "sleep 100021 && true"\nuncover_command = "true"'
+    p = _job(tmp_path, darks=darks)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hdrcap", "run", str(p), "--no-progress"],
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, HDRCAP_LOCK_DIR=str(tmp_path / "locks")),
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not _processes("sleep 100021"):
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(0.02)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)  # a second signal (systemd's, or an impatient user's)
+        _out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    # 143, or killed by the second signal itself once the first one's stop was reported
+    assert proc.returncode in (143, -signal.SIGTERM), err
+    assert "stopped by signal 15" in err and "Traceback" not in err
+    assert time.monotonic() - t0 < 10
+    time.sleep(0.2)
+    assert _processes("sleep 100021") == []
+
+
 def test_a_light_command_is_killed_with_its_children_when_the_run_stops(tmp_path):
     stop = StopEvent()
     blocker = LightBlocker("command", "sleep 100018 & sleep 100019", "true", command_timeout_s=60, stop=stop)
