@@ -389,16 +389,24 @@ def _image_shape(shape: Sequence[int]) -> tuple[int, int]:
     return dims[0], dims[1]
 
 
-def warm_up_kernels() -> None:
-    """Import the merge kernels and initialise numba's CPU target (its registries of numpy
-    implementations, which numba builds once per process before it compiles or loads any
-    function: a third of a second or more), so that the first merge only loads its compiled
-    code. For a background thread started while the frames are read (:mod:`pipeline.merge.files`);
-    it changes no result."""
-    from hdrcap.pipeline._numba_target import warm_up
-    from hdrcap.pipeline.merge import kernels  # noqa: F401  (first: it configures numba's compile target)
+def import_kernels() -> Callable[[], None]:
+    """Import numba (its compile target set, :mod:`pipeline._numba_target`) and the merge
+    kernels in the calling thread, and return what may then run in a background thread while
+    the frames are read: the initialisation of numba's CPU target (its registries of numpy
+    implementations, built once per process before numba compiles or loads any function: a
+    third of a second or more), under numba's compiler lock, importing only numba's own
+    modules that no other thread imports outside that lock (:mod:`pipeline.merge.files`
+    starts it). It changes no result.
 
-    warm_up()
+    Returns
+    -------
+    callable
+        :func:`pipeline._numba_target.warm_up`.
+    """
+    from hdrcap.pipeline._numba_target import warm_up
+    from hdrcap.pipeline.merge import kernels  # noqa: F401  (its decorators import what they need, here)
+
+    return warm_up
 
 
 def merge_arrays(
