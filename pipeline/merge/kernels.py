@@ -555,11 +555,12 @@ def _saturated_bounds(values, darks, frames, r, c, FR, n, a, bl, master_c, D, Dw
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _clip_rule(values, r, c, X, FR, n, vth, mu, a, Dw, s2, kc, tol, max_iter, BOUND):
+def _clip_rule(values, r, c, X, FR, n, vth, v_sat, mu, a, Dw, s2, kc, tol, max_iter, BOUND):
     """The clip rule of photosite (r, c) after the iterations: reject usable samples that are
     possibly clipped (raw value at least ``vth``) and lie far below what the other samples say,
-    one at a time (the worst first) until none does; sets their x to NaN in ``X``. Clipping
-    only lowers a sample, so both tests are one-sided; sample i fails when z_i < -kc for
+    or are more likely clipped values than not, one at a time (the worst first) until none
+    does; sets their x to NaN in ``X``. Clipping only lowers a sample, so the two z tests are
+    one-sided; sample i fails when z_i < -kc for
 
     * the other usable samples (leave-one-out): z_i = (x_i - mu_{-i}) / sqrt(Var(x_i | mu_{-i})
       + 1/W_{-i}), mu_{-i} and W_{-i} (the sum of their weights) iterated to the estimate of the
@@ -567,7 +568,16 @@ def _clip_rule(values, r, c, X, FR, n, vth, mu, a, Dw, s2, kc, tol, max_iter, BO
       current estimate (which a slipped sample may dominate); no test without another sample;
     * the saturated samples of shorter exposures (``BOUND``, :func:`_saturated_bounds`: a
       shorter exposure saturated says X >= L_j, and a longer one is then saturated too):
-      z_i = (x_i - L) / sqrt(Var(x_i | L)), L the largest L_j of the exposures shorter than i.
+      z_i = (x_i - L) / sqrt(Var(x_i | L)), L the largest L_j of the exposures shorter than i;
+
+    and when, given the other samples, it is more likely a clipped value than an unclipped one
+    (the odds of the mixture of :func:`_tobit_terms`): with S^2 = Var(x_i | mu_{-i}) + 1/W_{-i},
+    x_clip = x_i + (v_clip - v_i)/(t_i g a) and v_clip = v_sat + 3 sigma_R,
+    P_c phi(e_i) t_i g a / sigma_R > phi(z_i) / S, P_c = 1 - Phi((x_clip - mu_{-i})/S) and
+    e_i = (v_i - v_clip)/sigma_R. This catches a slipped value where the others are too
+    uncertain for the z test (sparse brackets: S many times sigma_R/(t_i g a)); it cannot fire
+    unless S t_i g a > 90 sigma_R phi(z_i)/phi(3) or so (e_i < -3 below v_sat). Such a sample
+    ranks as z = min(z_i, -kc) among the failing ones.
 
     Returns
     -------
@@ -578,6 +588,8 @@ def _clip_rule(values, r, c, X, FR, n, vth, mu, a, Dw, s2, kc, tol, max_iter, BO
     rejected = 0
     steps = 0
     a2 = a * a
+    sigma_R = math.sqrt(s2)
+    v_clip = v_sat + 3.0 * sigma_R
     while True:
         worst = -1
         worst_z = -kc
@@ -600,9 +612,18 @@ def _clip_rule(values, r, c, X, FR, n, vth, mu, a, Dw, s2, kc, tol, max_iter, BO
             steps += st
             if sw > 0.0:
                 vi = _var(a * (m if m > 0.0 else 0.0) + Dw, float(FR[i, 1]), Dw, s2, float(FR[i, 3]))
-                z = (x - m) / math.sqrt(vi / (float(FR[i, 2]) * a2) + 1.0 / sw)
+                sx = math.sqrt(vi / (float(FR[i, 2]) * a2) + 1.0 / sw)
+                z = (x - m) / sx
                 if z < worst_z:
                     worst, worst_z, worst_mu = i, z, m
+                # more likely a clipped value than not, given the others
+                tga = float(FR[i, 0]) * a
+                e = (float(values[i][r, c]) - v_clip) / sigma_R
+                pc = _survival((x + (v_clip - float(values[i][r, c])) / tga - m) / sx)
+                odds = math.log(max(pc, 1e-300)) - 0.5 * e * e + 0.5 * z * z + math.log(sx * tga / sigma_R)
+                zr = min(z, -kc)
+                if odds > 0.0 and (worst < 0 or zr < worst_z):
+                    worst, worst_z, worst_mu = i, zr, m
         if worst < 0:
             return rejected, mu, steps
         X[worst, c] = math.nan
@@ -1219,7 +1240,7 @@ def merge_kernel(
                             BOUND,
                         )
                         k, m, st = _clip_rule(
-                            values, r, c, X, FR, n, VTH[c], MU[c], a_c, d_c, sigma2_R, clip_sigmas, tol, max_iter, BOUND
+                            values, r, c, X, FR, n, VTH[c], v_sat, MU[c], a_c, d_c, sigma2_R, clip_sigmas, tol, max_iter, BOUND
                         )
                         if k == 0:
                             continue  # (its passes are not counted: the iterations report the re-weighting)
