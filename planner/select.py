@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from hdrcap.pipeline.merge.options import CENSORED_SPACING
 from hdrcap.pipeline.params import Calibration
 from hdrcap.planner.predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
 
@@ -50,15 +51,10 @@ __all__ = [
     "MAX_ITERATIONS",
     "CONVERGED_ITERATIONS",
     "full_well_clips_first",
-    "CENSORED_SPACING",
 ]
 
 MAX_ITERATIONS = 8
 
-#: Widest spacing of consecutive exposure times (ratio) at which the probabilistic model's
-#: censored likelihood keeps its estimate near the clip levels; beyond it the merge falls back
-#: to the threshold estimate there (``MergeOptions.censored_share``, docs/merge.md item 5).
-CENSORED_SPACING = 6.0
 
 #: Iterations asked of the merge when they must converge (the merge's default; it stops each
 #: photosite at its tolerance, so this costs time only where needed).
@@ -300,11 +296,12 @@ def saturation_decision(
     nonlinearity switched off it stays) weigh more; and it costs several times the merge time.
     A user asks for it with ``--saturation probabilistic``.
 
-    It helps only where consecutive exposures are at most :data:`CENSORED_SPACING` apart: with
-    wider spacing the exposure below a clip holds too little of the information just above it,
-    the censored likelihood's sigma is not trustworthy there, and the merge keeps the threshold
-    estimate (``MergeOptions.censored_share``; docs/merge.md, item 5 and *Stability at the
-    extremes*), so the predicted gain near the clip levels is not realised; the reason says so.
+    It helps only where consecutive exposures are at most
+    :data:`pipeline.merge.options.CENSORED_SPACING` apart: with wider spacing the exposure below
+    a clip holds too little of the information just above it, the censored likelihood's sigma
+    is not trustworthy there, and the merge keeps the threshold estimate
+    (``MergeOptions.censored_spacing``; docs/merge.md, item 5 and *Stability at the extremes*),
+    so the predicted gain near the clip levels is not realised; the reason says so.
 
     Parameters
     ----------
@@ -350,7 +347,7 @@ def saturation_decision(
             "but on a realistic sensor it is less accurate near the clip levels than the threshold rule "
             "(simulated camera-R: z mean 0.1-0.6 lower); not chosen automatically"
         )
-        if spacing > CENSORED_SPACING:
+        if spacing > CENSORED_SPACING * (1 + 1e-9):
             why += (
                 f"; with exposures up to {spacing:.3g}x apart (more than {CENSORED_SPACING:g}x) the merge "
                 "keeps the threshold estimate near the clip levels anyway (the censored likelihood cannot be "

@@ -9,7 +9,7 @@
 * Probabilistic model, a x100 bracket on a 10-bit camera (camera-B-like, full well 1 100 e-):
   just above a clip level the censored samples carry almost all of the information and the
   Wald sigma of the censored likelihood is far too small (z down to -13); there the merge keeps
-  the threshold estimate (``censored_fallback``).
+  the threshold estimate (``censored_fallback``), while at x10 the censored likelihood stands.
 * The clip rule's false rejections on unclipped samples in its window: at most about
   Phi(-k_c) per sample tested.
 """
@@ -99,17 +99,17 @@ def _above_clip(sensor, times, rng, shape):
     return X_clip * rng.uniform(1.2, 3.0, shape) / sensor.prnu
 
 
-@pytest.mark.parametrize("share, honest", [(0.0, False), (None, True)])
-def test_censored_likelihood_falls_back_where_it_cannot_be_trusted(share, honest):
+@pytest.mark.parametrize("spacing, honest", [(0.0, False), (None, True)])
+def test_censored_likelihood_falls_back_where_it_cannot_be_trusted(spacing, honest):
     """10-bit, full well 1 100 e-, x100 (1e-4, 1e-2, 1 s), estimated calibration: just above a
-    clip level the censored likelihood alone (``censored_share=0``) states a sigma several
-    times too small; with the default share the threshold estimate stands there, honest."""
+    clip level the censored likelihood alone (``censored_spacing=0``) states a sigma several
+    times too small; with the default (x10) the threshold estimate stands there, honest."""
     spec = cameras()["10-bit-adc"]
     times = [1e-4, 1e-2, 1.0]
     sensor, cal = calibrated_sensor(spec, 7, (48, 48))
     X = _above_clip(sensor, times, np.random.default_rng(11), (48, 48))
     frames, darks = _bracket(sensor, X, times, 13)
-    opts = {} if share is None else {"censored_share": share}
+    opts = {} if spacing is None else {"censored_spacing": spacing}
     res = merge_arrays(frames, times, cal, darks, saturation="probabilistic", **opts)
     ok = res.nexp > 0
     z = ((res.irradiance - X * spec.g / cal.params.g) / np.where(ok, res.sigma, 1.0))[ok]
@@ -179,3 +179,43 @@ def test_clip_rule_is_off_where_the_adc_clips_first():
     frames[-1][:] = 1000  # just under v_sat = 1023: "slipped" values cannot exist on this camera
     res = merge_arrays(frames, X100[:3], cal, darks)
     assert res.info["clip_rejected"] == 0
+
+
+def test_censored_likelihood_stands_at_x10():
+    """At x10 (1e-4, 1e-3, 1e-2 s) the censored likelihood keeps its estimate just above the clip
+    levels (hardly any fallback) and its sigma is honest there."""
+    spec = cameras()["10-bit-adc"]
+    times = [1e-4, 1e-3, 1e-2]
+    sensor, cal = calibrated_sensor(spec, 7, (48, 48))
+    X = _above_clip(sensor, times, np.random.default_rng(29), (48, 48))
+    frames, darks = _bracket(sensor, X, times, 31)
+    res = merge_arrays(frames, times, cal, darks, saturation="probabilistic")
+    ok = res.nexp > 0
+    z = ((res.irradiance - X * spec.g / cal.params.g) / np.where(ok, res.sigma, 1.0))[ok]
+    assert ok.mean() > 0.9 and np.abs(z).max() < 6 and 0.85 < z.std() < 1.15 and abs(z.mean()) < 0.15
+    assert res.info["censored_fallback"] < 0.05 * ok.sum()
+
+
+def test_a_slipped_value_is_rejected_where_the_others_say_little():
+    """10-bit camera whose full well (1 000 e-) clips first, x100 up to 3600 s, 1.2 e-/s: the
+    3600 s sample is saturated, every shorter one far below its clip, and the 36 s sample (about
+    40 e-) says X to about 25 %. A saturated 3600 s value that slipped just under v_sat is then
+    only about 3 sigma below the others' estimate (the z test at k_c = 4 keeps it), yet far more
+    likely a clipped value than not (a clipped value lies within sigma_R of v_sat + 3 sigma_R):
+    rejected by the clip rule's odds, flagged, no gross error (without the odds: 83 of 1 024 photosites beyond -6 sigma, down to -139)."""
+    spec = cameras()["10-bit-fw"]
+    times = [3.6e-5, 3.6e-3, 0.36, 36.0, 3600.0]
+    sensor, cal = calibrated_sensor(spec, 4, (32, 32))
+    X = np.full((32, 32), 1.2)
+    frames, darks = _bracket(sensor, X, times, 37)
+    v_sat = cal.params.v_sat
+    assert np.mean(frames[-1] >= v_sat) > 0.99
+    frames[-1] = np.full_like(frames[-1], math.floor(v_sat))  # slipped under v_sat by < 1 DN
+    res = merge_arrays(frames, times, cal, darks)
+    z = (res.irradiance - X * spec.g / cal.params.g) / res.sigma
+    rejected = (res.quality & CLIP) != 0
+    assert np.all(res.nexp > 0) and np.abs(z).max() < 6
+    # rejected by the odds, or (where the calibration's dark current predicts it near v_sat)
+    # dropped by the near-saturation rule: the 3600 s sample is left out everywhere
+    assert np.all(res.nexp == 4) and rejected.sum() > 50
+    assert res.info["clip_rejected"] == rejected.sum() == res.info["clip_rejected_samples"]

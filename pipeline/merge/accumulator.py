@@ -321,7 +321,7 @@ class MergeAccumulator:
                     float(opts.saturation_sigmas),
                     opts.saturation == "probabilistic",
                     float(opts.clip_sigmas),
-                    float(opts.censored_share),
+                    float(opts.censored_spacing),
                 ),
                 out,
                 np.zeros(1, np.float32 if single else np.float64),

@@ -146,16 +146,16 @@ class StartSums(NamedTuple):
 class IterationOptions(NamedTuple):
     """``max_iter`` (int), relative ``tol``, ``sat_sigmas`` (the near-saturation margin in
     standard deviations of the raw value), ``probabilistic`` (Eq. 8-10), ``clip_sigmas`` (the
-    clip rule's threshold k_c, 0: no clip rule; :func:`_clip_rule`) and ``censored_share`` (the
-    least share of the censored likelihood's information that samples surely below their clip
-    level must carry for its estimate to stand, :func:`_tobit_trusted`; 0: always) of the merge."""
+    clip rule's threshold k_c, 0: no clip rule; :func:`_clip_rule`) and ``censored_spacing`` (the
+    widest spacing at which the censored likelihood's estimate stands, :func:`_tobit_trusted`;
+    0: always) of the merge."""
 
     max_iter: int
     tol: float
     sat_sigmas: float
     probabilistic: bool
     clip_sigmas: float
-    censored_share: float
+    censored_spacing: float
 
 
 class MergeOutputs(NamedTuple):
@@ -713,25 +713,18 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
         The score dL/dmu ((e-/s)^-1), the observed information -d2L/dmu2 and the complete-data
         information (the unsaturated part's share; positive whenever a sample is), both
         (e-/s)^-2, the expected number of unclipped samples among those below v_sat, the
-        number of those more likely unclipped than clipped, and the information of the samples
-        below v_sat that cannot be clipped values, sum r_i kappa_i^2 ((e-/s)^-2; r_i =
-        P(unclipped | v_i, mu), kappa_i = t_i g a/sd_i; where the full well clips first, a value
-        in the clip rule's window, v_i >= v_sat - CLIP_WINDOW sqrt(g (v_sat - bl) + sigma_R^2),
-        may be one and does not count; :func:`_tobit_trusted`).
+        number of those more likely unclipped than clipped.
     """
     kinds, coefs, ks, times = frames
     g, sigma2_R, v_sat, white = camera
     sigma_R = math.sqrt(sigma2_R)
     full_well = white - v_sat > 3.0 * sigma_R
     v_clip = v_sat + 3.0 * sigma_R
-    # the least raw value that may be a clipped one (the clip rule's window; none where the ADC clips first)
-    v_win = v_sat - CLIP_WINDOW * math.sqrt(g * max(v_sat - bl, 0.0) + sigma2_R) if full_well else v_sat
     Dv = D if D > 0.0 else 0.0  # the dark current inside the variances, floored (the dark level keeps D)
     m = mu if mu > 0.0 else 0.0
     score = 0.0
     info = 0.0
     info_c = 0.0
-    info_u = 0.0
     nu = 0.0
     nr = 0
     for i in range(len(values)):
@@ -761,7 +754,6 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
             score += d1
             info -= d2
             info_c += rr * kap * kap
-            info_u += rr * kap * kap if v < v_win else 0.0
             nu += rr
             nr += 1 if rr > 0.5 else 0
         else:
@@ -771,7 +763,7 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
             score += lam * kap
             info += h
             info_c += h
-    return score, info, info_c, nu, nr, info_u
+    return score, info, info_c, nu, nr
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -797,7 +789,11 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     Returns
     -------
     tuple of float
-        I ((e-/s)^-2) and kappa_{11,1} ((e-/s)^-3).
+        I ((e-/s)^-2), kappa_{11,1} ((e-/s)^-3) and the spacing the root rests on: the longest
+        exposure time among the samples not far above v_sat (u >= -3) that are not surely below
+        it (censored or possibly clipped: u <= 3, or v >= v_sat) over the longest among those
+        surely below it (u > 3 and v < v_sat); 1 when no sample is near v_sat, inf when none is
+        surely below.
     """
     kinds, coefs, ks, times = frames
     g, sigma2_R, v_sat, white = camera
@@ -805,15 +801,21 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     m = mu if mu > 0.0 else 0.0
     info = 0.0
     k11_1 = 0.0
+    t_far = 0.0
+    t_near = 0.0
     for i in range(len(values)):  # the samples as in _tobit_terms
         b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
-        if not (math.isfinite(float(values[i][r, c])) and math.isfinite(b) and b < v_sat):
+        v = float(values[i][r, c])
+        if not (math.isfinite(v) and math.isfinite(b) and b < v_sat):
             continue
         tga = times[i] * g * a
         sd = math.sqrt(_var(a * m + Dv, g * g * times[i], Dv, sigma2_R, ks[i]))
         kap = tga / sd
         k2 = kap * kap
         u = (v_sat - b - tga * mu) / sd
+        below = (u > 3.0) & (v < v_sat)  # surely neither censored nor clipped
+        t_far = max(t_far, times[i]) if below else t_far
+        t_near = max(t_near, times[i]) if (not below) & (u >= -3.0) else t_near
         if u > 8.0:  # never censored (phi(u) < 1e-14): the Gaussian's information, no third-order term
             info += k2
             continue
@@ -824,7 +826,8 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
         lam = phi / surv
         info += k2 * (1.0 - surv + phi * (lam - u))
         k11_1 += k2 * kap * phi * (1.0 - lam * (lam - u))
-    return info, k11_1
+    spacing = 1.0 if t_near == 0.0 else (t_near / t_far if t_far > 0.0 else math.inf)
+    return info, k11_1, spacing
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -852,13 +855,12 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     Returns
     -------
     tuple
-        (mu, sigma (e-/s), number of samples used, score evaluations, flagged, share): flagged
-        when no sample below v_sat is more likely unclipped than clipped (only a lower bound is
-        known); share = the information of the samples below v_sat that cannot be clipped
-        values (:func:`_tobit_terms`) over the observed information at the root, the share
+        (mu, sigma (e-/s), number of samples used, score evaluations, flagged, spacing):
+        flagged when no sample below v_sat is more likely unclipped than clipped (only a lower
+        bound is known); spacing = the spacing the root rests on (:func:`_tobit_moments`), which
         :func:`_tobit_trusted` judges (0 when flagged).
     """
-    f, h, hc, nu, nr, hu = _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c)
+    f, h, hc, nu, nr = _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c)
     steps = 1
     if nr == 0:
         return mu, sig, 0.0, steps, True, 0.0
@@ -894,7 +896,7 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
             xn = 0.5 * (lo + hi)
         done = abs(xn - x) <= tol * max(abs(xn), 1.0 / math.sqrt(hh))
         x = xn
-        f, h, hc, nu, nr, hu = _tobit_terms(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
+        f, h, hc, nu, nr = _tobit_terms(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
         steps += 1
         if done:
             break
@@ -907,22 +909,22 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     hh = h if h > 0.0 else hc
     # Centre the Wald statistic: its first-order mean is kappa_{11,1}/(2 I^(3/2)) whether sigma
     # comes from the observed or the expected information (docs/merge.md, item 5)
-    ie, k11_1 = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
+    ie, k11_1, spacing = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
     if ie > 0.0:  # else no sample informs at the root (every one far above v_sat): nothing to centre
         x -= 0.5 * k11_1 / (ie * ie)
-    return x, 1.0 / math.sqrt(hh), float(nr), steps, False, hu / hh
+    return x, 1.0 / math.sqrt(hh), float(nr), steps, False, spacing
 
 
 @numba.njit(inline="always", cache=True)
-def _tobit_trusted(share, r_min):
+def _tobit_trusted(spacing, limit):
     """Whether the censored likelihood's estimate stands (else the threshold model's does): the
-    samples below v_sat that cannot be clipped values carry at least ``r_min`` of the observed
-    information at the root (``share``, :func:`_tobit`), s = sum r_i kappa_i^2 / I_obs >= r_min.
-    Where they carry less (sparse brackets just above a clip level: the exposure below holds
-    about 1/spacing of the information of the censored one), the likelihood is far from
+    samples it rests on near their clip level (censored, or values that may be clipped) come
+    from exposures at most ``limit`` times longer than the longest sample surely below its
+    clip (``spacing``, :func:`_tobit_moments`). With wider spacing the samples below the clip
+    carry about 1/spacing of the information just above it, the likelihood is far from
     Gaussian (a sharp edge, or a second, wide mode where a clipped value reads as unclipped)
-    and sigma from its curvature is too small. ``r_min`` 0: always trusted."""
-    return (not r_min > 0.0) or share >= r_min
+    and sigma from its curvature is too small (docs/merge.md, item 5). ``limit`` 0: always."""
+    return (not limit > 0.0) or spacing <= limit * (1.0 + 1e-9)
 
 
 # ------------------------------------------------------------------------------- kernels
@@ -1037,7 +1039,7 @@ def merge_kernel(
     a_map, a_is_map, _a_scalar = maps.prnu
     master, has_master, _m_scalar = maps.master
     init_sum, init_cnt, use_init = start
-    max_iter, tol, sat_sigmas, probabilistic, clip_sigmas, censored_share = options
+    max_iter, tol, sat_sigmas, probabilistic, clip_sigmas, censored_spacing = options
     out_irr, out_sig, out_nexp, out_iter, out_rules, stats = out
     n = len(values)
     H, W = values[0].shape
@@ -1240,7 +1242,22 @@ def merge_kernel(
                             BOUND,
                         )
                         k, m, st = _clip_rule(
-                            values, r, c, X, FR, n, VTH[c], v_sat, MU[c], a_c, d_c, sigma2_R, clip_sigmas, tol, max_iter, BOUND
+                            values,
+                            r,
+                            c,
+                            X,
+                            FR,
+                            n,
+                            VTH[c],
+                            v_sat,
+                            MU[c],
+                            a_c,
+                            d_c,
+                            sigma2_R,
+                            clip_sigmas,
+                            tol,
+                            max_iter,
+                            BOUND,
                         )
                         if k == 0:
                             continue  # (its passes are not counted: the iterations report the re-weighting)
@@ -1264,7 +1281,7 @@ def merge_kernel(
                             # or lie within the rule's margin of the shortest exposure's clip; a
                             # lower bound only (nexp = 0)
                             continue
-                        mu, sg, nu, steps, flagged, share = _tobit(
+                        mu, sg, nu, steps, flagged, spacing = _tobit(
                             values,
                             darks,
                             frames,
@@ -1282,7 +1299,7 @@ def merge_kernel(
                         ITER[c] += steps
                         if flagged:
                             FLAG[c] = 1.0
-                        elif _tobit_trusted(share, censored_share):
+                        elif _tobit_trusted(spacing, censored_spacing):
                             MU[c] = mu
                             SIG[c] = sg * sg
                             NU[c] = nu
