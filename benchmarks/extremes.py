@@ -4,7 +4,7 @@ docs/merge.md, *Stability at the extremes*).
 
 The sweep's cases:
 
-* cameras (:data:`CAMERAS`): 8-, 10-, 12-, 14- and 16-bit, each once with the full well clipping
+* cameras (:func:`hdrcap.experiments.extremes.cameras`): 8-, 10-, 12-, 14- and 16-bit, each once with the full well clipping
   before the ADC (``fw``: saturated values scatter around v_sat + 3 sigma_R, some slip under
   v_sat on read noise) and once with the ADC clipping first (``adc``: saturated values are the
   white level). The dark current is 30 % of the full well over 3600 s (30 % DCNU), so that it
@@ -51,12 +51,12 @@ from typing import Any
 import numpy as np
 
 from hdrcap.experiments.calibrated import estimated_calibration
+from hdrcap.experiments.extremes import T_MAX, T_MIN, cameras
 
 REPO = Path(__file__).resolve().parents[1]
 
 #: Bracket spacings (ratio of consecutive exposure times).
 SPACINGS = (1.25, 2.0, 4.0, 10.0, 100.0)
-T_MIN, T_MAX = 1e-6, 3600.0
 MAX_FRAMES = 16
 SATURATIONS = ("threshold", "probabilistic")
 K_EDGES = (-3, -2, -1, 0, 1, 2, 3)
@@ -65,42 +65,6 @@ MIN_BAND = 200
 #: The targets of a judged band.
 TARGET_MEAN, TARGET_STD = 0.1, (0.85, 1.15)
 DOCS_BEGIN, DOCS_END = "<!-- extremes:begin -->", "<!-- extremes:end -->"
-
-
-def _camera(name: str, g: float, mu_R: float, sigma2_R: float, bits: int, full_well: float):
-    from hdrcap.mock_camera.sensor import SensorSpec
-
-    return SensorSpec(
-        name=name,
-        g=g,
-        mu_R=mu_R,
-        sigma2_R=sigma2_R,
-        bits=bits,
-        full_well=full_well,
-        dark_current=0.3 * full_well / T_MAX,
-        dcnu=0.3,
-        prnu=0.01,
-    )
-
-
-def cameras() -> dict[str, Any]:
-    """The sweep's sensors: per bit depth one whose full well clips first (``fw``) and one
-    whose ADC clips first (``adc``, the full well at least 5 read-noise sigma above the white
-    level). 10-bit: camera-B's g, mu_R and sigma2_R; 12-bit fw: camera-A's; 14-bit fw: 42 000
-    e- at 0.37 DN/e-."""
-    specs = [
-        ("8-bit-fw", 0.12, 8.0, 0.7, 8, 1800.0),
-        ("8-bit-adc", 0.12, 8.0, 0.7, 8, 2400.0),
-        ("10-bit-fw", 0.92, 32.0, 18.0, 10, 1000.0),
-        ("10-bit-adc", 0.92, 32.0, 18.0, 10, 1100.0),
-        ("12-bit-fw", 0.23, 128.0, 6.5, 12, (3709.0 + 3.0 * math.sqrt(6.5) - 128.0) / 0.23),
-        ("12-bit-adc", 0.23, 128.0, 6.5, 12, 20000.0),
-        ("14-bit-fw", 0.37, 510.0, 6.5, 14, 42000.0),
-        ("14-bit-adc", 0.37, 510.0, 6.5, 14, 46000.0),
-        ("16-bit-fw", 0.5, 1000.0, 9.0, 16, 120000.0),
-        ("16-bit-adc", 0.5, 1000.0, 9.0, 16, 140000.0),
-    ]
-    return {s[0]: _camera(*s) for s in specs}
 
 
 def bracket_times(spacing: float, anchor: str) -> list[float]:

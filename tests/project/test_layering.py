@@ -193,3 +193,49 @@ def test_every_module_is_seen():
     } <= layers
     assert sum(1 for m in MODULES if m[0] == "pipeline") >= 10
     assert sum(1 for m in MODULES if m[0] == "cli") >= 10
+
+
+TESTS = Path(__file__).resolve().parents[1]
+BENCHMARKS = TESTS.parent / "benchmarks"
+
+
+def _test_imports_of(path: Path) -> list[str]:
+    """What a test file imports that a test may not: a test module, a benchmark script, or
+    anything reached by changing ``sys.path`` (a call, not text in a script it writes)."""
+    bench = {p.stem for p in BENCHMARKS.glob("*.py")} if BENCHMARKS.is_dir() else set()
+    tests = {p.stem for p in TESTS.rglob("test_*.py")}
+    bad = []
+    where = path.relative_to(TESTS) if path.is_relative_to(TESTS) else path
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names = [node.module]
+        for name in names:
+            parts = name.split(".")
+            if parts[0] in bench or parts[-1] in tests or parts[0] == "benchmarks":
+                bad.append(f"{where}:{node.lineno}: imports {name}")
+        if (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr in ("insert", "append")
+            and ast.unparse(node.func.value) == "sys.path"
+        ):
+            bad.append(f"{where}:{node.lineno}: changes sys.path")
+    return bad
+
+
+def test_no_test_imports_a_test_module_or_a_benchmark():
+    """Shared test code lives in tests/helpers (or the library), never in a test module or a
+    benchmark script: each test file runs on its own."""
+    bad = [line for path in sorted(TESTS.rglob("*.py")) for line in _test_imports_of(path)]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_test_import_rule_can_fail(tmp_path):
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        "import sys\nsys.path.insert(0, 'x')\nfrom bench_batch import main\nfrom tests.x.test_api import y\n"
+    )
+    assert len(_test_imports_of(sample)) == 3

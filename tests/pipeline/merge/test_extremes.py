@@ -17,23 +17,17 @@
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.stats import norm
 
+from hdrcap.experiments.calibrated import calibrated_sensor
+from hdrcap.experiments.extremes import cameras
 from hdrcap.mock_camera.sensor import SimulatedSensor
 from hdrcap.pipeline.merge.accumulator import merge_arrays
 from hdrcap.pipeline.params import Calibration
 from hdrcap.pipeline.schema import QUALITY_BITS
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from extremes import cameras  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from simcal import calibrated_sensor  # noqa: E402
 
 X100 = [1e-5, 1e-3, 0.1, 10.0, 1000.0]
 CLIP = QUALITY_BITS["clip_rejected"]
