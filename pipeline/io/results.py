@@ -17,6 +17,7 @@ __all__ = ["OUTPUT_FORMATS", "output_format", "read_result", "write_result"]
 #: Output formats of :func:`write_result`.
 OUTPUT_FORMATS = ("exr", "dng")
 
+
 def output_format(path: str | os.PathLike[str], format: str | None = None) -> str:
     """The format a result is written in: ``format`` if given, else ``dng`` for a ``.dng`` file
     and ``exr`` for anything else.

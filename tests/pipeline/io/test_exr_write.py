@@ -47,7 +47,12 @@ def test_blocks_give_the_bytes_of_the_whole_image_writer(tmp_path, compression, 
     ch = _channels()
     precision = {"sigma": "auto", "nexp": "uint", "quality": "uint"}
     got = write_exr(
-        tmp_path / "blocks.exr", ch, {"unit": "e-/s"}, compression=compression, precision=precision, block_rows=block_rows
+        tmp_path / "blocks.exr",
+        ch,
+        {"unit": "e-/s"},
+        compression=compression,
+        precision=precision,
+        block_rows=block_rows,
     )
     attrs = {"hdrcap": '{"unit": "e-/s"}', "hdrcap:unit": "e-/s"}
     stored = {"irradiance": "float", "sigma": "half", "nexp": "uint", "quality": "uint"}
