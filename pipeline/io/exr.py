@@ -227,7 +227,7 @@ def write_exr(
     threads: int | None = None,
     block_rows: int | None = None,
 ) -> Path:
-    """Write channels and a header as a single-part scanline EXR, atomically.
+    """Write channels and a header as a single-part scanline EXR, atomically, block by block.
 
     The header goes into one string attribute ``hdrcap`` (JSON, full precision), and its
     string entries are also written as plain attributes so that any EXR viewer shows them.
@@ -259,9 +259,10 @@ def write_exr(
         OpenEXR's compression threads (its global thread pool, which this sets). Default: the
         pool as it is, or the number of CPUs (at most 8) if it has no threads.
     block_rows : int, optional
-        Write ``block_rows`` scanlines at a time, reading each channel's rows only then (and
-        releasing the pages of memory-mapped channels after each block): for channels larger
-        than memory. The pixels and header equal the whole-image write's.
+        Scanlines written at a time (default 512). Each channel's rows are read only then (the
+        pages of memory-mapped channels are released after each block: channels larger than
+        memory) and converted to their stored type in a buffer reused for every block, so no
+        full-size copy of a channel is made. The file's bytes do not depend on it.
 
     Returns
     -------
