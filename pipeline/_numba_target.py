@@ -42,9 +42,13 @@ def configure() -> str | None:
     if "+avx512f" not in features.split(","):
         return None
     features += ",-prefer-256-bit"
-    from numba.core import config as numba_config  # numba reads the environment once, at import; we never write it
+    # numba itself first, then its configuration: the order of numba's own __init__. Importing
+    # ``numba.core`` first takes its import lock before numba's, and a thread doing that while
+    # another runs ``import numba`` trips CPython's deadlock detection (gh-83065). numba reads
+    # the environment once, at import; we never write it, and nothing is compiled at import.
+    import numba
 
-    config: Any = numba_config  # its settings are set through globals() at import: invisible to a type checker
+    config: Any = numba.core.config  # set through globals() at import: invisible to a type checker
 
     if config.CPU_FEATURES not in (None, features):  # set by the user through numba's own configuration
         return None
@@ -54,7 +58,7 @@ def configure() -> str | None:
 
 configure()
 
-import numba  # noqa: E402  (configure() imported numba.core.config; nothing compiled before the target is set)
+import numba  # noqa: E402  (configure() imported it; nothing compiled before the target is set)
 
 __all__ = ["configure", "numba", "warm_up"]
 

@@ -50,9 +50,11 @@ UNIT_ELECTRONS = "electrons per second per photosite"
 UNIT_DN = "DN per second per photosite (gain unknown: not electrons)"
 
 #: Bits of the ``quality`` channel: the calibration's defect kinds, then ``saturated`` (in every
-#: exposure: the irradiance is a lower bound) and ``masked`` (a frame's impossible raw value was
-#: left out; with nexp > 0 the photosite is estimated from the other frames).
-QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16, "masked": 32}
+#: exposure: the irradiance is a lower bound), ``masked`` (a frame's impossible raw value was
+#: left out; with nexp > 0 the photosite is estimated from the other frames) and
+#: ``clip_rejected`` (the merge's clip rule rejected a sample as a clipped value that slipped
+#: under v_sat; with nexp > 0 still a measurement, from the other samples).
+QUALITY_BITS: dict[str, int] = {**DEFECT_BITS, "saturated": 16, "masked": 32, "clip_rejected": 64}
 
 
 @dataclass(frozen=True)
@@ -94,8 +96,9 @@ CHANNELS: tuple[Channel, ...] = (
     ),
     Channel(
         "quality",
-        "bit field, 0 a trusted measurement; any bit but masked: nexp = 0, not a measurement; masked (a frame's "
-        "impossible raw value left out) with nexp > 0: estimated from the other frames: "
+        "bit field, 0 a trusted measurement; any bit but masked and clip_rejected: nexp = 0, not a measurement; "
+        "masked (a frame's impossible raw value left out) or clip_rejected (a sample rejected as a clipped value "
+        "that slipped under the saturation level) with nexp > 0: estimated from the other frames: "
         + ", ".join(f"{bit} {name}" for name, bit in QUALITY_BITS.items()),
         "uint",
     ),

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from hdrcap.pipeline.merge.options import CENSORED_SPACING
 from hdrcap.pipeline.params import Calibration
 from hdrcap.planner.predict import K_SIGMA, SystematicErrors, exposure_terms, predict_snr, usable_fraction
 
@@ -53,6 +54,7 @@ __all__ = [
 ]
 
 MAX_ITERATIONS = 8
+
 
 #: Iterations asked of the merge when they must converge (the merge's default; it stops each
 #: photosite at its tolerance, so this costs time only where needed).
@@ -294,6 +296,13 @@ def saturation_decision(
     switched off it stays) weigh more; and it costs several times the merge time.
     A user asks for it with ``--saturation probabilistic``.
 
+    It helps only where consecutive exposures are at most
+    :data:`pipeline.merge.options.CENSORED_SPACING` apart: with wider spacing the exposure below
+    a clip holds too little of the information just above it, the censored likelihood's sigma
+    is not trustworthy there, and the merge keeps the threshold estimate
+    (``MergeOptions.censored_spacing``; docs/merge.md, item 5 and *Stability at the extremes*),
+    so the predicted gain near the clip levels is not realised; the reason says so.
+
     Parameters
     ----------
     Xe : numpy.ndarray
@@ -328,6 +337,8 @@ def saturation_decision(
     gain = np.where(np.isfinite(thr), prob - thr, np.where(np.isfinite(prob), np.inf, 0.0))
     g = float(gain.max()) if gain.size else 0.0
     frac = float(np.mean(gain > tolerance_db)) if gain.size else 0.0
+    times = np.sort(np.asarray(exposures, dtype=np.float64))
+    spacing = float(np.max(times[1:] / times[:-1])) if times.size > 1 else 1.0
     if g > tolerance_db:
         choice = "threshold"
         why = (
@@ -336,6 +347,12 @@ def saturation_decision(
             "but on a realistic sensor it is less accurate near the clip levels than the threshold rule "
             "(simulated camera-R: z mean 0.1-0.6 lower); not chosen automatically"
         )
+        if spacing > CENSORED_SPACING * (1 + 1e-9):
+            why += (
+                f"; with exposures up to {spacing:.3g}x apart (more than {CENSORED_SPACING:g}x) the merge "
+                "keeps the threshold estimate near the clip levels anyway (the censored likelihood cannot be "
+                "trusted there), so most of that gain would not be realised"
+            )
     else:
         choice = "threshold"
         why = f"threshold rule (Eq. 11): the probabilistic model would add at most {g:.3f} dB"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import threading
 from pathlib import Path
 
 import pytest
@@ -21,3 +23,17 @@ def emva_dir() -> Path:
 @pytest.fixture
 def cli():
     return run_cli
+
+
+@pytest.fixture
+def sigterm_guard():
+    """Without a handler of the command's own, SIGTERM would end the test process: fail instead."""
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals are delivered to the main thread only")
+
+    def unhandled(signum, _frame):
+        raise AssertionError("SIGTERM reached the default handler: the command does not stop cleanly")
+
+    old = signal.signal(signal.SIGTERM, unhandled)
+    yield
+    signal.signal(signal.SIGTERM, old)

@@ -92,7 +92,9 @@ class Camera(Protocol):
         """Drop the connection and open a new one (a fresh camera object)."""
 
     # optional: ``bulb_range() -> (shortest, longest) | None``, the bulb times (s) the camera
-    # can time; see :func:`exposure_ladder`
+    # can time; see :func:`exposure_ladder`; ``watch_stop(event)``: give up a call in progress
+    # once the event is set (a run stopping on SIGTERM), see
+    # :func:`hdrcap.acquire.capture.session.watch_stop`
 
     def close(self) -> None:
         """Release the camera."""

@@ -429,6 +429,13 @@ def _worker_main(read_fd: int, write_fd: int) -> None:
             pass
 
 
+#: How long a camera call in progress may still take once the run is asked to stop
+#: (SIGTERM), s: a call that answers normally finishes well within it, a hung one is given up.
+STOP_GRACE_S = 2.0
+#: How often a waiting call looks at the stop event, s.
+STOP_POLL_S = 0.05
+
+
 class _Worker:
     """Parent side of the worker process; :meth:`call` sends one request and waits for its answer.
 
@@ -457,13 +464,35 @@ class _Worker:
     def pid(self) -> int:
         return self.proc.pid
 
-    def call(self, op: str, *args, timeout: float | None = None) -> Any:
+    def call(
+        self,
+        op: str,
+        *args,
+        timeout: float | None = None,
+        abort: threading.Event | None = None,
+        grace_s: float = STOP_GRACE_S,
+    ) -> Any:
         """Run ``op`` in the worker and return its result.
+
+        Parameters
+        ----------
+        op : str
+            The worker operation (``op_<name>`` of the worker).
+        *args
+            Its arguments.
+        timeout : float, optional
+            Longest wait for the answer, s (None: no limit).
+        abort : threading.Event, optional
+            The run is stopping when set (SIGTERM): the call gets ``grace_s`` more to answer,
+            then the worker is killed, whatever ``timeout`` says.
+        grace_s : float
+            See ``abort``, s.
 
         Raises
         ------
         CameraTimeoutError
-            No answer within ``timeout`` s: the worker was killed.
+            No answer within ``timeout`` s, or within ``grace_s`` of ``abort``: the worker was
+            killed.
         CameraDisconnectedError
             The worker is gone (killed earlier or crashed).
         GphotoError
@@ -474,21 +503,39 @@ class _Worker:
                 raise CameraDisconnectedError(f"{self.name}: not connected (the camera process was stopped); reconnect")
             try:
                 self.outbox.send((op, args))
-                ready = self.inbox.poll(timeout)
+                ready, why = self._wait(timeout, abort, grace_s)
                 reply = self.inbox.recv() if ready else None
             except (EOFError, OSError, BrokenPipeError):
                 self._kill()
                 raise CameraDisconnectedError(f"{self.name}: the camera process ended during {op}") from None
             if reply is None:
                 self._kill()
-                raise CameraTimeoutError(
-                    f"{self.name}: {op} did not answer within {timeout:.3g} s; the camera process was killed"
-                )
+                raise CameraTimeoutError(f"{self.name}: {op} {why}; the camera process was killed")
         if reply[0] == "ok":
             return reply[1]
         if reply[0] == "gp":
             raise GphotoError(reply[1], reply[2])
         raise CameraError(f"{self.name}: {op} failed in the camera process: {reply[1]}: {reply[2]}")
+
+    def _wait(self, timeout: float | None, abort: threading.Event | None, grace_s: float) -> tuple[bool, str]:
+        """Wait for the worker's answer: (ready, why not)."""
+        if abort is None:
+            ready = self.inbox.poll(timeout)
+            return ready, "" if ready else f"did not answer within {timeout:.3g} s"
+        deadline = None if timeout is None else time.monotonic() + timeout
+        give_up = None
+        while True:
+            now = time.monotonic()
+            if abort.is_set() and give_up is None:
+                give_up = now + grace_s
+            ends = [t for t in (deadline, give_up) if t is not None]
+            if self.inbox.poll(max(0.0, min([now + STOP_POLL_S, *ends]) - now)):
+                return True, ""
+            now = time.monotonic()
+            if give_up is not None and now >= give_up:
+                return False, f"was given up {grace_s:g} s after the run was asked to stop (the run is stopping)"
+            if deadline is not None and now >= deadline:
+                return False, f"did not answer within {timeout:.3g} s"
 
     def _kill(self) -> None:
         self.dead = True
@@ -720,6 +767,7 @@ class Gphoto2Camera:
         #: call, an (op, code) pair the next call of that worker op
         self._inject: list = []
         self._worker: Any = None
+        self._stop: threading.Event | None = None
         self._bulb_time: float | None = None
         self._t: float | None = None
         self._labels: dict[float, str] = {}
@@ -812,6 +860,8 @@ class Gphoto2Camera:
                 break
             except (CameraError, InputError) as err:
                 self.events.append(("reconnect_failed", f"{type(err).__name__}: {err}"))
+                if self._stop is not None and self._stop.is_set():  # the run is stopping: no more polling
+                    raise CameraDisconnectedError(f"reconnect given up, the run is stopping ({err})") from None
                 left = deadline - time.monotonic()
                 if left <= 0:  # tried at the deadline too: give up
                     if isinstance(err, InputError):
@@ -841,6 +891,14 @@ class Gphoto2Camera:
         """Release the camera and end its worker process."""
         self._drop_worker()
 
+    def watch_stop(self, stop: threading.Event | None) -> None:
+        """Give up a call in progress :data:`STOP_GRACE_S` after ``stop`` is set (SIGTERM,
+        :func:`hdrcap.acquire.capture.session.stop_on_signals`) instead of waiting for its
+        timeout: the worker is killed (the kernel releases the USB claim with it) and the call
+        fails as a timeout; a stopping session then neither retries nor reconnects, and a
+        reconnect in progress stops polling. None: no stop to watch."""
+        self._stop = stop
+
     def __enter__(self) -> Self:
         return self
 
@@ -858,7 +916,9 @@ class Gphoto2Camera:
                 raise CameraDisconnectedError(f"{during}: camera not connected (a reconnect failed); reconnect")
             try:
                 self._injected(op)
-                return worker.call(op, *args, timeout=timeout)
+                if self._stop is None:
+                    return worker.call(op, *args, timeout=timeout)
+                return worker.call(op, *args, timeout=timeout, abort=self._stop)
             except GphotoError as err:
                 mapped = classify_gphoto2_error(err, during)
                 if isinstance(mapped, CameraBusyError):

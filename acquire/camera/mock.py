@@ -7,8 +7,8 @@ writes a DNG (:class:`hdrcap.mock_camera.backend.SimulatedCamera`) and hands it 
 (:class:`MockFaults`) reproduce what real cameras do: busy, disconnect in the middle of a
 download (a partial file is left behind), hang until the timeout (or past it: a hang that does
 not cooperate), reconnects that fail several times in a row, a camera that comes back on a new
-port, a corrupted or truncated file reported as a success, a full card, and an abrupt process
-kill.
+port, a corrupted or truncated file reported as a success, a full card, a camera that ignores
+the shutter setting, and an abrupt process kill.
 
 This module must not import :mod:`hdrcap.acquire` (imports point down): it raises the camera
 errors of :mod:`hdrcap.acquire.camera.types` (the classes the real camera raises; their
@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -83,6 +84,9 @@ class MockFaults:
         Probability that a reconnect finds the camera on a new port (a re-plugged,
         power-cycled or woken camera gets a new USB address); the identity's port changes,
         its serial does not.
+    stuck_exposure_s : float or None
+        A camera that ignores the shutter setting (not in manual exposure, the setting
+        locked): every frame is exposed this many seconds, and the setting reads back as it.
     """
 
     seed: int = 0
@@ -99,6 +103,7 @@ class MockFaults:
     reconnect_fail_rate: float = 0.0
     reconnect_failures: int = 2
     renumber_rate: float = 0.0
+    stuck_exposure_s: float | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MockFaults:
@@ -177,6 +182,7 @@ class MockCamera:
         self.ports: list[str] = []
         self._failing_reconnects = 0
         self.fault_log: list[str] = []
+        self._stop: threading.Event | None = None
         # the port names this object: two simulated cameras are never the same device
         self._port_base = f"mock:{spec.name}:{os.getpid()}.{id(self):x}"
         self.identity = CameraIdentity("mock", spec.model, self.sim.serial, self._port_base)
@@ -200,10 +206,13 @@ class MockCamera:
 
     def set_exposure(self, t: float) -> float:
         """Coerce ``t`` to the nearest allowed time (log scale), or take it as it is in the
-        bulb range, and return what was applied."""
+        bulb range, and return what was applied (``stuck_exposure_s``: that, whatever ``t``)."""
         self._check_connected()
         if not (t > 0 and math.isfinite(t)):
             raise ValueError(f"exposure time must be positive, got {t!r}")
+        if self.faults.stuck_exposure_s is not None:
+            self._t, self._bulb = float(self.faults.stuck_exposure_s), False
+            return self._t
         bulb = self.bulb_range()
         self._bulb = bulb is not None and bulb[0] < t <= bulb[1]
         self._t = t if self._bulb else min(self._allowed, key=lambda a: (abs(math.log(a / t)), a))
@@ -263,6 +272,11 @@ class MockCamera:
     def close(self) -> None:
         self._connected = False
 
+    def watch_stop(self, stop: threading.Event | None) -> None:
+        """A hang in progress ends when ``stop`` is set (as the real camera's worker is given
+        up on: :meth:`hdrcap.acquire.camera.gphoto2.Gphoto2Camera.watch_stop`)."""
+        self._stop = stop
+
     def _check_connected(self) -> None:
         if not self._connected:
             raise CameraDisconnectedError("mock camera: not connected (reconnect first)")
@@ -288,7 +302,12 @@ class MockCamera:
             raise CameraBusyError("mock camera: busy [-110]")
         if u[1] < f.hang_rate:
             self.fault_log.append("hang")
-            time.sleep(min(f.hang_s, timeout) if timeout and not f.hang_ignores_timeout else f.hang_s)
+            hang = min(f.hang_s, timeout) if timeout and not f.hang_ignores_timeout else f.hang_s
+            if self._stop is not None and self._stop.wait(hang):
+                self._lose_connection()
+                raise CameraTimeoutError("mock camera: no answer; given up because the run is stopping")
+            if self._stop is None:
+                time.sleep(hang)
             self._lose_connection()
             raise CameraTimeoutError("mock camera: no answer (timeout)")
         if f.card_full_after is not None and self.downloads >= f.card_full_after:

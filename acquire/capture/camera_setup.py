@@ -4,11 +4,12 @@ range, its calibration and the disk space of the run."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hdrcap.acquire.camera import Camera, exposure_ladder
+from hdrcap.acquire.camera import Camera, exposure_ladder, nearest_allowed
 from hdrcap.acquire.capture.job import Job
 
 if TYPE_CHECKING:
@@ -29,7 +30,8 @@ __all__ = [
 
 
 def open_camera(job: Job, n: int = 0) -> Camera:
-    """The job's camera (for the mock backend: with the job's scene; seed + n per repetition).
+    """The job's camera (for the mock backend: with the job's scene; its seed and its faults'
+    seed + n per repetition).
 
     Parameters
     ----------
@@ -70,13 +72,14 @@ def _open_simulator(job: Job, n: int) -> MockCamera:
     cam, sc = job["camera"], job["scene"]
     shape = parse_size(cam["size"])
     scene = load_scene(_scene_path(job, sc["name"]), shape, sc["decades"], sc["x_max"])
+    faults = MockFaults.from_dict(cam.get("faults", {}))
     return MockCamera(
         cam["preset"],
         scene,
         seed=cam["seed"] + n,
         allowed_times=cam.get("allowed_times"),
         bulb_max_s=cam.get("bulb_max_s"),
-        faults=MockFaults.from_dict(cam.get("faults", {})),
+        faults=dataclasses.replace(faults, seed=faults.seed + n),  # each repetition its own fault draws
         temperature=cam.get("temperature"),
     )
 
@@ -137,19 +140,24 @@ def job_camera_key(job: Job) -> str | None:
     return f"gphoto2-port-{cam['port']}" if cam.get("port") else "gphoto2-any"
 
 
-def check_job_against_camera(job: Job, camera: Camera) -> None:
-    """Checks that need the camera (still before any frame): exposure times in its range.
+def check_job_against_camera(job: Job, camera: Camera, echo: Callable[[str], None] | None = None) -> None:
+    """Checks that need the camera (still before any frame): exposure times in its range, and
+    each time of a fixed bracket one of the camera's (a time that is not is taken at the
+    camera's nearest, with a warning; two that would become one are refused).
 
     Parameters
     ----------
     job : Job
     camera : Camera
+    echo : callable, optional
+        Where the warnings about snapped times go.
 
     Raises
     ------
     JobError
         An exposure time (of the bracket or a calibration series) outside the camera's range
-        (by more than a third of a stop), or a camera without exposure times.
+        (by more than a third of a stop), a camera without exposure times, or two bracket
+        times the camera would take at one time (``repeats`` asks for several frames per time).
     """
     allowed = exposure_ladder(camera)  # timed speeds, and bulb times where the camera has bulb
     if not allowed:
@@ -160,6 +168,32 @@ def check_job_against_camera(job: Job, camera: Camera) -> None:
         bad += [t for t in s["times"] if t < lo / 1.26 or t > hi * 1.26]
     if bad:
         raise job.error("exposure", "times", f"exposure {bad[0]:g} s is outside the camera's range {lo:g} .. {hi:g} s")
+    if job["exposure"]["mode"] == "bracket":
+        _check_snapped_times(job, allowed, echo)
+
+
+def _check_snapped_times(job: Job, allowed: list[float], echo: Callable[[str], None] | None) -> None:
+    """Warn about each bracket time that is not one of the camera's; JobError when two become one."""
+    from hdrcap.pipeline.times import ExposureMap, same_exposure
+
+    taken: ExposureMap[float] = ExposureMap()
+    for t in job["exposure"]["times"]:
+        got = nearest_allowed(t, allowed)
+        if got in taken:
+            was = taken[got]
+            both = f"{t:g} s is given twice" if same_exposure(was, t) else f"{was:g} s and {t:g} s"
+            raise job.error(
+                "exposure",
+                "times",
+                f"{both}: the camera takes {'it' if same_exposure(was, t) else 'both'} at {got:g} s; give each "
+                "time once (repeats = N takes N frames of every time)",
+            )
+        taken[got] = t
+        if echo is not None and not same_exposure(got, t):
+            echo(
+                f"hdrcap: warning: {job.where('exposure', 'times')}: exposure.times: {t:g} s is not one of the "
+                f"camera's exposure times; taken at its nearest, {got:g} s (the manifest records both)"
+            )
 
 
 def check_free_space(job: Job, camera: Camera, run_dir: Path, repetitions: int = 1) -> dict[str, Any]:

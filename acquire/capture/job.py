@@ -123,6 +123,8 @@ def load_job(path: str | os.PathLike[str]) -> Job:
     ------
     JobError
         The first problem, as ``FILE:LINE: section.key: message`` (one line).
+    acquire.capture.session.LocalIOError
+        The output folder is not writable (exit status 6), with its ``FILE:LINE``.
     """
     file = Path(path)
     try:
@@ -291,7 +293,8 @@ def capture_job(
 
 
 def _check_paths(job: Job) -> None:
-    """The calibration file and dark library exist; the run folder can be written."""
+    """The calibration file and dark library exist; the run folder can be written (a folder
+    that is read-only or not ours is a local I/O error, exit status 6, as it is during a run)."""
     cal = job.spec.calibration
     if cal.file is not None and not job.resolve(cal.file).is_file():
         raise job.error("calibration", "file", f"calibration file {job.resolve(cal.file)} does not exist")
@@ -302,8 +305,15 @@ def _check_paths(job: Job) -> None:
     probe = job.resolve(job.spec.output.folder.split("{")[0] or ".")
     while not probe.exists() and probe.parent != probe:
         probe = probe.parent
-    if probe.exists() and (not probe.is_dir() or not os.access(probe, os.W_OK)):
+    if probe.exists() and not probe.is_dir():
         raise job.error("output", "folder", f"{probe} is not a writable folder")
+    if probe.exists() and not os.access(probe, os.W_OK):  # local I/O (exit 6), as during a run
+        from hdrcap.acquire.capture.session import LocalIOError
+
+        raise LocalIOError(
+            f"{job.where('output', 'folder')}: output.folder: {probe} is not writable (read-only or permissions); "
+            "fix it or choose another folder"
+        )
 
 
 # --------------------------------------------------------------------------- pydantic -> one line

@@ -32,11 +32,12 @@ def _write_outputs(
     camera: Camera,
     exr_path: Path | None,
     png_path: Path | None,
-    force: bool,
+    replace: dict[Path, bool],
     planner_header: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The run's outputs: the merge's EXR (the one header builder and writer every door uses),
-    the preview PNG, and the error against the truth when the camera is simulated."""
+    the preview PNG, and the error against the truth when the camera is simulated;
+    ``replace``: output path -> whether it may replace an existing file."""
     from hdrcap.pipeline.header import with_merge_header
     from hdrcap.pipeline.io.raw import read_frame
     from hdrcap.pipeline.io.results import write_result
@@ -69,10 +70,10 @@ def _write_outputs(
         planner=planner_header,
     )
     if exr_path is not None:
-        write_result(merge, exr_path, format="exr", force=force)
+        write_result(merge, exr_path, format="exr", force=replace.get(exr_path, False))
         out["exr"] = str(exr_path)
     if png_path is not None:
-        write_preview_png(png_path, merge.irradiance, cfa, force=force)
+        write_preview_png(png_path, merge.irradiance, cfa, force=replace.get(png_path, False))
         out["png"] = str(png_path)
     truth = getattr(getattr(camera, "sim", None), "scene", None)
     if truth is not None:  # the simulator knows the truth: report the error against it

@@ -13,8 +13,9 @@ from hdrcap.acquire.camera import Camera, exposure_ladder, nearest_allowed
 from hdrcap.acquire.capture.camera_setup import run_iso
 from hdrcap.acquire.capture.job import Job
 from hdrcap.acquire.capture.manifest import jsonable
-from hdrcap.acquire.capture.metering import meter_fn
+from hdrcap.acquire.capture.metering import meter_fn, refuse_unlit_metering
 from hdrcap.pipeline.noise import DarkStrategy
+from hdrcap.pipeline.times import same_exposure
 
 if TYPE_CHECKING:
     from hdrcap.acquire.capture.session import CapturePlan, RetryPolicy, StopEvent
@@ -36,7 +37,9 @@ def plan_for(
 ) -> tuple[CapturePlan, dict[str, Any]]:
     """The capture plan: a fixed bracket, or meter + planner for a target SNR.
 
-    The planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
+    Times that are not the camera's are snapped to its nearest (``info["snapped_times"]``:
+    [given, taken] pairs; each frame keeps the given time as ``job_exposure_s``). The
+    planner's dark strategy per exposure is kept (unless the job sets ``[darks] strategy``):
     dark frames are captured only for matched and master exposures, and not for master
     exposures whose master dark the dark library holds. ``info`` (recorded in the manifest)
     carries the planner's decisions and merge options for the merge and the EXR header.
@@ -60,6 +63,11 @@ def plan_for(
     -------
     tuple
         (:class:`acquire.capture.session.CapturePlan`, info dict).
+
+    Raises
+    ------
+    acquire.capture.session.VerificationError
+        Metering saw no light (:func:`acquire.capture.metering.refuse_unlit_metering`).
     """
     from hdrcap.acquire.capture.session import CapturePlan
 
@@ -71,6 +79,9 @@ def plan_for(
     if exp["mode"] == "snr":
         times, strategy = _plan_for_snr(job, camera, calibration, run_dir, echo, retry, stop, info)
     snapped = [nearest_allowed(t, allowed) for t in times]
+    moved = [[t, got] for t, got in zip(times, snapped) if not same_exposure(t, got)]
+    if moved:  # the camera's times are what the frames are taken at; the job's are kept
+        info["snapped_times"] = moved
     per = [strategy] * len(snapped) if isinstance(strategy, str) else strategy
     master_times = [t for t, s in zip(snapped, per) if s == DarkStrategy.MASTER]
     masters = (
@@ -90,7 +101,7 @@ def plan_for(
         info["dark_library"] = {f"{t:g}": n for t, (_d, n) in masters.items()}
         echo(f"dark library: master darks for {len(masters)} of {len(set(master_times))} master-dark exposure times")
     plan = CapturePlan.bracket(
-        snapped,
+        times,
         allowed,
         strategy,
         n_dark=darks["count"],
@@ -118,7 +129,8 @@ def _plan_for_snr(
     exp = job["exposure"]
     strategy: str | list[str] = job["darks"]["strategy"]
     allowed = exposure_ladder(camera)
-    irradiance = planner.meter(meter_fn(camera, run_dir, retry, stop), calibration, allowed)
+    irradiance, report = planner.meter(meter_fn(camera, run_dir, retry, stop), calibration, allowed, return_report=True)
+    refuse_unlit_metering(report, run_dir)
     root = library_root(job, calibration)
     iso = run_iso(job, calibration)
     library = {t: n for t, (_d, n) in library_masters(root, camera, allowed, load=False, iso=iso).items()}

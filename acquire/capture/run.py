@@ -91,9 +91,11 @@ def run_job(
 ) -> dict[str, Any] | tuple[dict[str, Any], SessionResult | None]:
     """Run one repetition of ``job``.
 
-    With ``resume`` the newest incomplete run of the job is continued; on a complete run
-    nothing is done and its recorded summary is returned (``status`` ``"already_complete"``),
-    with no run at all ``status`` is ``"nothing_to_resume"``.
+    With ``resume`` the newest incomplete run of the job is continued (one whose frames are
+    all recorded but whose outputs or completion record are missing gets them: the recorded
+    frames are merged again); on a complete run nothing is done and its recorded summary is
+    returned (``status`` ``"already_complete"``), with no run at all ``status`` is
+    ``"nothing_to_resume"``.
 
     Parameters
     ----------
@@ -164,10 +166,18 @@ def _local_io_error(err: OSError, run_dir: Path) -> LocalIOError:
 
 
 def _record_complete(run_dir: Path, summary: dict[str, Any], echo: Callable[[str], None]) -> None:
-    """The manifest's last record, ``complete`` with the summary (a failure is a warning)."""
+    """The manifest's last record, ``complete`` with the summary and the outputs the run wrote
+    (relative to the run folder when inside it: :func:`acquire.capture.runfolder.run_state`
+    checks that they still exist); a failure is a warning."""
+    outputs = [output_name(Path(summary[k]), run_dir) for k in ("exr", "png") if summary.get(k)]
     try:
         Manifest(run_dir).append(
-            {"type": "complete", "time": _dt.datetime.now(_dt.UTC).isoformat(), "summary": jsonable(summary)}
+            {
+                "type": "complete",
+                "time": _dt.datetime.now(_dt.UTC).isoformat(),
+                "summary": jsonable(summary),
+                "outputs": outputs,
+            }
         )
     except OSError as err:
         echo(f"hdrcap: warning: {run_dir}: could not record the run as complete ({err.strerror or err})")
@@ -191,19 +201,26 @@ def _run_one(
     own = camera is None
     cam = camera or open_camera(job, n)
     try:
-        check_job_against_camera(job, cam)
+        check_job_against_camera(job, cam, echo)
         calibration = job_calibration(job)
         expect = check_compatibility(job, cam, calibration, echo)
         retry = _retry_policy(job)
         force = force or job["output"]["force"]
         exr_path, png_path = _output_paths(job, run_dir, exr_path, png_path)
-        _refuse_to_overwrite(run_dir, resume, force, (exr_path, png_path))
-        plan, info = _recorded_or_new_plan(job, cam, calibration, run_dir, resume, echo, retry, stop)
-        planned = info.get("plan") or {}
-        options = _plan_merge_options(planned)
-        result = _capture(job, cam, calibration, run_dir, plan, info, options, n, resume, progress, retry, stop, expect)
-        header = _planner_header(planned, options, info)
-        outputs = _write_outputs(job, run_dir, result, calibration, cam, exr_path, png_path, force, header)
+        replace = _replaceable(run_dir, resume, force, (exr_path, png_path))
+        _refuse_to_overwrite(run_dir, resume, replace)
+        try:
+            plan, info = _recorded_or_new_plan(job, cam, calibration, run_dir, resume, echo, retry, stop)
+            planned = info.get("plan") or {}
+            options = _plan_merge_options(planned)
+            result = _capture(
+                job, cam, calibration, run_dir, plan, info, options, n, resume, progress, retry, stop, expect
+            )
+            header = _planner_header(planned, options, info)
+            outputs = _write_outputs(job, run_dir, result, calibration, cam, exr_path, png_path, replace, header)
+        except BaseException as err:  # the session logs its own stops; metering and outputs here
+            _log_stop(run_dir, err)
+            raise
     finally:
         if own:
             try:
@@ -211,6 +228,21 @@ def _run_one(
             except Exception:
                 pass
     return _summary(run_dir, result, outputs), result
+
+
+def _log_stop(run_dir: Path, err: BaseException) -> None:
+    """The ``stop`` event of a run that failed outside its capture session (metering, the
+    merge's outputs), once the run folder exists; a local I/O error with exit status 6."""
+    from hdrcap.acquire.capture.manifest import EventLog
+    from hdrcap.acquire.capture.session import emit_stop
+
+    if getattr(err, "stop_logged", False) or not run_dir.is_dir():
+        return
+    if isinstance(err, OSError):
+        emit_stop(EventLog(run_dir), _local_io_error(err, run_dir))
+        err.stop_logged = True  # type: ignore[attr-defined]
+    else:
+        emit_stop(EventLog(run_dir), err)
 
 
 def _retry_policy(job: Job) -> RetryPolicy:
@@ -231,9 +263,24 @@ def _output_paths(
     return exr_path, png_path
 
 
-def _refuse_to_overwrite(run_dir: Path, resume: bool, force: bool, outputs: tuple[Path | None, ...]) -> None:
+def output_name(path: Path, run_dir: Path) -> str:
+    """An output's name as the completion record keeps it: relative to the run folder when
+    inside it, else absolute."""
+    try:
+        return str(Path(path).absolute().relative_to(Path(run_dir).absolute()))
+    except ValueError:
+        return str(Path(path).absolute())
+
+
+def _replaceable(run_dir: Path, resume: bool, force: bool, outputs: tuple[Path | None, ...]) -> dict[Path, bool]:
+    """Output path -> whether it may replace an existing file: with ``force``, and on a resume
+    for the outputs inside the run folder (the run's own, written again from the same frames)."""
+    return {p: force or (resume and not Path(output_name(p, run_dir)).is_absolute()) for p in outputs if p is not None}
+
+
+def _refuse_to_overwrite(run_dir: Path, resume: bool, replace: dict[Path, bool]) -> None:
     """RunConflictError for a new run in a folder with a run; OutputExistsError for an output
-    that exists (without ``force``)."""
+    that exists and may not be replaced (:func:`_replaceable`)."""
     from hdrcap.acquire.capture.session import RunConflictError
     from hdrcap.pipeline.io.files import check_new_output
 
@@ -241,9 +288,8 @@ def _refuse_to_overwrite(run_dir: Path, resume: bool, force: bool, outputs: tupl
         raise RunConflictError(
             f"{run_dir}: holds an earlier run (manifest.jsonl); use --resume to continue it or choose another run folder"
         )
-    for p in outputs:
-        if p is not None:
-            check_new_output(p, force)
+    for p, may in replace.items():
+        check_new_output(p, may)
 
 
 def _recorded_or_new_plan(
@@ -293,7 +339,9 @@ def _capture(
         )
         masters = {t: (data, n_frames) for t, (data, n_frames) in found.items() if data is not None}  # all: loaded
     d = job["darks"]
-    light = LightBlocker(d["block_light"], d.get("cover_command"), d.get("uncover_command"))
+    light = LightBlocker(
+        d["block_light"], d.get("cover_command"), d.get("uncover_command"), command_timeout_s=d["command_timeout_s"]
+    )
     meta = {
         "job": str(job.path) if job.path else None,
         "job_name": job.name,

@@ -107,8 +107,10 @@ def resume_folder(job: Job, n: int = 0) -> Path | None:
 
 def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
     """(``"complete"`` or ``"incomplete"``, start time) of the run in ``run_dir``. Complete: the
-    manifest has a ``complete`` record, or (runs recorded before it existed) every planned
-    frame is recorded and the job's EXR output exists.
+    manifest has a ``complete`` record (written once every output was) and every output it
+    names still exists (records written before they named theirs: the job's EXR and PNG in
+    the run folder). A run killed between its outputs, or whose preview was deleted, is
+    incomplete: ``--resume`` writes what is missing.
 
     Parameters
     ----------
@@ -125,16 +127,19 @@ def run_state(job: Job, run_dir: Path) -> tuple[str, str]:
     scan = Manifest(run_dir).scan()
     head = scan.header or {}
     started = str(head.get("time") or _dt.datetime.fromtimestamp(run_dir.stat().st_mtime, _dt.UTC).isoformat())
-    return ("complete" if _is_complete(scan, run_dir, job["output"]["exr"]) else "incomplete"), started
+    outputs = [job["output"][k] for k in ("exr", "png") if job["output"][k]]
+    return ("complete" if _is_complete(scan, run_dir, outputs) else "incomplete"), started
 
 
-def _is_complete(scan: ManifestScan, run_dir: Path, exr: str | None) -> bool:
-    """Complete: a ``complete`` record, or (runs recorded before it existed) every planned frame
-    recorded and the EXR output ``exr`` (a name in the run folder) there."""
-    if scan.completion is not None:
-        return True
-    planned = {f["key"] for f in (scan.header or {}).get("plan", {}).get("frames", [])}
-    return bool(planned and planned <= scan.keys and exr and (Path(run_dir) / exr).is_file())
+def _is_complete(scan: ManifestScan, run_dir: Path, outputs: list[str]) -> bool:
+    """Complete: a ``complete`` record and every output it declares (``outputs``, names in the
+    run folder, for a record that declares none) there; an interrupted output step is not."""
+    done = scan.completion
+    if done is None:
+        return False
+    declared = done.get("outputs")
+    names = outputs if declared is None else declared
+    return all((Path(run_dir) / name).is_file() for name in names)  # an absolute name stays absolute
 
 
 #: The states of :class:`RunStatus`.
@@ -222,7 +227,7 @@ def run_status(run_dir: Path, held: frozenset[tuple[int, int, int]] | None = Non
         Where they cannot be read (not Linux) a run that is neither complete nor stopped counts
         as running.
     exr : str
-        Name of the EXR output, for runs recorded before the ``complete`` record existed.
+        Name of the EXR output, for a ``complete`` record that does not list its outputs.
 
     Returns
     -------
@@ -237,7 +242,7 @@ def run_status(run_dir: Path, held: frozenset[tuple[int, int, int]] | None = Non
     active = run_is_active(run_dir, held)
     planned = len(head["plan"]["frames"]) if isinstance(head.get("plan"), dict) and "frames" in head["plan"] else None
     exit_code, message, updated = None, None, ev["time"]
-    if _is_complete(scan, run_dir, exr):
+    if _is_complete(scan, run_dir, [exr]):
         state = "complete"
         updated = (scan.completion or {}).get("time") or updated
     elif active:

@@ -138,4 +138,5 @@ def _report_failure(
     notify(job, res, echo)
     if on_result is not None:
         on_result(res)
+        err.reported = True  # the caller's report was this one (no second JSON object)
     return res

@@ -142,6 +142,7 @@ class DarksTable(Table):
     block_light: Literal["mock", "prompt", "command", "none"] = "mock"
     cover_command: str | None = None
     uncover_command: str | None = None
+    command_timeout_s: float = Field(60.0, gt=0, allow_inf_nan=False)
     check: float = 0.05
 
     @model_validator(mode="after")

@@ -8,16 +8,22 @@ Guarantees
   unique plan key (``frames/0007_light_0.004s.dng``); a file is never overwritten.
 * A frame is recorded in the manifest only after it was verified: it opens with
   :func:`pipeline.io.raw.read_frame`, its size is the camera's and the exposure time in the file
-  is the one the camera reported applying. Its sha256 is recorded.
+  is the one the camera reported applying. Its sha256 is recorded. A camera that applies
+  another exposure time than the one it was given (beyond its own rounding) stops the run.
 * Busy cameras are retried with exponential backoff; disconnects and hangs cause a reconnect
   (a new camera object) and a retry; bad files are captured again; card full and camera gone
   stop the session with a one-line message. The manifest is left consistent in every case.
 * ``resume=True`` continues an interrupted run: frames in the manifest are kept (after their
   hash is checked), a frame whose file landed but was not yet recorded is verified and
-  adopted, unfinished downloads are discarded, and only the missing frames are captured.
-* A lock on the run folder and one on the camera stop two sessions from colliding.
+  adopted, unfinished downloads are discarded, and only the missing frames are captured; those
+  missing under recorded frames (a voided dark frame) first, before anything is merged again.
+* A lock on the run folder and one on the camera stop two sessions from colliding; the lock
+  files are removed again.
 * Each verified light frame is handed to the merge (``pipeline.merge.accumulator.MergeAccumulator``) as
   it lands, with the dark strategy the plan gives its exposure time.
+* A run that stops logs a ``stop`` event with its exit status, after unblocking the light (or
+  recording that it could not); a stop (SIGTERM) also ends a cover/uncover command and, on a
+  camera that can (``watch_stop``), a hung camera call.
 """
 
 from __future__ import annotations
@@ -25,11 +31,13 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import logging
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -77,7 +85,14 @@ __all__ = [
     "held_locks",
     "lock_is_held",
     "SESSION_LOCK_NAME",
+    "PathLock",
+    "run_command",
+    "check_applied_exposure",
+    "watch_stop",
+    "emit_stop",
 ]
+
+_log = logging.getLogger("hdrcap.run")
 
 #: Frame kinds; the first two feed the HDR merge, the rest are calibration series.
 LIGHT_KINDS = ("light", "flat", "saturation")
@@ -146,11 +161,15 @@ class FrameSpec:
         ``darkseries`` (calibration series).
     exposure_s : float
         Requested exposure time, s (already one of the camera's allowed times).
+    job_exposure_s : float or None
+        The time the job (or the caller) asked for when it is not one of the camera's and was
+        snapped to ``exposure_s``, s; None when it was one of them.
     """
 
     key: str
     kind: str
     exposure_s: float
+    job_exposure_s: float | None = None
 
     @property
     def dark(self) -> bool:
@@ -174,15 +193,16 @@ def _strategies_by_time(times: list[float], dark_strategy: str | Sequence[str]) 
     return by_time
 
 
-def _frame_specs(frames: list[tuple[str, float, int]]) -> tuple[FrameSpec, ...]:
-    """FrameSpecs of (kind, exposure time, repetition) in order, keyed ``kind-time-n``."""
+def _frame_specs(frames: list[tuple[str, float, int]], asked: ExposureMap[float]) -> tuple[FrameSpec, ...]:
+    """FrameSpecs of (kind, exposure time, repetition) in order, keyed ``kind-time-n``;
+    ``asked``: the time given for each snapped time."""
     out: list[FrameSpec] = []
     seen: dict[str, int] = {}
     for kind, t, _j in frames:
         base = f"{kind}-{t:.6g}"
         n = seen.get(base, 0)
         seen[base] = n + 1
-        out.append(FrameSpec(key=f"{base}-{n}", kind=kind, exposure_s=t))
+        out.append(FrameSpec(key=f"{base}-{n}", kind=kind, exposure_s=t, job_exposure_s=asked.get(t)))
     return tuple(out)
 
 
@@ -233,10 +253,18 @@ class CapturePlan:
         frames per time, dark frames per dark strategy and calibration ``series`` (dicts with
         ``kind``, ``times``, ``count``). ``dark_strategy`` is one strategy for all exposures or
         one per entry of ``times`` (a planner's per-exposure choice). Frames needing the light
-        blocked come first, so the light is blocked once. ``library_times``: exposure times
+        blocked come first, so the light is blocked once; a time that was snapped keeps the
+        time given as the frames' ``job_exposure_s``. ``library_times``: exposure times
         whose master dark comes from the dark library (no dark frames are captured for them;
         only ``master`` times qualify)."""
-        snap = (lambda t: nearest_allowed(t, allowed)) if allowed else float
+        asked: ExposureMap[float] = ExposureMap()
+
+        def snap(t: float) -> float:
+            got = nearest_allowed(float(t), allowed) if allowed else float(t)
+            if not same_exposure(got, t):
+                asked.setdefault(got, float(t))
+            return got
+
         times = [snap(float(t)) for t in times]
         by_time = _strategies_by_time(times, dark_strategy)
         uniq = sorted(by_time)
@@ -257,7 +285,7 @@ class CapturePlan:
         pairs = () if uniform != "mixed" else tuple((t, by_time[t].value) for t in uniq)
         master = DarkStrategy.MASTER in by_time.values() or uniform == DarkStrategy.MASTER
         return cls(
-            frames=_frame_specs(dark_frames + light_frames),
+            frames=_frame_specs(dark_frames + light_frames, asked),
             dark_strategy=uniform,
             n_dark=max(1, int(n_dark)) if master else 1,
             library_times=tuple(lib),
@@ -344,6 +372,11 @@ class LightBlocker:
     with the shell, e.g. closing a shutter or switching the light source off; a non-zero exit
     stops the session) or ``none`` (the light is already blocked, e.g. a lens cap on).
     The camera's own :meth:`cover`/:meth:`uncover` are always called too.
+
+    A command runs in a process group of its own: one that outlasts ``command_timeout_s``, or
+    is still running when ``stop`` is set (SIGTERM/SIGINT), is killed with every process it
+    started, and the session stops (:class:`SessionError`, or :class:`RunInterrupted` for a
+    stop).
     """
 
     def __init__(
@@ -353,19 +386,26 @@ class LightBlocker:
         uncover_command: str | None = None,
         prompt: Callable[[str], Any] | None = None,
         settle_s: float = 0.0,
+        command_timeout_s: float = 60.0,
+        stop: threading.Event | None = None,
     ) -> None:
         if method not in ("mock", "prompt", "command", "none"):
             raise InputError(f"light blocking must be mock, prompt, command or none, got {method!r}")
         if method == "command" and not (cover_command and uncover_command):
             raise InputError("light blocking by command needs cover_command and uncover_command")
+        if not command_timeout_s > 0:
+            raise InputError(f"the light command timeout must be > 0 s, got {command_timeout_s!r}")
         self.method = method
         self.cover_command = cover_command
         self.uncover_command = uncover_command
         self.prompt = prompt or _default_prompt
         self.settle_s = settle_s
+        self.command_timeout_s = float(command_timeout_s)
+        self.stop = stop
         self.covered: bool | None = None
 
     def set(self, camera: Camera, covered: bool, log: EventLog | None = None) -> None:
+        """Block (``covered``) or unblock the light, unless it already is; a ``light`` event."""
         if self.covered is covered:
             return
         if self.method == "prompt":
@@ -377,18 +417,112 @@ class LightBlocker:
         elif self.method == "command":
             cmd = self.cover_command if covered else self.uncover_command
             assert cmd is not None  # __init__ refuses the command method without both commands
-            proc = subprocess.run(cmd, shell=True, capture_output=True, text=True)
-            if proc.returncode != 0:
-                raise SessionError(
-                    f"light {'cover' if covered else 'uncover'} command {cmd!r} failed "
-                    f"(exit {proc.returncode}): {proc.stderr.strip()[:200]}"
-                )
+            run_command(cmd, f"light {'cover' if covered else 'uncover'} command", self.command_timeout_s, self.stop)
         (camera.cover if covered else camera.uncover)()
         if self.settle_s:
             time.sleep(self.settle_s)
         self.covered = covered
         if log:
             log.emit("light", covered=covered, method=self.method)
+
+    def restore(self, camera: Camera, log: EventLog | None = None) -> None:
+        """Unblock the light after a run stopped with it blocked (a stop must not leave the
+        next run metering in the dark): the uncover command runs (with its timeout, whatever
+        the stop event says); when that fails, or nobody is there to remove a cap (``prompt``),
+        a ``light`` event with ``ok`` false and the ``error`` records that it is still blocked."""
+        if not self.covered:
+            return
+        try:
+            if self.method == "prompt":
+                raise SessionError("the light was blocked by hand (prompt); unblock it before the next run")
+            if self.method == "command":
+                assert self.uncover_command is not None
+                run_command(self.uncover_command, "light uncover command", self.command_timeout_s, None)
+            camera.uncover()
+        except Exception as err:  # the stop that brought us here is what the run reports
+            _log.warning("the light is still blocked: %s", err)
+            if log:
+                _emit_quietly(log, "light", covered=True, method=self.method, ok=False, error=str(err))
+            return
+        self.covered = False
+        if log:
+            _emit_quietly(log, "light", covered=False, method=self.method)
+
+
+#: How often a waiting command or camera call looks at the stop event, s.
+STOP_POLL_S = 0.05
+
+
+def run_command(command: str, what: str, timeout_s: float, stop: threading.Event | None = None) -> None:
+    """Run ``command`` with the shell in a process group of its own and wait for it.
+
+    Parameters
+    ----------
+    command : str
+        The shell command.
+    what : str
+        What it is, for messages (``light cover command``).
+    timeout_s : float
+        Longest it may run, s.
+    stop : threading.Event, optional
+        A set event (SIGTERM/SIGINT, :func:`stop_on_signals`) ends the wait.
+
+    Raises
+    ------
+    SessionError
+        The command failed (non-zero exit) or outlasted ``timeout_s``.
+    RunInterrupted
+        ``stop`` was set while it ran.
+
+    On a timeout, a stop or any exception while waiting (a second signal), the command's
+    whole process group is killed and reaped: nothing it started is left running.
+    """
+    with tempfile.TemporaryFile() as errors:  # a file, not a pipe: nothing waits for a reader
+        proc = subprocess.Popen(
+            command,
+            shell=True,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=errors,
+            start_new_session=True,
+        )
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                try:
+                    proc.wait(timeout=min(STOP_POLL_S, max(0.0, deadline - time.monotonic())))
+                    break
+                except subprocess.TimeoutExpired:
+                    pass
+                if stop is not None and stop.is_set():
+                    signum = int(getattr(stop, "signum", signal.SIGTERM))
+                    raise RunInterrupted(
+                        f"stopped by signal {signum} while the {what} ran; run again with --resume", signum
+                    )
+                if time.monotonic() >= deadline:
+                    raise SessionError(
+                        f"{what} {command!r} did not end within {timeout_s:g} s ([darks] command_timeout_s); "
+                        "it was stopped. Fix it, then run again with --resume"
+                    )
+        except BaseException:
+            _kill_group(proc)
+            raise
+        if proc.returncode != 0:
+            errors.seek(0)
+            text = errors.read(4096).decode(errors="replace").strip()[:200]
+            raise SessionError(f"{what} {command!r} failed (exit {proc.returncode}): {text}")
+
+
+def _kill_group(proc: subprocess.Popen[bytes]) -> None:
+    """Kill the process group of ``proc`` (it leads one: ``start_new_session``) and reap it."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:  # pragma: no cover - a process in uninterruptible sleep
+        pass
 
 
 def _default_prompt(message: str) -> None:
@@ -482,12 +616,68 @@ def lock_dir(create: bool = True) -> Path:
     return d
 
 
+class PathLock:
+    """An exclusive, non-blocking lock on a file path (``flock``) whose file is removed when
+    it is released, so that lock folders do not fill up with one file per run folder and
+    camera (filelock keeps the path on Unix).
+
+    Removing the file is safe because the lock counts only when the file locked is still the
+    one at the path: a contender that opened the file before its holder removed it finds,
+    once it gets the flock, another file (or none) at the path and tries the new one.
+    Compatible with :class:`filelock.FileLock` on the same path (both use ``flock``).
+
+    Parameters
+    ----------
+    path : path
+        The lock file (created when needed).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self._fd: int | None = None
+
+    def acquire(self) -> bool:
+        """Take the lock if nobody holds it; returns whether it was taken."""
+        import fcntl
+
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as err:
+                os.close(fd)
+                if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    return False
+                raise
+            try:
+                current = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                current = False
+            if current:
+                self._fd = fd
+                return True
+            os.close(fd)  # its holder removed it meanwhile: lock the file at the path now
+
+    def release(self) -> None:
+        """Remove the lock file (while still holding it) and unlock."""
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            self.path.unlink()
+        except OSError:  # a read-only folder: the file stays, the lock goes
+            pass
+        finally:
+            os.close(fd)
+
+
 @contextmanager
 def hold_run_locks(run_dir: str | os.PathLike[str], camera_key: str | None = None) -> Iterator[None]:
     """Locks taken before the camera is opened and metering runs: one for the run folder and,
     when ``camera_key`` is given (a real camera named by the job), one for that camera. Both
-    live in :func:`lock_dir` (the run folder need not exist yet); a held one is a
-    :class:`RunConflictError` (exit 5) before anything touches the camera.
+    live in :func:`lock_dir` (the run folder need not exist yet; the lock files are removed
+    again, :class:`PathLock`); a held one is a :class:`RunConflictError` (exit 5) before
+    anything touches the camera.
 
     Parameters
     ----------
@@ -496,19 +686,15 @@ def hold_run_locks(run_dir: str | os.PathLike[str], camera_key: str | None = Non
     camera_key : str, optional
         Names the camera the job asks for (``gphoto2-SERIAL``, ``gphoto2-MODEL``, ...).
     """
-    from filelock import FileLock, Timeout
-
     wanted = [(_run_lock_name(run_dir), f"{run_dir}: another hdrcap session is using this run folder")]
     if camera_key:
         wanted.append((f"open-{_safe(camera_key)}", f"camera {camera_key} is in use by another hdrcap session"))
-    held = []
+    held: list[PathLock] = []
     try:
         for name, message in wanted:
-            lock = FileLock(str(lock_dir() / f"{name}.lock"))
-            try:
-                lock.acquire(timeout=0)
-            except Timeout:
-                raise RunConflictError(message) from None
+            lock = PathLock(lock_dir() / f"{name}.lock")
+            if not lock.acquire():
+                raise RunConflictError(message)
             held.append(lock)
         yield
     finally:
@@ -712,7 +898,9 @@ class CaptureSession:
         saturation, prnu), e.g. the planner's decisions.
     stop : threading.Event, optional
         Set (by a SIGTERM/SIGINT handler, :func:`stop_on_signals`) to end the run cleanly before
-        the next frame or retry: :class:`RunInterrupted`, the run folder resumable.
+        the next frame, retry or reconnect: :class:`RunInterrupted`, the run folder resumable.
+        It also ends a light command in progress and is handed to the camera
+        (:func:`watch_stop`), which gives up a hung call.
     expect : pipeline.compat.CameraProfile, optional
         The camera and ISO every frame must come from (:func:`pipeline.compat.check_compatible`
         on its EXIF make/model and ISO; a mismatch stops the run with :class:`VerificationError`).
@@ -745,6 +933,8 @@ class CaptureSession:
         self.plan = plan
         self.calibration = calibration
         self.light = light or LightBlocker("mock")
+        if self.light.stop is None:  # a stop also ends a cover/uncover command that hangs
+            self.light.stop = stop
         self.retry = retry or RetryPolicy()
         self.resume = resume
         self.progress = progress
@@ -765,30 +955,28 @@ class CaptureSession:
 
     # ------------------------------------------------------------------ public
     def run(self) -> SessionResult:
-        from filelock import FileLock, Timeout
-
         t0 = time.monotonic()
         try:
             self.run_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            raise InputError(f"{self.run_dir}: cannot create the run folder ({err.strerror})") from None
+            what = f"{self.run_dir}: cannot create the run folder ({err.strerror or err})"
+            if err.errno in LOCAL_IO_ERRNOS:
+                raise LocalIOError(f"{what}; fix it, then run again with --resume") from None
+            raise InputError(what) from None
         if not os.access(self.run_dir, os.W_OK):
-            raise InputError(f"{self.run_dir}: run folder is not writable")
+            raise LocalIOError(f"{self.run_dir}: the run folder is not writable (read-only or permissions)")
         ident = _identity(self.camera)
-        run_lock = FileLock(str(self.run_dir / SESSION_LOCK_NAME))
-        cam_lock = FileLock(str(lock_dir() / (_lock_key(ident) + ".lock")))
+        run_lock = PathLock(self.run_dir / SESSION_LOCK_NAME)
+        cam_lock = PathLock(lock_dir() / (_lock_key(ident) + ".lock"))
+        if not run_lock.acquire():
+            raise RunConflictError(f"{self.run_dir}: another hdrcap session is using this run folder")
         try:
-            run_lock.acquire(timeout=0)
-        except Timeout:
-            raise RunConflictError(f"{self.run_dir}: another hdrcap session is using this run folder") from None
-        try:
-            try:
-                cam_lock.acquire(timeout=0)
-            except Timeout:
+            if not cam_lock.acquire():
                 raise RunConflictError(
                     f"camera {ident['model']} ({ident['serial'] or ident['port']}) is in use by another hdrcap session"
-                ) from None
+                )
             try:
+                watch_stop(self.camera, self.stop)
                 return self._run_locked(ident, t0)
             finally:
                 cam_lock.release()
@@ -806,14 +994,30 @@ class CaptureSession:
         if partial_dir.exists():  # downloads that never finished
             shutil.rmtree(partial_dir)
         partial_dir.mkdir()
-        adopted = self._adopt_landed(done, frames_dir, ident, manifest, log)
-        self._check_free_space(done, log)
-        merger = self._replay(done)
-        captured, merger = self._capture_missing(done, merger, ident, manifest, log, partial_dir, frames_dir)
-        result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
-        if merger is not None:
-            result.merge = merger.result()
-            log.emit("merged", streamed=merger.streamed, info=jsonable(result.merge.info))
+        run = _RunFiles(ident, manifest, log, partial_dir, frames_dir)
+        try:
+            adopted = self._adopt_landed(done, run)
+            self._check_free_space(done)
+            captured, merger = self._capture_missing(done, run)
+            if self.light.covered:
+                self.light.set(self.camera, False, log)
+            result = SessionResult(self.run_dir, done, captured, resumed, adopted, dict(self.retries))
+            if merger is not None:
+                result.merge = merger.result()
+                log.emit("merged", streamed=merger.streamed, info=jsonable(result.merge.info))
+        except OSError as err:  # our side: disk full, permissions
+            stop = LocalIOError(
+                f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
+                "permissions, then run again with --resume"
+            )
+            self._stopped(log, stop, kind="local_io")
+            raise stop from None
+        except CameraError as err:
+            self._stopped(log, err, kind=fault_kind(err))
+            raise
+        except BaseException as err:
+            self._stopped(log, err)
+            raise
         shutil.rmtree(partial_dir, ignore_errors=True)
         result.elapsed_s = time.monotonic() - t0
         log.emit(
@@ -825,6 +1029,12 @@ class CaptureSession:
             elapsed_s=round(result.elapsed_s, 3),
         )
         return result
+
+    def _stopped(self, log: EventLog, err: BaseException, kind: str | None = None) -> None:
+        """A run that stops: the light unblocked again (or recorded as still blocked), then the
+        ``stop`` event with the reason and exit code."""
+        self.light.restore(self.camera, log)
+        emit_stop(log, err, kind=kind)
 
     def _open_manifest(
         self, manifest: Manifest, log: EventLog, ident: dict[str, str]
@@ -883,30 +1093,23 @@ class CaptureSession:
             self.expect = replace(self.expect, iso=isos.pop())
         return done, len(done)
 
-    def _adopt_landed(
-        self,
-        done: dict[str, dict[str, Any]],
-        frames_dir: Path,
-        ident: dict[str, str],
-        manifest: Manifest,
-        log: EventLog,
-    ) -> int:
+    def _adopt_landed(self, done: dict[str, dict[str, Any]], run: _RunFiles) -> int:
         """Verify and record the frames whose file landed but whose manifest line was never
         written (bad ones are quarantined); returns how many were adopted."""
         adopted = 0
         for i, spec in enumerate(self.plan.frames):
             if spec.key in done:
                 continue
-            for f in sorted(frames_dir.glob(frame_stem(i, spec) + ".*")):
+            for f in sorted(run.frames_dir.glob(frame_stem(i, spec) + ".*")):
                 try:
-                    rec = self._verify_and_record(f, i, spec, None, ident, manifest, adopted=True)
+                    rec = self._verify_and_record(f, i, spec, None, run.ident, run.manifest, adopted=True)
                 except CorruptFrameError as err:
                     self._quarantine(f, str(err))
-                    log.emit("reject", key=spec.key, file=f.name, reason=str(err))
+                    run.log.emit("reject", key=spec.key, file=f.name, reason=str(err))
                     continue
                 done[spec.key] = rec
                 adopted += 1
-                log.emit("adopt", key=spec.key, file=rec["file"])
+                run.log.emit("adopt", key=spec.key, file=rec["file"])
         return adopted
 
     def _replay(self, done: dict[str, dict[str, Any]]) -> StreamingMerge | None:
@@ -920,22 +1123,17 @@ class CaptureSession:
                     merger = self._feed(self.calibration, merger, rec, read_frame(self.run_dir / rec["file"]).data)
         return merger
 
-    def _capture_missing(
-        self,
-        done: dict[str, dict[str, Any]],
-        merger: StreamingMerge | None,
-        ident: dict[str, str],
-        manifest: Manifest,
-        log: EventLog,
-        partial_dir: Path,
-        frames_dir: Path,
-    ) -> tuple[int, StreamingMerge | None]:
+    def _capture_missing(self, done: dict[str, dict[str, Any]], run: _RunFiles) -> tuple[int, StreamingMerge | None]:
         """Capture every planned frame not yet done (light blocked as each needs), feeding the
-        merge; a ``frame`` event follows each frame, a stop is logged with its reason and exit
-        code. Returns (frames captured, the merge)."""
+        merge; a ``frame`` event follows each frame. Frames missing under recorded ones (voided
+        on resume: a changed or lost file) are taken first, before the recorded frames are
+        merged again, so that a light frame never reaches the merge before its dark frame.
+        Returns (frames captured, the merge)."""
         from tqdm import tqdm
 
         todo = [(i, s) for i, s in enumerate(self.plan.frames) if s.key not in done]
+        last = max((int(r["index"]) for r in done.values()), default=-1)
+        holes = [(i, s) for i, s in todo if i < last]
         show = self.progress if self.progress is not None else sys.stderr.isatty()
         bar = tqdm(
             total=len(self.plan.frames),
@@ -945,48 +1143,49 @@ class CaptureSession:
             disable=not show,
             dynamic_ncols=True,
         )
-        captured = 0
         eta = _Eta([s.exposure_s for _i, s in todo])
         try:
-            for i, spec in todo:
-                self._check_stop()
-                self.light.set(self.camera, spec.dark, log)
-                rec, values = self._capture_one(i, spec, ident, manifest, log, partial_dir, frames_dir)
-                done[spec.key] = rec
-                captured += 1
-                if self.calibration is not None:
-                    merger = self._feed(self.calibration, merger, rec, values)
-                eta.frame_done(spec.exposure_s)
-                log.emit(
-                    "frame",
-                    key=spec.key,
-                    index=i,
-                    done=len(done),
-                    total=len(self.plan.frames),
-                    eta_s=eta.remaining_s(),
-                    temperature_c=rec.get("temperature_c"),
-                )
-                bar.update(1)
-            if self.light.covered:
-                self.light.set(self.camera, False, log)
-        except OSError as err:  # our side: disk full, permissions
-            stop = LocalIOError(
-                f"{err.filename or self.run_dir}: {err.strerror or err}; free space or fix "
-                "permissions, then run again with --resume"
-            )
-            _emit_stop(log, stop, kind="local_io")
-            raise stop from None
-        except CameraError as err:
-            _emit_stop(log, err, kind=fault_kind(err))
-            raise
-        except HdrcapError as err:
-            _emit_stop(log, err)
-            raise
-        except BaseException as err:
-            _emit_stop(log, err)
-            raise
+            captured, _ = self._capture_frames(holes, done, None, run, bar, eta, merge=False)
+            merger = self._replay(done)
+            rest = [(i, s) for i, s in todo if i >= last]
+            more, merger = self._capture_frames(rest, done, merger, run, bar, eta)
         finally:
             bar.close()
+        return captured + more, merger
+
+    def _capture_frames(
+        self,
+        frames: list[tuple[int, FrameSpec]],
+        done: dict[str, dict[str, Any]],
+        merger: StreamingMerge | None,
+        run: _RunFiles,
+        bar: Any,
+        eta: _Eta,
+        merge: bool = True,
+    ) -> tuple[int, StreamingMerge | None]:
+        """Capture ``frames`` (plan index, spec) in order into ``done``, each handed to the merge
+        (``merger``, created with the first frame) unless ``merge`` is false; returns (frames
+        captured, the merge)."""
+        captured = 0
+        for i, spec in frames:
+            self._check_stop()
+            self.light.set(self.camera, spec.dark, run.log)
+            rec, values = self._capture_one(i, spec, run.ident, run.manifest, run.log, run.partial_dir, run.frames_dir)
+            done[spec.key] = rec
+            captured += 1
+            if merge and self.calibration is not None:
+                merger = self._feed(self.calibration, merger, rec, values)
+            eta.frame_done(spec.exposure_s)
+            run.log.emit(
+                "frame",
+                key=spec.key,
+                index=i,
+                done=len(done),
+                total=len(self.plan.frames),
+                eta_s=eta.remaining_s(),
+                temperature_c=rec.get("temperature_c"),
+            )
+            bar.update(1)
         return captured, merger
 
     def _check_stop(self) -> None:
@@ -1024,17 +1223,19 @@ class CaptureSession:
         partial_dir: Path,
         frames_dir: Path,
     ) -> tuple[dict[str, Any], np.ndarray]:
-        last = None
+        last = ""
         for attempt in range(1, self.retry.max_attempts + 1):
             self._check_stop()
             tmp = partial_dir / f"{frame_stem(i, spec)}.try{attempt}.dng"
             try:
                 started = utc_now()
                 applied = float(self.camera.set_exposure(spec.exposure_s))
+                check_applied_exposure(spec.exposure_s, applied, f"frame {spec.key}")
                 timeout = None if self.retry.timeout_s is None else applied + self.retry.timeout_s
                 res = self.camera.capture(tmp, dark=spec.dark, timeout=timeout)
                 if getattr(res, "bulb", False):  # timed around the release: the measured open time
                     applied = float(res.applied_exposure_s)
+                    check_applied_exposure(spec.exposure_s, applied, f"frame {spec.key}", bulb=True)
                 path = Path(res.path)
                 final = frames_dir / (frame_stem(i, spec) + path.suffix.lower())
                 rec, values = self._verify(path, spec, applied, res)
@@ -1051,7 +1252,7 @@ class CaptureSession:
                 kind = fault_kind(err)
                 if kind is None:
                     raise
-                last = err
+                last = str(err)  # not the error: its traceback would keep the attempt's frames (open files) alive
                 self.retries[kind] = self.retries.get(kind, 0) + 1
                 log.emit("fault", key=spec.key, attempt=attempt, kind=kind, error=f"{type(err).__name__}: {err}")
                 for f in partial_dir.glob(f"{frame_stem(i, spec)}.try{attempt}*"):
@@ -1066,6 +1267,7 @@ class CaptureSession:
                 wait = self.retry.wait(attempt)
                 if kind in ("busy", "reconnect"):
                     self.sleep(wait)
+                self._check_stop()  # a stop during the fault: no reconnect, no retry
                 if kind == "reconnect":
                     self._reconnect(log)
             finally:
@@ -1131,6 +1333,7 @@ class CaptureSession:
             "key": spec.key,
             "kind": spec.kind,
             "dark": spec.dark,
+            "job_exposure_s": spec.exposure_s if spec.job_exposure_s is None else spec.job_exposure_s,
             "requested_exposure_s": spec.exposure_s,
             "applied_exposure_s": applied,
             "file_exposure_s": frame.exposure_time,
@@ -1181,7 +1384,7 @@ class CaptureSession:
         if self.expect.iso is None and frame.iso is not None:
             self.expect = replace(self.expect, iso=float(frame.iso))
 
-    def _check_free_space(self, done: dict[str, dict[str, Any]], log: EventLog) -> None:
+    def _check_free_space(self, done: dict[str, dict[str, Any]]) -> None:
         """Refuse to start (LocalIOError, exit 6) when the run folder's file system has no room
         for the frames still to take and the outputs (:func:`estimate_run_bytes`)."""
         todo = sum(1 for f in self.plan.frames if f.key not in done)
@@ -1191,12 +1394,10 @@ class CaptureSession:
         need = estimate_run_bytes(todo, self.shape, self._frame_bytes or None, merge=self.calibration is not None)
         free = shutil.disk_usage(self.run_dir).free
         if free < need:
-            stop = LocalIOError(
+            raise LocalIOError(
                 f"{self.run_dir}: {free / 1e6:.0f} MB free, the {todo} frames still to take and the "
                 f"outputs need about {need / 1e6:.0f} MB; free space, then run again with --resume"
             )
-            _emit_stop(log, stop, kind="local_io")
-            raise stop
 
     def _record_fields(self, final: Path, i: int, spec: FrameSpec, ident: dict[str, str]) -> dict[str, Any]:
         from hdrcap.pipeline.io.files import sha256_file
@@ -1234,6 +1435,17 @@ class CaptureSession:
         q.mkdir(exist_ok=True)
         target = q / f"{path.name}.{int(time.time() * 1e6)}"
         os.replace(path, target)
+
+
+@dataclass(frozen=True)
+class _RunFiles:
+    """Where a session records: the camera's identity, manifest, event log and folders."""
+
+    ident: dict[str, str]
+    manifest: Manifest
+    log: EventLog
+    partial_dir: Path
+    frames_dir: Path
 
 
 class _Eta:
@@ -1346,9 +1558,11 @@ def _raise_if_local_io(err: BaseException, folder: Path, frame_bytes: int) -> No
             ) from None
 
 
-def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
-    """The ``stop`` event: reason and exit code. A failing event log (disk full) does not hide
-    the error that stopped the run."""
+def emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> None:
+    """The ``stop`` event: reason and exit code, once per error (``err.stop_logged``). A
+    failing event log (disk full) does not hide the error that stopped the run."""
+    if getattr(err, "stop_logged", False):
+        return
     fields: dict[str, Any] = {
         "reason": f"{err}" if isinstance(err, HdrcapError) else f"{type(err).__name__}: {err}",
         "exit_code": getattr(err, "exit_code", 70 if not isinstance(err, KeyboardInterrupt) else 130),
@@ -1356,10 +1570,74 @@ def _emit_stop(log: EventLog, err: BaseException, kind: str | None = None) -> No
     kind = kind or ("local_io" if isinstance(err, LocalIOError) else None)
     if kind:
         fields["kind"] = kind
+    _emit_quietly(log, "stop", **fields)
     try:
-        log.emit("stop", **fields)
+        err.stop_logged = True  # type: ignore[attr-defined]
+    except AttributeError:  # pragma: no cover - an exception type with __slots__
+        pass
+
+
+def _emit_quietly(log: EventLog, event: str, **fields: Any) -> None:
+    """``log.emit`` on the way out of a failed run: a full disk must not hide the failure."""
+    try:
+        log.emit(event, **fields)
     except OSError:
         pass
+
+
+#: Largest difference between the exposure time a frame asked for (already one of the camera's
+#: own times) and the one the camera reports applying, as a ratio: 1/6 stop. A camera rounds to
+#: its own list (a label such as 0.3 s for 1/3 s is 10 % off); one that is not in manual
+#: exposure, or has its shutter setting locked, applies some other time.
+APPLIED_EXPOSURE_TOLERANCE = 2 ** (1 / 6)
+
+
+def check_applied_exposure(requested_s: float, applied_s: float, what: str, bulb: bool = False) -> None:
+    """Stop the run when the camera did not apply the exposure time it was given.
+
+    Parameters
+    ----------
+    requested_s : float
+        The time set, s (one of the camera's times).
+    applied_s : float
+        The time the camera reports applying (read back), or for bulb the measured open time, s.
+    what : str
+        The frame, for the message.
+    bulb : bool
+        A bulb exposure (:func:`pipeline.times.same_bulb_exposure` decides).
+
+    Raises
+    ------
+    SessionError
+        ``applied_s`` differs from ``requested_s`` by more than :data:`APPLIED_EXPOSURE_TOLERANCE`
+        (exit status 4: the camera stopped the run).
+    """
+    if bulb:
+        ok = same_bulb_exposure(applied_s, requested_s)
+    else:
+        ok = requested_s > 0 and 1 / APPLIED_EXPOSURE_TOLERANCE <= applied_s / requested_s <= APPLIED_EXPOSURE_TOLERANCE
+    if not ok:
+        raise SessionError(
+            f"{what}: the camera applied {applied_s:g} s, requested {requested_s:g} s: it does not take the "
+            "exposure time it is given (not in manual exposure, or its shutter setting locked); fix it, then "
+            "run again with --resume"
+        )
+
+
+def watch_stop(camera: Camera, stop: threading.Event | None) -> None:
+    """Hand ``stop`` to a camera that can give up a call in progress when it is set
+    (``camera.watch_stop(event)``, optional in the :class:`acquire.camera.Camera` protocol):
+    a stop then does not wait for a hung camera call's own timeout.
+
+    Parameters
+    ----------
+    camera : Camera
+    stop : threading.Event or None
+        None: no stop to watch (a camera reused by a later session forgets the earlier one's).
+    """
+    watch = getattr(camera, "watch_stop", None)
+    if callable(watch):
+        watch(stop)
 
 
 def _link_new(src: Path, dst: Path) -> None:

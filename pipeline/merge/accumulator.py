@@ -49,7 +49,14 @@ from hdrcap.pipeline.exposure_ratio import ExposureRatios, subsample_window
 from hdrcap.pipeline.io.raw import check_exposure_time
 from hdrcap.pipeline.merge.calibration_errors import add_in_quadrature, shared_terms
 from hdrcap.pipeline.merge.exposure_times import ExposureTimes
-from hdrcap.pipeline.merge.flags import clear_unmeasured, drop_masked, flag_defects, flag_masked, quality_channel
+from hdrcap.pipeline.merge.flags import (
+    clear_unmeasured,
+    drop_masked,
+    flag_clip_rejected,
+    flag_defects,
+    flag_masked,
+    quality_channel,
+)
 from hdrcap.pipeline.merge.frames import DarkLevel, FrameBook, as_frame, as_mask
 from hdrcap.pipeline.merge.kernel_inputs import KernelInputs, calibration_maps
 from hdrcap.pipeline.merge.options import MergeOptions, as_strategy
@@ -287,6 +294,7 @@ class MergeAccumulator:
         import numba
 
         from hdrcap.pipeline.merge.kernels import (
+            STATS_COLUMNS,
             IterationOptions,
             MergeOutputs,
             StartSums,
@@ -302,7 +310,8 @@ class MergeAccumulator:
             np.empty(self.shape, np.float32),
             np.empty(self.shape, np.float32),
             np.empty(self.shape, np.uint8),
-            np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), 3)),
+            np.empty(self.shape, np.uint8),
+            np.zeros((max(1, min(self.shape[0], 8 * numba.get_num_threads())), STATS_COLUMNS)),
         )
         with reflected_lists_quiet():
             merge_kernel(
@@ -313,6 +322,8 @@ class MergeAccumulator:
                     float(opts.tolerance),
                     float(opts.saturation_sigmas),
                     opts.saturation == "probabilistic",
+                    float(opts.clip_sigmas),
+                    float(opts.censored_spacing),
                 ),
                 out,
                 np.zeros(1, np.float32 if single else np.float64),
@@ -339,11 +350,12 @@ class MergeAccumulator:
         release()
         timed = self.frames.shares_timed_master()
         sig_cal, sig_master, cal_info = shared_terms(
-            irr, nexp, inputs, timed, self.calibration, self.maps.prnu_used, self.options
+            irr, nexp, out.rules, inputs, timed, self.calibration, self.maps.prnu_used, self.options
         )
         release()
         add_in_quadrature(sig, sig_cal, sig_master)
         quality, n_defects = flag_defects(irr, sig, nexp, self.calibration.defect_map)
+        flag_clip_rejected(quality, out.rules)
         book = self.frames
         masked = flag_masked((irr, sig, nexp, quality), book.masks, book.times, self.calibration.params, self.maps)
         info = self._info(out.stats, single, {"defects_flagged": n_defects, **masked}, cal_info)
@@ -375,6 +387,9 @@ class MergeAccumulator:
             "n_darks": n_own + (1 if book.master_dark is not None and 2 in book.kinds else 0),
             "saturated_everywhere": saturated,
             **flags,
+            "clip_rejected": int(stats[:, 3].sum()),
+            "clip_rejected_samples": int(stats[:, 4].sum()),
+            "censored_fallback": int(stats[:, 5].sum()) if opts.saturation == "probabilistic" else None,
             "iterations_used_mean": float(stats[:, 1].sum() / max(self.shape[0] * self.shape[1], 1)),
             "iterations_used_max": int(stats[:, 2].max()),
             "kernel": "numba",
@@ -391,16 +406,24 @@ def _image_shape(shape: Sequence[int]) -> tuple[int, int]:
     return dims[0], dims[1]
 
 
-def warm_up_kernels() -> None:
-    """Import the merge kernels and initialise numba's CPU target (its registries of numpy
-    implementations, which numba builds once per process before it compiles or loads any
-    function: a third of a second or more), so that the first merge only loads its compiled
-    code. For a background thread started while the frames are read (:mod:`pipeline.merge.files`);
-    it changes no result."""
-    from hdrcap.pipeline._numba_target import warm_up
-    from hdrcap.pipeline.merge import kernels  # noqa: F401  (first: it configures numba's compile target)
+def import_kernels() -> Callable[[], None]:
+    """Import numba (its compile target set, :mod:`pipeline._numba_target`) and the merge
+    kernels in the calling thread, and return what may then run in a background thread while
+    the frames are read: the initialisation of numba's CPU target (its registries of numpy
+    implementations, built once per process before numba compiles or loads any function: a
+    third of a second or more), under numba's compiler lock, importing only numba's own
+    modules that no other thread imports outside that lock (:mod:`pipeline.merge.files`
+    starts it). It changes no result.
 
-    warm_up()
+    Returns
+    -------
+    callable
+        :func:`pipeline._numba_target.warm_up`.
+    """
+    from hdrcap.pipeline._numba_target import warm_up
+    from hdrcap.pipeline.merge import kernels  # noqa: F401  (its decorators import what they need, here)
+
+    return warm_up
 
 
 def merge_arrays(

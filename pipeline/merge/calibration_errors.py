@@ -89,6 +89,7 @@ def calibration_errors(
 def shared_terms(
     irr: np.ndarray,
     nexp: np.ndarray,
+    rules: np.ndarray,
     inputs: KernelInputs,
     timed_master: np.ndarray,
     calibration: Calibration,
@@ -103,7 +104,8 @@ def shared_terms(
     1/Var(x_i) below v_sat and lambda(z) (lambda(z) - z)/Var(x_i) at or above it, z the clip
     level's distance in standard deviations: the censored estimate moves with a shift of the
     dark level of sample i by -(this)/(t g a) over the sum, as the threshold model's does with
-    its weights):
+    its weights; a photosite where the censored likelihood fell back to the threshold estimate
+    takes the threshold model's weights):
 
     * sigma_calibration: the first-order propagation of the standard errors of the
       calibration's bias, dark-current and PRNU maps (:func:`calibration_errors`);
@@ -119,6 +121,9 @@ def shared_terms(
     ----------
     irr, nexp : numpy.ndarray
         The merge kernel's irradiance (e-/s) and usable-sample counts, float32.
+    rules : numpy.ndarray
+        The merge kernel's rule bits per photosite, uint8
+        (:attr:`pipeline.merge.kernels.MergeOutputs.rules`).
     inputs : KernelInputs
         The merge kernel's inputs.
     timed_master : numpy.ndarray
@@ -144,13 +149,14 @@ def shared_terms(
     out_m = np.zeros(irr.shape, np.float32) if master_used.any() else None
     if out is None and out_m is None:
         return out, out_m, desc
-    _run_terms_kernel(irr, nexp, inputs, (s_b, s_d, s_a), master_used, options, out, out_m)
+    _run_terms_kernel(irr, nexp, rules, inputs, (s_b, s_d, s_a), master_used, options, out, out_m)
     return out, out_m, desc
 
 
 def _run_terms_kernel(
     irr: np.ndarray,
     nexp: np.ndarray,
+    rules: np.ndarray,
     inputs: KernelInputs,
     errors: tuple[ErrorTerm, ErrorTerm, ErrorTerm],
     master_used: np.ndarray,
@@ -199,6 +205,7 @@ def _run_terms_kernel(
             ),
             irr,
             nexp,
+            rules,
             first,
             second,
         )

@@ -189,42 +189,49 @@ def _check_weighting(weighting: str) -> None:
 
 
 # --------------------------------------------------------------------------- warm-up, frames
-def _warm_up(work: Callable[[], None] | None) -> None:
-    """``work`` (default :func:`pipeline.merge.accumulator.warm_up_kernels`), in a background
-    thread; a failure is left to the command itself to report."""
+def _warm_up(work: Callable[[], None]) -> None:
+    """``work`` in the background thread; a failure is left to the command itself to report."""
     try:
-        if work is None:
-            from hdrcap.pipeline.merge.accumulator import warm_up_kernels
-
-            work = warm_up_kernels
         work()
     except Exception:  # noqa: BLE001, S110  (the command reports its own errors)
         pass
 
 
 _WARM_UP: list[threading.Thread] = []  # the process's warm-up thread, once started
+_WARM_UP_LOCK = threading.Lock()  # batch workers start merges from several threads
 
 
 def start_warm_up(work: Callable[[], None] | None = None) -> threading.Thread:
     """Start numba's set-up in a thread, once per process (it overlaps loading the calibration
     and reading the frames, or the EXR a denoise reads).
 
+    The calling thread imports numba and the merge kernels first, so that the thread never
+    imports a module the calling thread may be importing: two threads importing numba at once
+    can be handed a half-initialised numba or stopped by CPython's import-lock deadlock error,
+    and a numba import that fails half-way leaves the process a numba without ``core``.
+
     Parameters
     ----------
     work : callable, optional
-        What to run (default: import the merge kernels and initialise numba's CPU target;
-        :func:`pipeline._numba_target.warm_up` for a module already imported).
+        What to run; it must not import what the calling thread may import (default: numba's
+        CPU target initialised under its compiler lock, which imports only numba's own
+        modules: :func:`pipeline.merge.accumulator.import_kernels`).
 
     Returns
     -------
     threading.Thread
         The process's warm-up thread (later calls return the same one).
     """
-    if _WARM_UP:
-        return _WARM_UP[0]
-    thread = threading.Thread(target=_warm_up, args=(work,), name="hdrcap-kernel-warm-up")
-    _WARM_UP.append(thread)
-    thread.start()
+    with _WARM_UP_LOCK:
+        if _WARM_UP:
+            return _WARM_UP[0]
+        if work is None:
+            from hdrcap.pipeline.merge.accumulator import import_kernels
+
+            work = import_kernels()
+        thread = threading.Thread(target=_warm_up, args=(work,), name="hdrcap-kernel-warm-up")
+        _WARM_UP.append(thread)
+        thread.start()
     return thread
 
 

@@ -20,7 +20,7 @@ from hdrcap.pipeline.merge.kernel_inputs import CalibrationMaps, map_values
 from hdrcap.pipeline.params import DEFECT_BITS, SensorParams
 from hdrcap.pipeline.schema import QUALITY_BITS
 
-__all__ = ["quality_channel", "flag_defects", "drop_masked", "flag_masked", "clear_unmeasured"]
+__all__ = ["quality_channel", "flag_defects", "flag_clip_rejected", "drop_masked", "flag_masked", "clear_unmeasured"]
 
 _DEFECTS = np.uint8(sum(DEFECT_BITS.values()))
 
@@ -78,6 +78,23 @@ def flag_defects(
     nexp[bad] = 0
     sig[bad] = 0
     return quality, int(bad.sum())
+
+
+def flag_clip_rejected(quality: np.ndarray, rules: np.ndarray) -> None:
+    """Set the ``clip_rejected`` bit where the merge's clip rule rejected a sample, in place.
+
+    Parameters
+    ----------
+    quality : numpy.ndarray
+        The quality channel, uint8; changed in place.
+    rules : numpy.ndarray
+        The merge kernel's rule bits per photosite, uint8 (bit
+        :data:`pipeline.merge.kernels.RULE_CLIP`: a sample was rejected as possibly clipped).
+    """
+    from hdrcap.pipeline.merge.kernels import RULE_CLIP
+
+    hit = (rules & np.uint8(RULE_CLIP)) != 0
+    quality[hit] |= np.uint8(QUALITY_BITS["clip_rejected"])
 
 
 def drop_masked(v: np.ndarray, mask: np.ndarray, v_sat: float, threshold: bool) -> np.ndarray:
@@ -185,8 +202,10 @@ def clear_unmeasured(sigma_calibration: np.ndarray, quality: np.ndarray, nexp: n
     sigma_calibration : numpy.ndarray
         The calibration's part of sigma, e-/s, float32; changed in place.
     quality : numpy.ndarray
-        The quality channel: any bit but ``masked`` makes the photosite no measurement.
+        The quality channel: any bit but ``masked`` and ``clip_rejected`` makes the photosite
+        no measurement.
     nexp : numpy.ndarray
         Usable samples per photosite (0: no measurement).
     """
-    sigma_calibration[((quality & ~np.uint8(QUALITY_BITS["masked"])) != 0) | (nexp == 0)] = 0.0
+    still = np.uint8(QUALITY_BITS["masked"] | QUALITY_BITS["clip_rejected"])  # bits of a measurement
+    sigma_calibration[((quality & ~still) != 0) | (nexp == 0)] = 0.0

@@ -64,6 +64,10 @@ __all__ = [
     "StartSums",
     "IterationOptions",
     "MergeOutputs",
+    "STATS_COLUMNS",
+    "RULE_CLIP",
+    "RULE_FALLBACK",
+    "CLIP_WINDOW",
     "reflected_lists_quiet",
 ]
 
@@ -141,24 +145,46 @@ class StartSums(NamedTuple):
 
 class IterationOptions(NamedTuple):
     """``max_iter`` (int), relative ``tol``, ``sat_sigmas`` (the near-saturation margin in
-    standard deviations of the raw value) and ``probabilistic`` (Eq. 8-10) of the merge."""
+    standard deviations of the raw value), ``probabilistic`` (Eq. 8-10), ``clip_sigmas`` (the
+    clip rule's threshold k_c, 0: no clip rule; :func:`_clip_rule`) and ``censored_spacing`` (the
+    widest spacing at which the censored likelihood's estimate stands, :func:`_tobit_trusted`;
+    0: always) of the merge."""
 
     max_iter: int
     tol: float
     sat_sigmas: float
     probabilistic: bool
+    clip_sigmas: float
+    censored_spacing: float
 
 
 class MergeOutputs(NamedTuple):
     """Output arrays of :func:`merge_kernel`: float32 ``irradiance`` and ``sigma`` (e-/s),
-    float32 ``nexp``, uint8 ``iterations`` (image shape) and float64 ``stats`` (one row per
-    chunk of rows: photosites with nexp = 0, sum and maximum of the iteration counts)."""
+    float32 ``nexp``, uint8 ``iterations`` and uint8 ``rules`` (image shape: bit
+    :data:`RULE_CLIP` where the clip rule rejected a sample, :data:`RULE_FALLBACK` where the
+    censored likelihood fell back to the threshold estimate) and float64 ``stats`` (one row per
+    chunk of rows: photosites with nexp = 0, sum and maximum of the iteration counts, photosites
+    that lost a sample to the clip rule, samples it rejected, censored-likelihood fallbacks)."""
 
     irradiance: np.ndarray
     sigma: np.ndarray
     nexp: np.ndarray
     iterations: np.ndarray
+    rules: np.ndarray
     stats: np.ndarray
+
+
+#: Columns of :attr:`MergeOutputs.stats`.
+STATS_COLUMNS = 6
+
+#: Bits of :attr:`MergeOutputs.rules`.
+RULE_CLIP = 1
+RULE_FALLBACK = 2
+
+#: The clip rule's window: a usable sample is possibly clipped when its raw value lies within
+#: this many of its model standard deviation at v_sat, sqrt(g (v_sat - bias) + sigma_R^2), of
+#: v_sat (:func:`_clip_rule`).
+CLIP_WINDOW = 3.0
 
 
 _SQRT2 = math.sqrt(2.0)
@@ -463,6 +489,184 @@ def _row_output(r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_
     return n0, isum, imax
 
 
+# ------------------------------------------------------------------------ the clip rule
+@numba.njit(cache=True, error_model="numpy")
+def _clip_window(VTH, BL, g, s2, v_sat):
+    """VTH = v_sat - CLIP_WINDOW sqrt(g max(v_sat - bias, 0) + sigma_R^2): the least raw value of
+    a possibly clipped sample (the model's standard deviation of a raw value at v_sat, Eq. 3)."""
+    for c in range(VTH.shape[0]):
+        VTH[c] = v_sat - CLIP_WINDOW * math.sqrt(g * max(v_sat - BL[c], 0.0) + s2)
+
+
+@numba.njit(cache=True, fastmath=_FM, error_model="numpy")
+def _row_candidates(vrow, xrow, VTH, CAND, c0, c1):
+    """CAND += 1 where this frame's sample is still usable (x not NaN) and its raw value is at
+    least VTH: possibly clipped (:func:`_clip_rule`)."""
+    for c in range(numba.uint64(c0), numba.uint64(c1)):
+        CAND[c] += 1.0 if ((xrow[c] == xrow[c]) & (float(vrow[c]) >= VTH[c])) else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _others(X, FR, n, c, skip, mu, a, Dw, s2, tol, max_iter):
+    """Eq. 12-13 iterated (Fig. 3) over the usable samples of photosite ``c`` (x not NaN) but
+    sample ``skip``, from ``mu``. Returns the estimate, the sum of the weights at it (0: no
+    such sample) and the passes made."""
+    a2 = a * a
+    sw = 0.0
+    steps = 0
+    for _ in range(max_iter):
+        u = a * (mu if mu > 0.0 else 0.0) + Dw
+        sw = 0.0
+        swx = 0.0
+        for j in range(n):
+            x = float(X[j, c])
+            if j == skip or x != x:
+                continue
+            w = float(FR[j, 2]) * a2 / _var(u, float(FR[j, 1]), Dw, s2, float(FR[j, 3]))
+            sw += w
+            swx += w * x
+        steps += 1
+        if not sw > 0.0:
+            return mu, 0.0, steps
+        new = swx / sw
+        done = (new - mu) * (new - mu) <= tol * tol * max(new * new, 1.0 / sw)
+        mu = new
+        if done:
+            break
+    return mu, sw, steps
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _saturated_bounds(values, darks, frames, r, c, FR, n, a, bl, master_c, D, Dw, g, s2, v_sat, kc, out):
+    """Per frame j into ``out``: where its sample is saturated (v_j >= v_sat, its dark level
+    b_j usable), the lower bound of X it sets, L_j = (v_sat - kc s_j - b_j)/(t_j g a), s_j the
+    standard deviation of v_j - b_j at v_sat (Eq. 3, 5: g max(v_sat - bias, 0) + sigma_R^2 plus
+    the dark level's); -inf elsewhere."""
+    kinds, coefs, ks, times = frames
+    span = g * max(v_sat - bl, 0.0)
+    for j in range(n):
+        out[j] = -math.inf
+        v = float(values[j][r, c])
+        b = _dark_level(darks, kinds, coefs, j, r, c, bl, master_c, D)
+        if v >= v_sat and b < v_sat and math.isfinite(b):
+            k = float(FR[j, 3])
+            sd = math.sqrt(span + s2 + k * (float(FR[j, 1]) * Dw + s2))
+            out[j] = (v_sat - kc * sd - b) / (float(FR[j, 0]) * a)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _clip_rule(values, r, c, X, FR, n, vth, v_sat, mu, a, Dw, s2, kc, tol, max_iter, BOUND):
+    """The clip rule of photosite (r, c) after the iterations: reject usable samples that are
+    possibly clipped (raw value at least ``vth``) and lie far below what the other samples say,
+    or are more likely clipped values than not, one at a time (the worst first) until none
+    does; sets their x to NaN in ``X``. Clipping only lowers a sample, so the two z tests are
+    one-sided; sample i fails when z_i < -kc for
+
+    * the other usable samples (leave-one-out): z_i = (x_i - mu_{-i}) / sqrt(Var(x_i | mu_{-i})
+      + 1/W_{-i}), mu_{-i} and W_{-i} (the sum of their weights) iterated to the estimate of the
+      usable samples but i (Eq. 12-13, :func:`_others`), the variances at mu_{-i}, never at the
+      current estimate (which a slipped sample may dominate); no test without another sample;
+    * the saturated samples of shorter exposures (``BOUND``, :func:`_saturated_bounds`: a
+      shorter exposure saturated says X >= L_j, and a longer one is then saturated too):
+      z_i = (x_i - L) / sqrt(Var(x_i | L)), L the largest L_j of the exposures shorter than i;
+
+    and when, given the other samples, it is more likely a clipped value than an unclipped one
+    (the odds of the mixture of :func:`_tobit_terms`): with S^2 = Var(x_i | mu_{-i}) + 1/W_{-i},
+    x_clip = x_i + (v_clip - v_i)/(t_i g a) and v_clip = v_sat + 3 sigma_R,
+    P_c phi(e_i) t_i g a / sigma_R > phi(z_i) / S, P_c = 1 - Phi((x_clip - mu_{-i})/S) and
+    e_i = (v_i - v_clip)/sigma_R. This catches a slipped value where the others are too
+    uncertain for the z test (sparse brackets: S many times sigma_R/(t_i g a)); it cannot fire
+    unless S t_i g a > 90 sigma_R phi(z_i)/phi(3) or so (e_i < -3 below v_sat). Such a sample
+    ranks as z = min(z_i, -kc) among the failing ones.
+
+    Returns
+    -------
+    tuple
+        (samples rejected, the estimate of the samples kept (``mu`` when none was rejected),
+        passes made).
+    """
+    rejected = 0
+    steps = 0
+    a2 = a * a
+    sigma_R = math.sqrt(s2)
+    v_clip = v_sat + 3.0 * sigma_R
+    while True:
+        worst = -1
+        worst_z = -kc
+        worst_mu = mu
+        for i in range(n):
+            x = float(X[i, c])
+            if x != x or float(values[i][r, c]) < vth:
+                continue  # not usable, or not possibly clipped
+            tg = float(FR[i, 0])
+            lo = -math.inf  # the shorter saturated samples' bound
+            for j in range(n):
+                if float(FR[j, 0]) < tg and BOUND[j] > lo:
+                    lo = BOUND[j]
+            if lo > -math.inf:
+                vi = _var(a * (lo if lo > 0.0 else 0.0) + Dw, float(FR[i, 1]), Dw, s2, float(FR[i, 3]))
+                z = (x - lo) / math.sqrt(vi / (float(FR[i, 2]) * a2))
+                if z < worst_z:
+                    worst, worst_z, worst_mu = i, z, mu
+            m, sw, st = _others(X, FR, n, c, i, mu, a, Dw, s2, tol, max_iter)
+            steps += st
+            if sw > 0.0:
+                vi = _var(a * (m if m > 0.0 else 0.0) + Dw, float(FR[i, 1]), Dw, s2, float(FR[i, 3]))
+                sx = math.sqrt(vi / (float(FR[i, 2]) * a2) + 1.0 / sw)
+                z = (x - m) / sx
+                if z < worst_z:
+                    worst, worst_z, worst_mu = i, z, m
+                # more likely a clipped value than not, given the others
+                tga = float(FR[i, 0]) * a
+                e = (float(values[i][r, c]) - v_clip) / sigma_R
+                pc = _survival((x + (v_clip - float(values[i][r, c])) / tga - m) / sx)
+                odds = math.log(max(pc, 1e-300)) - 0.5 * e * e + 0.5 * z * z + math.log(sx * tga / sigma_R)
+                zr = min(z, -kc)
+                if odds > 0.0 and (worst < 0 or zr < worst_z):
+                    worst, worst_z, worst_mu = i, zr, m
+        if worst < 0:
+            return rejected, mu, steps
+        X[worst, c] = math.nan
+        rejected += 1
+        mu = worst_mu
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _refit(X, FR, n, c, mu, a, Dw, vsb, s2, sat2, tol, max_iter):
+    """Eq. 12-13 with the near-saturation rule (margin sqrt(sat2), samples it drops set to NaN
+    in ``X``), iterated from ``mu`` over the usable samples of photosite ``c``, as the
+    vectorised iterations do. Returns (mu, variance 1/sum w (0: no sample left), passes)."""
+    a2 = a * a
+    var = 0.0
+    steps = 0
+    for _ in range(max_iter):
+        u = a * (mu if mu > 0.0 else 0.0) + Dw
+        sw = 0.0
+        swx = 0.0
+        for j in range(n):
+            x = float(X[j, c])
+            if x != x:
+                continue
+            if sat2 > 0.0:
+                gap = vsb - float(FR[j, 0]) * u
+                if not (gap > 0.0 and gap * gap > sat2 * _var(u, float(FR[j, 1]), Dw, s2, 0.0)):
+                    X[j, c] = math.nan
+                    continue
+            w = float(FR[j, 2]) * a2 / _var(u, float(FR[j, 1]), Dw, s2, float(FR[j, 3]))
+            sw += w
+            swx += w * x
+        steps += 1
+        if not sw > 0.0:
+            return mu, 0.0, steps
+        var = 1.0 / sw
+        new = swx * var
+        done = (new - mu) * (new - mu) <= tol * tol * max(new * new, var)
+        mu = new
+        if done:
+            break
+    return mu, var, steps
+
+
 @numba.njit(inline="always", cache=True)
 def _survival(z):
     """1 - Phi(z) of the standard normal distribution."""
@@ -508,7 +712,7 @@ def _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     tuple of float
         The score dL/dmu ((e-/s)^-1), the observed information -d2L/dmu2 and the complete-data
         information (the unsaturated part's share; positive whenever a sample is), both
-        (e-/s)^-2, the expected number of unclipped samples among those below v_sat, and the
+        (e-/s)^-2, the expected number of unclipped samples among those below v_sat, the
         number of those more likely unclipped than clipped.
     """
     kinds, coefs, ks, times = frames
@@ -585,7 +789,11 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     Returns
     -------
     tuple of float
-        I ((e-/s)^-2) and kappa_{11,1} ((e-/s)^-3).
+        I ((e-/s)^-2), kappa_{11,1} ((e-/s)^-3) and the spacing the root rests on: the longest
+        exposure time among the samples not far above v_sat (u >= -3) that are not surely below
+        it (censored or possibly clipped: u <= 3, or v >= v_sat) over the longest among those
+        surely below it (u > 3 and v < v_sat); 1 when no sample is near v_sat, inf when none is
+        surely below.
     """
     kinds, coefs, ks, times = frames
     g, sigma2_R, v_sat, white = camera
@@ -593,15 +801,21 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
     m = mu if mu > 0.0 else 0.0
     info = 0.0
     k11_1 = 0.0
+    t_far = 0.0
+    t_near = 0.0
     for i in range(len(values)):  # the samples as in _tobit_terms
         b = _dark_level(darks, kinds, coefs, i, r, c, bl, master_c, D)
-        if not (math.isfinite(float(values[i][r, c])) and math.isfinite(b) and b < v_sat):
+        v = float(values[i][r, c])
+        if not (math.isfinite(v) and math.isfinite(b) and b < v_sat):
             continue
         tga = times[i] * g * a
         sd = math.sqrt(_var(a * m + Dv, g * g * times[i], Dv, sigma2_R, ks[i]))
         kap = tga / sd
         k2 = kap * kap
         u = (v_sat - b - tga * mu) / sd
+        below = (u > 3.0) & (v < v_sat)  # surely neither censored nor clipped
+        t_far = max(t_far, times[i]) if below else t_far
+        t_near = max(t_near, times[i]) if (not below) & (u >= -3.0) else t_near
         if u > 8.0:  # never censored (phi(u) < 1e-14): the Gaussian's information, no third-order term
             info += k2
             continue
@@ -612,7 +826,8 @@ def _tobit_moments(values, darks, frames, camera, r, c, mu, a, D, bl, master_c):
         lam = phi / surv
         info += k2 * (1.0 - surv + phi * (lam - u))
         k11_1 += k2 * kap * phi * (1.0 - lam * (lam - u))
-    return info, k11_1
+    spacing = 1.0 if t_near == 0.0 else (t_near / t_far if t_far > 0.0 else math.inf)
+    return info, k11_1, spacing
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -640,13 +855,15 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
     Returns
     -------
     tuple
-        (mu, sigma (e-/s), number of samples used, score evaluations, flagged): flagged when no
-        sample below v_sat is more likely unclipped than clipped (only a lower bound is known).
+        (mu, sigma (e-/s), number of samples used, score evaluations, flagged, spacing):
+        flagged when no sample below v_sat is more likely unclipped than clipped (only a lower
+        bound is known); spacing = the spacing the root rests on (:func:`_tobit_moments`), which
+        :func:`_tobit_trusted` judges (0 when flagged).
     """
     f, h, hc, nu, nr = _tobit_terms(values, darks, frames, camera, r, c, mu, a, D, bl, master_c)
     steps = 1
     if nr == 0:
-        return mu, sig, 0.0, steps, True
+        return mu, sig, 0.0, steps, True, 0.0
     scale = sig if (sig > 0.0 and math.isfinite(sig)) else 1.0 / math.sqrt(hc)
     lo = mu
     hi = mu
@@ -668,7 +885,7 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
             lo = far if found else lo
         scale *= 2.0
     if not found:  # the likelihood keeps growing: no finite estimate, a bound at most
-        return mu, sig, 0.0, steps, True
+        return mu, sig, 0.0, steps, True, 0.0
     x = mu
     for _ in range(100):
         if f == 0.0:  # at the root (a Newton step of 0 would land on the bracket's end)
@@ -688,14 +905,26 @@ def _tobit(values, darks, frames, camera, r, c, mu, sig, a, D, bl, master_c, tol
         elif f < 0.0:
             hi = x
     if nr == 0:
-        return x, sig, 0.0, steps, True
+        return x, sig, 0.0, steps, True, 0.0
     hh = h if h > 0.0 else hc
     # Centre the Wald statistic: its first-order mean is kappa_{11,1}/(2 I^(3/2)) whether sigma
     # comes from the observed or the expected information (docs/merge.md, item 5)
-    ie, k11_1 = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
+    ie, k11_1, spacing = _tobit_moments(values, darks, frames, camera, r, c, x, a, D, bl, master_c)
     if ie > 0.0:  # else no sample informs at the root (every one far above v_sat): nothing to centre
         x -= 0.5 * k11_1 / (ie * ie)
-    return x, 1.0 / math.sqrt(hh), float(nr), steps, False
+    return x, 1.0 / math.sqrt(hh), float(nr), steps, False, spacing
+
+
+@numba.njit(inline="always", cache=True)
+def _tobit_trusted(spacing, limit):
+    """Whether the censored likelihood's estimate stands (else the threshold model's does): the
+    samples it rests on near their clip level (censored, or values that may be clipped) come
+    from exposures at most ``limit`` times longer than the longest sample surely below its
+    clip (``spacing``, :func:`_tobit_moments`). With wider spacing the samples below the clip
+    carry about 1/spacing of the information just above it, the likelihood is far from
+    Gaussian (a sharp edge, or a second, wide mode where a clipped value reads as unclipped)
+    and sigma from its curvature is too small (docs/merge.md, item 5). ``limit`` 0: always."""
+    return (not limit > 0.0) or spacing <= limit * (1.0 + 1e-9)
 
 
 # ------------------------------------------------------------------------------- kernels
@@ -810,8 +1039,8 @@ def merge_kernel(
     a_map, a_is_map, _a_scalar = maps.prnu
     master, has_master, _m_scalar = maps.master
     init_sum, init_cnt, use_init = start
-    max_iter, tol, sat_sigmas, probabilistic = options
-    out_irr, out_sig, out_nexp, out_iter, stats = out
+    max_iter, tol, sat_sigmas, probabilistic, clip_sigmas, censored_spacing = options
+    out_irr, out_sig, out_nexp, out_iter, out_rules, stats = out
     n = len(values)
     H, W = values[0].shape
     tmin = times[0]
@@ -819,6 +1048,9 @@ def merge_kernel(
         tmin = min(tmin, times[i])
     sat2 = sat_sigmas * sat_sigmas
     tol2 = tol * tol
+    # The clip rule where the full well clips before the ADC (saturated values then scatter
+    # around v_sat + 3 sigma_R and some slip under v_sat; the ADC's clip is the white level).
+    clip_on = (clip_sigmas > 0.0) & (white - v_sat > 3.0 * math.sqrt(sigma2_R))
     inv_gtmin = 1.0 / (g * tmin)
     nchunk = stats.shape[0]
     # Blocks of columns: whole rows up to 8192 columns (fewer loop prologues and remainders).
@@ -875,6 +1107,9 @@ def merge_kernel(
         LB = np.empty(Wp)
         S = np.empty(Wp)
         CNT = np.empty(Wp)
+        VTH = np.empty(Wp)  # the clip rule's window: raw values at least this are possibly clipped
+        CAND = np.empty(Wp)
+        BOUND = np.empty(n)  # the clip rule's lower bounds from saturated samples, per frame
         # Maps given as scalars are filled once per chunk, maps once per row.
         _fill_row(A, a_map, False, 1.0, 0)
         _fill_row(IA, a_map, False, 1.0, 0)
@@ -884,9 +1119,13 @@ def merge_kernel(
         _floor_row(DW)
         _fill_row(BL, bias, False, bias_scalar, 0)
         _fill_row(VSB, bias, False, v_sat - bias_scalar, 0)
+        _clip_window(VTH, BL, g, sigma2_R, v_sat)
         n0 = 0
         isum = 0
         imax = 0
+        nclip = 0
+        nrej = 0
+        nfall = 0
         for r in range(ch * H // nchunk, (ch + 1) * H // nchunk):
             if a_is_map:
                 _fill_row(A, a_map, True, 1.0, r)
@@ -901,6 +1140,7 @@ def merge_kernel(
                 _fill_row(BL, bias, True, bias_scalar, r)
                 for c in range(W):
                     VSB[c] = v_sat - BL[c]
+                _clip_window(VTH, BL, g, sigma2_R, v_sat)
             if has_master:
                 _fill_row(MB, master, True, 0.0, r)
             for c in range(Wp):
@@ -968,6 +1208,70 @@ def merge_kernel(
                     )
                     if active == 0:
                         break
+                orules = out_rules[r]
+                for c in range(numba.uint64(c0), numba.uint64(c1)):
+                    orules[c] = 0
+                if clip_on:  # the clip rule (_clip_rule) where a usable sample may be clipped
+                    for c in range(numba.uint64(c0), numba.uint64(c1)):
+                        CAND[c] = 0.0
+                    for i in range(n):
+                        _row_candidates(values[i][r], X[i], VTH, CAND, c0, c1)
+                    for c in range(c0, c1):
+                        if CAND[c] == 0.0 or FLAG[c] != 0.0:
+                            continue
+                        a_c = A[c]
+                        d_c = float(DW[c])
+                        vsb_c = float(VSB[c])
+                        _saturated_bounds(
+                            values,
+                            darks,
+                            frames,
+                            r,
+                            c,
+                            FR,
+                            n,
+                            a_c,
+                            BL[c],
+                            MB[c],
+                            DD[c],
+                            d_c,
+                            g,
+                            sigma2_R,
+                            v_sat,
+                            clip_sigmas,
+                            BOUND,
+                        )
+                        k, m, st = _clip_rule(
+                            values,
+                            r,
+                            c,
+                            X,
+                            FR,
+                            n,
+                            VTH[c],
+                            v_sat,
+                            MU[c],
+                            a_c,
+                            d_c,
+                            sigma2_R,
+                            clip_sigmas,
+                            tol,
+                            max_iter,
+                            BOUND,
+                        )
+                        if k == 0:
+                            continue  # (its passes are not counted: the iterations report the re-weighting)
+                        ITER[c] += st
+                        m, var, st = _refit(X, FR, n, c, m, a_c, d_c, vsb_c, sigma2_R, sat2, tol, max_iter)
+                        ITER[c] += st
+                        MU[c] = m
+                        if var > 0.0:
+                            SIG[c] = var
+                        else:
+                            FLAG[c] = 1.0
+                        orules[c] = RULE_CLIP
+                        nclip += 1
+                        nrej += k
                 _row_usable(X, n, NU, c0, cp)
                 if probabilistic:  # the censored likelihood, from the threshold model's estimate
                     for c in range(numba.uint64(c0), numba.uint64(c1)):
@@ -977,7 +1281,7 @@ def merge_kernel(
                             # or lie within the rule's margin of the shortest exposure's clip; a
                             # lower bound only (nexp = 0)
                             continue
-                        mu, sg, nu, steps, flagged = _tobit(
+                        mu, sg, nu, steps, flagged, spacing = _tobit(
                             values,
                             darks,
                             frames,
@@ -995,10 +1299,13 @@ def merge_kernel(
                         ITER[c] += steps
                         if flagged:
                             FLAG[c] = 1.0
-                        else:
+                        elif _tobit_trusted(spacing, censored_spacing):
                             MU[c] = mu
                             SIG[c] = sg * sg
                             NU[c] = nu
+                        else:  # the threshold model's estimate stands (_tobit_trusted)
+                            orules[c] |= RULE_FALLBACK
+                            nfall += 1
                 b0, bsum, bmax = _row_output(
                     r, MU, SIG, NU, ITER, FLAG, LB, out_irr, out_sig, out_nexp, out_iter, c0, c1
                 )
@@ -1008,6 +1315,9 @@ def merge_kernel(
         stats[ch, 0] = n0
         stats[ch, 1] = isum
         stats[ch, 2] = imax
+        stats[ch, 3] = nclip
+        stats[ch, 4] = nrej
+        stats[ch, 5] = nfall
 
 
 class ErrorMaps(NamedTuple):
@@ -1041,7 +1351,7 @@ class SharedTerms(NamedTuple):
 
 @numba.njit(cache=True, error_model="numpy")
 def _terms_weights_row(
-    WROW, vrow, BROW, MU, MP, A, DR, BIAS, U, t, g, s2, k, v_sat, sat2, censored
+    WROW, vrow, BROW, MU, MP, A, DR, BIAS, U, RL, t, g, s2, k, v_sat, sat2, censored
 ):  # pragma: no cover - compiled
     """Each sample's weight on one row (see :func:`calibration_terms_kernel`); in the order of
     the numpy formulas' operations."""
@@ -1052,7 +1362,7 @@ def _terms_weights_row(
         b = BROW[c]
         tga = tg * A[c]
         var_x = _var(A[c] * MP[c] + DR[c], g2t, DR[c], s2, k) / (tga * tga)
-        if censored:
+        if censored and (RL[c] & RULE_FALLBACK) == 0:
             if not ((b < v_sat) and math.isfinite(v) and math.isfinite(b)):
                 WROW[c] = 0.0
             elif v < v_sat:
@@ -1092,6 +1402,7 @@ def calibration_terms_kernel(
     terms: SharedTerms,
     irr: np.ndarray,
     nexp: np.ndarray,
+    rules: np.ndarray,
     out: np.ndarray,
     out_m: np.ndarray,
 ) -> None:
@@ -1111,7 +1422,8 @@ def calibration_terms_kernel(
     (Eq. 6, 13; the variance at max(mu, 0) with the map's D) where it is usable (Eq. 11 and the
     near-saturation rule at mu), or with ``terms.censored`` its share of the censored
     likelihood's information (1/Var(x_i) below v_sat, lambda(z) (lambda(z) - z)/Var(x_i) at
-    or above it); W = sum w_i; d mu/d b_j = -sum w_i bias_i/(t_i g)/W, d mu/d D_j =
+    or above it) except where ``rules`` has :data:`RULE_FALLBACK` (the threshold estimate
+    stands there); W = sum w_i; d mu/d b_j = -sum w_i bias_i/(t_i g)/W, d mu/d D_j =
     -sum w_i coef_i/(t_i g)/W, d mu/d M = -sum w_i master_i/(t_i g)/W; then
     ``out`` = sqrt((db sigma_b)^2 + (dD sigma_D)^2 + (mu sigma_a)^2)/a and ``out_m`` =
     |dM| sqrt((g^2 t_ref D + sigma_R^2)/N)/a where nexp > 0, else 0 (float32). The operations
@@ -1161,7 +1473,23 @@ def calibration_terms_kernel(
                 mc = float(master[r, c]) if master_frame else 0.0
                 BROW[c] = _dark_level(darks, kinds, coefs, i, r, c, BIAS[c], mc, DR[c])
             _terms_weights_row(
-                WROW, values[i][r], BROW, MU, MP, A, DR, BIAS, U, times[i], g, s2, ks[i], v_sat, sat2, censored
+                WROW,
+                values[i][r],
+                BROW,
+                MU,
+                MP,
+                A,
+                DR,
+                BIAS,
+                U,
+                rules[r],
+                times[i],
+                g,
+                s2,
+                ks[i],
+                v_sat,
+                sat2,
+                censored,
             )
             _terms_sums_row(WROW, 1.0 / (times[i] * g), use[i, 0], coefs[i], use[i, 1], WS, NB, ND, NM)
         for c in range(Wd):

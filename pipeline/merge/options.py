@@ -16,11 +16,16 @@ from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.exposure_ratio import EXPOSURE_TIME_MODES
 from hdrcap.pipeline.noise import DarkStrategy
 
-__all__ = ["MergeOptions", "as_strategy"]
+__all__ = ["MergeOptions", "as_strategy", "CENSORED_SPACING"]
 
 
 _SATURATION_MODELS = ("threshold", "probabilistic")
 _PRNU_MODES = ("map", "scalar")
+
+#: Widest spacing of exposure times (ratio) at which the probabilistic model's censored
+#: likelihood keeps its estimate near a clip level (``MergeOptions.censored_spacing``): in the
+#: sweep of benchmarks/extremes.py its z is honest at x10 and not at x100 (docs/merge.md, item 5).
+CENSORED_SPACING = 10.0
 
 
 def as_strategy(value: DarkStrategy | str | None) -> DarkStrategy | None:
@@ -74,6 +79,19 @@ class MergeOptions:
     master_dark_time : float or None
         Exposure time (s) of a single master dark; the dark current over the difference to
         each exposure time is added from the calibration. None: the master dark is used as is.
+    clip_sigmas : float
+        Threshold k_c of the clip rule, standard deviations (0 turns the rule off): where the
+        full well clips before the ADC, a usable sample whose raw value lies within 3 of its
+        model standard deviation at v_sat of v_sat (possibly a clipped value that slipped
+        under v_sat) is rejected when it lies more than k_c standard deviations below the
+        estimate of the other samples (leave-one-out; docs/merge.md, item 4).
+    censored_spacing : float
+        ``saturation="probabilistic"`` only: the censored likelihood's estimate stands where the
+        samples it rests on near their clip level (censored, or possibly clipped) come from
+        exposures at most this many times longer than the longest sample surely below its clip;
+        elsewhere the threshold estimate is kept and counted (``censored_fallback``;
+        docs/merge.md, item 5). Default :data:`CENSORED_SPACING`; 0: always the censored
+        likelihood's. Dimensionless, >= 1 or 0.
     exposure_times : {"nominal", "effective"}
         ``effective``: each frame's actual exposure time replaces the nominal one: first the
         calibration's shutter table (``Calibration.shutter``, per nominal time, as each frame
@@ -93,6 +111,8 @@ class MergeOptions:
     n_dark: float = 1
     master_dark_time: float | None = None
     exposure_times: str = "nominal"
+    clip_sigmas: float = 4.0
+    censored_spacing: float = CENSORED_SPACING
 
     def __post_init__(self) -> None:
         if not isinstance(self.iterations, (int, np.integer)) or self.iterations < 1:
@@ -112,6 +132,10 @@ class MergeOptions:
             np.isfinite(self.master_dark_time) and self.master_dark_time >= 0
         ):
             raise InputError(f"master dark exposure time must be finite and >= 0, got {self.master_dark_time!r}")
+        if not (np.isfinite(self.clip_sigmas) and self.clip_sigmas >= 0):
+            raise InputError(f"clip_sigmas must be finite and >= 0, got {self.clip_sigmas!r}")
+        if not (np.isfinite(self.censored_spacing) and (self.censored_spacing >= 1 or self.censored_spacing == 0)):
+            raise InputError(f"censored_spacing must be >= 1 (or 0), got {self.censored_spacing!r}")
         if self.exposure_times not in EXPOSURE_TIME_MODES:
             raise InputError(f"exposure_times must be effective or nominal, got {self.exposure_times!r}")
 

@@ -567,6 +567,9 @@ def _whole_info(tiles: list[dict[str, Any]], shape, single: bool) -> dict[str, A
     total_iters = sum(round(t["info"]["iterations_used_mean"] * t["size"]) for t in tiles)
     info["saturated_everywhere"] = sum(t["info"]["saturated_everywhere"] for t in tiles)
     info["defects_flagged"] = sum(t["info"]["defects_flagged"] for t in tiles)
+    for key in ("clip_rejected", "clip_rejected_samples", "censored_fallback"):
+        if info.get(key) is not None:
+            info[key] = sum(t["info"][key] for t in tiles)
     info["iterations_used_mean"] = float(np.float64(total_iters) / max(shape[0] * shape[1], 1))
     info["iterations_used_max"] = max(t["info"]["iterations_used_max"] for t in tiles)
     info["weights_precision"] = "float32" if single else "float64"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 
 
@@ -20,3 +21,23 @@ class StoppingCamera:
         if self.n == self._after:
             self._stop.stop(signal.SIGTERM)
         return res
+
+
+class _Kill:
+    """Stands for the stop event of :class:`StoppingCamera`: delivers the real SIGTERM instead."""
+
+    def stop(self, signum):
+        os.kill(os.getpid(), signum)
+
+
+class SignallingCamera(StoppingCamera):
+    """A camera that receives SIGTERM (as from `systemctl stop`) after ``after`` captures and
+    records whether it was closed."""
+
+    def __init__(self, cam, after: int):
+        super().__init__(cam, _Kill(), after)
+        self.closed = False
+
+    def close(self):
+        self.closed = True
+        self._cam.close()

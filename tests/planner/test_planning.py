@@ -728,3 +728,17 @@ def test_a_dim_scene_is_planned_with_bulb_exposures_beyond_30_s():
     var_v = p.g**2 * t * (X + p.dark_current) + p.sigma2_R * (1 + d) + d * p.g**2 * t * p.dark_current
     snr_db = 20 * np.log10(X / np.sqrt(1.0 / np.sum((t * p.g) ** 2 / var_v, axis=0)))
     assert snr_db.min() >= target - 0.1, snr_db.min()
+
+
+@pytest.mark.parametrize("times, realised", [([1e-3, 4e-3, 1.6e-2, 6.4e-2], True), ([1e-4, 1e-2, 1.0], False)])
+def test_saturation_decision_says_when_the_censored_gain_is_not_realised(times, realised):
+    """Beyond CENSORED_SPACING between exposures the merge keeps the threshold estimate near the
+    clip levels (docs/merge.md, item 5): the decision's reason says the gain would not be realised."""
+    from hdrcap.planner.predict import SystematicErrors
+    from hdrcap.planner.select import saturation_decision
+
+    cal = Calibration(CAM_B.nominal_params())
+    Xe = np.geomspace(10.0, 1e6, 200)
+    d = saturation_decision(Xe, times, ["matched"] * len(times), [1] * len(times), cal, SystematicErrors(), "map", 0.01)
+    assert d["choice"] == "threshold" and d["figure"] > 0.01
+    assert ("not be realised" in d["reason"]) is not realised

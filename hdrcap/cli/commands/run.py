@@ -99,7 +99,7 @@ def _run(
     if check:
         cam = open_camera(job)
         try:
-            check_job_against_camera(job, cam)
+            check_job_against_camera(job, cam, lambda line: click.echo(line, err=True))
             reps = repeat or job["schedule"]["repeat"]
             space = check_free_space(job, cam, run_dir or run_folder(job), repetitions=reps)
         finally:

@@ -36,7 +36,7 @@ seed = 5
 
 [exposure]
 mode = "bracket"
-times = [0.001, 0.004, 0.064]
+times = [0.001, 0.004, 0.05]
 
 [darks]
 {darks}

@@ -332,7 +332,12 @@ def test_run_honours_a_mixed_plan_and_records_the_decisions(tmp_path, monkeypatc
         "iterations": {"choice": 5, "reason": "test", "figure": 0.01},
     }
     fake = Plan(times, darks, 22.0, 3.0, decisions, True, "a test plan", 20.0, 1.0, [0] * 6, {})
-    monkeypatch.setattr(planner, "meter", lambda *a, **k: np.ones((48, 64)))
+    lit = planner.MeterReport([0.000125, 1.0], 48 * 64, 0, None, 0, None, 0, None)  # no photosite dark
+
+    def meter(*a, return_report=False, **k):
+        return (np.ones((48, 64)), lit) if return_report else np.ones((48, 64))
+
+    monkeypatch.setattr(planner, "meter", meter)
     monkeypatch.setattr(planner, "plan_exposures", lambda *a, **k: fake)
     text = (
         GOOD.replace('mode = "bracket"', 'mode = "snr"\ntarget_snr_db = 20.0')

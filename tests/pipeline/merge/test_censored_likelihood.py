@@ -249,7 +249,7 @@ def test_censored_root_does_not_depend_on_the_start():
             v = [np.array([[min(p.mu_R + p.g * t * X + rng.normal(0, 5.0), p.v_sat)]]) for t in times]
             roots = []
             for start in (X - 2.0 * X * 0.05, X, X + 2.0 * X * 0.05):
-                mu, sig, n, _steps, flagged = K._tobit(
+                mu, sig, n, _steps, flagged, _spacing = K._tobit(
                     v, hold, frames, cam, 0, 0, start, 0.05 * X, 1.0, 0.0, p.mu_R, 0.0, 1e-12
                 )
                 assert not flagged and n > 0

@@ -224,8 +224,8 @@ def test_probabilistic_saturation_just_above_each_clip_camera_a():
 
 
 def test_near_saturation_rule_is_needed_for_camera_a():
-    """Camera-A's full well clips before the ADC: without the near-saturation rule, samples
-    that slip under v_sat produce gross errors; with it, none."""
+    """Camera-A's full well clips before the ADC: without the near-saturation rule (and the
+    clip rule), samples that slip under v_sat produce gross errors; with it, none."""
     spec = PRESETS["camera-A"]
     p = spec.nominal_params()
     shape = (128, 128)
@@ -236,11 +236,14 @@ def test_near_saturation_rule_is_needed_for_camera_a():
     values = [sensor.expose(X, t) for t in TIMES]
     darks = [sensor.expose(X, t, dark=True) for t in TIMES]
     with_rule = merge_arrays(values, TIMES, cal, darks)
-    without = merge_arrays(values, TIMES, cal, darks, saturation_sigmas=0.0)
+    without = merge_arrays(values, TIMES, cal, darks, saturation_sigmas=0.0, clip_sigmas=0.0)
+    clip_only = merge_arrays(values, TIMES, cal, darks, saturation_sigmas=0.0)
     z_with = (with_rule.irradiance - X) / with_rule.sigma
     z_without = (without.irradiance - X) / without.sigma
     assert np.sum(np.abs(z_without) > 6) >= 3  # the hazard is real in the simulator
     assert np.sum(np.abs(z_with) > 6) == 0
+    # the clip rule alone (leave-one-out, after the iterations) catches them too
+    assert np.sum(np.abs((clip_only.irradiance - X) / clip_only.sigma) > 6) == 0
 
 
 def test_streaming_equals_batch():

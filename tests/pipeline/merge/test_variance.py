@@ -69,7 +69,8 @@ def _expected(p, cal, values, darks, mu):
 
 @pytest.mark.parametrize("single", [False, True])
 def test_sigma_is_inverse_root_of_weight_sum_at_the_estimate(single, monkeypatch):
-    """Deterministic: with the near-saturation rule off, the merge's sigma equals
+    """Deterministic: with the near-saturation rule and the clip rule off (camera-A's slipped
+    values are then kept, as the expected weights here keep them), the merge's sigma equals
     1/sqrt(sum w_i(mu)) over the usable samples and its estimate equals sum w x / sum w, both at
     the merge's own estimate, to 1e-6 (float64 weights; 1e-5 with float32 weights)."""
     monkeypatch.setattr(pm, "SINGLE_PRECISION_WEIGHTS", single)
@@ -82,6 +83,7 @@ def test_sigma_is_inverse_root_of_weight_sum_at_the_estimate(single, monkeypatch
         dark_strategies=STRATEGIES,
         n_darks=[N_MASTER if s == "master" else None for s in STRATEGIES],
         saturation_sigmas=0.0,
+        clip_sigmas=0.0,
         iterations=60,
         tolerance=1e-12,
     )
