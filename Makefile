@@ -16,7 +16,9 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 ## Run the main job on the built-in simulated camera: plan -> capture -> merge -> out/demo.exr
+## (the merge kernels compiled first: once after an install, then loaded from numba's cache)
 demo: $(STAMP)
+	$(BIN)/hdrcap warm-up
 	$(BIN)/hdrcap demo --out out --force
 
 ## Lint and format check (ruff), type check (mypy; both configured in pyproject.toml), then the whole test suite

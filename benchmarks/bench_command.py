@@ -1,25 +1,31 @@
-"""Whole-command benchmark: `hdrcap merge` against HDRMerge on a simulated bracket; prints one JSON object.
+"""Whole-command benchmark: `hdrcap merge` against HDRMerge on simulated brackets; prints one JSON object.
 
-Both tools run as commands from the DNG files to their output file, alternating, best of
-``--repeats`` each, in the same run (quote ratios from one run: the machine may be shared):
+Both tools run as commands from the DNG files to their output file, alternating, in the same
+run (quote ratios from one run: the machine may be shared), after one warm-up run each; each
+case reports the best and the median wall time of ``--repeats`` runs, and the user and system
+CPU time of each command (``os.wait4``) separately:
 
-* HDRMerge: ``hdrmerge -o out.dng frame_*.dng`` on the 6 bright frames (``QT_QPA_PLATFORM=offscreen``).
-* hdrcap: the installed ``hdrcap merge`` console script on the 6 frames + 6 matched dark frames,
-  with a calibration file that has the sensor's PRNU and dark-current maps, default options
-  and default EXR settings.
+* ``large_exr``: hdrcap, the installed ``hdrcap merge`` console script on 6 frames + 6 matched
+  dark frames of ``--mpix`` megapixels with a calibration file that has the sensor's PRNU and
+  dark-current maps, default options and default EXR settings; HDRMerge ``hdrmerge -o out.dng
+  frame_*.dng`` on the 6 bright frames (``QT_QPA_PLATFORM=offscreen``).
+* ``large_dng``: the same hdrcap command writing ``-o out.dng`` (float DNG), same HDRMerge run.
+* ``small``: 1.2 Mpixel, 3 frames + 3 dark frames, EXR (hdrcap's start-up against HDRMerge's).
+* ``cold`` (unless ``--no-cold``): the first ``hdrcap merge`` after an install, 64x48 pixels, on
+  an empty numba cache (``NUMBA_CACHE_DIR`` in a new folder): the kernels' compilation, and the
+  line it prints.
 
-Peak memory is each process's maximum resident set and CPU time its user + system time
-(``os.wait4``; on a shared machine the CPU-time ratio is the steadier figure, the wall-time
-ratio the one that counts on an idle one). The same run also times,
-in this process, the parts of hdrcap's command: reading the 12 files (direct DNG decoding,
-and LibRaw for comparison), ``check_frames``, the merge kernel on the frames in memory, and
-the EXR write; ``--exr-table`` adds the size and write time of every EXR compression and
-channel precision.
+The hdrcap commands run without ``PYTHONDONTWRITEBYTECODE`` (an installed package has its
+bytecode written: the warm-up run writes it). Peak memory is each process's maximum resident
+set. The same run also times, in this process, the parts of hdrcap's command: reading the 12
+files (direct DNG decoding, and LibRaw for comparison), ``check_frames``, the merge kernel on
+the frames in memory, and the EXR write; ``--exr-table`` adds the size and write time of every
+EXR compression and channel precision.
 
 Usage::
 
     python benchmarks/bench_command.py --setup        # apt-get install -y hdrmerge
-    python benchmarks/bench_command.py [--mpix 24] [--repeats 3] [--exr-table]
+    python benchmarks/bench_command.py [--mpix 24] [--repeats 3] [--exr-table] [--no-cold]
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -59,13 +66,15 @@ proc = subprocess.Popen(cmd, env=env)
 _, status, usage = os.wait4(proc.pid, 0)
 wall = time.perf_counter() - t0
 print(json.dumps({"returncode": os.waitstatus_to_exitcode(status), "wall_seconds": wall,
-                  "cpu_seconds": usage.ru_utime + usage.ru_stime,
-                  "peak_rss_mb": usage.ru_maxrss / 1024.0}), file=open(sys.argv[3], "w"))
+                  "cpu_seconds": usage.ru_utime + usage.ru_stime, "user_seconds": usage.ru_utime,
+                  "sys_seconds": usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024.0}),
+      file=open(sys.argv[3], "w"))
 """
 
 
 def run_measured(cmd, env=None, cwd=None) -> dict:
-    """Run ``cmd``; return wall time (s), peak RSS (MB, os.wait4), return code, stdout/stderr tails."""
+    """Run ``cmd``; return wall time, CPU time (user + system, and each) in s, peak RSS (MB,
+    os.wait4), return code, stdout/stderr tails."""
     with tempfile.TemporaryDirectory(prefix="bench_run_") as tmp:
         report = Path(tmp) / "report.json"
         out, err = Path(tmp) / "out", Path(tmp) / "err"
@@ -103,8 +112,9 @@ def ensure_hdrmerge() -> bool:
     return shutil.which("hdrmerge") is not None
 
 
-def simulate(work: Path, shape) -> dict:
-    """Write the 6 + 6 DNG bracket and a calibration file with PRNU and dark-current maps."""
+def simulate(work: Path, shape, times=TIMES) -> dict:
+    """Write the bracket of ``times`` with one dark frame each (6 + 6 by default) and a
+    calibration file with PRNU and dark-current maps."""
     from hdrcap.mock_camera import PRESETS
     from hdrcap.mock_camera.backend import SimulatedCamera
     from hdrcap.mock_camera.scenes import make_scene
@@ -112,12 +122,12 @@ def simulate(work: Path, shape) -> dict:
     from hdrcap.pipeline.params import Calibration
 
     spec = PRESETS[CAMERA]
-    for i in range(len(TIMES)):  # a --work folder of an earlier run: simulated afresh (same seed)
+    for i in range(len(times)):  # a --work folder of an earlier run: simulated afresh (same seed)
         for name in (f"frame_{i}.dng", f"dark_{i}.dng"):
             (work / name).unlink(missing_ok=True)
     cam = SimulatedCamera(spec, make_scene("hdr", shape, 4.0, 2e5), seed=1)
-    frames = [cam.capture_to(work / f"frame_{i}.dng", t) for i, t in enumerate(TIMES)]
-    darks = [cam.capture_to(work / f"dark_{i}.dng", t, dark=True) for i, t in enumerate(TIMES)]
+    frames = [cam.capture_to(work / f"frame_{i}.dng", t) for i, t in enumerate(times)]
+    darks = [cam.capture_to(work / f"dark_{i}.dng", t, dark=True) for i, t in enumerate(times)]
     cal = Calibration(
         spec.nominal_params(),
         prnu=cam.sensor.prnu.astype(np.float32),
@@ -144,40 +154,89 @@ def hdrcap_cmd(sim: dict, out: Path) -> list:
     ]
 
 
-def compare_commands(sim: dict, work: Path, repeats: int, with_hdrmerge: bool) -> dict:
-    """Both commands alternating, one warm-up run each (page cache, numba cache), best of ``repeats``."""
+def _hdrcap_env(**extra: str) -> dict:
+    """The environment of hdrcap's commands: bytecode written as in an installed package."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    return env | extra
+
+
+def _summary(runs: list) -> dict:
+    """Best and median wall time, the CPU times of the best run and of the median, peak RSS."""
+    ok = [r for r in runs if r["returncode"] == 0]
+    if not ok:
+        return {"best_seconds": None, "returncode": runs[-1]["returncode"], "stderr": runs[-1]["stderr"]}
+    by_wall = sorted(ok, key=lambda r: r["wall_seconds"])
+    best, median = by_wall[0], by_wall[len(by_wall) // 2]
+    return {
+        "best_seconds": round(best["wall_seconds"], 3),
+        "median_seconds": round(median["wall_seconds"], 3),
+        "all_seconds": [round(r["wall_seconds"], 3) for r in runs],
+        "best_user_seconds": round(best["user_seconds"], 3),
+        "best_sys_seconds": round(best["sys_seconds"], 3),
+        "median_user_seconds": round(statistics.median(r["user_seconds"] for r in ok), 3),
+        "median_sys_seconds": round(statistics.median(r["sys_seconds"] for r in ok), 3),
+        "peak_rss_mb": round(max(r["peak_rss_mb"] for r in ok), 1),
+        "returncode": 0,
+    }
+
+
+def compare_commands(cases: dict, work: Path, repeats: int) -> dict:
+    """Every case's commands (``{"hdrcap": cmd, "hdrmerge": cmd or None}``) alternating, one
+    warm-up run each (page cache, numba cache, bytecode), ``repeats`` counted runs each."""
     henv = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_RUNTIME_DIR=str(work))
-    hdr_out = work / "hdrmerge.dng"
-    runs: dict[str, list] = {"hdrcap": [], "hdrmerge": []}
+    hdrmerge_runs: dict[tuple, list] = {}  # one HDRMerge command shared by cases (the same frames)
+    runs: dict[str, dict[str, list]] = {name: {"hdrcap": []} for name in cases}
 
-    def one(tool):
-        if tool == "hdrcap":
-            return run_measured(hdrcap_cmd(sim, work / "hdrcap.exr"))
-        hdr_out.unlink(missing_ok=True)
-        return run_measured(["hdrmerge", "-o", hdr_out, *sim["frames"]], env=henv)
+    def one(cmd, env, out=None):
+        if out is not None:
+            Path(out).unlink(missing_ok=True)
+        return run_measured(cmd, env=env)
 
-    tools = ["hdrcap"] + (["hdrmerge"] if with_hdrmerge else [])
-    for tool in tools:
-        one(tool)  # warm-up, not counted
+    for case in cases.values():
+        one(case["hdrcap"], _hdrcap_env())
+        if case["hdrmerge"]:
+            one(case["hdrmerge"], henv, case["hdrmerge"][2])
     for _ in range(repeats):
-        for tool in tools:
-            runs[tool].append(one(tool))
+        for name, case in cases.items():
+            runs[name]["hdrcap"].append(one(case["hdrcap"], _hdrcap_env()))
+            key = tuple(map(str, case["hdrmerge"] or ()))
+            if key and len(hdrmerge_runs.setdefault(key, [])) < repeats:
+                hdrmerge_runs[key].append(one(case["hdrmerge"], henv, case["hdrmerge"][2]))
     out = {}
-    for tool in tools:
-        ok = [r for r in runs[tool] if r["returncode"] == 0]
-        best = min(ok, key=lambda r: r["wall_seconds"]) if ok else runs[tool][-1]
-        out[tool] = {
-            "best_seconds": best["wall_seconds"] if ok else None,
-            "all_seconds": [round(r["wall_seconds"], 3) for r in runs[tool]],
-            "peak_rss_mb": max(r["peak_rss_mb"] for r in runs[tool]),
-            "best_cpu_seconds": min(r["cpu_seconds"] for r in runs[tool]) if ok else None,
-            "returncode": best["returncode"],
-            "stderr": best["stderr"] if not ok else "",
-        }
-    if out.get("hdrmerge", {}).get("best_seconds") and out["hdrcap"]["best_seconds"]:
-        out["ratio_hdrcap_to_hdrmerge"] = out["hdrcap"]["best_seconds"] / out["hdrmerge"]["best_seconds"]
-        out["cpu_ratio_hdrcap_to_hdrmerge"] = out["hdrcap"]["best_cpu_seconds"] / out["hdrmerge"]["best_cpu_seconds"]
+    for name, case in cases.items():
+        res = {"hdrcap": _summary(runs[name]["hdrcap"])}
+        key = tuple(map(str, case["hdrmerge"] or ()))
+        if key:
+            res["hdrmerge"] = _summary(hdrmerge_runs[key])
+            a, b = res["hdrcap"], res["hdrmerge"]
+            if a["best_seconds"] and b["best_seconds"]:
+                res["ratio_best"] = round(a["best_seconds"] / b["best_seconds"], 3)
+                res["ratio_median"] = round(a["median_seconds"] / b["median_seconds"], 3)
+                cpu = lambda r: r["median_user_seconds"] + r["median_sys_seconds"]  # noqa: E731
+                res["ratio_median_cpu"] = round(cpu(a) / cpu(b), 3)
+        out[name] = res
     return out
+
+
+def cold_first_merge(work: Path) -> dict:
+    """The first merge after an install: 64x48 pixels, 3 frames + 3 darks, an empty numba cache."""
+    from hdrcap.pipeline._numba_target import COMPILE_NOTICE
+
+    small = work / "cold"
+    small.mkdir(exist_ok=True)
+    sim = simulate(small, (48, 64), TIMES[-3:])
+    with tempfile.TemporaryDirectory(prefix="bench_numba_cache_") as cache:
+        first = run_measured(hdrcap_cmd(sim, small / "o.exr"), env=_hdrcap_env(NUMBA_CACHE_DIR=cache))
+        second = run_measured(hdrcap_cmd(sim, small / "o.exr"), env=_hdrcap_env(NUMBA_CACHE_DIR=cache))
+    return {
+        "cold_seconds": round(first["wall_seconds"], 2),
+        "cold_user_seconds": round(first["user_seconds"], 2),
+        "cold_sys_seconds": round(first["sys_seconds"], 2),
+        "cold_notice_lines": first["stderr"].count(COMPILE_NOTICE),
+        "warm_seconds": round(second["wall_seconds"], 2),
+        "warm_notice_lines": second["stderr"].count(COMPILE_NOTICE),
+        "returncodes": [first["returncode"], second["returncode"]],
+    }
 
 
 def _best(fn, repeats: int):
@@ -191,10 +250,12 @@ def _best(fn, repeats: int):
 
 
 def time_parts(sim: dict, repeats: int) -> dict:
-    """hdrcap's command in parts, in this process: read, check_frames, kernel, EXR write."""
+    """hdrcap's command in parts, in this process: read, check_frames, kernel, EXR write (the
+    merge's channels at the default settings)."""
     from hdrcap.pipeline.calibration import load_calibration
     from hdrcap.pipeline.io import exr as pexr
     from hdrcap.pipeline.io import raw as pio
+    from hdrcap.pipeline.io.results import write_result
     from hdrcap.pipeline.merge.accumulator import merge_arrays
 
     paths = [*sim["frames"], *sim["darks"]]
@@ -213,7 +274,8 @@ def time_parts(sim: dict, repeats: int) -> dict:
     parts["kernel_seconds"], res = _best(lambda: merge_arrays(values, times, cal, darks=darks), repeats)
     image = pexr.ExrContent({"irradiance": res.irradiance, "sigma": res.sigma, "nexp": res.nexp}, {"unit": "e-/s"})
     with tempfile.TemporaryDirectory(prefix="bench_exr_") as tmp:
-        parts["write_seconds"], _ = _best(lambda: pexr.write_exr(Path(tmp) / "o.exr", *image, force=True), repeats)
+        out = Path(tmp) / "o.exr"
+        parts["write_seconds"], _ = _best(lambda: write_result(res, out, force=True), repeats)  # the command's EXR
     return parts, image
 
 
@@ -261,8 +323,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--setup", action="store_true", help="install HDRMerge with apt-get, then exit")
     ap.add_argument("--mpix", type=float, default=24.0, help="megapixels per frame (default 24)")
-    ap.add_argument("--repeats", type=int, default=3, help="runs of each command (best is reported)")
+    ap.add_argument("--small-mpix", type=float, default=1.2, help="megapixels of the small bracket (default 1.2)")
+    ap.add_argument("--repeats", type=int, default=3, help="counted runs of each command")
     ap.add_argument("--no-hdrmerge", action="store_true", help="time hdrcap only")
+    ap.add_argument("--no-cold", action="store_true", help="skip the first merge on an empty numba cache")
     ap.add_argument("--exr-table", action="store_true", help="also time every EXR compression and precision")
     ap.add_argument("--work", type=Path, help="keep the simulated files in this folder (default: a temporary one)")
     args = ap.parse_args(argv)
@@ -273,19 +337,37 @@ def main(argv=None) -> int:
     report = {
         "mpix": args.mpix,
         "shape": list(shape),
+        "small_shape": list(shape_for(args.small_mpix)),
         "cpu_count": os.cpu_count(),
+        "load_average": os.getloadavg(),
         "frames": len(TIMES),
         "darks": len(TIMES),
         "calibration": "PRNU and dark-current maps",
-        "exr": "default (zip, float32)",
+        "exr": "default (zip, float32 irradiance, half sigma where it fits, uint nexp and quality)",
     }
     if not args.no_hdrmerge and not with_hdrmerge:
         report["hdrmerge"] = "not on PATH: run with --setup"
     with tempfile.TemporaryDirectory(prefix="bench_command_") as tmp:
         work = args.work or Path(tmp)
-        work.mkdir(parents=True, exist_ok=True)
+        (work / "small").mkdir(parents=True, exist_ok=True)
         sim = simulate(work, shape)
-        report["commands"] = compare_commands(sim, work, args.repeats, with_hdrmerge)
+        small = simulate(work / "small", shape_for(args.small_mpix), TIMES[-3:])
+
+        def hdrmerge(s, folder):
+            return ["hdrmerge", "-o", folder / "hdrmerge.dng", *s["frames"]] if with_hdrmerge else None
+
+        cases = {
+            "large_exr": {"hdrcap": hdrcap_cmd(sim, work / "hdrcap.exr"), "hdrmerge": hdrmerge(sim, work)},
+            "large_dng": {"hdrcap": hdrcap_cmd(sim, work / "hdrcap.dng"), "hdrmerge": hdrmerge(sim, work)},
+            "small": {
+                "hdrcap": hdrcap_cmd(small, work / "small" / "hdrcap.exr"),
+                "hdrmerge": hdrmerge(small, work / "small"),
+            },
+        }
+        report["commands"] = compare_commands(cases, work, args.repeats)
+        report["load_average_after"] = os.getloadavg()
+        if not args.no_cold:
+            report["first_merge"] = cold_first_merge(work)
         report["hdrcap_parts"], image = time_parts(sim, args.repeats)
         if args.exr_table:
             report["exr"] = exr_table(image, args.repeats)

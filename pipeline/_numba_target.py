@@ -20,7 +20,9 @@ other programs in the same process see the environment as the user left it.
 
 from __future__ import annotations
 
+import logging
 import os
+import threading
 from typing import Any
 
 
@@ -68,3 +70,38 @@ def warm_up() -> None:
     that runs while a command reads its inputs; it changes no result."""
     with numba.core.compiler_lock.global_compiler_lock:
         numba.core.registry.cpu_target.target_context.refresh()
+
+
+#: The line said once per process when numba starts compiling one of hdrcap's functions: its
+#: cache (``__pycache__`` beside the sources, or ``NUMBA_CACHE_DIR``) does not hold them yet.
+COMPILE_NOTICE = (
+    "compiling hdrcap's numba kernels for this CPU (first run after an install or upgrade): "
+    "about 20-60 s, once; later runs load them from numba's cache (`hdrcap warm-up` compiles ahead)"
+)
+
+
+class _CompileNotice(numba.core.event.Listener):
+    """Logs :data:`COMPILE_NOTICE` as a warning of the ``hdrcap`` logger (stderr with the
+    command line; Python's last-resort handler otherwise) on the first compilation of a
+    function of hdrcap's in the process. Loading a function from numba's cache compiles
+    nothing and says nothing."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._said = False
+
+    def on_start(self, event: Any) -> None:
+        dispatcher = event.data.get("dispatcher")
+        module = getattr(getattr(dispatcher, "py_func", None), "__module__", "") or ""
+        if not module.startswith("hdrcap."):
+            return
+        with self._lock:
+            said, self._said = self._said, True
+        if not said:
+            logging.getLogger("hdrcap.pipeline.compile").warning(COMPILE_NOTICE)
+
+    def on_end(self, event: Any) -> None:
+        pass
+
+
+numba.core.event.register("numba:compile", _CompileNotice())

@@ -88,31 +88,36 @@ HALF_RANGE = (float(np.finfo(np.float16).tiny), float(np.finfo(np.float16).max))
 HALF_RELATIVE_ERROR = 2.0**-11
 
 
-def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
-    """``arr`` converted to the dtype of ``precision``, refused where the conversion would lose
-    more than :data:`HALF_RELATIVE_ERROR` (half) or anything at all (uint). An array already of
-    that type (float16 for half or auto, uint32 for uint) is stored as it is: no conversion,
-    nothing lost (a half channel read with ``read_exr(native=True)`` and written back)."""
+def _stored_as(name: str, arr: Any, precision: str) -> str:
+    """The precision (``float``, ``half`` or ``uint``) a channel is stored in, checked against
+    the whole channel without converting it: refused where the conversion would lose more than
+    :data:`HALF_RELATIVE_ERROR` (half) or anything at all (uint). An array already of the
+    target type (float16 for half or auto, uint32 for uint) is stored as it is."""
     if precision not in EXR_PRECISIONS:
         raise ValueError(f"channel {name!r}: precision must be one of {', '.join(EXR_PRECISIONS)}, got {precision!r}")
     if name == "irradiance" and precision != "float":
         raise ValueError("the irradiance channel is always stored as float (32 bits)")
-    arr = np.asarray(arr)
-    if arr.dtype == np.float16 and precision in ("half", "auto"):
-        return np.ascontiguousarray(arr)  # already half: stored as it is, nothing to lose or check
+    if np.dtype(arr.dtype) == np.float16 and precision in ("half", "auto"):
+        return "half"  # already half: stored as it is, nothing to lose or check
     if precision in ("half", "auto"):
         lo, hi = _magnitude_range(arr)
         fits = lo is None or hi is None or (lo >= HALF_RANGE[0] and hi <= HALF_RANGE[1])
         if precision == "auto":
-            precision = "half" if fits else "float"
-        elif not fits:
+            return "half" if fits else "float"
+        if not fits:
             raise ValueError(
                 f"channel {name!r}: values {lo:.3g}..{hi:.3g} are outside the half range "
                 f"{HALF_RANGE[0]:.3g}..{HALF_RANGE[1]:.3g}; store it as float"
             )
     elif precision == "uint" and not _whole_uint32(arr):
         raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
-    return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[precision])
+    return precision
+
+
+def _exr_channel(name: str, arr: np.ndarray, precision: str) -> np.ndarray:
+    """``arr`` converted to the dtype it is stored in (:func:`_stored_as`)."""
+    arr = np.asarray(arr)
+    return np.ascontiguousarray(arr, dtype=EXR_PRECISIONS[_stored_as(name, arr, precision)])
 
 
 #: Elements of a channel checked at a time by :func:`_magnitude_range` and :func:`_whole_uint32`
@@ -186,12 +191,12 @@ def _rows_of(src: Any, r0: int, r1: int) -> np.ndarray:
 
 def _decide_in_blocks(name: str, src: Any, want: str, rows: int) -> str:
     """``auto``/``half`` of a channel decided from the whole channel's extrema, read block by
-    block (as :func:`_exr_channel` decides it for a whole array): ``half``, ``float``, or the
+    block (as :func:`_stored_as` decides it for a whole array): ``half``, ``float``, or the
     refusal."""
     from hdrcap.pipeline.io.files import release_mapped_pages
 
     if want not in ("auto", "half"):
-        return want
+        return _stored_as(name, np.empty((0, 0), np.float32), want)  # checks the name and precision only
     lo, hi = math.inf, 0.0
     for r0 in range(0, int(np.shape(src)[0]), rows):
         block = _rows_of(src, r0, r0 + rows)
@@ -199,8 +204,7 @@ def _decide_in_blocks(name: str, src: Any, want: str, rows: int) -> str:
         if mag.size:
             lo, hi = min(lo, float(mag.min())), max(hi, float(mag.max()))
         release_mapped_pages([block])
-    probe = np.array([lo, hi] if hi > 0 else [], np.float32)
-    return "half" if _exr_channel(name, probe, want).dtype == np.float16 else "float"
+    return _stored_as(name, np.array([lo, hi] if hi > 0 else [], np.float32), want)
 
 
 def _header_attributes(header: dict[str, Any]) -> dict[str, str]:
@@ -223,7 +227,7 @@ def write_exr(
     threads: int | None = None,
     block_rows: int | None = None,
 ) -> Path:
-    """Write channels and a header as a single-part scanline EXR, atomically.
+    """Write channels and a header as a single-part scanline EXR, atomically, block by block.
 
     The header goes into one string attribute ``hdrcap`` (JSON, full precision), and its
     string entries are also written as plain attributes so that any EXR viewer shows them.
@@ -255,9 +259,10 @@ def write_exr(
         OpenEXR's compression threads (its global thread pool, which this sets). Default: the
         pool as it is, or the number of CPUs (at most 8) if it has no threads.
     block_rows : int, optional
-        Write ``block_rows`` scanlines at a time, reading each channel's rows only then (and
-        releasing the pages of memory-mapped channels after each block): for channels larger
-        than memory. The pixels and header equal the whole-image write's.
+        Scanlines written at a time (default 512). Each channel's rows are read only then (the
+        pages of memory-mapped channels are released after each block: channels larger than
+        memory) and converted to their stored type in a buffer reused for every block, so no
+        full-size copy of a channel is made. The file's bytes do not depend on it.
 
     Returns
     -------
@@ -288,47 +293,81 @@ def write_exr(
             raise ValueError(f"channel {name!r} has shape {np.shape(arr)}, expected {shape}")
     attrs = _header_attributes(dict(header or {}))
     _set_exr_threads(OpenEXR, threads)
-    if block_rows:
-        return _write_blocks(Path(path), channels, attrs, precision, compression, force, int(block_rows))
-    chans = {name: _exr_channel(name, arr, precision.get(name, "float")) for name, arr in channels.items()}
-    head: dict[str, Any] = {"compression": getattr(OpenEXR, _EXR_CODES[compression]), "type": OpenEXR.scanlineimage}
-    head.update(attrs)
-    path = Path(path)
-    with atomic_output(path, force=force, suffix=".exr") as tmp, OpenEXR.File(head, chans) as exr:
-        exr.write(str(tmp))
-    return path
+    rows = int(block_rows) if block_rows else _WRITE_ROWS
+    return _write_scanlines(Path(path), channels, attrs, precision, compression, force, rows)
 
 
-def _write_blocks(
+#: Scanlines handed to OpenEXR at a time by :func:`write_exr` (its thread pool compresses
+#: them in 16-line chunks; a block of every channel is a few MB, converted into reused buffers).
+_WRITE_ROWS = 512
+
+
+def _write_scanlines(
     path: Path, channels: dict[str, Any], attrs: dict[str, str], precision: dict[str, str], compression, force, rows
 ) -> Path:
-    """:func:`write_exr` block of rows by block of rows (OpenEXR's scanline writer)."""
+    """:func:`write_exr` block of ``rows`` scanlines by block (OpenEXR's scanline writer): each
+    channel's block is converted to its stored type in a buffer reused for every block (none
+    when it already is of that type), so no full-size copy of a channel is made."""
     import Imath
     import OpenEXR
 
     from hdrcap.pipeline.io.files import release_mapped_pages
 
-    if not hasattr(Imath.Compression, _EXR_CODES[compression]):
-        raise ValueError(f"EXR compression {compression!r} is not available to the block writer")
     h, w = (int(n) for n in np.shape(next(iter(channels.values()))))
-    decided = {n: _decide_in_blocks(n, src, precision.get(n, "float"), rows) for n, src in channels.items()}
+    in_file = {n for n, src in channels.items() if _in_file(src)}  # checked block by block, pages released
+    stored = {
+        n: _decide_in_blocks(n, src, precision.get(n, "float"), rows)
+        if n in in_file
+        else _stored_as(n, src, precision.get(n, "float"))
+        for n, src in channels.items()
+    }
     kinds = {"float": Imath.PixelType.FLOAT, "half": Imath.PixelType.HALF, "uint": Imath.PixelType.UINT}
     head = OpenEXR.Header(w, h)
-    head["channels"] = {name: Imath.Channel(Imath.PixelType(kinds[decided[name]])) for name in channels}
-    head["compression"] = Imath.Compression(getattr(Imath.Compression, _EXR_CODES[compression]))
+    head["channels"] = {name: Imath.Channel(Imath.PixelType(kinds[stored[name]])) for name in channels}
+    head["compression"] = Imath.Compression(int(getattr(OpenEXR, _EXR_CODES[compression])))
+    head["type"] = b"scanlineimage"  # what OpenEXR.File writes: the same bytes as its whole-image writer
     for key, val in attrs.items():
         head[key] = val.encode()
+    buffers: dict[str, np.ndarray] = {}
     with atomic_output(path, force=force, suffix=".exr") as tmp:
         exr = OpenEXR.OutputFile(str(tmp), head)
         try:
             for r0 in range(0, h, rows):
-                blocks = {n: _rows_of(src, r0, r0 + rows) for n, src in channels.items()}
-                data = {n: _exr_channel(n, b, decided[n]).tobytes() for n, b in blocks.items()}
-                exr.writePixels(data, min(rows, h - r0))
+                n = min(rows, h - r0)
+                blocks = {name: _rows_of(src, r0, r0 + n) for name, src in channels.items()}
+                data = {n: _stored_block(n, b, stored[n], buffers, rows, n in in_file) for n, b in blocks.items()}
+                exr.writePixels(data, n)
                 release_mapped_pages(blocks.values())
         finally:
             exr.close()
     return path
+
+
+def _in_file(src: Any) -> bool:
+    """Whether a channel is read from a file: an object with ``rows(r0, r1)`` or a memory map."""
+    base = src
+    while isinstance(base, np.ndarray) and not isinstance(base, np.memmap):
+        base = base.base
+    return not isinstance(src, np.ndarray) or isinstance(base, np.memmap)
+
+
+def _stored_block(
+    name: str, block: np.ndarray, stored: str, buffers: dict[str, np.ndarray], rows: int, check: bool
+) -> np.ndarray:
+    """A block of rows of a channel in its stored type, C-contiguous: the block itself when it
+    already is, else converted into ``buffers[name]`` (made once, ``rows`` rows); ``check``: a
+    uint channel not checked as a whole (one read from a file) is checked here."""
+    dtype = np.dtype(EXR_PRECISIONS[stored])
+    if block.dtype == dtype and block.flags.c_contiguous:
+        return block
+    if check and stored == "uint" and not _whole_uint32(block):
+        raise ValueError(f"channel {name!r}: uint needs whole numbers 0..2**32-1")
+    buf = buffers.get(name)
+    if buf is None:
+        buf = buffers[name] = np.empty((rows, block.shape[1]), dtype)
+    out = buf[: block.shape[0]]
+    np.copyto(out, block, casting="unsafe")
+    return out
 
 
 def _json_default(obj: Any) -> Any:

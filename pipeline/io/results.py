@@ -17,9 +17,6 @@ __all__ = ["OUTPUT_FORMATS", "output_format", "read_result", "write_result"]
 #: Output formats of :func:`write_result`.
 OUTPUT_FORMATS = ("exr", "dng")
 
-#: Rows written at a time for channels held in files (a tiled merge's memory-mapped outputs).
-_BLOCK_ROWS = 256
-
 
 def output_format(path: str | os.PathLike[str], format: str | None = None) -> str:
     """The format a result is written in: ``format`` if given, else ``dng`` for a ``.dng`` file
@@ -52,13 +49,6 @@ def output_format(path: str | os.PathLike[str], format: str | None = None) -> st
     if format not in OUTPUT_FORMATS:
         raise InputError(f"output format must be exr or dng, got {format!r}")
     return format
-
-
-def _is_mapped(arr: object) -> bool:
-    base = arr
-    while base is not None and not isinstance(base, np.memmap):
-        base = getattr(base, "base", None)
-    return base is not None
 
 
 def write_result(
@@ -121,7 +111,6 @@ def write_result(
     if sigma_precision not in SIGMA_PRECISIONS:
         raise InputError(f"sigma precision must be one of {', '.join(SIGMA_PRECISIONS)}, got {sigma_precision!r}")
     channels = result.channels()
-    mapped = any(_is_mapped(arr) for arr in channels.values())
     try:
         return write_exr(
             path,
@@ -130,7 +119,6 @@ def write_result(
             force=force,
             compression=compression,
             precision=storage_precision(channels, sigma_precision),
-            block_rows=_BLOCK_ROWS if mapped else None,
         )
     except ValueError as err:  # a channel that does not fit the precision asked for
         raise InputError(f"{path}: {err}") from None

@@ -256,10 +256,12 @@ class MergeAccumulator:
 
         Plain lists (numba "reflected lists", read-only here): unlike numba.typed.List they
         need no run-time compilation, which would cost seconds per process. A 1x1 placeholder
-        stands for a frame's missing dark frame and for a missing master dark."""
+        stands for a frame's missing dark frame and for a missing master dark; it has the
+        type of the dark frames, or of the frames without any (never read: merges of 16-bit
+        frames with and without dark frames share one compiled kernel)."""
         book = self.frames
         own = [d for d in book.darks if d is not None]
-        hold = np.zeros((1, 1), own[0].dtype if own else np.float32)
+        hold = np.zeros((1, 1), (own or list(book.values))[0].dtype)
         darks = [hold if d is None else d for d in book.darks]
         if book.master_dark is None:
             master = np.zeros((1, 1), np.float32)
@@ -522,3 +524,33 @@ def _per_frame(items: Iterable[Any] | None, n: int, what: str) -> list[Any]:
     if len(items) != n:
         raise InputError(f"{len(items)} {what} for {n} frames")
     return items
+
+
+def compile_kernels() -> list[str]:
+    """Compile the merge kernels for merges of raw files (16-bit frames, with or without dark
+    frames, weights in float32 and in float64, the streamed first pass, the calibration's
+    error terms), or load them from numba's cache where they were compiled before: what
+    ``hdrcap warm-up`` runs after an install, so that the first merge does not wait for the
+    compiler. It changes no result.
+
+    Returns
+    -------
+    list of str
+        The specialisations made ready, e.g. ``"uint16 frames, float32 weights"``.
+
+    Examples
+    --------
+    >>> compile_kernels()  # doctest: +SKIP
+    ['uint16 frames, float32 weights', 'uint16 frames, float64 weights']
+    """
+    from hdrcap.pipeline.params import SensorParams
+
+    params = SensorParams(g=1.0, mu_R=10.0, sigma2_R=4.0, v_sat=4000.0, white_level=4095.0)
+    calibration = Calibration(params, stderr={"mu_R": 0.1})  # an error term: its kernel too
+    acc = MergeAccumulator(calibration, (2, 2), stream=True)  # the streamed first pass too
+    for i in range(2):
+        acc.add(np.full((2, 2), 100 * (i + 1), np.uint16), 0.01 * (i + 1), np.full((2, 2), 10, np.uint16))
+    info = acc.result().info
+    single = info["weights_precision"] == "float32"
+    acc._iterate(acc._kernel_inputs(*acc._kernel_frames()), not single)  # the other precision
+    return [f"uint16 frames, {p} weights" for p in ("float32", "float64")]

@@ -14,6 +14,7 @@ it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import sys
@@ -248,8 +249,6 @@ def _frames_in(
     ``on_frame`` sees each frame before it is yielded."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from tqdm import tqdm
-
     from hdrcap.pipeline.io.raw import check_exposure_time, read_frame, with_format
 
     items = list(items)
@@ -261,8 +260,7 @@ def _frames_in(
             None if isinstance(it, RawFrame) else pool.submit(read_frame, Path(it), t, bad_values=bad_values, fmt=fmt)
             for it, t in zip(items, ts)
         ]
-        bar = tqdm(total=len(items), desc=f"read {what}s", unit="file", disable=None if progress else True, leave=False)
-        with bar:
+        with _progress_bar(len(items), f"read {what}s", progress) as bar:
             for it, t, fut in zip(items, ts, futures):
                 if fut is not None:
                     fr = fut.result()
@@ -278,6 +276,26 @@ def _frames_in(
                     on_frame(fr)
                 yield fr
                 bar.update()
+
+
+class _NoBar(contextlib.AbstractContextManager):
+    """A progress bar that shows nothing."""
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def update(self, n: int = 1) -> None:
+        """Count ``n`` more files (nothing shown)."""
+
+
+def _progress_bar(total: int, desc: str, progress: bool) -> Any:
+    """tqdm's bar of ``total`` files when ``progress`` and stderr is a terminal (tqdm shows
+    none elsewhere; its import costs 40 ms), else one that shows nothing."""
+    if not (progress and sys.stderr.isatty()):
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="file", leave=False)
 
 
 def read_frames(

@@ -153,3 +153,19 @@ def test_kernel_warm_up_thread_racing_the_merge_changes_nothing():
     ]
     assert len(digests[0].strip()) == 64
     assert digests[0] == digests[1]
+
+
+def test_a_merge_without_a_terminal_imports_no_progress_bar(tmp_path):
+    """tqdm (40 ms of imports) only where it shows a bar: stderr a terminal."""
+    from tests.helpers.cli import run_cli
+
+    run_cli("simulate", "--size", "32x24", "--times", "0.01", "0.1", "--out", tmp_path, check=True)
+    frames = sorted(str(p) for p in tmp_path.glob("frame_*.dng"))
+    code = (
+        "import sys\n"
+        "from hdrcap.cli import main\n"
+        f"rc = main(['merge', *{frames!r}, '--camera', 'camera-B', '-o', {str(tmp_path / 'o.exr')!r}])\n"
+        "print('RESULT', rc, 'tqdm' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "RESULT 0 False"

@@ -49,3 +49,18 @@ def test_version_has_one_source():
 
     assert version("hdrcap") == hdrcap.__version__
     assert "version =" not in (ROOT / "pyproject.toml").read_text().split("[project]", 1)[1].split("[", 1)[0]
+
+
+def test_readme_is_a_front_page():
+    """README stays the user's front page: at most 160 lines, exactly two set-up commands, every
+    command of the CLI in its table."""
+    import re
+
+    from hdrcap.cli import cli
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 160
+    setup = text.split("## Set-up on a fresh machine", 1)[1].split("```sh", 1)[1].split("```", 1)[0]
+    assert [line.split()[:2] for line in setup.strip().splitlines()] == [["make", "demo"], ["make", "test"]]
+    listed = set(re.findall(r"^\| `hdrcap ([a-z-]+)", text, re.M))
+    assert set(cli.commands) <= listed, set(cli.commands) - listed
