@@ -378,6 +378,25 @@ _LOCAL_CLUSTER_CONFIG = {
 }
 
 
+def _prepare_worker() -> None:
+    """Import the merge kernels and set numba's CPU target up in a worker before its first task
+    (:func:`hdrcap.pipeline.merge.accumulator.import_kernels`): the fixed cost of a worker
+    process, paid by every worker at once while the cluster starts, not in its first run."""
+    from hdrcap.pipeline.merge.accumulator import import_kernels
+
+    import_kernels()()
+
+
+def _prepared(client: Client) -> Client:
+    """``client`` once every worker it has has run :func:`_prepare_worker` (a worker that joins
+    later pays it in its first run instead); a failure is left to the runs to report."""
+    try:
+        client.run(_prepare_worker)
+    except Exception:  # noqa: BLE001, S110  (the merge itself reports what is wrong)
+        pass
+    return client
+
+
 @contextmanager
 def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Client]:
     """A dask.distributed client: of the scheduler at ``scheduler`` (the workers' reports, a few
@@ -390,7 +409,7 @@ def _client(workers: int | None, scheduler: str | None, threads: int | None = No
 
     if scheduler:
         with Client(scheduler) as client:
-            yield client
+            yield _prepared(client)
         return
     n = workers or max(1, (os.cpu_count() or 1))
     per_worker = str(threads or max(1, (os.cpu_count() or 1) // n))
@@ -400,7 +419,7 @@ def _client(workers: int | None, scheduler: str | None, threads: int | None = No
         LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=env) as cluster,
         Client(cluster, direct_to_workers=True) as client,
     ):
-        yield client
+        yield _prepared(client)
 
 
 def _describe(err: BaseException) -> str:

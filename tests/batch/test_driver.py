@@ -301,3 +301,18 @@ def test_a_task_that_raised_is_recorded_with_its_error(tmp_path):
     assert report.failed == {"/runs/001": "RuntimeError: boom", "/runs/002": "CancelledError: lost"}
     assert report.committed == {"/runs/000": 0} and report.warnings == ["/runs/000: w"]
     assert set(store.failed()) == {"/runs/001", "/runs/002"}
+
+
+def _kernels_loaded() -> bool:
+    import sys
+
+    return "hdrcap.pipeline.merge.kernels" in sys.modules and "numba" in sys.modules
+
+
+def test_workers_load_the_merge_kernels_before_their_first_run():
+    """The workers' fixed cost (numba and the merge kernels) is paid while the cluster starts,
+    by every worker at once, not inside the first run of each."""
+    from hdrcap.batch.driver import _client
+
+    with _client(2, None, 1) as client:
+        assert set(client.run(_kernels_loaded).values()) == {True}
