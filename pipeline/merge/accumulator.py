@@ -355,7 +355,8 @@ class MergeAccumulator:
         release()
         add_in_quadrature(sig, sig_cal, sig_master)
         quality, n_defects = flag_defects(irr, sig, nexp, self.calibration.defect_map)
-        flag_clip_rejected(quality, out.rules)
+        if out.stats[:, 3].any():  # photosites that lost a sample to the clip rule (none: no full-size pass)
+            flag_clip_rejected(quality, out.rules)
         book = self.frames
         masked = flag_masked((irr, sig, nexp, quality), book.masks, book.times, self.calibration.params, self.maps)
         info = self._info(out.stats, single, {"defects_flagged": n_defects, **masked}, cal_info)
