@@ -14,7 +14,8 @@ from hdrcap.cli.util import echo_json
 if TYPE_CHECKING:
     from hdrcap.pipeline.result import HdrResult
 
-DEMO_TIMES = (0.001, 0.004, 0.016, 0.064, 0.25, 1.0)
+#: The demo bracket: exposure times the simulated camera offers (1/1000 to 1 s, two stops apart).
+DEMO_TIMES = (0.001, 0.004, 1 / 60, 1 / 15, 0.25, 1.0)
 
 
 def run_demo(
