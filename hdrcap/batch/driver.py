@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hdrcap.pipeline.errors import InputError
-from hdrcap.pipeline.merge.accumulator import MergeOptions, as_strategy
+from hdrcap.pipeline.merge.options import MergeOptions, as_strategy
 
 if TYPE_CHECKING:
     from distributed import Client
