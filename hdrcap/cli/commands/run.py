@@ -74,21 +74,6 @@ def command(
     run (also by SIGTERM or Ctrl-C, which end it cleanly) continues with --resume without
     duplicating or losing a frame. Exit status: see docs/acquisition.md.
     """
-    _run(job_file, resume, repeat, every, keep_going, run_dir, force, check, progress, as_json)
-
-
-def _run(
-    job_file: Path,
-    resume: bool,
-    repeat: int | None,
-    every: float | None,
-    keep_going: bool,
-    run_dir: Path | None,
-    force: bool,
-    check: bool,
-    progress: bool | None,
-    as_json: bool,
-) -> None:
     from hdrcap.acquire.capture.camera_setup import check_free_space, check_job_against_camera, open_camera
     from hdrcap.acquire.capture.job import load_job
     from hdrcap.acquire.capture.runfolder import run_folder
