@@ -2,35 +2,16 @@
 simulator writes and for uncompressed variants (strips, tiles, byte orders, 8 bits, active
 area); LibRaw for the rest; one-line errors for inconsistent files."""
 
-import datetime as dt
 import struct
 
 import numpy as np
 import pytest
 import tifffile
 
-from hdrcap.mock_camera.dng import write_dng
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io import raw as pio
 from hdrcap.pipeline.io.dngread import decode_dng
-
-
-def _sim_dng(path, data, cfa="RGGB", black=128.0, white=4095, t=1 / 250):
-    with open(path, "wb") as f:
-        write_dng(
-            f,
-            data,
-            exposure_time=t,
-            iso=400,
-            black_level=black,
-            white_level=white,
-            cfa=cfa,
-            make="Acme",
-            model="Sim 1",
-            serial="42",
-            timestamp=dt.datetime(2026, 1, 2, 3, 4, 5),
-        )
-    return path
+from tests.helpers.dng import write_test_dng
 
 
 def _tiff_dng(path, data, *, cfa=(0, 1, 1, 2), black=128, white=4095, active=None, **kw):
@@ -79,7 +60,9 @@ def test_simulator_dng_identical_to_libraw(tmp_path, cfa, shape):
         white = (1 << bits) - 1
         data = rng.integers(0, white + 1, shape, dtype=np.uint16)
         data.flat[:2] = (0, white)  # the extremes
-        fr = _assert_same_as_libraw(_sim_dng(tmp_path / f"{bits}.dng", data, cfa, 0.37 * white, white))
+        fr = _assert_same_as_libraw(
+            write_test_dng(tmp_path / f"{bits}.dng", data, cfa=cfa, black=0.37 * white, white=white)
+        )
         assert np.array_equal(fr.data, data) and fr.cfa_pattern == cfa
 
 
@@ -150,7 +133,7 @@ def test_missing_metadata_falls_back_to_libraw(tmp_path):
 
 def test_mapped_frame_is_private(tmp_path):
     data = np.arange(64 * 64, dtype=np.uint16).reshape(64, 64)
-    path = _sim_dng(tmp_path / "a.dng", data)
+    path = write_test_dng(tmp_path / "a.dng", data)
     blob = path.read_bytes()
     fr = pio.read_raw(path)
     fr.data[0, 0] = 7  # copy-on-write: the file is unchanged
@@ -172,7 +155,7 @@ def _patch_tag(blob: bytes, tag: int, value: int) -> bytes:
 
 def test_inconsistent_files_are_refused(tmp_path):
     data = np.ones((64, 64), np.uint16)
-    blob = _sim_dng(tmp_path / "a.dng", data).read_bytes()
+    blob = write_test_dng(tmp_path / "a.dng", data).read_bytes()
     (tmp_path / "short.dng").write_bytes(_patch_tag(blob, 279, 64 * 64))  # half the bytes 64x64x16 bit needs
     with pytest.raises(InputError, match=r"short.dng: raw image data does not match its dimensions \(64x64"):
         pio.read_raw(tmp_path / "short.dng")
