@@ -29,9 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-G8 = 0.09
-ADC = 12
-TIMES = (0.025, 0.05, 0.2, 0.39, 0.98, 1.95, 3.9)
+from hdrcap.experiments.realfiles import ADC, G8, MV, TIMES
+
 SCENES = [
     ("hdr", 4.0, 1.0),
     ("hdr", 3.0, 0.5),
@@ -42,23 +41,6 @@ SCENES = [
     ("gradient", 2.0, 0.1),
 ]
 EMVA_K = 0.280769280926  # DN/e-, the reference set's published gain
-
-
-def _camera():
-    from hdrcap.mock_camera.sensor import SensorSpec
-
-    g12 = G8 * 4095 / 255
-    return SensorSpec(
-        name="mv-8",
-        g=g12,
-        mu_R=100.0,
-        sigma2_R=(5 * g12) ** 2 + 1 / 12,
-        bits=ADC,
-        full_well=1.2 * (4095 - 100) / g12,
-        prnu=0.01,
-        dark_current=0.0,
-        cfa="GBRG",
-    )
 
 
 def _consistency(rows: list[dict]) -> dict:
@@ -109,7 +91,7 @@ def brackets(folder: Path, shape: tuple[int, int], seed: int) -> dict:
     from hdrcap.pipeline.io.frameformat import FrameFormat
     from hdrcap.pipeline.io.raw import read_frame
 
-    sensor = SimulatedSensor(_camera(), shape, seed=seed)
+    sensor = SimulatedSensor(MV, shape, seed=seed)
     estimated, zero = [], []
     for k, (name, decades, level) in enumerate(SCENES):
         X = make_scene(name, shape, decades=decades, x_max=level * 250 / (G8 * TIMES[0]))

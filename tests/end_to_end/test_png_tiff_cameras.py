@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hdrcap.experiments.realfiles import ADC, G8, MV, TIMES
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.backend import SimulatedCamera
 from hdrcap.mock_camera.imagefiles import msb_align, requantise, requantised_gain, write_image
@@ -22,25 +23,6 @@ from hdrcap.pipeline.io.exr import read_exr
 from hdrcap.pipeline.io.frameformat import FrameFormat, image_levels
 from hdrcap.pipeline.io.raw import read_frame
 
-#: The machine-vision camera of the issue: a 12-bit ADC whose frames are saved as 8-bit TIFF
-#: (im2uint8-style), 0.09 DN/e- in 8-bit DN, read noise 5 e-, black 100 DN (12-bit).
-G8 = 0.09
-ADC = 12
-G12 = G8 * 4095 / 255
-MV = SensorSpec(
-    name="mv-8",
-    g=G12,
-    mu_R=100.0,
-    sigma2_R=(5 * G12) ** 2 + 1 / 12,
-    bits=ADC,
-    full_well=1.2 * (4095 - 100) / G12,
-    prnu=0.01,
-    dark_current=0.0,
-    cfa="GBRG",
-    make="Acme",
-    model="MV-8",
-)
-TIMES = (0.025, 0.05, 0.2, 0.39, 0.98, 1.95, 3.9)
 SHAPE = (192, 256)
 
 
@@ -174,7 +156,7 @@ def test_read_noise_below_quantisation_is_held_at_the_floor():
     """A camera whose read noise is far below its 8-bit step: sigma_R^2 is not fitted below the
     floor (1/12 DN^2) but constrained to it, the weights stay bounded, and no estimate claims a
     relative standard error below 1e-6."""
-    spec = MV.replace(sigma2_R=(0.5 * G12) ** 2 + 1 / 12)  # 0.5 e-: 0.05 DN (8-bit)
+    spec = MV.replace(sigma2_R=(0.5 * MV.g) ** 2 + 1 / 12)  # 0.5 e-: 0.05 DN (8-bit)
     sensor = SimulatedSensor(spec, SHAPE, seed=2)
     notes: list[str] = []
     sc = self_calibrate(_frames_8bit(_scene(), sensor, np.random.default_rng(5)), warn=notes.append)
