@@ -32,6 +32,7 @@ from hdrcap.pipeline.errors import InputError  # noqa: E402
 from hdrcap.serve import create_app  # noqa: E402
 from hdrcap.serve.events import tail_offset  # noqa: E402
 from hdrcap.serve.safety import check_bind, is_loopback  # noqa: E402
+from tests.helpers.jobs import mock_job  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
@@ -40,36 +41,6 @@ BASE = "http://127.0.0.1:8765"
 TOKEN = "s3cret-token-0123456789"
 PNG = b"\x89PNG\r\n\x1a\n"
 
-JOB = """\
-[job]
-name = "{name}"
-
-[camera]
-backend = "mock"
-preset = "camera-B"
-size = "48x32"
-seed = {seed}
-{faults}
-
-[scene]
-name = "hdr"
-decades = 3.0
-x_max = 2e4
-
-[exposure]
-mode = "bracket"
-times = [0.004, 0.064, 0.5]
-
-[darks]
-strategy = "matched"
-
-[session]
-backoff_s = 0.001
-max_backoff_s = 0.001
-
-[output]
-folder = "{folder}"
-"""
 
 #: Keys and types of an entry of GET /api/runs.
 RUN_KEYS = {
@@ -112,9 +83,7 @@ def _hdrcap(*args, env=None, cwd=None) -> subprocess.CompletedProcess:
 
 
 def _job(tmp: Path, name: str, folder: Path, seed: int = 1, faults: str = "") -> Path:
-    p = tmp / f"{name}.toml"
-    p.write_text(JOB.format(name=name, seed=seed, faults=faults, folder=folder))
-    return p
+    return mock_job(tmp / f"{name}.toml", name=name, size="48x32", seed=seed, camera=faults, folder=folder)
 
 
 @pytest.fixture(scope="module")

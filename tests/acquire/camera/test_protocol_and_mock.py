@@ -218,13 +218,13 @@ def test_session_survives_failing_reconnects_and_a_new_port(tmp_path):
     import json
 
     from hdrcap.acquire.capture.manifest import Manifest
-    from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RetryPolicy
+    from hdrcap.acquire.capture.session import CapturePlan, CaptureSession
+    from tests.helpers.jobs import FAST
 
     faults = MockFaults(seed=5, disconnect_rate=0.25, reconnect_fail_rate=1.0, reconnect_failures=2, renumber_rate=1.0)
     cam = MockCamera("camera-B", _scene((24, 24)), seed=2, faults=faults)
     plan = CapturePlan.bracket([1 / 250, 1 / 60, 1 / 15], None, "matched")
-    fast = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
-    res = CaptureSession(cam, tmp_path / "run", plan, retry=fast, progress=False).run()
+    res = CaptureSession(cam, tmp_path / "run", plan, retry=FAST, progress=False).run()
     disconnects = cam.fault_log.count("disconnect")
     assert disconnects >= 1 and res.captured == len(plan.frames)
     assert cam.reconnect_failures == 2 * disconnects and len(set(cam.ports)) == disconnects + 1

@@ -12,7 +12,7 @@ import pytest
 from hdrcap.acquire.camera.mock import MockCamera
 from hdrcap.acquire.capture.job import load_job
 from hdrcap.acquire.capture.run import run_job
-from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RetryPolicy, RunConflictError, VerificationError
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, RunConflictError, VerificationError
 from hdrcap.pipeline.compat import (
     CameraProfile,
     CompatibilityError,
@@ -20,39 +20,20 @@ from hdrcap.pipeline.compat import (
     normalise_model,
     same_model,
 )
-
-FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
-
-JOB = """\
-[job]
-name = "c"
-
-[camera]
-backend = "mock"
-preset = "camera-B"
-size = "32x24"
-seed = 5
-{camera}
-
-[exposure]
-mode = "bracket"
-times = [0.001, 0.004, 0.05]
-
-[darks]
-{darks}
-
-[calibration]
-{calibration}
-
-[output]
-folder = "runs/{{job}}-{{n}}"
-"""
+from tests.helpers.jobs import FAST, mock_job
 
 
 def _job(tmp_path, camera="", darks='strategy = "matched"', calibration='preset = "camera-B"'):
-    p = tmp_path / "job.toml"
-    p.write_text(JOB.format(camera=camera, darks=darks, calibration=calibration))
-    return p
+    return mock_job(
+        tmp_path / "job.toml",
+        name="c",
+        seed=5,
+        camera=camera,
+        times="[0.001, 0.004, 0.05]",
+        darks=darks,
+        session="",
+        calibration=calibration,
+    )
 
 
 def _scene(shape=(24, 32)):

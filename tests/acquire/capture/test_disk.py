@@ -15,11 +15,11 @@ import hdrcap.acquire.capture.session as session_mod
 from hdrcap.acquire.camera.mock import MockCamera
 from hdrcap.acquire.camera.types import CameraDisconnectedError
 from hdrcap.acquire.capture.manifest import EventLog, Manifest
-from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LocalIOError, RetryPolicy, estimate_run_bytes
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LocalIOError, estimate_run_bytes
 from hdrcap.pipeline.errors import OutputExistsError
 from hdrcap.pipeline.io.files import atomic_output, sha256_file
+from tests.helpers.jobs import FAST
 
-FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
 TIMES = [0.001, 0.004, 0.016, 0.064]
 
 

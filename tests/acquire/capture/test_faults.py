@@ -30,7 +30,6 @@ from hdrcap.acquire.capture.session import (
     CaptureSession,
     LightBlocker,
     LocalIOError,
-    RetryPolicy,
     RunInterrupted,
     SessionError,
     StopEvent,
@@ -38,40 +37,7 @@ from hdrcap.acquire.capture.session import (
 )
 from hdrcap.pipeline.io.files import sha256_file
 from tests.helpers.cameras import StoppingCamera
-
-FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
-
-JOB = """\
-[job]
-name = "f"
-
-[camera]
-backend = "mock"
-preset = "camera-B"
-size = "32x24"
-seed = 1
-{camera}
-
-[scene]
-name = "hdr"
-decades = 3.0
-x_max = 2e4
-
-[exposure]
-{exposure}
-
-[darks]
-strategy = "matched"
-{darks}
-
-[session]
-backoff_s = 0.001
-max_backoff_s = 0.001
-timeout_s = 0.05
-
-[output]
-folder = "{folder}"
-"""
+from tests.helpers.jobs import FAST, mock_job
 
 
 def _job(
@@ -81,9 +47,15 @@ def _job(
     darks: str = "",
     folder: str = "runs/{job}-{n}",
 ) -> Path:
-    p = tmp_path / "job.toml"
-    p.write_text(JOB.format(camera=camera, exposure=exposure, darks=darks, folder=folder))
-    return p
+    return mock_job(
+        tmp_path / "job.toml",
+        name="f",
+        camera=camera,
+        exposure=exposure,
+        darks='strategy = "matched"\n' + darks,
+        session="backoff_s = 0.001\nmax_backoff_s = 0.001\ntimeout_s = 0.05",
+        folder=folder,
+    )
 
 
 def _quiet(_msg: str) -> None:

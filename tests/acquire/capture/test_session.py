@@ -13,13 +13,13 @@ import pytest
 
 from hdrcap.acquire.camera.mock import MockCamera, MockFaults
 from hdrcap.acquire.capture.manifest import Manifest
-from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LightBlocker, RetryPolicy, SessionError
+from hdrcap.acquire.capture.session import CapturePlan, CaptureSession, LightBlocker, SessionError
 from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.io.files import sha256_file
 from hdrcap.pipeline.io.raw import read_frame
+from tests.helpers.jobs import FAST
 
 REPO = Path(__file__).resolve().parents[3]
-FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
 TIMES = [1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0]
 
 

@@ -23,7 +23,6 @@ from hdrcap.acquire.capture.session import (
     CapturePlan,
     CaptureSession,
     LocalIOError,
-    RetryPolicy,
     RunConflictError,
     RunInterrupted,
     StopEvent,
@@ -31,47 +30,20 @@ from hdrcap.acquire.capture.session import (
 )
 from hdrcap.pipeline.io.files import sha256_file
 from tests.helpers.cameras import StoppingCamera as _StoppingCamera
+from tests.helpers.jobs import FAST, mock_job
 
 REPO = Path(__file__).resolve().parents[3]
-FAST = RetryPolicy(max_attempts=30, backoff_s=0.0005, max_backoff_s=0.002, timeout_s=0.02)
-
-JOB = """\
-[job]
-name = "u"
-
-[camera]
-backend = "mock"
-preset = "camera-B"
-size = "32x24"
-seed = 1
-{faults}
-
-[scene]
-name = "hdr"
-decades = 3.0
-x_max = 2e4
-
-[exposure]
-mode = "bracket"
-times = [0.004, 0.064, 0.5]
-
-[darks]
-strategy = "matched"
-
-[session]
-backoff_s = {backoff}
-max_backoff_s = {backoff}
-
-[output]
-folder = "{folder}"
-{extra}
-"""
 
 
 def _job(tmp_path, folder="runs/{job}-{date}", faults="", backoff=0.001, extra="", name="job.toml") -> Path:
-    p = tmp_path / name
-    p.write_text(JOB.format(folder=folder, faults=faults, backoff=backoff, extra=extra))
-    return p
+    return mock_job(
+        tmp_path / name,
+        name="u",
+        camera=faults,
+        session=f"backoff_s = {backoff}\nmax_backoff_s = {backoff}",
+        folder=folder,
+        output=extra,
+    )
 
 
 def _quiet(_msg):
