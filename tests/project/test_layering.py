@@ -197,13 +197,14 @@ def test_every_module_is_seen():
 
 TESTS = Path(__file__).resolve().parents[1]
 BENCHMARKS = TESTS.parent / "benchmarks"
+#: Module names of the benchmark scripts and of the test modules.
+_BENCH_NAMES = {p.stem for p in BENCHMARKS.glob("*.py")}
+_TEST_NAMES = {p.stem for p in TESTS.rglob("test_*.py")}
 
 
 def _test_imports_of(path: Path) -> list[str]:
     """What a test file imports that a test may not: a test module, a benchmark script, or
     anything reached by changing ``sys.path`` (a call, not text in a script it writes)."""
-    bench = {p.stem for p in BENCHMARKS.glob("*.py")} if BENCHMARKS.is_dir() else set()
-    tests = {p.stem for p in TESTS.rglob("test_*.py")}
     bad = []
     where = path.relative_to(TESTS) if path.is_relative_to(TESTS) else path
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -214,7 +215,7 @@ def _test_imports_of(path: Path) -> list[str]:
             names = [node.module]
         for name in names:
             parts = name.split(".")
-            if parts[0] in bench or parts[-1] in tests or parts[0] == "benchmarks":
+            if parts[0] in _BENCH_NAMES or parts[-1] in _TEST_NAMES or parts[0] == "benchmarks":
                 bad.append(f"{where}:{node.lineno}: imports {name}")
         if (
             isinstance(node, ast.Call)
