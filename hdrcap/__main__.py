@@ -1,7 +1,5 @@
 """``python -m hdrcap``: the command line."""
 
-import sys
+from hdrcap.cli import run
 
-from hdrcap.cli import main
-
-sys.exit(main())
+run()
