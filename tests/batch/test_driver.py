@@ -316,3 +316,16 @@ def test_workers_load_the_merge_kernels_before_their_first_run():
 
     with _client(2, None, 1) as client:
         assert set(client.run(_kernels_loaded).values()) == {True}
+
+
+def _sampling(dask_worker) -> list[str]:  # client.run passes the worker itself
+    return sorted(name for name in dask_worker.periodic_callbacks if "profile" in name)
+
+
+def test_local_workers_run_no_sampling_profiler():
+    """A worker's statistical profiler samples its threads every 10 ms: about a tenth of a 2
+    Mpixel run's CPU seconds, which would be counted as the merge's (``merge_cpu_seconds``)."""
+    from hdrcap.batch.driver import _client
+
+    with _client(1, None, 1) as client:
+        assert list(client.run(_sampling).values()) == [[]]
