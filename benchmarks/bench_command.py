@@ -10,7 +10,12 @@ CPU time of each command (``os.wait4``) separately:
   dark-current maps, default options and default EXR settings; HDRMerge ``hdrmerge -o out.dng
   frame_*.dng`` on the 6 bright frames (``QT_QPA_PLATFORM=offscreen``).
 * ``large_dng``: the same hdrcap command writing ``-o out.dng`` (float DNG), same HDRMerge run.
-* ``small``: 1.2 Mpixel, 3 frames + 3 dark frames, EXR (hdrcap's start-up against HDRMerge's).
+* ``small``: 1.2 Mpixel, 3 frames + 3 dark frames, EXR (hdrcap's start-up against HDRMerge's),
+  each command in its own process (``HDRCAP_SERVER=0``).
+* ``small_server``: the same command with a command server running (``hdrcap server start``
+  before the runs, ``hdrcap server stop`` after, in a folder of the benchmark's own): each
+  command is forked from the warm server; the same HDRMerge runs. Its CPU times and peak RSS
+  are the client's only (the command's process is the server's child, not the launcher's).
 * ``cold`` (unless ``--no-cold``): the first ``hdrcap merge`` after an install, 64x48 pixels, on
   an empty numba cache (``NUMBA_CACHE_DIR`` in a new folder): the kernels' compilation, and the
   line it prints.
@@ -26,6 +31,7 @@ Usage::
 
     python benchmarks/bench_command.py --setup        # apt-get install -y hdrmerge
     python benchmarks/bench_command.py [--mpix 24] [--repeats 3] [--exr-table] [--no-cold]
+    python benchmarks/bench_command.py --cases small,small_server --no-cold   # the small cases only
 """
 
 from __future__ import annotations
@@ -181,8 +187,9 @@ def _summary(runs: list) -> dict:
 
 
 def compare_commands(cases: dict, work: Path, repeats: int) -> dict:
-    """Every case's commands (``{"hdrcap": cmd, "hdrmerge": cmd or None}``) alternating, one
-    warm-up run each (page cache, numba cache, bytecode), ``repeats`` counted runs each."""
+    """Every case's commands (``{"hdrcap": cmd, "hdrmerge": cmd or None, "env": hdrcap's
+    environment (optional)}``) alternating, one warm-up run each (page cache, numba cache,
+    bytecode), ``repeats`` counted runs each."""
     henv = dict(os.environ, QT_QPA_PLATFORM="offscreen", XDG_RUNTIME_DIR=str(work))
     hdrmerge_runs: dict[tuple, list] = {}  # one HDRMerge command shared by cases (the same frames)
     runs: dict[str, dict[str, list]] = {name: {"hdrcap": []} for name in cases}
@@ -193,12 +200,12 @@ def compare_commands(cases: dict, work: Path, repeats: int) -> dict:
         return run_measured(cmd, env=env)
 
     for case in cases.values():
-        one(case["hdrcap"], _hdrcap_env())
+        one(case["hdrcap"], case.get("env") or _hdrcap_env())
         if case["hdrmerge"]:
             one(case["hdrmerge"], henv, case["hdrmerge"][2])
     for _ in range(repeats):
         for name, case in cases.items():
-            runs[name]["hdrcap"].append(one(case["hdrcap"], _hdrcap_env()))
+            runs[name]["hdrcap"].append(one(case["hdrcap"], case.get("env") or _hdrcap_env()))
             key = tuple(map(str, case["hdrmerge"] or ()))
             if key and len(hdrmerge_runs.setdefault(key, [])) < repeats:
                 hdrmerge_runs[key].append(one(case["hdrmerge"], henv, case["hdrmerge"][2]))
@@ -216,6 +223,14 @@ def compare_commands(cases: dict, work: Path, repeats: int) -> dict:
                 res["ratio_median_cpu"] = round(cpu(a) / cpu(b), 3)
         out[name] = res
     return out
+
+
+def server_command(action: str, env: dict) -> list:
+    """``hdrcap server ACTION`` run with ``env``: its output lines."""
+    exe = Path(sys.executable).with_name("hdrcap")
+    cmd = [str(exe) if exe.exists() else "hdrcap", "server", action]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120, check=False)
+    return (proc.stdout + proc.stderr).strip().splitlines()
 
 
 def cold_first_merge(work: Path) -> dict:
@@ -329,6 +344,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cold", action="store_true", help="skip the first merge on an empty numba cache")
     ap.add_argument("--exr-table", action="store_true", help="also time every EXR compression and precision")
     ap.add_argument("--work", type=Path, help="keep the simulated files in this folder (default: a temporary one)")
+    ap.add_argument(
+        "--cases",
+        default="large_exr,large_dng,small,small_server",
+        help="comma-separated cases to time (default: all four)",
+    )
     args = ap.parse_args(argv)
     if args.setup:
         return 0 if ensure_hdrmerge() else 1
@@ -350,26 +370,41 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench_command_") as tmp:
         work = args.work or Path(tmp)
         (work / "small").mkdir(parents=True, exist_ok=True)
-        sim = simulate(work, shape)
+        names = args.cases.split(",")
+        large = any(name.startswith("large") for name in names)
+        sim = simulate(work, shape) if large else {"frames": [], "darks": [], "calibration": ""}
         small = simulate(work / "small", shape_for(args.small_mpix), TIMES[-3:])
 
         def hdrmerge(s, folder):
             return ["hdrmerge", "-o", folder / "hdrmerge.dng", *s["frames"]] if with_hdrmerge else None
 
+        server_env = _hdrcap_env(XDG_RUNTIME_DIR=tempfile.mkdtemp(prefix="bench_srv_"))
+        small_cmd = hdrcap_cmd(small, work / "small" / "hdrcap.exr")
         cases = {
             "large_exr": {"hdrcap": hdrcap_cmd(sim, work / "hdrcap.exr"), "hdrmerge": hdrmerge(sim, work)},
             "large_dng": {"hdrcap": hdrcap_cmd(sim, work / "hdrcap.dng"), "hdrmerge": hdrmerge(sim, work)},
             "small": {
-                "hdrcap": hdrcap_cmd(small, work / "small" / "hdrcap.exr"),
+                "hdrcap": small_cmd,
                 "hdrmerge": hdrmerge(small, work / "small"),
+                "env": _hdrcap_env(HDRCAP_SERVER="0"),
             },
+            "small_server": {"hdrcap": small_cmd, "hdrmerge": hdrmerge(small, work / "small"), "env": server_env},
         }
-        report["commands"] = compare_commands(cases, work, args.repeats)
+        cases = {name: cases[name] for name in names}
+        if "small_server" in cases:
+            report["server_start"] = server_command("start", server_env)
+        try:
+            report["commands"] = compare_commands(cases, work, args.repeats)
+        finally:
+            if "small_server" in cases:
+                report["server_stop"] = server_command("stop", server_env)
+                shutil.rmtree(server_env["XDG_RUNTIME_DIR"], ignore_errors=True)
         report["load_average_after"] = os.getloadavg()
         if not args.no_cold:
             report["first_merge"] = cold_first_merge(work)
-        report["hdrcap_parts"], image = time_parts(sim, args.repeats)
-        if args.exr_table:
+        if large:  # the parts of the large command
+            report["hdrcap_parts"], image = time_parts(sim, args.repeats)
+        if large and args.exr_table:
             report["exr"] = exr_table(image, args.repeats)
     print(json.dumps(report, indent=1))
     return 0

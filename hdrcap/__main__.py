@@ -1,5 +1,5 @@
-"""``python -m hdrcap``: the command line."""
+"""``python -m hdrcap``: the command line (through the command server when one runs)."""
 
-from hdrcap.cli import run
+from hdrcap._client import run
 
 run()

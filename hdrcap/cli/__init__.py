@@ -14,13 +14,14 @@ import importlib
 import os
 import pkgutil
 import sys
+from typing import NoReturn
 
 import click
 
 from hdrcap import __version__
 from hdrcap.pipeline.errors import HdrcapError
 
-__all__ = ["cli", "main", "run"]
+__all__ = ["cli", "finish", "main", "run"]
 
 
 class _Group(click.Group):
@@ -126,16 +127,22 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run() -> None:
-    """The ``hdrcap`` console script (and ``python -m hdrcap``): :func:`main`, then the process
-    ends with its exit status without tearing the interpreter down.
+    """The ``hdrcap`` command run in this process (the console script when no command server
+    listens, :mod:`hdrcap._client`): :func:`main`, then :func:`finish` with its exit status."""
+    finish(main())
+
+
+def finish(status: int) -> NoReturn:
+    """End the process with exit status ``status`` without tearing the interpreter down: what a
+    command's process does after :func:`main`, in its own process or forked from the command
+    server (:mod:`hdrcap.cli.server`).
 
     Every exit handler still runs (:mod:`atexit`: logging, temporary folders, zarr's loop) after
     the command's threads have finished, and stdout and stderr are flushed; only the teardown of
     the imported modules is skipped, which after numba's CPU target has been set up costs about
     0.25 s, a third of a small merge. A process that imported h5py (which closes its files as
-    they are freed) is ended the usual way.
+    they are freed) is ended the usual way: ``SystemExit(status)`` is raised.
     """
-    status = main()
     if "h5py" in sys.modules:
         sys.exit(status)
     import atexit

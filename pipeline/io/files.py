@@ -188,6 +188,21 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
+def set_umask(mask: int) -> None:
+    """Set the process's umask and the one the atomic writes give their files (read once at
+    import): for a process that changes its umask after importing this module (a command forked
+    from the command server).
+
+    Parameters
+    ----------
+    mask : int
+        The new umask, e.g. ``0o022``.
+    """
+    global _UMASK
+    os.umask(mask)
+    _UMASK = mask
+
+
 #: errno values of file systems without hard links (exFAT/FAT, some network and FUSE mounts).
 NO_HARD_LINKS = frozenset(
     e
