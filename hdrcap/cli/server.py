@@ -186,7 +186,7 @@ def serve(idle_timeout: float = 3600.0, on_ready: Callable[[dict[str, Any]], Non
         if on_ready is not None:
             on_ready(state.describe())
         while True:
-            _reap(state)
+            _reap(state, sel)
             if state.stopping and not state.children:
                 break
             timeout = None
@@ -197,8 +197,10 @@ def serve(idle_timeout: float = 3600.0, on_ready: Callable[[dict[str, Any]], Non
             for item, _ in sel.select(timeout):
                 if item.data == "wake":
                     _drain(wake_r)
+                elif isinstance(item.data, int):  # a running command's client wrote or went
+                    _client_gone(item.fileobj, item.data, sel)  # type: ignore[arg-type]
                 elif not state.stopping:
-                    _accept(listener, state, closing + [sel])
+                    _accept(listener, state, sel, closing + [sel])
     finally:
         if os.getpid() == server_pid:  # never in a command's process unwinding (h5py's ending)
             for p in (path, state.pid_file):
@@ -237,7 +239,7 @@ def _write_pid_file(state: _State) -> None:
     os.replace(tmp, state.pid_file)
 
 
-def _reap(state: _State) -> None:
+def _reap(state: _State, sel: selectors.BaseSelector) -> None:
     """Collect the ended commands' processes and send each client its exit status."""
     while state.children:
         try:
@@ -249,6 +251,10 @@ def _reap(state: _State) -> None:
         conn = state.children.pop(pid, None)
         if conn is None:
             continue
+        try:
+            sel.unregister(conn)
+        except (KeyError, ValueError):  # unregistered when its client went
+            pass
         signum = os.WTERMSIG(wstatus) if os.WIFSIGNALED(wstatus) else None
         code = 128 + signum if signum is not None else os.waitstatus_to_exitcode(wstatus)
         try:
@@ -259,7 +265,26 @@ def _reap(state: _State) -> None:
         state.last_activity = time.monotonic()
 
 
-def _accept(listener: socket.socket, state: _State, closing: list[Any]) -> None:
+def _client_gone(conn: socket.socket, pid: int, sel: selectors.BaseSelector) -> None:
+    """The client of the running command ``pid`` closed its connection: it died without passing
+    a signal on (SIGKILL, a crash). The command is killed as it would have been in the client's
+    own process, rather than go on writing files nobody waits for."""
+    try:
+        data = conn.recv(4096)
+    except BlockingIOError:
+        return
+    except OSError:
+        data = b""
+    if data:  # a client sends nothing once the command runs
+        return
+    sel.unregister(conn)
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def _accept(listener: socket.socket, state: _State, sel: selectors.BaseSelector, closing: list[Any]) -> None:
     """Take one connection: a status or stop request, or a command to fork."""
     try:
         conn, _ = listener.accept()
@@ -285,6 +310,8 @@ def _accept(listener: socket.socket, state: _State, closing: list[Any]) -> None:
                 _child(message, fds, [conn, *closing, *state.children.values()])
             state.children[pid] = conn
             conn.sendall(json.dumps({"pid": pid}).encode() + b"\n")
+            conn.setblocking(False)
+            sel.register(conn, selectors.EVENT_READ, pid)
             return
         if op == "stop":
             state.stopping = True

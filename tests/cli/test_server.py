@@ -294,3 +294,14 @@ def test_the_console_script_imports_no_click_numpy_or_cli(runtime):
     )
     proc = subprocess.run([sys.executable, "-c", code], env=_env(runtime), capture_output=True, text=True)
     assert proc.stdout.strip() == "[]", proc.stderr
+
+
+def test_a_client_killed_outright_takes_its_command_with_it(served, tmp_path):
+    """SIGKILL cannot be passed on: the server sees the client's connection close and kills the
+    command, as the kernel would have in a command run in the client's own process."""
+    env, info = served
+    with _long_command(env, tmp_path, info["pid"]) as (client, child):
+        client.kill()
+        client.wait(timeout=20)
+        assert _wait(lambda: not _alive(child))
+        assert not _children(info["pid"])
