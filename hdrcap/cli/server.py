@@ -43,8 +43,15 @@ REQUEST_TIMEOUT = 5.0
 
 def ensure_state_dir(environ: dict[str, str] | None = None) -> str:
     """Create the servers' folder (:func:`hdrcap._client.state_dir`) with mode 0700 and return
-    it; raises InputError when it belongs to another user."""
+    it; raises InputError when it belongs to another user or its sockets' paths would be too
+    long for a Unix socket."""
     path = _client.state_dir(environ)
+    try:
+        _client.socket_path("0" * 12, environ)  # a key's length: checked before any folder is made
+    except ValueError:
+        raise InputError(
+            f"{path}: too long a folder for the server's Unix socket; set XDG_RUNTIME_DIR to a shorter one"
+        ) from None
     os.makedirs(path, mode=0o700, exist_ok=True)
     st = os.stat(path)
     if st.st_uid != os.getuid():
@@ -414,7 +421,6 @@ def spawn(idle_timeout: float, timeout: float = START_TIMEOUT) -> dict[str, Any]
     InputError when it ends or does not answer within ``timeout`` s."""
     folder = ensure_state_dir()
     key = _client.server_key()
-    _client.socket_path(key)  # too long a path: ValueError before anything starts
     log_path = os.path.join(folder, f"{key}.log")
     cmd = [
         sys.executable,

@@ -305,3 +305,14 @@ def test_a_client_killed_outright_takes_its_command_with_it(served, tmp_path):
         client.wait(timeout=20)
         assert _wait(lambda: not _alive(child))
         assert not _children(info["pid"])
+
+
+def test_too_long_a_socket_folder_is_one_line_and_creates_nothing(tmp_path):
+    runtime = tmp_path / ("x" * 100)
+    proc = _run(["server", "start"], _env(runtime))
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert (
+        proc.stderr
+        == f"hdrcap: error: {runtime}/hdrcap: too long a folder for the server's Unix socket; set XDG_RUNTIME_DIR to a shorter one\n"
+    )
+    assert not runtime.exists()
