@@ -17,7 +17,14 @@ into a fresh archive. For each, the JSON gives:
 ``done_when`` checks the figures of issue #32 (client CPU <= 10 % of the merge's, 2 workers
 >= 1.6x one worker after start-up, every run bit-identical) where the configurations allow.
 
-Usage: python benchmarks/bench_batch.py [--runs 16] [--mpix 2] [--configs 1x1 2x1 4x1 8x1]
+With ``--server`` each configuration is the ``hdrcap batch`` command instead (``--workers W
+--threads T --json``; its report gives the same figures), forked from a command server the
+benchmark starts first (``hdrcap server start``, docs/merge.md): the client's process then
+starts with distributed, zarr and the merge's modules imported, once, by the server, as it does
+for a user who runs a server. Without it, ``run_batch`` runs in this process and the first
+configuration pays the import of distributed (about 0.2 CPU s).
+
+Usage: python benchmarks/bench_batch.py [--runs 16] [--mpix 2] [--configs 1x1 2x1 4x1 8x1] [--server]
 
 A configuration WxT is W local workers with T merge-kernel threads each (the merge kernel is
 itself parallel: 1x2 is what ``--workers 1`` gives on 2 cores, 2x1 what ``--workers 2`` gives).
@@ -29,10 +36,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +51,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 TIMES = [0.001, 0.01, 0.1]
+#: The installed console script (the client of a command server).
+_HDRCAP = str(Path(sys.executable).with_name("hdrcap"))
 
 
 def _shape(mpix: float) -> tuple[int, int]:
@@ -90,6 +102,30 @@ class _Load:
         return {"min": round(min(s), 2), "mean": round(float(np.mean(s)), 2), "max": round(max(s), 2)}
 
 
+@contextmanager
+def _server(root: Path, wanted: bool) -> Iterator[dict | None]:
+    """With ``wanted``, a command server of its own (a state folder in ``root``) for the length of
+    the block, and the environment that reaches it; else None."""
+    if not wanted:
+        yield None
+        return
+    env = dict(os.environ, XDG_RUNTIME_DIR=str(root / "rt"))
+    (root / "rt").mkdir()
+    subprocess.run([_HDRCAP, "server", "start"], env=env, check=True, capture_output=True)
+    try:
+        yield env
+    finally:
+        subprocess.run([_HDRCAP, "server", "stop"], env=env, capture_output=True)
+
+
+def _command(runs: list[Path], archive: Path, workers: int, threads: int, env: dict) -> dict:
+    """``hdrcap batch`` of ``runs`` (camera-B) into ``archive``: its JSON report (BatchReport.to_dict)."""
+    cmd = [_HDRCAP, "batch", *map(str, runs), "-o", str(archive), "--camera", "camera-B", "--json"]
+    cmd += ["--workers", str(workers), "--threads", str(threads)]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def _default_configs() -> list[str]:
     cpus = os.cpu_count() or 1
     return [f"{w}x1" for w in (1, 2, 4, 8) if w <= cpus] or ["1x1"]
@@ -106,6 +142,12 @@ def main(argv=None) -> dict:
         help="WORKERSxTHREADS: local workers and merge-kernel threads per worker (default: 1x1 2x1 4x1 8x1 as far "
         "as the machine has the cores)",
     )
+    ap.add_argument(
+        "--server",
+        action="store_true",
+        help="run each configuration as the `hdrcap batch` command forked from a command server started first "
+        "(`hdrcap server start`: the client's imports paid once, by the server) instead of run_batch in this process",
+    )
     args = ap.parse_args(argv)
     configs = args.configs or _default_configs()
 
@@ -120,9 +162,10 @@ def main(argv=None) -> dict:
         "shape": list(_shape(args.mpix)),
         "cpus": os.cpu_count(),
         "load_before": [round(x, 2) for x in os.getloadavg()],
+        "client": "hdrcap batch, forked from a command server" if args.server else "run_batch in this process",
         "configs": {},
     }
-    with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
+    with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp, _server(Path(tmp), args.server) as env:
         root = Path(tmp)
         t0 = time.perf_counter()
         runs = _runs(root, args.runs, args.mpix)
@@ -133,7 +176,10 @@ def main(argv=None) -> dict:
             archive = root / f"w{cfg}.zarr"
             t0 = time.perf_counter()
             with _Load() as load:
-                report = run_batch(runs, archive, settings, workers=w, threads=th, progress=False)
+                if env is None:
+                    report = run_batch(runs, archive, settings, workers=w, threads=th, progress=False).to_dict()
+                else:
+                    report = _command(runs, archive, w, th, env)
             wall = time.perf_counter() - t0
             ds = xr.open_zarr(archive)
             identical = ds.sizes["run"] == args.runs and all(
@@ -141,30 +187,30 @@ def main(argv=None) -> dict:
                 for i in range(ds.sizes["run"])
                 for k in ref
             )
-            n = max(len(report.committed), 1)
-            merge_cpu = report.merge_cpu_seconds
-            startup_cpu = getattr(report, "startup_cpu_seconds", None)  # None: a hdrcap before issue #32
-            after = None if startup_cpu is None else report.client_cpu_seconds - startup_cpu
+            n = max(report["committed"], 1)
+            merge_cpu = report["merge_cpu_seconds"]
+            startup_cpu = report["startup_cpu_seconds"]
+            after = report["client_cpu_seconds"] - startup_cpu
             out["configs"][cfg] = {
                 "workers": w,
                 "threads_per_worker": th,
                 "seconds": round(wall, 2),
-                "startup_s": round(report.startup_seconds, 2),
-                "seconds_after_startup": round(wall - report.startup_seconds, 2),
-                "runs_per_s_after_startup": round(args.runs / max(wall - report.startup_seconds, 1e-9), 3),
-                "committed": len(report.committed),
-                "failed": len(report.failed),
+                "startup_s": round(report["startup_seconds"], 2),
+                "seconds_after_startup": round(wall - report["startup_seconds"], 2),
+                "runs_per_s_after_startup": round(args.runs / max(wall - report["startup_seconds"], 1e-9), 3),
+                "committed": report["committed"],
+                "failed": len(report["failed"]),
                 "merge_cpu_s_summed": round(merge_cpu, 3),
                 "merge_cpu_s_per_run": round(merge_cpu / n, 4),
-                "client_cpu_s": round(report.client_cpu_seconds, 3),
-                "client_cpu_s_startup": None if startup_cpu is None else round(startup_cpu, 3),
-                "client_cpu_s_after_startup": None if after is None else round(after, 3),
-                "client_cpu_s_per_run": round(report.client_cpu_seconds / n, 4),
-                "client_cpu_over_merge_cpu": round(report.client_cpu_seconds / merge_cpu, 4),
-                "client_cpu_after_startup_over_merge_cpu": None if after is None else round(after / merge_cpu, 4),
-                "commit_cpu_s": getattr(report, "commit_cpu_seconds", None),
-                "commits": getattr(report, "commits", None),
-                "commit_s": round(report.commit_seconds, 3),
+                "client_cpu_s": round(report["client_cpu_seconds"], 3),
+                "client_cpu_s_startup": round(startup_cpu, 3),
+                "client_cpu_s_after_startup": round(after, 3),
+                "client_cpu_s_per_run": round(report["client_cpu_seconds"] / n, 4),
+                "client_cpu_over_merge_cpu": round(report["client_cpu_seconds"] / merge_cpu, 4),
+                "client_cpu_after_startup_over_merge_cpu": round(after / merge_cpu, 4),
+                "commit_cpu_s": report["commit_cpu_seconds"],
+                "commits": report["commits"],
+                "commit_s": round(report["commit_seconds"], 3),
                 "load_average_1min": load.summary(),
                 "bit_identical": bool(identical),
             }

@@ -45,7 +45,7 @@ ENV_SWITCH = "HDRCAP_SERVER"
 #: Environment variables that a process reads at start-up or import (the interpreter, numba,
 #: the BLAS and OpenMP thread pools, the locale and time zone, hdrcap's numba target), by prefix
 #: or by name: a forked command behaves as a fresh process only where they match the server's.
-KEY_ENV_PREFIXES = ("NUMBA_", "PYTHON", "OMP_", "MKL_", "OPENBLAS_", "GOTO_", "BLIS_", "NUMEXPR_", "LC_")
+KEY_ENV_PREFIXES = ("NUMBA_", "PYTHON", "OMP_", "MKL_", "OPENBLAS_", "GOTO_", "BLIS_", "NUMEXPR_", "LC_", "DASK_")
 KEY_ENV_NAMES = ("HDRCAP_NUMBA_PREFER_256", "LANG", "LANGUAGE", "TZ", "LD_PRELOAD", "LD_LIBRARY_PATH")
 #: The folders installed as hdrcap's packages (package-dir in pyproject.toml).
 SUBPACKAGES = ("pipeline", "planner", "mock_camera", "acquire")

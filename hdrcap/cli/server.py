@@ -14,6 +14,7 @@ kernel runs in it) is alive when it forks, and each command's process starts its
 
 from __future__ import annotations
 
+import gc
 import io
 import json
 import os
@@ -91,6 +92,20 @@ WARM_MODULES = (
     "multiprocessing.synchronize",
     "OpenEXR",
     "tifffile",
+    "hdrcap.batch.driver",
+    "hdrcap.batch.archive",
+    "hdrcap.acquire.capture.manifest",
+    "hdrcap.pipeline.merge.weighting",
+    "distributed",
+    "distributed.http.scheduler.info",
+    "distributed.http.scheduler.json",
+    "distributed.http.scheduler.prometheus",
+    "distributed.http.health",
+    "distributed.http.proxy",
+    "distributed.http.statics",
+    "distributed.diagnostics.websocket",
+    "filelock",
+    "tqdm",
 )
 
 
@@ -167,6 +182,11 @@ def serve(idle_timeout: float = 3600.0, on_ready: Callable[[dict[str, Any]], Non
         return 1
     prepare()
     _check_single_threaded()
+    # What the server imported moves to the collector's permanent generation: a command's
+    # collections no longer walk it, so they neither cost its time nor write to (and copy) the
+    # pages it shares with the server (the gc.freeze recipe for servers that fork)
+    gc.collect()
+    gc.freeze()
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         os.unlink(path)  # a stale socket (the status request found nobody listening)
@@ -410,6 +430,9 @@ def _fresh_process_state() -> None:
             logger.removeHandler(handler)
     logger.setLevel(logging.NOTSET)
     tempfile.tempdir = None
+    config = sys.modules.get("dask.config")
+    if config is not None:  # read at import: the YAML files and DASK_* variables as they are now
+        config.refresh()
     random = sys.modules.get("numpy.random")
     if random is not None:
         random.seed()

@@ -18,6 +18,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hdrcap import _client
@@ -316,3 +317,44 @@ def test_too_long_a_socket_folder_is_one_line_and_creates_nothing(tmp_path):
         == f"hdrcap: error: {runtime}/hdrcap: too long a folder for the server's Unix socket; set XDG_RUNTIME_DIR to a shorter one\n"
     )
     assert not runtime.exists()
+
+
+def test_a_batch_through_the_server_is_the_batch_in_process(served, bracket, tmp_path):
+    """`hdrcap batch` forked from the server (distributed imported by the server, its local
+    cluster started by the command) writes the archive the command writes in its own process,
+    and its client pays no import of distributed."""
+    import xarray as xr
+
+    env, info = served
+    runs = []
+    for name in ("r1", "r2"):
+        shutil.copytree(bracket, tmp_path / name)
+        runs.append(tmp_path / name)
+    args = ["batch", *runs, "--camera", "camera-A", "--workers", "1", "--threads", "1", "--json"]
+    before = _status(env)["requests"]
+    served_proc = _run([*args, "-o", tmp_path / "served.zarr"], env, timeout=300)
+    own = _run([*args, "-o", tmp_path / "own.zarr"], env | {"HDRCAP_SERVER": "0"}, timeout=300)
+    assert served_proc.returncode == own.returncode == 0, (served_proc.stderr, own.stderr)
+    assert _status(env)["requests"] == before + 1
+    reports = [json.loads(p.stdout.strip().splitlines()[-1]) for p in (served_proc, own)]
+    assert [r["committed"] for r in reports] == [2, 2]
+    # the import of distributed (about 0.2 CPU s) is the server's, not the command's
+    assert reports[0]["startup_cpu_seconds"] < reports[1]["startup_cpu_seconds"] - 0.1
+    a, b = xr.open_zarr(tmp_path / "served.zarr"), xr.open_zarr(tmp_path / "own.zarr")
+    assert set(a.data_vars) == set(b.data_vars) and a.sizes == b.sizes
+    for name in a.data_vars:
+        assert np.array_equal(a[name].values, b[name].values, equal_nan=True), name
+
+
+def test_a_command_starts_with_dask_config_as_it_is_now(monkeypatch):
+    """dask reads its YAML files and DASK_* variables once, at import (in the server): a command's
+    process reads them again (the variables are in the key; files can change meanwhile)."""
+    import dask
+
+    from hdrcap.cli.server import _fresh_process_state
+
+    dask.config.set({"hdrcap-test-left-over": 1})  # as if set in the server, not by the command
+    monkeypatch.setattr("tempfile.tempdir", None)
+    _fresh_process_state()
+    assert dask.config.get("hdrcap-test-left-over", None) is None
+    assert dask.config.get("distributed.scheduler.work-stealing") is True  # distributed's defaults kept

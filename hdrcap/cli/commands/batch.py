@@ -56,6 +56,12 @@ SHARED = (
     help="Worker processes of the local Dask cluster (default: one per core).",
 )
 @click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Merge-kernel threads of each local worker (default: the cores shared among the workers).",
+)
+@click.option(
     "--scheduler",
     metavar="ADDRESS",
     default=None,
@@ -70,6 +76,7 @@ def command(
     runs: tuple[Path, ...],
     output: Path,
     workers: int | None,
+    threads: int | None,
     scheduler: str | None,
     force: bool,
     progress: bool | None,
@@ -126,6 +133,7 @@ def command(
         output,
         settings,
         workers=workers,
+        threads=threads,
         scheduler=scheduler,
         force=force,
         progress=progress if progress is not None else (None if not as_json else False),
