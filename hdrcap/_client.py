@@ -257,7 +257,9 @@ def run() -> None:
 
 
 def _run_on_server(sock: socket.socket, argv: list[str]) -> int | None:
-    """The command's exit status, or None when the server refused it before starting it."""
+    """The command's exit status, or None when the server refused it before starting it. SIGINT,
+    SIGTERM, SIGHUP and SIGQUIT are passed on; SIGTSTP (Ctrl-Z) stops the command, then the
+    client, and SIGCONT resumes both, as for a command in the client's own process."""
     pid: list[int] = []
     pending: list[int] = []
 
@@ -270,7 +272,24 @@ def _run_on_server(sock: socket.socket, argv: list[str]) -> int | None:
         else:
             pending.append(signum)
 
+    def suspend(_signum: int, _frame: Any) -> None:  # Ctrl-Z: the command stops, then the client
+        if pid:
+            try:
+                os.kill(pid[0], signal.SIGSTOP)
+            except OSError:
+                pass
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+    def resume(_signum: int, _frame: Any) -> None:  # fg / bg: the command goes on with the client
+        if pid:
+            try:
+                os.kill(pid[0], signal.SIGCONT)
+            except OSError:
+                pass
+
     previous = {s: signal.signal(s, forward) for s in FORWARDED_SIGNALS}
+    previous[signal.SIGTSTP] = signal.signal(signal.SIGTSTP, suspend)
+    previous[signal.SIGCONT] = signal.signal(signal.SIGCONT, resume)
     try:
         umask = os.umask(0o022)
         os.umask(umask)

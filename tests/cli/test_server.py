@@ -358,3 +358,19 @@ def test_a_command_starts_with_dask_config_as_it_is_now(monkeypatch):
     _fresh_process_state()
     assert dask.config.get("hdrcap-test-left-over", None) is None
     assert dask.config.get("distributed.scheduler.work-stealing") is True  # distributed's defaults kept
+
+
+def _state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+
+def test_ctrl_z_stops_the_command_and_fg_resumes_it(served, tmp_path):
+    env, info = served
+    with _long_command(env, tmp_path, info["pid"]) as (client, child):
+        client.send_signal(signal.SIGTSTP)
+        assert _wait(lambda: _state(child) == "T" and _state(client.pid) == "T")
+        client.send_signal(signal.SIGCONT)
+        assert _wait(lambda: _state(child) != "T" and _state(client.pid) != "T")
+        client.send_signal(signal.SIGINT)
+        client.wait(timeout=20)
+        assert _wait(lambda: not _alive(child))
