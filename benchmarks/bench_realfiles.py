@@ -29,17 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hdrcap.experiments.realfiles import ADC, G8, MV, TIMES
+from hdrcap.experiments.realfiles import BRACKET_SCENES, G8, MV, TIMES, bracket_frames, scene
 
-SCENES = [
-    ("hdr", 4.0, 1.0),
-    ("hdr", 3.0, 0.5),
-    ("gradient", 3.0, 0.3),
-    ("patches", 3.0, 1.0),
-    ("edges", 2.0, 0.2),
-    ("hdr", 5.0, 2.0),
-    ("gradient", 2.0, 0.1),
-]
 EMVA_K = 0.280769280926  # DN/e-, the reference set's published gain
 
 
@@ -84,23 +75,14 @@ def brackets(folder: Path, shape: tuple[int, int], seed: int) -> dict:
     taken as 0 DN."""
     import dataclasses
 
-    from hdrcap.mock_camera.imagefiles import requantise, write_image
-    from hdrcap.mock_camera.scenes import make_scene
     from hdrcap.mock_camera.sensor import SimulatedSensor
     from hdrcap.pipeline.calibration.selfcal import self_calibrate
-    from hdrcap.pipeline.io.frameformat import FrameFormat
-    from hdrcap.pipeline.io.raw import read_frame
 
     sensor = SimulatedSensor(MV, shape, seed=seed)
     estimated, zero = [], []
-    for k, (name, decades, level) in enumerate(SCENES):
-        X = make_scene(name, shape, decades=decades, x_max=level * 250 / (G8 * TIMES[0]))
-        rng = np.random.default_rng([seed, 28, k])
-        paths = []
-        for i, t in enumerate(TIMES):
-            v = requantise(sensor.expose(X, t, rng=rng), ADC, 8).astype(np.uint8)
-            paths.append(write_image(folder / f"b{k}_{i}.tif", v))
-        frames = [read_frame(p, t, fmt=FrameFormat(cfa="GBRG")) for p, t in zip(paths, TIMES)]
+    for k, (name, decades, level) in enumerate(BRACKET_SCENES):
+        X = scene(shape, name, decades, level)
+        frames = bracket_frames(sensor, X, folder, f"b{k}", np.random.default_rng([seed, 28, k]))
         estimated.append({"scene": f"{name} {decades:g} decades x{level:g}", **_row(self_calibrate(frames))})
         zero.append(_row(self_calibrate([dataclasses.replace(f, black_level=0.0) for f in frames])))
     return {

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrcap.experiments.realfiles import ADC, G8, MV, TIMES
+from hdrcap.experiments.realfiles import ADC, BRACKET_SCENES, G8, MV, TIMES, bracket_frames, scene
 from hdrcap.mock_camera import PRESETS
 from hdrcap.mock_camera.backend import SimulatedCamera
 from hdrcap.mock_camera.imagefiles import msb_align, requantise, requantised_gain, write_image
@@ -27,8 +27,8 @@ SHAPE = (192, 256)
 
 
 def _scene(name: str = "hdr", decades: float = 4.0, level: float = 1.0, shape=SHAPE) -> np.ndarray:
-    """A scene whose brightest photosite gives ``level`` x 250 DN (8-bit) in the shortest frame."""
-    return make_scene(name, shape, decades=decades, x_max=level * 250 / (G8 * TIMES[0]))
+    """The camera's scene (:func:`hdrcap.experiments.realfiles.scene`) of this file's size by default."""
+    return scene(shape, name, decades, level)
 
 
 def _bracket(folder: Path, X: np.ndarray, seed: int, suffix: str = ".tif", spec: SensorSpec = MV, **kw) -> list[Path]:
@@ -191,31 +191,14 @@ def test_a_model_the_data_reject_inflates_the_stated_errors():
     assert near.gain_known and abs(near.fit["g"] / G8 - 1) < 0.03
 
 
-SCENES = [
-    ("hdr", 4.0, 1.0),
-    ("hdr", 3.0, 0.5),
-    ("gradient", 3.0, 0.3),
-    ("patches", 3.0, 1.0),
-    ("edges", 2.0, 0.2),
-    ("hdr", 5.0, 2.0),
-    ("gradient", 2.0, 0.1),
-]
-
-
 def test_seven_brackets_of_one_8bit_camera_give_consistent_gains(tmp_path):
     """Done when: seven brackets of one 8-bit camera (different scenes and levels), written as
     8-bit TIFF and self-calibrated, give gains that agree within their stated errors (chi^2/dof
     <= 4) or are declared not estimable; none states a relative error below 1e-6."""
     sensor = SimulatedSensor(MV, SHAPE, seed=11)
     gains, errors = [], []
-    for k, (name, decades, level) in enumerate(SCENES):
-        X = _scene(name, decades, level)
-        rng = np.random.default_rng([28, k])
-        files = []
-        for i, t in enumerate(TIMES):
-            v = requantise(sensor.expose(X, t, rng=rng), ADC, 8).astype(np.uint8)
-            files.append(write_image(tmp_path / f"b{k}_{i}.tif", v))
-        frames = [read_frame(f, t, fmt=FrameFormat(cfa="GBRG")) for f, t in zip(files, TIMES)]
+    for k, (name, decades, level) in enumerate(BRACKET_SCENES):
+        frames = bracket_frames(sensor, _scene(name, decades, level), tmp_path, f"b{k}", np.random.default_rng([28, k]))
         sc = self_calibrate(frames)
         if sc.gain_known:
             gains.append(sc.fit["g"])
