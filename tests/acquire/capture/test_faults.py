@@ -40,6 +40,23 @@ from tests.helpers.cameras import StoppingCamera
 from tests.helpers.jobs import FAST, mock_job
 
 
+def _run_args(job: Path) -> list[str]:
+    """``hdrcap run JOB`` as a command of its own."""
+    return [sys.executable, "-m", "hdrcap", "run", str(job), "--no-progress"]
+
+
+def _run_env(tmp_path: Path) -> dict[str, str]:
+    """The environment of such a command: its lock files in ``tmp_path/locks``."""
+    return dict(os.environ, HDRCAP_LOCK_DIR=str(tmp_path / "locks"))
+
+
+def _start_run(tmp_path: Path, job: Path) -> subprocess.Popen:
+    """``hdrcap run JOB`` started in ``tmp_path``, its stdout and stderr piped (text)."""
+    return subprocess.Popen(
+        _run_args(job), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_run_env(tmp_path)
+    )
+
+
 def _job(
     tmp_path: Path,
     camera: str = "",
@@ -172,12 +189,7 @@ def test_a_hanging_cover_command_ends_the_run_and_leaves_no_process(tmp_path):
     p = _job(tmp_path, darks=darks)
     t0 = time.monotonic()
     proc = subprocess.run(
-        [sys.executable, "-m", "hdrcap", "run", str(p), "--no-progress"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env=dict(os.environ, HDRCAP_LOCK_DIR=str(tmp_path / "locks")),
+        _run_args(p), cwd=tmp_path, capture_output=True, text=True, timeout=60, env=_run_env(tmp_path)
     )
     assert proc.returncode not in (0, 2), proc.stderr
     assert time.monotonic() - t0 < 60
@@ -190,14 +202,7 @@ def test_two_sigterms_during_a_hanging_cover_command_leave_no_process(tmp_path):
     # (what subprocess.run does when a second signal interrupts it) would leave the sleep behind
     darks = 'block_light = "command"\ncover_command = "sleep 100021 && true"\nuncover_command = "true"'
     p = _job(tmp_path, darks=darks)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hdrcap", "run", str(p), "--no-progress"],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=dict(os.environ, HDRCAP_LOCK_DIR=str(tmp_path / "locks")),
-    )
+    proc = _start_run(tmp_path, p)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and not _processes("sleep 100021"):
@@ -405,14 +410,7 @@ def test_an_interrupted_repetition_is_reported_once_with_keep_going(tmp_path, mo
 def test_sigterm_does_not_wait_for_a_hung_camera_call(tmp_path):
     faults = "faults = { hang_rate = 1.0, hang_s = 30.0, hang_ignores_timeout = true }"
     p = _job(tmp_path, camera=faults, folder="runs/hung")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hdrcap", "run", str(p), "--no-progress"],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=dict(os.environ, HDRCAP_LOCK_DIR=str(tmp_path / "locks")),
-    )
+    proc = _start_run(tmp_path, p)
     events = tmp_path / "runs" / "hung" / "events.jsonl"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not (events.exists() and '"light"' in events.read_text()):
