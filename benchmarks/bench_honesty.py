@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from hdrcap.experiments.calibrated import estimated_calibration
+from hdrcap.experiments.extremes import nearest_clip
 from hdrcap.mock_camera.sensor import PRESETS, SimulatedSensor
 from hdrcap.pipeline.merge.accumulator import merge_arrays
 
@@ -63,23 +64,6 @@ def clip_scene(spec, shape, times, rng) -> np.ndarray:
         u = (p.v_sat + k * np.sqrt(p.g**2 * t * u + p.sigma2_R) - p.mu_R) / (p.g * t)
     X[near] = np.maximum(u - spec.dark_current, 1e-3)[near]
     return X.reshape(shape)
-
-
-def k_of_nearest_clip(sensor, X, times, v_sat) -> tuple[np.ndarray, np.ndarray]:
-    """Per photosite, k = (E[v] - v_sat)/sigma_v of the exposure whose clip level is nearest,
-    from the simulator's truth (PRNU, dark-current map, effective times), and that exposure's
-    index in ``times``."""
-    spec = sensor.spec
-    u = sensor.prnu * X + sensor.dark_current_map()
-    best = np.full(X.shape, np.inf)
-    which = np.zeros(X.shape, np.int64)
-    for j, t in enumerate(times):
-        e = t * sensor.shutter_factor(t) * u
-        k = (spec.mu_R + spec.g * e - v_sat) / np.sqrt(spec.g**2 * e + spec.sigma2_R)
-        nearer = np.abs(k) < np.abs(best)
-        best = np.where(nearer, k, best)
-        which = np.where(nearer, j, which)
-    return best, which
 
 
 def _stats(z: np.ndarray, zg: np.ndarray) -> dict[str, Any]:
@@ -142,7 +126,7 @@ def run_camera(cam: str, size: int, seed: int, times_mode: str) -> dict[str, Any
     rng = np.random.default_rng([seed, 31])
     cal = estimated_calibration(sensor, rng)
     X = clip_scene(spec, shape, TIMES, rng)
-    k, which = k_of_nearest_clip(sensor, X, TIMES, spec.nominal_params().v_sat)
+    k, which = nearest_clip(sensor, X, TIMES, spec.nominal_params().v_sat)
     shortest = which == int(np.argmin(TIMES))
     defect = np.zeros(shape, bool)
     for m in sensor.defects.values():

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from hdrcap.experiments.calibrated import estimated_calibration
-from hdrcap.experiments.extremes import T_MAX, T_MIN, cameras
+from hdrcap.experiments.extremes import T_MAX, T_MIN, cameras, nearest_clip
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -106,23 +106,6 @@ def scene(sensor, times, rng) -> tuple[np.ndarray, np.ndarray]:
     ok = near & (Xk > 0)
     X[ok] = Xk[ok]
     return X, ok
-
-
-def nearest_clip(sensor, X, times) -> tuple[np.ndarray, np.ndarray]:
-    """Per photosite, k = (E v - v_sat)/sd(v) of the exposure whose clip level is nearest (the
-    truth: PRNU, dark-current map), and that exposure's index."""
-    spec = sensor.spec
-    v_sat = spec.nominal_params().v_sat
-    u = sensor.prnu * X + sensor.dark_current_map()
-    best = np.full(X.shape, np.inf)
-    which = np.zeros(X.shape, np.int64)
-    for j, t in enumerate(times):
-        e = t * u
-        k = (spec.mu_R + spec.g * e - v_sat) / np.sqrt(spec.g**2 * e + spec.sigma2_R)
-        nearer = np.abs(k) < np.abs(best)
-        best = np.where(nearer, k, best)
-        which = np.where(nearer, j, which)
-    return best, which
 
 
 def _band(z: np.ndarray, flagged: np.ndarray) -> dict[str, Any]:
@@ -198,7 +181,7 @@ def run_case(spec, seeds: int, size: int, spacing: float, anchor: str, cals: dic
         X, placed = scene(sensor, times, rng)
         frames = [sensor.expose(X, t, rng=rng) for t in times]
         darks = [sensor.expose(X, t, dark=True, rng=rng) for t in times]
-        k, which = nearest_clip(sensor, X, times)
+        k, which = nearest_clip(sensor, X, times, spec.nominal_params().v_sat)
         truth = X * spec.g / cal.params.g
         for sat in SATURATIONS:
             t0 = time.perf_counter()

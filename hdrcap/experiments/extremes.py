@@ -1,7 +1,8 @@
 """The sensors of the stability sweep at the extremes (``benchmarks/extremes.py``, docs/merge.md,
 *Stability at the extremes*): per bit depth one camera whose full well clips before the ADC and
 one whose ADC clips first, with a dark current that dominates the darker photosites' signal in
-the longest exposures.
+the longest exposures; and where a photosite stands against the clip level (:func:`nearest_clip`),
+which this sweep and ``benchmarks/bench_honesty.py`` band their statistics by.
 
 >>> sorted(cameras())[:2]
 ['10-bit-adc', '10-bit-fw']
@@ -10,10 +11,17 @@ the longest exposures.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from hdrcap.mock_camera.sensor import SensorSpec
 
-__all__ = ["T_MAX", "T_MIN", "cameras"]
+if TYPE_CHECKING:
+    import numpy as np
+
+    from hdrcap.mock_camera.sensor import SimulatedSensor
+
+__all__ = ["T_MAX", "T_MIN", "cameras", "nearest_clip"]
 
 #: The sweep's shortest and longest exposure times, s.
 T_MIN, T_MAX = 1e-6, 3600.0
@@ -60,3 +68,24 @@ def cameras() -> dict[str, SensorSpec]:
         ("16-bit-adc", 0.5, 1000.0, 9.0, 16, 140000.0),
     ]
     return {s[0]: _camera(*s) for s in specs}
+
+
+def nearest_clip(
+    sensor: SimulatedSensor, X: np.ndarray, times: Sequence[float], v_sat: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per photosite, k = (E[v] - v_sat) / sigma_v of the exposure whose clip level ``v_sat`` (DN)
+    is nearest, from the simulator's truth (PRNU, dark-current map, effective times), and that
+    exposure's index in ``times`` (s); ``X`` is the irradiance, e-/s."""
+    import numpy as np
+
+    spec = sensor.spec
+    u = sensor.prnu * X + sensor.dark_current_map()
+    best = np.full(X.shape, np.inf)
+    which = np.zeros(X.shape, np.int64)
+    for j, t in enumerate(times):
+        e = t * sensor.shutter_factor(t) * u
+        k = (spec.mu_R + spec.g * e - v_sat) / np.sqrt(spec.g**2 * e + spec.sigma2_R)
+        nearer = np.abs(k) < np.abs(best)
+        best = np.where(nearer, k, best)
+        which = np.where(nearer, j, which)
+    return best, which
