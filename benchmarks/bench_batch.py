@@ -49,10 +49,11 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_command import hdrcap_exe, server_command  # noqa: E402  (after the path set-up above)
 
 TIMES = [0.001, 0.01, 0.1]
-#: The installed console script (the client of a command server).
-_HDRCAP = str(Path(sys.executable).with_name("hdrcap"))
 
 
 def _shape(mpix: float) -> tuple[int, int]:
@@ -111,16 +112,18 @@ def _server(root: Path, wanted: bool) -> Iterator[dict | None]:
         return
     env = dict(os.environ, XDG_RUNTIME_DIR=str(root / "rt"))
     (root / "rt").mkdir()
-    subprocess.run([_HDRCAP, "server", "start"], env=env, check=True, capture_output=True)
+    started = server_command("start", env)
+    if not any("listening at" in line for line in started):
+        raise RuntimeError(f"hdrcap server start: {started}")
     try:
         yield env
     finally:
-        subprocess.run([_HDRCAP, "server", "stop"], env=env, capture_output=True)
+        server_command("stop", env)
 
 
 def _command(runs: list[Path], archive: Path, workers: int, threads: int, env: dict) -> dict:
     """``hdrcap batch`` of ``runs`` (camera-B) into ``archive``: its JSON report (BatchReport.to_dict)."""
-    cmd = [_HDRCAP, "batch", *map(str, runs), "-o", str(archive), "--camera", "camera-B", "--json"]
+    cmd = [hdrcap_exe(), "batch", *map(str, runs), "-o", str(archive), "--camera", "camera-B", "--json"]
     cmd += ["--workers", str(workers), "--threads", str(threads)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])

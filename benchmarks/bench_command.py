@@ -143,10 +143,15 @@ def simulate(work: Path, shape, times=TIMES) -> dict:
     return {"frames": frames, "darks": darks, "calibration": cal_path}
 
 
-def hdrcap_cmd(sim: dict, out: Path) -> list:
+def hdrcap_exe() -> str:
+    """The ``hdrcap`` console script of this interpreter's environment."""
     exe = Path(sys.executable).with_name("hdrcap")
+    return str(exe) if exe.exists() else "hdrcap"
+
+
+def hdrcap_cmd(sim: dict, out: Path) -> list:
     return [
-        exe if exe.exists() else "hdrcap",
+        hdrcap_exe(),
         "merge",
         *sim["frames"],
         "--darks",
@@ -227,8 +232,7 @@ def compare_commands(cases: dict, work: Path, repeats: int) -> dict:
 
 def server_command(action: str, env: dict) -> list:
     """``hdrcap server ACTION`` run with ``env``: its output lines."""
-    exe = Path(sys.executable).with_name("hdrcap")
-    cmd = [str(exe) if exe.exists() else "hdrcap", "server", action]
+    cmd = [hdrcap_exe(), "server", action]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120, check=False)
     return (proc.stdout + proc.stderr).strip().splitlines()
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import TIMES, _best, run_measured, shape_for  # noqa: E402
+from bench_command import TIMES, _best, hdrcap_exe, run_measured, shape_for  # noqa: E402
 
 CAMERA = "camera-A"
 WORK = Path("/tmp/hdrcap-bench-speed2")
@@ -43,12 +43,6 @@ WORK = Path("/tmp/hdrcap-bench-speed2")
 #: request; the second (every eligible pixel at 30 dB) is infeasible on this scene, so the greedy
 #: search runs to the 64-exposure limit: the slowest case.
 PLAN_CASES = {"20dB_q0.99": (20.0, 0.99), "30dB_default": (30.0, None)}
-
-
-def hdrcap_exe() -> str:
-    """The ``hdrcap`` console script of this interpreter's environment."""
-    exe = Path(sys.executable).with_name("hdrcap")
-    return str(exe) if exe.exists() else "hdrcap"
 
 
 def simulate(work: Path, shape, n_flats: int) -> dict:

@@ -52,7 +52,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import run_measured  # noqa: E402  (after the path set-up above)
+from bench_command import hdrcap_exe, run_measured  # noqa: E402  (after the path set-up above)
 
 WORK = REPO / "benchmarks" / "_work"
 DEFAULT_VENV = WORK / "venv"
@@ -208,12 +208,11 @@ def run_hdrcap(name: str, sim: dict, work: Path) -> dict:
     from hdrcap.pipeline.io.exr import read_exr
 
     calib, flags, with_darks, options = HDRCAP_ROWS[name]
-    exe = Path(sys.executable).with_name("hdrcap")
     exr = work / f"hdrcap_{len(flags)}_{with_darks}_{calib}.exr"
     darks = ["--darks", *sim["darks"]] if with_darks else []
     r = run_measured(
         [
-            exe if exe.exists() else "hdrcap",
+            hdrcap_exe(),
             "merge",
             *sim["files"],
             *darks,

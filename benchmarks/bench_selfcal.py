@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_command import ensure_hdrmerge, run_measured  # noqa: E402
+from bench_command import ensure_hdrmerge, hdrcap_exe, run_measured  # noqa: E402
 from bench_peers import run_hdrmerge  # noqa: E402
 
 #: The bracket: 1/2000 s to 2 s, 5 exposures (nominal shutter speeds, about 3 EV apart).
@@ -132,9 +132,8 @@ def main(argv=None) -> int:
     work = args.out
     sim = simulate(work, parse_size(args.size), args.seed)
     truth = sim["truth"]
-    exe = Path(sys.executable).with_name("hdrcap")
     exr = work / "hdrcap.exr"
-    r = run_measured([exe if exe.exists() else "hdrcap", "merge", *sim["files"], "-o", exr, "--force", "--json"])
+    r = run_measured([hdrcap_exe(), "merge", *sim["files"], "-o", exr, "--force", "--json"])
     if r["returncode"] != 0:
         print(json.dumps({"error": r["stderr"]}))
         return 1
