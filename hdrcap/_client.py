@@ -263,29 +263,26 @@ def _run_on_server(sock: socket.socket, argv: list[str]) -> int | None:
     pid: list[int] = []
     pending: list[int] = []
 
+    def to_command(signum: int) -> None:
+        try:
+            os.kill(pid[0], signum)
+        except OSError:  # it has ended
+            pass
+
     def forward(signum: int, _frame: Any) -> None:
         if pid:
-            try:
-                os.kill(pid[0], signum)
-            except OSError:
-                pass
+            to_command(signum)
         else:
             pending.append(signum)
 
     def suspend(_signum: int, _frame: Any) -> None:  # Ctrl-Z: the command stops, then the client
         if pid:
-            try:
-                os.kill(pid[0], signal.SIGSTOP)
-            except OSError:
-                pass
+            to_command(signal.SIGSTOP)
         os.kill(os.getpid(), signal.SIGSTOP)
 
     def resume(_signum: int, _frame: Any) -> None:  # fg / bg: the command goes on with the client
         if pid:
-            try:
-                os.kill(pid[0], signal.SIGCONT)
-            except OSError:
-                pass
+            to_command(signal.SIGCONT)
 
     previous = {s: signal.signal(s, forward) for s in FORWARDED_SIGNALS}
     previous[signal.SIGTSTP] = signal.signal(signal.SIGTSTP, suspend)
