@@ -52,6 +52,7 @@ import numpy as np
 
 from hdrcap.experiments.calibrated import estimated_calibration
 from hdrcap.experiments.extremes import T_MAX, T_MIN, cameras, nearest_clip
+from hdrcap.pipeline.schema import QUALITY_BITS
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -146,7 +147,7 @@ def _false_rejections(sensor, cal, X, times, frames, quality) -> int:
     """Photosites the clip rule flagged although none of their samples in its window can be a
     clipped value: every such sample's expected electrons (the truth) lie more than 6 of
     their standard deviations below the full well."""
-    hit = (quality & 64) != 0
+    hit = (quality & QUALITY_BITS["clip_rejected"]) != 0
     if not hit.any():
         return 0
     spec = sensor.spec
