@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
-from hdrcap import _client
+from hdrcap import __version__, _client
 from hdrcap.pipeline.errors import InputError
 
 __all__ = ["check_peer", "ensure_state_dir", "prepare", "serve", "spawn", "stop", "status"]
@@ -167,7 +167,7 @@ class _State:
             "requests": self.requests,
             "commands_running": len(self.children),
             "idle_timeout": self.idle_timeout,
-            "version": _client.hdrcap.__version__,
+            "version": __version__,
         }
 
 
