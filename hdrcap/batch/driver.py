@@ -1,11 +1,12 @@
-"""Batch reprocessing: many runs merged on dask.distributed into one run archive.
+"""Batch reprocessing: many runs merged on local worker processes or dask.distributed into one run archive.
 
 :func:`find_runs` turns the folders given into :class:`RunSource` (file paths only: capture
 run folders through their ``manifest.jsonl``, or folders of raw brackets); :func:`merge_run` is
 the task a worker runs for one run: it reads the frames itself, merges them with
 :func:`pipeline.merge.files.merge_files` exactly as ``hdrcap merge`` does, and writes the run's
 chunk files straight into the archive at a slot of its own (:func:`hdrcap.batch.archive.write_run`);
-:func:`run_batch` sends one task per run to a local cluster or a scheduler and commits the runs
+:func:`run_batch` gives one task per run to a pool of local worker processes (pebble: no Dask in
+the client) or to a Dask scheduler, and commits the runs
 as they are reported (the runs reported while the previous commit was made go together into one
 commit: a rewrite of a few small metadata files), records failures and skips runs already there.
 
@@ -21,11 +22,13 @@ import dataclasses
 import datetime as _dt
 import functools
 import hashlib
+import multiprocessing.context
+import multiprocessing.process
 import os
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,7 +37,10 @@ from hdrcap.pipeline.errors import InputError
 from hdrcap.pipeline.merge.options import MergeOptions, as_strategy
 
 if TYPE_CHECKING:
+    from multiprocessing.connection import Connection
+
     from distributed import Client
+    from pebble import ProcessPool
 
     from hdrcap.batch.archive import ArchiveRun, ArchiveWriter, RunEntry, Target
     from hdrcap.pipeline.params import Calibration
@@ -366,64 +372,190 @@ def _merge_run(source: RunSource, settings: BatchSettings, target: Target | None
 
 
 # --------------------------------------------------------------------------- the driver
-#: Dask settings of a local cluster. Its scheduler and the workers' nannies run in the client's
-#: process: event-loop health checks (they only time warnings of a blocked loop) every second
-#: rather than every 20 ms, the resource monitor (it feeds the dashboard, which a batch does not
-#: start) every 2 s without disk counters, and the nannies' memory checks every second rather
-#: than every 0.1 s, take most of an idle local cluster's CPU off the client. The workers run
-#: no statistical profiler: its sampling every 10 ms cost about a tenth of a run's CPU seconds,
-#: counted as the merge's.
-_LOCAL_CLUSTER_CONFIG = {
-    "distributed.admin.tick.interval": "1s",
-    "distributed.admin.system-monitor.interval": "2s",
-    "distributed.admin.system-monitor.disk": False,
-    "distributed.worker.memory.monitor-interval": "1s",
-    "distributed.worker.profile.enabled": False,
-}
+#: Times a run is given to a worker process that then dies while merging it (killed, out of
+#: memory, a crash in a library) before the run is recorded as failed.
+WORKER_ATTEMPTS = 3
+
+#: Seconds the local pool waits for its workers to be prepared before it takes the runs anyway.
+_START_TIMEOUT = 600.0
+
+#: What a finished task gives :meth:`_Committer.take`: the run, the task's status and outcome.
+_Finished = tuple[RunSource, str, Any]
 
 
-def _prepare_worker() -> None:
-    """Import the merge kernels and set numba's CPU target up in a worker before its first task
-    (:func:`hdrcap.pipeline.merge.accumulator.import_kernels`): the fixed cost of a worker
-    process, paid by every worker at once while the cluster starts, not in its first run."""
-    from hdrcap.pipeline.merge.accumulator import import_kernels
-
-    import_kernels()()
-
-
-def _prepared(client: Client) -> Client:
-    """``client`` once every worker it has has run :func:`_prepare_worker` (a worker that joins
-    later pays it in its first run instead); a failure is left to the runs to report."""
+def _load_kernels() -> None:
+    """Import numba and the merge kernels and set numba's CPU target up
+    (:func:`hdrcap.pipeline.merge.accumulator.import_kernels`): a worker's fixed cost, paid by
+    every worker at once before the runs are given out, not in the first run of each. A failure
+    is left to the runs to report."""
     try:
-        client.run(_prepare_worker)
+        from hdrcap.pipeline.merge.accumulator import import_kernels
+
+        import_kernels()()
     except Exception:  # noqa: BLE001, S110  (the merge itself reports what is wrong)
         pass
-    return client
+
+
+def _prepare_worker(threads: int, ready: Connection) -> None:
+    """The start of a local worker process: ``threads`` merge-kernel threads (``NUMBA_NUM_THREADS``
+    and ``OMP_NUM_THREADS`` before numba is imported, and numba's own setting if it already
+    was), the kernels loaded (:func:`_load_kernels`), then a message on ``ready``."""
+    os.environ["NUMBA_NUM_THREADS"] = os.environ["OMP_NUM_THREADS"] = str(threads)
+    # A spawned worker's default start method is spawn: the locks a library makes in it (numcodecs'
+    # blosc mutex, in the first chunk written) would be named semaphores left to the resource
+    # tracker, which warns of them as leaked when the worker is stopped. The worker starts no process.
+    multiprocessing.set_start_method("fork", force=True)
+    try:
+        _load_kernels()
+        import numba
+
+        numba.set_num_threads(min(threads, numba.get_num_threads()))
+    finally:
+        ready.send_bytes(b"ready")
+
+
+class _SpawnContext(multiprocessing.context.SpawnContext):
+    """multiprocessing's spawn context that keeps the processes it made (to see workers that
+    end as they start)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.made: list[multiprocessing.context.SpawnProcess] = []
+
+    def Process(self, *args: Any, **kwargs: Any) -> multiprocessing.context.SpawnProcess:  # type: ignore[override]  # noqa: N802
+        proc = multiprocessing.context.SpawnProcess(*args, **kwargs)
+        self.made.append(proc)
+        return proc
+
+
+def _await_workers(n: int, ready: Connection, ctx: _SpawnContext) -> None:
+    """Wait until ``n`` workers said they are ready on ``ready``, up to :data:`_START_TIMEOUT`
+    seconds. Raises RuntimeError when ``n`` worker processes ended before any was ready."""
+    deadline, got = time.monotonic() + _START_TIMEOUT, 0
+    while got < n and time.monotonic() < deadline:
+        if ready.poll(0.1):
+            ready.recv_bytes()
+            got += 1
+            continue
+        ended = [p.exitcode for p in ctx.made if p.exitcode is not None]
+        if got == 0 and len(ended) >= n:
+            raise RuntimeError(
+                f"the batch's worker processes end as they start (exit status {ended[-1]}): {_MAIN_GUARD}"
+            )
+
+
+#: Why a local worker that imports the caller's script must not start a batch of its own.
+_MAIN_GUARD = (
+    'a script that calls run_batch must do so under `if __name__ == "__main__":` '
+    "(each local worker imports the script as it starts)"
+)
+
+
+def _check_not_starting_a_worker() -> None:
+    """Raises RuntimeError inside a local worker that is starting (importing the caller's main
+    module, as spawned processes do): a script that calls :func:`run_batch` at its top level
+    would otherwise start a batch in every worker (the check of ``multiprocessing`` itself
+    comes only when a process is started, after the archive's lock)."""
+    if getattr(multiprocessing.process.current_process(), "_inheriting", False):
+        raise RuntimeError(f"run_batch called while a worker process starts: {_MAIN_GUARD}")
 
 
 @contextmanager
-def _client(workers: int | None, scheduler: str | None, threads: int | None = None) -> Iterator[Client]:
-    """A dask.distributed client: of the scheduler at ``scheduler`` (the workers' reports, a few
-    kB each, come through it: the client needs to reach the scheduler only), or of a local
-    cluster of ``workers`` worker processes running one task at a time, each with ``threads``
-    threads for the merge kernel (default: its share of the cores; reports fetched from the
-    workers directly)."""
-    import dask
-    from distributed import Client, LocalCluster
+def _local_pool(workers: int | None, threads: int | None) -> Iterator[ProcessPool]:
+    """A pool of ``workers`` local worker processes (default: one per core), each a new
+    interpreter (spawned, which imports the caller's main module) that merges one run at a time
+    with ``threads`` merge-kernel threads (default: the cores shared among the workers), given
+    once every worker is prepared (:func:`_prepare_worker`); stopped when the block ends. A
+    worker that dies is replaced and the run it was merging ends with
+    :class:`pebble.ProcessExpired`. Raises RuntimeError when the workers cannot start."""
+    from pebble import ProcessPool
 
-    if scheduler:
-        with Client(scheduler) as client:
-            yield _prepared(client)
-        return
-    n = workers or max(1, (os.cpu_count() or 1))
-    per_worker = str(threads or max(1, (os.cpu_count() or 1) // n))
-    env = {"NUMBA_NUM_THREADS": per_worker, "OMP_NUM_THREADS": per_worker}
-    with (
-        dask.config.set(_LOCAL_CLUSTER_CONFIG),
-        LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, env=env) as cluster,
-        Client(cluster, direct_to_workers=True) as client,
-    ):
-        yield _prepared(client)
+    cores = os.cpu_count() or 1
+    n = workers or cores
+    ctx = _SpawnContext()
+    reader, writer = ctx.Pipe(duplex=False)
+    pool = ProcessPool(
+        max_workers=n, initializer=_prepare_worker, initargs=(threads or max(1, cores // n), writer), context=ctx
+    )
+    try:
+        if pool.active:  # (asking starts the workers)
+            _await_workers(n, reader, ctx)
+        yield pool
+    finally:
+        pool.stop()
+        pool.join()
+        reader.close()
+        writer.close()
+
+
+def _pool_batches(
+    pool: ProcessPool, todo: list[RunSource], args: tuple[Any, ...], task: Callable[..., Any] | None = None
+) -> Iterator[list[_Finished]]:
+    """Give each run of ``todo`` to ``pool`` now (``task(source, *args)``, default
+    :func:`merge_run`) and return the runs as they finish, in batches: those that finished while
+    the previous batch was taken. A run whose worker died is given again, up to
+    :data:`WORKER_ATTEMPTS` times."""
+    from concurrent.futures import FIRST_COMPLETED, Future, wait
+
+    from pebble import ProcessExpired
+
+    run = task or merge_run
+    pending: dict[Future[Any], tuple[RunSource, int]] = {pool.schedule(run, (s, *args)): (s, 1) for s in todo}
+
+    def batches() -> Iterator[list[_Finished]]:
+        while pending:
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            batch: list[_Finished] = []
+            for fut in done:
+                source, attempt = pending.pop(fut)
+                err = fut.exception()
+                if isinstance(err, ProcessExpired) and attempt < WORKER_ATTEMPTS:
+                    pending[pool.schedule(run, (source, *args))] = (source, attempt + 1)
+                elif isinstance(err, ProcessExpired):
+                    died = RuntimeError(
+                        f"its worker process died (exit code {err.exitcode}) in each of {attempt} attempts"
+                    )
+                    batch.append((source, "error", (RuntimeError, died, None)))
+                elif err is not None:
+                    batch.append((source, "error", (type(err), err, None)))
+                else:
+                    batch.append((source, "finished", fut.result()))
+            if batch:
+                yield batch
+
+    return batches()
+
+
+@contextmanager
+def _dask_client(scheduler: str) -> Iterator[Client]:
+    """A dask.distributed client of the scheduler at ``scheduler``, once the workers it has
+    have loaded the kernels (a worker that joins later pays it in its first run). The workers'
+    reports, a few kB each, come through the scheduler: the client needs to reach it only."""
+    from distributed import Client
+
+    with Client(scheduler) as client:
+        try:
+            client.run(_load_kernels)
+        except Exception:  # noqa: BLE001, S110  (the merge itself reports what is wrong)
+            pass
+        yield client
+
+
+def _dask_batches(client: Client, todo: list[RunSource], args: tuple[Any, ...]) -> Iterator[list[_Finished]]:
+    """Submit one :func:`merge_run` task per run of ``todo`` to ``client`` now and return the
+    runs as they finish, in batches (Dask re-runs a task whose worker died)."""
+    from distributed import as_completed
+
+    futures = [client.submit(merge_run, s, *args, key=_task_key(s), pure=False) for s in todo]
+    sources = {f.key: s for f, s in zip(futures, todo)}
+
+    def batches() -> Iterator[list[_Finished]]:
+        for done in as_completed(futures, with_results=True, raise_errors=False).batches():
+            yield [(sources[fut.key], fut.status, result) for fut, result in done]
+            for fut, _ in done:
+                fut.release()
+
+    return batches()
 
 
 def _describe(err: BaseException) -> str:
@@ -449,13 +581,17 @@ def run_batch(
     progress: bool | None = None,
     on_submit: Callable[[Client], None] | None = None,
 ) -> BatchReport:
-    """Merge the runs of ``paths`` on dask.distributed into ``archive``.
+    """Merge the runs of ``paths`` into ``archive`` on local worker processes, or on the
+    workers of a Dask scheduler.
 
     Runs already in the archive are skipped unless ``force`` (then rewritten in place). One
     task per run, which writes the run into the archive; the client commits the runs reported
     (together, in one commit, when several are). A run whose task fails is recorded in the
-    archive with its error and the others go on; a task whose worker dies is re-run by Dask. The
-    archive's writer lock is held for the whole batch (a second batch into it waits).
+    archive with its error and the others go on; a run whose worker dies is merged again by
+    another (a local one up to :data:`WORKER_ATTEMPTS` times, then recorded as failed; Dask
+    re-runs it as its configuration allows). The archive's writer lock is held for the whole
+    batch (a second batch into it waits). Local workers are spawned and import the caller's
+    main module: a script must call this under ``if __name__ == "__main__":``.
 
     Parameters
     ----------
@@ -466,9 +602,9 @@ def run_batch(
     settings : BatchSettings
         The merge settings.
     workers : int or None
-        Worker processes of the local cluster (default: one per core).
+        Local worker processes (default: one per core).
     scheduler : str or None
-        Address of a running Dask scheduler (instead of a local cluster).
+        Address of a running Dask scheduler whose workers merge the runs (instead of local ones).
     threads : int or None
         Merge-kernel threads per local worker (default: the cores divided among the workers).
     force : bool
@@ -476,14 +612,24 @@ def run_batch(
     progress : bool or None
         Progress bar with ETA (default: on a terminal).
     on_submit : callable or None
-        Called with the client once the tasks are submitted (tests use it to kill a worker).
+        Called once the tasks are submitted with the local pool (a :class:`pebble.ProcessPool`)
+        or the Dask client (tests use it to kill a worker).
 
     Returns
     -------
     BatchReport
+
+    Raises
+    ------
+    RuntimeError
+        Called while a local worker starts (a script without a main guard), or its local
+        workers end as they start.
+    HdrcapError
+        No run folder, or a folder that is not a run.
     """
     from hdrcap.batch.archive import Archive
 
+    _check_not_starting_a_worker()
     t0, c0 = time.perf_counter(), time.process_time()
     sources = find_runs(paths)
     report = BatchReport(str(archive))
@@ -551,30 +697,35 @@ def _run_tasks(
     cluster: tuple[int | None, str | None, int | None],
     force: bool,
     progress: bool | None,
-    on_submit: Callable[[Client], None] | None,
+    on_submit: Callable[[Any], None] | None,
     began: tuple[float, float],
 ) -> None:
-    """Submit one task per run; commit the runs reported (or record their failure) as they come.
-    ``cluster``: the workers, scheduler and threads of :func:`_client`; ``began``: the clock and
-    the client's CPU seconds when the batch began (the start-up is counted from then)."""
-    from distributed import as_completed
+    """Give one task per run to the workers; commit the runs reported (or record their failure)
+    as they come. ``cluster``: the local workers, the scheduler's address and the threads per
+    local worker; ``began``: the clock and the client's CPU seconds when the batch began (the
+    start-up is counted from then)."""
     from tqdm import tqdm
 
+    workers, scheduler, threads = cluster
     committer = _Committer(session, report, force)
-    with _client(*cluster) as client:
+    args = (settings, session.target)
+    with ExitStack() as stack:
+        executor: Any
+        if scheduler:
+            executor = stack.enter_context(_dask_client(scheduler))
+        else:
+            executor = stack.enter_context(_local_pool(workers, threads))
         report.startup_seconds = time.perf_counter() - began[0]
         report.startup_cpu_seconds = time.process_time() - began[1]
-        futures = [client.submit(merge_run, s, settings, session.target, key=_task_key(s), pure=False) for s in todo]
-        sources = {f.key: s for f, s in zip(futures, todo)}
+        batches = _dask_batches(executor, todo, args) if scheduler else _pool_batches(executor, todo, args)
         if on_submit is not None:
-            on_submit(client)
+            on_submit(executor)
         show = sys.stderr.isatty() if progress is None else progress
         with tqdm(total=len(todo), desc="batch", unit="run", disable=not show, dynamic_ncols=True) as bar:
             # the runs reported while the previous commit was made are committed together
-            for done in as_completed(futures, with_results=True, raise_errors=False).batches():
-                for fut, result in done:
-                    committer.take(sources[fut.key], fut.status, result)
-                    fut.release()
+            for done in batches:
+                for source, status, result in done:
+                    committer.take(source, status, result)
                 committer.commit()
                 bar.update(len(done))
         committer.commit(final=True)

@@ -167,37 +167,115 @@ def _export(archive: Path, run: int, out: Path) -> Path:
     return out
 
 
-def test_killed_worker_loses_nothing(runs, tmp_path):
+def _kill_busy_local_worker(pool, killed: list[int]) -> None:
+    """Kill the process of a local worker once it merges a run (pebble's record of which worker
+    took which task: private, pebble is pinned to one major version)."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        busy = [t.worker_id for t in list(pool._pool_manager.task_manager.tasks.values()) if t.worker_id]
+        if busy:
+            os.kill(busy[0], signal.SIGKILL)
+            killed.append(busy[0])
+            return
+        time.sleep(0.01)
+
+
+def _kill_busy_dask_worker(client, killed: list[int]) -> None:
+    """Kill the process of a Dask worker once it merges a run."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        busy = [w for w, tasks in client.processing().items() if tasks]
+        if busy:
+            pid = client.run(os.getpid, workers=[busy[0]])[busy[0]]
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+            return
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("where", ["local", "scheduler"])
+def test_killed_worker_loses_nothing(runs, tmp_path, where):
+    """A worker killed while it merges a run (local pool, or a Dask scheduler's worker): the run
+    is merged again by another and lands once, bit-identical; no run fails."""
     from hdrcap.batch.driver import BatchSettings, calibration_identity, run_batch
 
     archive = tmp_path / "k.zarr"
     settings = BatchSettings(calibration=None, camera=CAMERA, calibration_id=calibration_identity(None, CAMERA))
-    killed = []
-
-    def kill_one_busy_worker(client):
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:  # wait until a worker is busy with a run, then kill its process
-            busy = [w for w, tasks in client.processing().items() if tasks]
-            if busy:
-                pid = client.run(os.getpid, workers=[busy[0]])[busy[0]]
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
-                return
-            time.sleep(0.05)
-
+    killed: list[int] = []
     folders = [*runs["good"], runs["capture"]]
-    report = run_batch(folders, archive, settings, workers=2, on_submit=kill_one_busy_worker, progress=False)
+    if where == "local":
+        report = run_batch(
+            folders,
+            archive,
+            settings,
+            workers=2,
+            on_submit=lambda p: _kill_busy_local_worker(p, killed),
+            progress=False,
+        )
+    else:
+        from distributed import LocalCluster
+
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+            report = run_batch(
+                folders,
+                archive,
+                settings,
+                scheduler=cluster.scheduler_address,
+                on_submit=lambda c: _kill_busy_dask_worker(c, killed),
+                progress=False,
+            )
     assert killed and not report.failed and len(report.committed) == 4
     ds = xr.open_zarr(archive)
     assert sorted(map(str, ds["folder"].values)) == sorted(str(f.resolve()) for f in folders)  # exactly once
     # ... and the runs are the merge's: the same as a batch without the kill (other test's archive layout).
     from hdrcap.batch.driver import find_runs, merge_run
 
-    for src in find_runs(folders[:1]):
+    for src in find_runs(folders):
         ref = merge_run(src, settings).run
         i = list(map(str, ds["folder"].values)).index(src.folder)
         for name in ("irradiance", "sigma", "nexp"):
             assert np.array_equal(ds[name].isel(run=i).values, ref.channels[name], equal_nan=True)
+
+
+def test_a_run_whose_worker_always_dies_is_recorded_after_its_attempts(tmp_path):
+    """A run that kills its worker process each time (a crash in a library, memory) is given
+    again until WORKER_ATTEMPTS tries, then recorded as failed with the worker's exit status;
+    the other runs land, and the pool goes on with new workers."""
+    from hdrcap.batch.driver import WORKER_ATTEMPTS, RunSource, _local_pool, _pool_batches
+    from tests.helpers.tasks import die_on_poison
+
+    todo = [RunSource(f"/runs/{name}", ("f",)) for name in ("a", "poison", "b", "c")]
+    with _local_pool(2, 1) as pool:
+        finished = [f for batch in _pool_batches(pool, todo, (str(tmp_path),), task=die_on_poison) for f in batch]
+    status = {s.folder: (st, r) for s, st, r in finished}
+    assert sorted(status) == sorted(s.folder for s in todo)  # each run once
+    assert {k: v for k, v in status.items() if k != "/runs/poison"} == {
+        f"/runs/{n}": ("finished", f"/runs/{n}") for n in "abc"
+    }
+    st, (kind, err, _) = status["/runs/poison"]
+    assert st == "error" and kind is RuntimeError
+    assert str(err) == f"its worker process died (exit code 7) in each of {WORKER_ATTEMPTS} attempts"
+    assert len(list(tmp_path.glob("poison-*"))) == WORKER_ATTEMPTS  # one try per attempt, in a worker of its own
+
+
+def test_a_script_without_a_main_guard_gets_a_one_line_error(runs, tmp_path):
+    """Local workers are spawned: each imports the caller's main module. A script that calls
+    run_batch at its top level makes every worker end as it starts; the batch says so instead
+    of waiting for workers that never come."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from hdrcap.batch.driver import BatchSettings, run_batch\n"
+        f"run_batch([{str(runs['good'][0])!r}], {str(tmp_path / 'u.zarr')!r}, BatchSettings(None, {CAMERA!r}), "
+        "workers=1, progress=False)\n"
+    )
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("RuntimeError: the batch's worker processes end as they start")
+    assert 'if __name__ == "__main__":' in last
 
 
 def test_time_series_of_one_photosite_with_sigma(runs, tmp_path, monkeypatch):
@@ -303,29 +381,21 @@ def test_a_task_that_raised_is_recorded_with_its_error(tmp_path):
     assert set(store.failed()) == {"/runs/001", "/runs/002"}
 
 
-def _kernels_loaded() -> bool:
+def _worker_state() -> tuple[int, bool, int]:
     import sys
 
-    return "hdrcap.pipeline.merge.kernels" in sys.modules and "numba" in sys.modules
+    import numba
+
+    time.sleep(0.3)  # long enough for the other worker to take the next one
+    return os.getpid(), "hdrcap.pipeline.merge.kernels" in sys.modules, numba.get_num_threads()
 
 
 def test_workers_load_the_merge_kernels_before_their_first_run():
-    """The workers' fixed cost (numba and the merge kernels) is paid while the cluster starts,
-    by every worker at once, not inside the first run of each."""
-    from hdrcap.batch.driver import _client
+    """The workers' fixed cost (numba and the merge kernels) is paid while the pool starts, by
+    every worker at once, not inside the first run of each; each runs the threads asked for."""
+    from hdrcap.batch.driver import _local_pool
 
-    with _client(2, None, 1) as client:
-        assert set(client.run(_kernels_loaded).values()) == {True}
-
-
-def _sampling(dask_worker) -> list[str]:  # client.run passes the worker itself
-    return sorted(name for name in dask_worker.periodic_callbacks if "profile" in name)
-
-
-def test_local_workers_run_no_sampling_profiler():
-    """A worker's statistical profiler samples its threads every 10 ms: about a tenth of a 2
-    Mpixel run's CPU seconds, which would be counted as the merge's (``merge_cpu_seconds``)."""
-    from hdrcap.batch.driver import _client
-
-    with _client(1, None, 1) as client:
-        assert list(client.run(_sampling).values()) == [[]]
+    with _local_pool(2, 1) as pool:
+        states = [pool.schedule(_worker_state) for _ in range(2)]
+        got = [f.result(timeout=60) for f in states]
+    assert len({pid for pid, _, _ in got}) == 2 and all(loaded and n == 1 for _, loaded, n in got)

@@ -1,4 +1,4 @@
-"""``hdrcap batch``: many runs merged on dask.distributed into one zarr archive."""
+"""``hdrcap batch``: many runs merged on local worker processes or a Dask cluster into one zarr archive."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ SHARED = (
     "--workers",
     type=click.IntRange(min=1),
     default=None,
-    help="Worker processes of the local Dask cluster (default: one per core).",
+    help="Local worker processes, each merging one run at a time (default: one per core).",
 )
 @click.option(
     "--threads",
@@ -65,7 +65,7 @@ SHARED = (
     "--scheduler",
     metavar="ADDRESS",
     default=None,
-    help="Address of a running Dask scheduler (e.g. tcp://head:8786) instead of a local cluster.",
+    help="Address of a running Dask scheduler (e.g. tcp://head:8786) whose workers merge the runs, instead of local workers.",
 )
 @click.option("--force", is_flag=True, help="Merge runs already in the archive again (rewritten in place).")
 @click.option("--progress/--no-progress", default=None, help="Progress bar with ETA (default: on a terminal).")
@@ -84,7 +84,7 @@ def command(
     **merge_opts: Any,
 ) -> None:
     """Merge many RUNS (capture run folders with manifest.jsonl, or folders of raw brackets)
-    into the zarr archive OUTPUT, one Dask task per run, with the options of `hdrcap merge`.
+    into the zarr archive OUTPUT, one task per run on local workers (or a Dask cluster), with the options of `hdrcap merge`.
 
     Runs already in the archive are skipped (unless --force); a run that fails is recorded in
     the archive's hdrcap_failed_runs attribute and the others go on. Open the archive with
