@@ -1,6 +1,7 @@
-"""``hdrcap batch`` on dask.distributed: every run of the archive bit-identical to ``hdrcap merge``
-of that run, a corrupt run recorded while the others land, resume, a killed worker loses nothing,
-and a time series of one photosite with its sigma against the simulator's truth."""
+"""``hdrcap batch`` on local workers and dask.distributed: every run of the archive bit-identical
+to ``hdrcap merge`` of that run, a corrupt run recorded while the others land, resume, a killed
+worker loses nothing, and a time series of one photosite with its sigma against the simulator's
+truth."""
 
 from __future__ import annotations
 
