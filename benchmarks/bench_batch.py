@@ -134,9 +134,11 @@ def _command(runs: list[Path], archive: Path, workers: int, threads: int, env: d
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _configuration(cfg: str, runs: list[Path], archive: Path, env: dict | None, ref: dict, run_batch, settings) -> dict:
+def _configuration(cfg: str, runs: list[Path], archive: Path, env: dict | None, ref: dict, settings) -> dict:
     """One configuration WxT of the batch into a fresh ``archive``: its figures."""
     import xarray as xr
+
+    from hdrcap.batch.driver import run_batch
 
     w, th = (int(v) for v in cfg.split("x"))
     t0 = time.perf_counter()
@@ -229,7 +231,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     configs = args.configs or _default_configs()
 
-    from hdrcap.batch.driver import BatchSettings, calibration_identity, find_runs, merge_run, run_batch
+    from hdrcap.batch.driver import BatchSettings, calibration_identity, find_runs, merge_run
 
     settings = BatchSettings(calibration=None, camera="camera-B", calibration_id=calibration_identity(None, "camera-B"))
     out: dict = {
@@ -250,10 +252,7 @@ def main(argv=None) -> dict:
         every: list[dict] = []
         for r in range(args.repeats):  # the configurations interleaved: a slow spell of the machine hits all
             every.append(
-                {
-                    cfg: _configuration(cfg, runs, root / f"r{r}-{cfg}.zarr", env, ref, run_batch, settings)
-                    for cfg in configs
-                }
+                {cfg: _configuration(cfg, runs, root / f"r{r}-{cfg}.zarr", env, ref, settings) for cfg in configs}
             )
     out["configs"] = {cfg: _median_of([rep[cfg] for rep in every]) for cfg in configs}
     out["repeats"] = every

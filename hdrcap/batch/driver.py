@@ -383,6 +383,13 @@ _START_TIMEOUT = 600.0
 _Finished = tuple[RunSource, str, Any]
 
 
+#: Why a local worker that imports the caller's script must not start a batch of its own.
+_MAIN_GUARD = (
+    'a script that calls run_batch must do so under `if __name__ == "__main__":` '
+    "(each local worker imports the script as it starts)"
+)
+
+
 def _load_kernels() -> None:
     """Import numba and the merge kernels and set numba's CPU target up
     (:func:`hdrcap.pipeline.merge.accumulator.import_kernels`): a worker's fixed cost, paid by
@@ -442,13 +449,6 @@ def _await_workers(n: int, ready: Connection, ctx: _SpawnContext) -> None:
             raise RuntimeError(
                 f"the batch's worker processes end as they start (exit status {ended[-1]}): {_MAIN_GUARD}"
             )
-
-
-#: Why a local worker that imports the caller's script must not start a batch of its own.
-_MAIN_GUARD = (
-    'a script that calls run_batch must do so under `if __name__ == "__main__":` '
-    "(each local worker imports the script as it starts)"
-)
 
 
 def _check_not_starting_a_worker() -> None:

@@ -168,30 +168,29 @@ def _export(archive: Path, run: int, out: Path) -> Path:
     return out
 
 
-def _kill_busy_local_worker(pool, killed: list[int]) -> None:
-    """Kill the process of a local worker once it merges a run (pebble's record of which worker
-    took which task: private, pebble is pinned to one major version)."""
+def _kill_when_busy(busy_pid, killed: list[int]) -> None:
+    """Kill the process ``busy_pid()`` names (a worker merging a run; None: none yet) as soon as
+    it names one, within a minute."""
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
-        busy = [t.worker_id for t in list(pool._pool_manager.task_manager.tasks.values()) if t.worker_id]
-        if busy:
-            os.kill(busy[0], signal.SIGKILL)
-            killed.append(busy[0])
+        pid = busy_pid()
+        if pid:
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
             return
         time.sleep(0.01)
 
 
-def _kill_busy_dask_worker(client, killed: list[int]) -> None:
-    """Kill the process of a Dask worker once it merges a run."""
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        busy = [w for w, tasks in client.processing().items() if tasks]
-        if busy:
-            pid = client.run(os.getpid, workers=[busy[0]])[busy[0]]
-            os.kill(pid, signal.SIGKILL)
-            killed.append(pid)
-            return
-        time.sleep(0.05)
+def _busy_local_worker(pool) -> int | None:
+    """A local worker merging a run (pebble's record of which worker took which task: private,
+    pebble is pinned to one major version)."""
+    return next((t.worker_id for t in list(pool._pool_manager.task_manager.tasks.values()) if t.worker_id), None)
+
+
+def _busy_dask_worker(client) -> int | None:
+    """The process of a Dask worker merging a run."""
+    busy = [w for w, tasks in client.processing().items() if tasks]
+    return client.run(os.getpid, workers=[busy[0]])[busy[0]] if busy else None
 
 
 @pytest.mark.parametrize("where", ["local", "scheduler"])
@@ -210,7 +209,7 @@ def test_killed_worker_loses_nothing(runs, tmp_path, where):
             archive,
             settings,
             workers=2,
-            on_submit=lambda p: _kill_busy_local_worker(p, killed),
+            on_submit=lambda p: _kill_when_busy(lambda: _busy_local_worker(p), killed),
             progress=False,
         )
     else:
@@ -222,7 +221,7 @@ def test_killed_worker_loses_nothing(runs, tmp_path, where):
                 archive,
                 settings,
                 scheduler=cluster.scheduler_address,
-                on_submit=lambda c: _kill_busy_dask_worker(c, killed),
+                on_submit=lambda c: _kill_when_busy(lambda: _busy_dask_worker(c), killed),
                 progress=False,
             )
     assert killed and not report.failed and len(report.committed) == 4
