@@ -28,7 +28,7 @@ from hdrcap.batch.archive import (
     write_run,
 )
 from hdrcap.pipeline.errors import InputError
-from tests.helpers.archive import CALIBRATION, SHAPE, archive_run
+from tests.helpers.archive import CALIBRATION, SHAPE, archive_run, commit_interrupted
 
 
 def test_documented_dataset(tmp_path):
@@ -169,18 +169,10 @@ def test_a_crash_before_the_commit_leaves_no_partial_run(tmp_path, monkeypatch, 
     store = Archive(path)
     if runs_before:
         store.commit(archive_run(0))
-    # The writer fails after writing the run's chunks, at the consolidated metadata (the commit):
-    # the private step is replaced on purpose, no public door fails there.
+    # The writer fails after writing the run's chunks, at the consolidated metadata (the commit).
     # (A writer killed outright: test_a_killed_session_is_cleaned_up_by_the_next.)
-    real = archive_mod._write_consolidated
-
-    def die(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(archive_mod, "_write_consolidated", die)
-    with pytest.raises(KeyboardInterrupt):
+    with commit_interrupted(monkeypatch):
         store.commit(archive_run(1))
-    monkeypatch.setattr(archive_mod, "_write_consolidated", real)
     if runs_before:
         ds = xr.open_zarr(path)
         assert ds.sizes["run"] == 1 and list(ds["folder"].values) == ["/runs/000"]  # readers see no partial run

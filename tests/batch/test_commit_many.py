@@ -7,12 +7,10 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 import xarray as xr
 
-from hdrcap.batch import archive as archive_mod
 from hdrcap.batch.archive import CHANNELS, RUN_COORDS, Archive
-from tests.helpers.archive import archive_run
+from tests.helpers.archive import archive_run, commit_interrupted
 
 
 def _archive(path, groups):
@@ -48,16 +46,8 @@ def test_a_crash_before_the_commit_leaves_none_of_the_runs(tmp_path, monkeypatch
     path = tmp_path / "a.zarr"
     store = Archive(path)
     store.commit(archive_run(0))
-    # private on purpose: the crash is injected at the commit step itself
-    real = archive_mod._write_consolidated
-
-    def die(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(archive_mod, "_write_consolidated", die)
-    with pytest.raises(KeyboardInterrupt):
+    with commit_interrupted(monkeypatch):
         store.commit_many([archive_run(i) for i in (1, 2)])
-    monkeypatch.setattr(archive_mod, "_write_consolidated", real)
     assert xr.open_zarr(path).sizes["run"] == 1
     assert store.commit_many([archive_run(i) for i in (3, 4)]) == [1, 2]
     assert list(xr.open_zarr(path)["folder"].values) == ["/runs/000", "/runs/003", "/runs/004"]

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Iterator
+from contextlib import contextmanager
 
+import numpy as np
+import pytest
+
+from hdrcap.batch import archive as archive_mod
 from hdrcap.batch.archive import ArchiveRun
 
 #: Photosites (rows, columns) of :func:`archive_run`'s channels.
@@ -37,3 +42,17 @@ def archive_run(i: int, seed: int | None = None, shape=SHAPE, calibration=CALIBR
         merge_options={"iterations": 20},
         calibration=calibration,
     )
+
+
+def _interrupted(*args, **kwargs):
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def commit_interrupted(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Inside the block, a writer fails at the commit itself, after writing its runs' chunks:
+    writing the consolidated metadata raises KeyboardInterrupt, which the block must raise (the
+    private step is replaced on purpose: no public door fails there). Restored after."""
+    with monkeypatch.context() as patch, pytest.raises(KeyboardInterrupt):
+        patch.setattr(archive_mod, "_write_consolidated", _interrupted)
+        yield
